@@ -1,0 +1,195 @@
+"""The scene format shared by every data source, the model, the rollout and the metrics.
+
+A `Scene` is a frozen pytree of fixed-shape arrays with validity masks (never ragged), with any number of
+free leading batch dimensions written `...` below. Conventions (see DESIGN.md):
+
+* units are metres and radians; x forward, y left, heading counter-clockwise, wrapped to [-pi, pi);
+* agents are expressed in the ego frame of the *current* frame (index `num_history - 1`, 20 in the paper
+  configuration): the ego box centre at the current frame is the origin and its heading is zero;
+* slot 0 is the ego; slots 1.. are the surrounding vehicles;
+* the map of frame t (tokens and vector lanes) is expressed in the ego frame of frame t, which is the
+  pose `ego_pose[..., t, :]` in scene coordinates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Agent types. Vehicles only in GPD-1; the type is kept to size boxes and to colour pictures.
+AGENT_TYPES = ("ego", "car", "van", "truck", "bus", "motorcycle", "other")
+TYPE_ID = {name: i for i, name in enumerate(AGENT_TYPES)}
+
+
+def wrap_angle(a):
+    """Wraps angles to [-pi, pi)."""
+    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
+
+
+@flax.struct.dataclass(frozen=True)
+class Scene:
+    """One driving scene (or a batch of them: every field shares the leading dims `...`).
+
+    Attributes:
+      xy: f32[..., T, A, 2] agent box centres in the scene frame (ego frame of the current frame).
+      heading: f32[..., T, A] agent headings in the scene frame, wrapped to [-pi, pi).
+      valid: bool[..., T, A] whether the agent is observed in that frame (padding slots are never valid).
+      size: f32[..., A, 2] box (length, width) in metres per agent slot.
+      agent_type: i32[..., A] index into `AGENT_TYPES`.
+      map_tokens: i32[..., T, M] map VQ token of each 8x8 cell per frame, row-major over the grid
+        (row = forward axis x from front to back, column = lateral axis y from left to right).
+      map_valid: bool[..., T] whether `map_tokens` of the frame are known (False where no tokenizer ran).
+      ego_pose: f32[..., T, 3] (x, y, heading) of the ego in the scene frame; the pose the frame's map is
+        expressed in. Equals `(xy[..., 0, :], heading[..., 0])` where the ego is valid.
+      lanes: optional f32[..., T, L, P, 2] vector lanes of each frame in that frame's ego frame
+        (SLEDGE processing: L=50 nearest lines, P=20 points each).
+      lanes_valid: optional bool[..., T, L] which lane slots are present.
+    """
+
+    xy: jax.Array
+    heading: jax.Array
+    valid: jax.Array
+    size: jax.Array
+    agent_type: jax.Array
+    map_tokens: jax.Array
+    map_valid: jax.Array
+    ego_pose: jax.Array
+    lanes: jax.Array | None = None
+    lanes_valid: jax.Array | None = None
+
+    # ---------------------------------------------------------------- shapes
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.xy.shape[:-3])
+
+    @property
+    def num_frames(self) -> int:
+        return self.xy.shape[-3]
+
+    @property
+    def num_agents(self) -> int:
+        return self.xy.shape[-2]
+
+    @property
+    def num_map_tokens(self) -> int:
+        return self.map_tokens.shape[-1]
+
+    def validate(self) -> "Scene":
+        """Checks every field's shape against the others and raises one error naming all that are wrong.
+
+        Returns the scene itself so it can be chained: `scene = Scene(...).validate()`.
+        """
+        validate_fields(_scene_spec(self), {f.name: getattr(self, f.name) for f in dataclasses.fields(self)},
+                        where="Scene")
+        return self
+
+    def slice_frames(self, start: int, stop: int) -> "Scene":
+        """Frames [start, stop) of every per-frame field."""
+        per_frame = {"xy": -3, "heading": -2, "valid": -2, "map_tokens": -2, "map_valid": -1, "ego_pose": -2,
+                     "lanes": -4, "lanes_valid": -2}
+        updates = {}
+        for name, axis in per_frame.items():
+            v = getattr(self, name)
+            if v is not None:
+                updates[name] = jax.lax.slice_in_dim(v, start, stop, axis=v.ndim + axis)
+        return self.replace(**updates)
+
+
+def _scene_spec(scene: Scene) -> dict[str, tuple[tuple[Any, ...], Any]]:
+    """Expected (shape suffix, dtype kind) of each field, with symbolic dims resolved from `xy`/`map_tokens`."""
+    spec = {
+        "xy": (("T", "A", 2), "f"),
+        "heading": (("T", "A"), "f"),
+        "valid": (("T", "A"), "b"),
+        "size": (("A", 2), "f"),
+        "agent_type": (("A",), "i"),
+        "map_tokens": (("T", "M"), "i"),
+        "map_valid": (("T",), "b"),
+        "ego_pose": (("T", 3), "f"),
+    }
+    if scene.lanes is not None or scene.lanes_valid is not None:
+        spec["lanes"] = (("T", "L", "P", 2), "f")
+        spec["lanes_valid"] = (("T", "L"), "b")
+    return spec
+
+
+def validate_fields(spec: dict[str, tuple[tuple[Any, ...], str]], values: dict[str, Any], where: str) -> None:
+    """Checks named arrays against shape suffixes with symbolic dims and a common batch prefix.
+
+    `spec[name] = (suffix, kind)`: `suffix` mixes ints and symbol strings; every use of a symbol must agree;
+    `kind` is a numpy dtype kind ('f' float, 'i' integer (signed or unsigned), 'b' bool). All arrays must
+    share the same leading batch shape. Raises ValueError listing every problem, naming the field.
+    """
+    problems: list[str] = []
+    dims: dict[str, tuple[int, str]] = {}
+    batch: tuple[tuple[int, ...], str] | None = None
+    for name, (suffix, kind) in spec.items():
+        v = values.get(name)
+        if v is None:
+            problems.append(f"{name}: missing (expected shape [..., {', '.join(map(str, suffix))}])")
+            continue
+        shape = tuple(np.shape(v))
+        dt = np.dtype(v.dtype) if hasattr(v, "dtype") else np.asarray(v).dtype
+        ok_kind = dt.kind == kind or (kind == "i" and dt.kind == "u")
+        if not ok_kind:
+            problems.append(f"{name}: dtype {dt} but expected kind {_KIND_NAMES[kind]}")
+        if len(shape) < len(suffix):
+            problems.append(f"{name}: shape {shape} has fewer than {len(suffix)} dims "
+                            f"(expected [..., {', '.join(map(str, suffix))}])")
+            continue
+        tail = shape[len(shape) - len(suffix):]
+        lead = shape[: len(shape) - len(suffix)]
+        if batch is None:
+            batch = (lead, name)
+        elif lead != batch[0]:
+            problems.append(f"{name}: batch dims {lead} differ from {batch[1]}'s {batch[0]}")
+        for want, got in zip(suffix, tail):
+            if isinstance(want, int):
+                if want != got:
+                    problems.append(f"{name}: shape {shape}, expected [..., {', '.join(map(str, suffix))}] "
+                                    f"(a dim is {got}, not {want})")
+                    break
+            elif want in dims and dims[want][0] != got:
+                problems.append(f"{name}: dim {want}={got} in shape {shape} but {dims[want][1]} has "
+                                f"{want}={dims[want][0]}")
+                break
+            else:
+                dims.setdefault(want, (got, name))
+    if problems:
+        raise ValueError(f"invalid {where}:\n  " + "\n  ".join(problems))
+
+
+_KIND_NAMES = {"f": "float", "i": "integer", "b": "bool"}
+
+
+def ego_pose_from_agents(xy: jax.Array, heading: jax.Array) -> jax.Array:
+    """f32[..., T, 3] ego pose (slot 0) per frame from `xy: f32[..., T, A, 2]` and `heading: f32[..., T, A]`."""
+    return jnp.concatenate([xy[..., 0, :], heading[..., 0:1]], axis=-1)
+
+
+def empty_scene(num_frames: int, num_agents: int, num_map_tokens: int, batch_shape: tuple[int, ...] = (),
+                num_lanes: int | None = None, num_lane_points: int = 20) -> Scene:
+    """An all-invalid scene of the given shape (useful as a template and in tests)."""
+    b = tuple(batch_shape)
+    T, A, M = num_frames, num_agents, num_map_tokens
+    lanes = lanes_valid = None
+    if num_lanes is not None:
+        lanes = jnp.zeros(b + (T, num_lanes, num_lane_points, 2), jnp.float32)
+        lanes_valid = jnp.zeros(b + (T, num_lanes), bool)
+    return Scene(
+        xy=jnp.zeros(b + (T, A, 2), jnp.float32),
+        heading=jnp.zeros(b + (T, A), jnp.float32),
+        valid=jnp.zeros(b + (T, A), bool),
+        size=jnp.broadcast_to(jnp.array([4.5, 1.9], jnp.float32), b + (A, 2)),
+        agent_type=jnp.full(b + (A,), TYPE_ID["car"], jnp.int32).at[..., 0].set(TYPE_ID["ego"]),
+        map_tokens=jnp.zeros(b + (T, M), jnp.int32),
+        map_valid=jnp.zeros(b + (T,), bool),
+        ego_pose=jnp.zeros(b + (T, 3), jnp.float32),
+        lanes=lanes,
+        lanes_valid=lanes_valid,
+    )
