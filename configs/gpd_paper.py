@@ -1,0 +1,49 @@
+"""GPD-1 at the paper's size (official code values): T 101 = 21 + 80, 33 agents, 64 map tokens, 128x128
+codebook, d 128, 6 layers, 8 heads, FFN 2048. Override any field: --config.model.num_layers=4."""
+
+import ml_collections
+
+
+def get_config() -> ml_collections.ConfigDict:
+    c = ml_collections.ConfigDict()
+    c.stage = "gpd"
+    c.seed = 0
+
+    m = c.model = ml_collections.ConfigDict()
+    m.num_frames = 101          # T
+    m.num_history = 21          # 2 s of history + the current frame, 10 Hz
+    m.num_agents = 33           # ego (slot 0) + 32 nearest vehicles
+    m.num_map_tokens = 64       # 8 x 8 grid
+    m.codebook_size = 128       # K
+    m.d_model = 128
+    m.num_layers = 6
+    m.num_heads = 8
+    m.ffn_dim = 2048
+    m.head_hidden = 256
+    m.xy_range = 300.0          # x, y representable in [-300, 300) m
+    m.xy_levels = (1.0, 0.01)   # metres
+    m.xy_code_dim = 48
+    m.heading_levels_deg = (20.0, 1.0)
+    m.heading_code_dim = 32
+    m.attn_chunk_frames = 4     # key chunk (in frames) of the chunked block-causal attention
+    m.predict_delta = False     # regress absolute positions (official) or displacements from frame t
+    m.map_tokenizer = ""        # checkpoint dir of the map tokenizer whose codebook embeds map tokens
+
+    lw = c.loss = ml_collections.ConfigDict()
+    lw.position = 5.0
+    lw.heading = 5.73           # (180 / 3.14) * 0.1 as in the official code
+    lw.valid = 1.0
+    lw.map = 1.0
+
+    t = c.train = ml_collections.ConfigDict()
+    t.batch_size = 16
+    t.steps = 100_000
+    t.learning_rate = 1e-3
+    t.warmup_steps = 2_000
+    t.min_learning_rate = 1e-6
+    t.weight_decay = 1e-4
+    t.grad_clip = 5.0
+
+    r = c.rollout = ml_collections.ConfigDict()
+    r.temperature = 0.0         # 0: greedy (argmax) map tokens
+    return c

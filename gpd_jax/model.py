@@ -1,0 +1,253 @@
+"""The GPD-1 transformer (Flax NNX holds the parameters; the hot paths are pure functions of them).
+
+A frame is N = M + A tokens in the order `[M map tokens | ego | A-1 agents]`. Every token gets a learned slot
+embedding (N) and a learned frame embedding (T). Decoder blocks (pre-LN, GELU FFN) use the scene-level mask:
+a token sees its own frame and all earlier frames. The output of a slot at frame t predicts the same slot at
+frame t+1: position (2), heading (1), validity logit (1) for agent slots and K map logits for map slots.
+
+Entry points (all single-scenario; `jax.vmap` them over scenarios and tasks):
+
+* `GPD.embed(...)`: frame inputs -> tokens f32[F, N, d].
+* `forward(model, tokens)`: teacher-forced pass over whole frames, memory-linear attention.
+* `forward_cached(model, tokens, cache, start_frame)`: a block of frames appended to a KV cache.
+* `predict(model, hidden, xy, heading, valid)`: heads -> `Prediction` for the next frame.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from gpd_jax.attention import attend_dynamic, attend_static
+from gpd_jax.scene import wrap_angle
+from gpd_jax.tokenizer import AgentTokenizer, sinusoid_table
+
+
+class Frozen(nnx.Variable):
+    """A non-trainable variable (the map codebook taken from the map tokenizer)."""
+
+
+def grid_code(grid: int, dim: int) -> np.ndarray:
+    """f32[grid*grid, dim] fixed 2-D sinusoidal code of each cell (row code ++ column code), row-major."""
+    half = dim // 2
+    rows = sinusoid_table(grid, half, max_period=4.0 * grid)
+    cols = sinusoid_table(grid, dim - half, max_period=4.0 * grid)
+    r, c = np.meshgrid(np.arange(grid), np.arange(grid), indexing="ij")
+    return np.concatenate([rows[r.ravel()], cols[c.ravel()]], axis=-1)
+
+
+class MLP(nnx.Module):
+    """Linear - LayerNorm - ReLU blocks then a final Linear (the official agent encoder and heads)."""
+
+    def __init__(self, sizes: tuple[int, ...], rngs: nnx.Rngs, first_bias: bool = True):
+        self.linears = nnx.List([nnx.Linear(a, b, use_bias=(i > 0 or first_bias), rngs=rngs)
+                                 for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:]))])
+        self.norms = nnx.List([nnx.LayerNorm(b, rngs=rngs) for b in sizes[1:-1]])
+
+    def __call__(self, x):
+        for lin, norm in zip(self.linears[:-1], self.norms):
+            x = jax.nn.relu(norm(lin(x)))
+        return self.linears[-1](x)
+
+
+class Block(nnx.Module):
+    """Pre-LN transformer block; attention itself is done by the caller so it can use a cache."""
+
+    def __init__(self, d: int, heads: int, ffn: int, rngs: nnx.Rngs):
+        if d % heads:
+            raise ValueError(f"d_model {d} is not divisible by num_heads {heads}")
+        self.heads = heads
+        self.ln1 = nnx.LayerNorm(d, rngs=rngs)
+        self.qkv = nnx.Linear(d, 3 * d, rngs=rngs)
+        self.proj = nnx.Linear(d, d, rngs=rngs)
+        self.ln2 = nnx.LayerNorm(d, rngs=rngs)
+        self.ff1 = nnx.Linear(d, ffn, rngs=rngs)
+        self.ff2 = nnx.Linear(ffn, d, rngs=rngs)
+
+    def qkv_heads(self, x):
+        """x f32[S, d] -> q, k, v f32[S, H, Dh]."""
+        s, d = x.shape
+        qkv = self.qkv(self.ln1(x)).reshape(s, 3, self.heads, d // self.heads)
+        return qkv[:, 0], qkv[:, 1], qkv[:, 2]
+
+    def finish(self, x, attn):
+        """Residual updates given the attention output `attn f32[S, H, Dh]`."""
+        x = x + self.proj(attn.reshape(x.shape))
+        return x + self.ff2(jax.nn.gelu(self.ff1(self.ln2(x))))
+
+
+class Prediction(NamedTuple):
+    """Next-frame prediction of every slot of a block of frames.
+
+    xy: f32[..., F, A, 2], heading: f32[..., F, A], valid_logit: f32[..., F, A], map_logits: f32[..., F, M, K].
+    """
+
+    xy: jax.Array
+    heading: jax.Array
+    valid_logit: jax.Array
+    map_logits: jax.Array
+
+
+@flax.struct.dataclass
+class KVCache:
+    """Keys and values per layer: k, v are tuples of L arrays f32[S, H, Dh] (S = frames * N padded to a chunk
+    multiple). One array per layer so that a scan carrying the cache updates each in place."""
+
+    k: tuple[jax.Array, ...]
+    v: tuple[jax.Array, ...]
+
+
+class GPD(nnx.Module):
+    """GPD-1 transformer. `cfg` is the `model` section of a config (see configs/gpd_paper.py).
+
+    Args:
+      cfg: model config.
+      rngs: parameter initialisation keys.
+      codebook: optional f32[K, D] map-tokenizer codebook; map tokens are then embedded as their (frozen)
+        codebook vectors projected to d, otherwise with a learned K x d table.
+    """
+
+    def __init__(self, cfg, rngs: nnx.Rngs, codebook: np.ndarray | None = None):
+        d = int(cfg.d_model)
+        self.num_agents = int(cfg.num_agents)
+        self.num_map = int(cfg.num_map_tokens)
+        self.num_frames = int(cfg.num_frames)
+        self.tokens_per_frame = self.num_map + self.num_agents
+        self.chunk_len = int(cfg.attn_chunk_frames) * self.tokens_per_frame
+        self.predict_delta = bool(cfg.predict_delta)
+        self.tokenizer = AgentTokenizer.from_config(cfg)
+        grid = int(round(math.sqrt(self.num_map)))
+        if grid * grid != self.num_map:
+            raise ValueError(f"num_map_tokens {self.num_map} is not a square grid")
+        k_codes = int(cfg.codebook_size)
+
+        self.agent_mlp = MLP((self.tokenizer.dim, d, d, d), rngs, first_bias=False)
+        self.oob = nnx.Param(0.02 * jax.random.normal(rngs.params(), (d,)))
+        if codebook is not None:
+            codebook = np.asarray(codebook, np.float32)
+            if codebook.shape[0] != k_codes:
+                raise ValueError(f"codebook has {codebook.shape[0]} codes, config says {k_codes}")
+            self.codebook = Frozen(jnp.asarray(codebook))
+            self.map_in = nnx.Linear(codebook.shape[1], d, rngs=rngs)
+        else:
+            self.codebook = None
+            self.map_embed = nnx.Embed(k_codes, d, rngs=rngs)
+        self.grid_code = Frozen(jnp.asarray(grid_code(grid, d)))
+        self.grid_mlp = nnx.Linear(d, d, rngs=rngs)
+        self.slot_emb = nnx.Param(0.02 * jax.random.normal(rngs.params(), (self.tokens_per_frame, d)))
+        self.frame_emb = nnx.Param(0.02 * jax.random.normal(rngs.params(), (self.num_frames, d)))
+        self.blocks = nnx.List([Block(d, int(cfg.num_heads), int(cfg.ffn_dim), rngs)
+                                for _ in range(int(cfg.num_layers))])
+        self.final_ln = nnx.LayerNorm(d, rngs=rngs)
+        hh = int(cfg.head_hidden)
+        self.pos_head = MLP((d, hh, 2), rngs)
+        self.heading_head = MLP((d, hh, 1), rngs)
+        self.valid_head = MLP((d, hh, 1), rngs)
+        self.map_head = MLP((d, hh, k_codes), rngs)
+
+    # ------------------------------------------------------------------ embedding
+    def embed(self, xy, heading, valid, map_tokens, frames):
+        """Tokens of a block of frames.
+
+        Args:
+          xy: f32[F, A, 2], heading: f32[F, A], valid: bool[F, A], map_tokens: i32[F, M],
+          frames: i32[F] absolute frame indices (for the frame embedding).
+        Returns:
+          f32[F, N, d] with N = M + A, map tokens first.
+        """
+        codes = self.tokenizer.encode(xy, heading)
+        agents = self.agent_mlp(codes)
+        agents = jnp.where(valid[..., None], agents, self.oob[...])
+        if self.codebook is not None:
+            maps = self.map_in(jnp.take(self.codebook[...], map_tokens, axis=0))
+        else:
+            maps = self.map_embed(map_tokens)
+        maps = maps + self.grid_mlp(self.grid_code[...])
+        tokens = jnp.concatenate([maps, agents], axis=-2)
+        return tokens + self.slot_emb[...] + jnp.take(self.frame_emb[...], frames, axis=0)[:, None, :]
+
+    # ------------------------------------------------------------------ heads
+    def predict(self, hidden, xy, heading, valid) -> Prediction:
+        """Next-frame predictions from hidden states `f32[F, N, d]` of frames whose inputs were
+        xy f32[F, A, 2], heading f32[F, A], valid bool[F, A] (used when predicting displacements)."""
+        h = self.final_ln(hidden)
+        ha, hm = h[..., self.num_map:, :], h[..., : self.num_map, :]
+        dxy = self.pos_head(ha)
+        dh = self.heading_head(ha)[..., 0]
+        if self.predict_delta:
+            base = valid[..., None]
+            pxy = dxy + jnp.where(base, xy, 0.0)
+            ph = wrap_angle(dh + jnp.where(valid, heading, 0.0))
+        else:
+            pxy, ph = dxy, wrap_angle(dh)
+        return Prediction(xy=pxy, heading=ph, valid_logit=self.valid_head(ha)[..., 0],
+                          map_logits=self.map_head(hm))
+
+    # ------------------------------------------------------------------ caches
+    def padded_len(self, frames: int) -> int:
+        s = frames * self.tokens_per_frame
+        return -(-s // self.chunk_len) * self.chunk_len
+
+    def init_cache(self, frames: int | None = None, dtype=jnp.float32) -> KVCache:
+        """An empty cache for `frames` frames (default: the config's num_frames)."""
+        frames = self.num_frames if frames is None else frames
+        blk = self.blocks[0]
+        d = blk.qkv.in_features
+        shape = (self.padded_len(frames), blk.heads, d // blk.heads)
+        return KVCache(k=tuple(jnp.zeros(shape, dtype) for _ in self.blocks),
+                       v=tuple(jnp.zeros(shape, dtype) for _ in self.blocks))
+
+
+def forward(model: GPD, tokens):
+    """Teacher-forced pass over whole frames. tokens f32[F, N, d] -> hidden f32[F, N, d].
+
+    Attention is chunked over keys with a rematerialized scan: memory stays linear in F * N under autodiff.
+    """
+    f, n, d = tokens.shape
+    s = f * n
+    pad = model.padded_len(f) - s
+    q_frame = jnp.arange(s) // n
+    x = tokens.reshape(s, d)
+    for blk in model.blocks:
+        q, k, v = blk.qkv_heads(x)
+        k = jnp.pad(k, ((0, pad), (0, 0), (0, 0)))
+        v = jnp.pad(v, ((0, pad), (0, 0), (0, 0)))
+        x = blk.finish(x, attend_static(q, k, v, q_frame, n, model.chunk_len))
+    return x.reshape(f, n, d)
+
+
+def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
+    """Appends a block of frames to the cache and attends only to the filled chunks.
+
+    Args:
+      tokens: f32[F, N, d] tokens of frames [start_frame, start_frame + F).
+      cache: KVCache holding frames [0, start_frame).
+      start_frame: i32[] (may be traced).
+    Returns:
+      (hidden f32[F, N, d], updated cache).
+    """
+    f, n, d = tokens.shape
+    s = f * n
+    start = start_frame * n
+    q_frame = start_frame + jnp.arange(s) // n
+    num_chunks = (start + s + model.chunk_len - 1) // model.chunk_len
+    x = tokens.reshape(s, d)
+    ks, vs = [], []
+    for i, blk in enumerate(model.blocks):
+        q, k, v = blk.qkv_heads(x)
+        kc = jax.lax.dynamic_update_slice_in_dim(cache.k[i], k.astype(cache.k[i].dtype), start, axis=0)
+        vc = jax.lax.dynamic_update_slice_in_dim(cache.v[i], v.astype(cache.v[i].dtype), start, axis=0)
+        ks.append(kc)
+        vs.append(vc)
+        x = blk.finish(x, attend_dynamic(q, kc, vc, q_frame, num_chunks, n, model.chunk_len))
+    return x.reshape(f, n, d), KVCache(k=tuple(ks), v=tuple(vs))
+
+
+def count_params(model: nnx.Module) -> int:
+    return sum(int(np.prod(x.shape)) for x in jax.tree.leaves(nnx.state(model, nnx.Param)))

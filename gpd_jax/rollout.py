@@ -1,0 +1,158 @@
+"""Autoregressive scene rollout: KV-cached (ours) and full-prefix recompute (the official method).
+
+Both are single-scenario pure functions of the model; `rollout_batch` vmaps the cached one over scenarios and
+tasks, so one compiled function runs a batch that mixes tasks.
+
+Cached rollout: the history frames [0, H) are embedded and pushed through the transformer in one call that
+fills a preallocated KV cache; then a `lax.scan` over future frames forms each frame from the previous
+frame's prediction and the log (per the task mask), embeds its N tokens, appends their keys/values at the
+frame's offset and attends only to the filled part of the cache (chunked; see attention.py).
+
+Feedback: predicted positions and headings are re-tokenized as regressed; valid = logit > 0; a map token is
+the argmax of its logits (temperature 0, the default) or sampled at a temperature with an explicit key.
+"""
+
+from __future__ import annotations
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from gpd_jax.model import GPD, Prediction, forward, forward_cached
+from gpd_jax.scene import Scene
+from gpd_jax.tasks import Task
+
+
+@flax.struct.dataclass
+class RolloutOutput:
+    """A rolled-out scene. History frames are the log's (with the task's hidden agents removed).
+
+    xy: f32[..., T, A, 2], heading: f32[..., T, A], valid: bool[..., T, A],
+    valid_logit: f32[..., T, A] (the model's logit for generated frames, +/-inf-free 0 elsewhere),
+    map_tokens: i32[..., T, M].
+    """
+
+    xy: jax.Array
+    heading: jax.Array
+    valid: jax.Array
+    valid_logit: jax.Array
+    map_tokens: jax.Array
+
+
+def _log_inputs(scene: Scene, task: Task):
+    valid = scene.valid & ~task.hidden[None, :]
+    return scene.xy, scene.heading, valid, scene.map_tokens
+
+
+def _choose_frame(pred: Prediction, scene: Scene, task: Task, t, key, temperature: float, num_map: int):
+    """Frame t's inputs: the log where the task says so, the prediction elsewhere.
+
+    `pred` holds the single-frame prediction made at frame t-1 (leading dim 1).
+    """
+    logits = pred.map_logits[0]
+    if temperature > 0:
+        sampled = jax.random.categorical(jax.random.fold_in(key, t), logits / temperature, axis=-1)
+    else:
+        sampled = jnp.argmax(logits, axis=-1)
+    log_map = scene.map_tokens[t]
+    fl_map, fl_agent = task.from_log[:num_map], task.from_log[num_map:]
+    map_t = jnp.where(fl_map, log_map, sampled.astype(log_map.dtype))
+    xy_t = jnp.where(fl_agent[:, None], scene.xy[t], pred.xy[0])
+    heading_t = jnp.where(fl_agent, scene.heading[t], pred.heading[0])
+    valid_t = jnp.where(fl_agent, scene.valid[t], pred.valid_logit[0] > 0) & ~task.hidden
+    logit_t = jnp.where(fl_agent, 0.0, pred.valid_logit[0])
+    return xy_t, heading_t, valid_t, logit_t, map_t
+
+
+def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
+            temperature: float = 0.0) -> RolloutOutput:
+    """KV-cached rollout of one scenario under one task.
+
+    Args:
+      model: the GPD transformer.
+      scene: a single (unbatched) scene with T frames; frames [0, num_history) are given.
+      task: a single task (from_log bool[M + A], hidden bool[A]).
+      key: PRNG key (used only when temperature > 0).
+      num_history: H, the number of given frames (21 in the paper).
+      temperature: 0 for greedy map tokens, > 0 to sample them.
+    """
+    t_total, h = scene.num_frames, num_history
+    num_map = scene.num_map_tokens
+    xy, heading, valid, maps = _log_inputs(scene, task)
+    tokens = model.embed(xy[:h], heading[:h], valid[:h], maps[:h], jnp.arange(h))
+    hidden, cache = forward_cached(model, tokens, model.init_cache(t_total), 0)
+    pred = model.predict(hidden[-1:], xy[h - 1:h], heading[h - 1:h], valid[h - 1:h])
+
+    def step(carry, t):
+        cache, pred = carry
+        frame = _choose_frame(pred, scene, task, t, key, temperature, num_map)
+        fxy, fh, fv, _, fm = frame
+        tok = model.embed(fxy[None], fh[None], fv[None], fm[None], t[None])
+        hid, cache = forward_cached(model, tok, cache, t)
+        return (cache, model.predict(hid, fxy[None], fh[None], fv[None])), frame
+
+    (_, pred), frames = jax.lax.scan(step, (cache, pred), jnp.arange(h, t_total - 1))
+    last = _choose_frame(pred, scene, task, jnp.asarray(t_total - 1), key, temperature, num_map)
+    frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
+    return _assemble(xy, heading, valid, maps, frames, h)
+
+
+def _assemble(xy, heading, valid, maps, frames, h) -> RolloutOutput:
+    fxy, fh, fv, fl, fm = frames
+    return RolloutOutput(
+        xy=jnp.concatenate([xy[:h], fxy], 0),
+        heading=jnp.concatenate([heading[:h], fh], 0),
+        valid=jnp.concatenate([valid[:h], fv], 0),
+        valid_logit=jnp.concatenate([jnp.zeros(valid[:h].shape, fl.dtype), fl], 0),
+        map_tokens=jnp.concatenate([maps[:h], fm.astype(maps.dtype)], 0),
+    )
+
+
+def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
+                      temperature: float = 0.0) -> RolloutOutput:
+    """The official method: for every future frame, a full forward over the whole buffer (no cache).
+
+    The buffer holds all T frames; frames not yet generated still hold log values, which the scene-level
+    mask keeps from influencing the frame being predicted, so this equals a forward over the prefix only.
+    Same arguments and outputs as `rollout`.
+    """
+    t_total, h = scene.num_frames, num_history
+    num_map = scene.num_map_tokens
+    xy, heading, valid, maps = _log_inputs(scene, task)
+    logits0 = jnp.zeros(valid.shape, jnp.float32)
+
+    def step(buf, t):
+        bxy, bh, bv, bl, bm = buf
+        tokens = model.embed(bxy, bh, bv, bm, jnp.arange(t_total))
+        hid = forward(model, tokens)
+        prev = jnp.maximum(t - 1, 0)
+        sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
+        pred = model.predict(sl(hid), sl(bxy), sl(bh), sl(bv))
+        frame = _choose_frame(pred, scene, task, t, key, temperature, num_map)
+        buf = tuple(jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0)
+                    for b, f in zip(buf, frame))
+        return buf, None
+
+    buf, _ = jax.lax.scan(step, (xy, heading, valid, logits0, maps), jnp.arange(h, t_total))
+    bxy, bh, bv, bl, bm = buf
+    return RolloutOutput(xy=bxy, heading=bh, valid=bv, valid_logit=bl, map_tokens=bm)
+
+
+def rollout_batch(model: GPD, scenes: Scene, tasks: Task, keys: jax.Array, num_history: int,
+                  temperature: float = 0.0) -> RolloutOutput:
+    """`rollout` vmapped over a leading batch dim shared by scenes, tasks and keys (mixed tasks allowed)."""
+    fn = lambda s, t, k: rollout(model, s, t, k, num_history, temperature)
+    return jax.vmap(fn)(scenes, tasks, keys)
+
+
+def rollout_tasks(model: GPD, scenes: Scene, tasks: Task, key: jax.Array, num_history: int,
+                  temperature: float = 0.0) -> RolloutOutput:
+    """Every scenario under every task: scenes [S, ...], tasks [K, ...] -> outputs with leading dims [S, K].
+
+    vmaps over tasks inside a vmap over scenarios; keys are split per (scenario, task).
+    """
+    s = scenes.xy.shape[0]
+    k = tasks.from_log.shape[0]
+    keys = jax.random.split(key, (s, k))
+    inner = lambda sc, ks: jax.vmap(lambda t, kk: rollout(model, sc, t, kk, num_history, temperature))(tasks, ks)
+    return jax.vmap(inner)(scenes, keys)
