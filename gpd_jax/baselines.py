@@ -1,0 +1,85 @@
+"""Non-learned baselines producing the same predicted arrays as a rollout (xy, heading, valid over all T frames).
+
+* `log_replay`: the recorded scene itself (its metrics are the ground-truth floor: zero ADE/FDE, and the log's
+  own collision rate).
+* `constant_velocity`: every agent continues from its last valid history frame at the velocity of its last two
+  valid history frames, keeping its last observed heading.
+
+History frames [0, num_history) are copied from the log, as a rollout does; the current frame is
+`num_history - 1`. Both are pure jit/vmap-able functions of a `Scene` (any leading batch dims).
+"""
+
+from __future__ import annotations
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from gpd_jax.scene import Scene
+
+
+@flax.struct.dataclass
+class Trajectories:
+    """Predicted agent states over the whole scene (the fields a rollout outputs).
+
+    xy: f32[..., T, A, 2], heading: f32[..., T, A], valid: bool[..., T, A].
+    """
+
+    xy: jax.Array
+    heading: jax.Array
+    valid: jax.Array
+
+
+def log_replay(scene: Scene, num_history: int) -> Trajectories:
+    """The recorded future. `num_history` is accepted for a uniform signature (history is the log either way)."""
+    del num_history
+    return Trajectories(xy=scene.xy, heading=scene.heading, valid=scene.valid)
+
+
+def constant_velocity(scene: Scene, num_history: int) -> Trajectories:
+    """Constant-velocity, constant-heading extrapolation of every slot (ego included).
+
+    For each agent, t2 is its last valid history frame and t1 the valid one before it; the velocity is
+    (xy[t2] - xy[t1]) / (t2 - t1) per frame (zero with a single valid history frame), and future positions are
+    xy[t2] + v * (t - t2) with heading[t2]. Future validity is the log's (so metrics score the frames the log
+    has), except that agents not valid at the current frame `num_history - 1` stay invalid for the whole future
+    (their positions are still extrapolated from whatever history they had, or zero if none).
+
+    Args:
+      scene: a Scene with `xy: f32[..., T, A, 2]`, `heading: f32[..., T, A]`, `valid: bool[..., T, A]`.
+      num_history: number of history frames H (frames [0, H) are observed; 21 in the paper).
+
+    Returns:
+      Trajectories over all T frames: history frames from the log, future frames extrapolated.
+    """
+    xy, heading, valid = scene.xy, scene.heading, scene.valid
+    t_total = xy.shape[-3]
+    h = num_history
+    hv = valid[..., :h, :]  # [..., H, A]
+    frames = jnp.arange(h)[:, None]
+    t2 = jnp.max(jnp.where(hv, frames, -1), axis=-2)  # [..., A] last valid history frame
+    t1 = jnp.max(jnp.where(hv & (frames < t2[..., None, :]), frames, -1), axis=-2)  # the one before it
+    has2, has1 = t2 >= 0, t1 >= 0
+
+    def xy_at(t):  # [..., A] frame per agent -> f32[..., A, 2]
+        return jnp.take_along_axis(xy[..., :h, :, :], jnp.maximum(t, 0)[..., None, :, None], axis=-3)[..., 0, :, :]
+
+    p2 = jnp.where(has2[..., None], xy_at(t2), 0.0)  # [..., A, 2]
+    p1 = xy_at(t1)
+    vel = jnp.where((has1 & has2)[..., None], (p2 - p1) / jnp.maximum(t2 - t1, 1)[..., None], 0.0)
+    hd = jnp.take_along_axis(heading[..., :h, :], jnp.maximum(t2, 0)[..., None, :], axis=-2)[..., 0, :]
+    hd = jnp.where(has2, hd, 0.0)  # [..., A]
+
+    fut = jnp.arange(h, t_total)  # [F]
+    dt = (fut[:, None] - t2[..., None, :]).astype(xy.dtype)  # [..., F, A]
+    fxy = p2[..., None, :, :] + vel[..., None, :, :] * dt[..., None]
+    fhead = jnp.broadcast_to(hd[..., None, :], dt.shape)
+    alive = valid[..., h - 1, :] if h > 0 else jnp.zeros(valid.shape[:-2] + valid.shape[-1:], bool)
+    fvalid = valid[..., h:, :] & alive[..., None, :]
+
+    cat = lambda a, b, axis: jnp.concatenate([a, b], axis=axis)
+    return Trajectories(xy=cat(xy[..., :h, :, :], fxy, -3), heading=cat(heading[..., :h, :], fhead, -2),
+                        valid=cat(valid[..., :h, :], fvalid, -2))
+
+
+BASELINES = {"log_replay": log_replay, "constant_velocity": constant_velocity}

@@ -1,0 +1,221 @@
+"""Agent metrics at fixed horizons: ADE, FDE and collision rate for the ego (slot 0) and the agents (slots 1..).
+
+Two variants, selected by `variant`:
+
+* ``"paper"`` — the official GPD-1 code's definitions, quirks included (`reference/gpd_official.md` §6):
+  - N_exist = agents valid (in the log) in *any* future frame of the window passed in (the ego: one per scenario);
+  - ADE@H = mean over the first H future steps of ADE[t], ADE[t] = sum_agents ||p^ - p|| * m_t / N_exist;
+  - FDE@H = sum over agents of the error at the agent's last valid log frame within the first H steps / N_exist;
+  - collision@H = mean over the first H steps of (# colliding entities at t) / N_exist, in percent. At step t
+    every entity visible in the log gets a fixed 4.084 x 1.85 m box at its *predicted* pose (the ego too) and
+    entities are tested pairwise with the separating-axis test.
+* ``"corrected"`` — the same quantities normalised properly:
+  - ADE@H = mean error over valid (agent, t) pairs, t < H;
+  - FDE@H = mean over agents valid somewhere in the first H steps of the error at their last valid frame there;
+  - collision@H = colliding (entity, t) pairs / present (entity, t) pairs, t < H, in percent, where an entity is
+    present at t when it is valid in the log and in the prediction, boxes have each agent's own (length, width),
+    and an entity only collides with other present entities.
+
+Both variants are computed as sums and counts (`agent_metric_sums`, summed over every leading batch dim), which add
+up exactly across batches (`accumulate`) and are turned into the numbers by `reduce_agent_metrics`. Positions are
+box centres for every slot (the official code puts the ego box at the rear axle; our scenes store box centres).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+
+# The official collision checker's fixed box (length, width) in metres.
+PAPER_BOX = (4.084, 1.85)
+DEFAULT_HORIZONS = (30, 50, 80)  # future frames at 10 Hz: 3, 5, 8 s
+VARIANTS = ("paper", "corrected")
+_NAMES = ("ade", "fde", "collision")
+
+
+def horizon_label(frames: int, dt: float = 0.1) -> str:
+    """'3s' for 30 frames at 10 Hz."""
+    return f"{frames * dt:g}s"
+
+
+# --------------------------------------------------------------------------------------------- box overlap
+def box_corners(xy: jax.Array, heading: jax.Array, size: jax.Array) -> jax.Array:
+    """Corners of oriented boxes.
+
+    Args:
+      xy: f32[..., 2] box centres; heading: f32[...]; size: f32[..., 2] (length, width).
+
+    Returns:
+      f32[..., 4, 2] corners, counter-clockwise from front-left... (front-left, rear-left, rear-right, front-right).
+    """
+    c, s = jnp.cos(heading), jnp.sin(heading)
+    fwd = jnp.stack([c, s], -1) * (size[..., 0:1] / 2)
+    left = jnp.stack([-s, c], -1) * (size[..., 1:2] / 2)
+    signs = jnp.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], xy.dtype)
+    return xy[..., None, :] + signs[:, 0:1] * fwd[..., None, :] + signs[:, 1:2] * left[..., None, :]
+
+
+def box_overlap_pairwise(xy: jax.Array, heading: jax.Array, size: jax.Array,
+                         valid: jax.Array | None = None) -> jax.Array:
+    """Pairwise oriented-box overlap by the separating-axis test.
+
+    Args:
+      xy: f32[..., N, 2] box centres; heading: f32[..., N]; size: f32[..., N, 2] (length, width), or f32[2] for one
+        size shared by all boxes; valid: optional bool[..., N] (invalid boxes overlap nothing).
+
+    Returns:
+      bool[..., N, N], symmetric, False on the diagonal; True where the boxes' interiors intersect (boxes that only
+      touch along an edge do not overlap).
+    """
+    size = jnp.broadcast_to(size, xy.shape).astype(xy.dtype)
+    half = size / 2
+    u = jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1)  # [..., N, 2] long axis
+    v = jnp.stack([-jnp.sin(heading), jnp.cos(heading)], -1)  # lateral axis
+    axes_own = jnp.stack([u, v], -2)  # [..., N, 2 axes, 2]
+    d = xy[..., None, :, :] - xy[..., :, None, :]  # [..., i, j, 2] centre of j minus centre of i
+
+    def radius(axis, k):  # projected half extent of box k on `axis` [..., i, j, 2 axes, 2]
+        uk = jnp.expand_dims(u, k)[..., None, :]
+        vk = jnp.expand_dims(v, k)[..., None, :]
+        hk = jnp.expand_dims(half, k)[..., None, :]
+        return hk[..., 0] * jnp.abs(jnp.sum(axis * uk, -1)) + hk[..., 1] * jnp.abs(jnp.sum(axis * vk, -1))
+
+    def separated_on(axes):  # axes [..., i, j, 2, 2] -> any separating axis among them [..., i, j]
+        gap = jnp.abs(jnp.sum(axes * d[..., None, :], -1))
+        # box i varies along dim -2 of the [i, j] grid, box j along dim -1; expand the other one.
+        return jnp.any(gap >= radius(axes, -2) + radius(axes, -3), -1)
+
+    n = xy.shape[-2]
+    axes_i = jnp.broadcast_to(axes_own[..., :, None, :, :], xy.shape[:-2] + (n, n, 2, 2))
+    axes_j = jnp.broadcast_to(axes_own[..., None, :, :, :], xy.shape[:-2] + (n, n, 2, 2))
+    overlap = ~(separated_on(axes_i) | separated_on(axes_j))
+    overlap = overlap & ~jnp.eye(n, dtype=bool)
+    if valid is not None:
+        overlap = overlap & valid[..., :, None] & valid[..., None, :]
+    return overlap
+
+
+# --------------------------------------------------------------------------------------------- sums
+def _last_valid_error(err: jax.Array, m: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """err, m: [..., H, A] -> (error at the last valid frame [..., A] (0 if none), any valid bool[..., A])."""
+    h = err.shape[-2]
+    idx = jnp.max(jnp.where(m, jnp.arange(h)[:, None], -1), axis=-2)
+    any_valid = idx >= 0
+    e = jnp.take_along_axis(err, jnp.maximum(idx, 0)[..., None, :], axis=-2)[..., 0, :]
+    return jnp.where(any_valid, e, 0.0), any_valid
+
+
+def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Array, gt_valid: jax.Array,
+                      size: jax.Array, *, num_history: int = 0, pred_valid: jax.Array | None = None,
+                      eval_mask: jax.Array | None = None, horizons: Sequence[int] = DEFAULT_HORIZONS,
+                      variant: str = "paper", dt: float = 0.1) -> dict[str, dict[str, jax.Array]]:
+    """Sums and counts of the ADE / FDE / collision metrics, summed over every leading batch dim.
+
+    Args:
+      pred_xy: f32[..., T, A, 2] predicted box centres (a rollout's or baseline's output; slot 0 is the ego).
+      pred_heading: f32[..., T, A] predicted headings.
+      gt_xy: f32[..., T, A, 2] logged box centres.
+      gt_valid: bool[..., T, A] logged validity (which (agent, t) exist in the ground truth).
+      size: f32[..., A, 2] logged box (length, width) per slot (used by "corrected" collisions only).
+      num_history: frames [0, num_history) are history and ignored; the future starts at frame num_history.
+        Pass the whole future (80 frames in the paper) even for shorter horizons: the paper's N_exist counts
+        agents valid anywhere in the future window.
+      pred_valid: optional bool[..., T, A] predicted validity (corrected collisions only; defaults to gt_valid).
+      eval_mask: optional bool[..., A] which slots are scored (e.g. only generated agents); all others still
+        take part in collisions as obstacles. Defaults to all slots.
+      horizons: future frame counts, each <= T - num_history.
+      variant: "paper" or "corrected" (see module docstring).
+      dt: frame period in seconds (for the horizon labels only).
+
+    Returns:
+      {horizon_label: {"{ego,agent}_{ade,fde,collision}_{num,den}": f32[]}}; feed to `reduce_agent_metrics`.
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    t_total = gt_xy.shape[-3]
+    fut = t_total - num_history
+    if max(horizons) > fut:
+        raise ValueError(f"horizon {max(horizons)} frames exceeds the {fut} future frames given")
+    sl = lambda a, axis: jax.lax.slice_in_dim(a, num_history, t_total, axis=a.ndim + axis)
+    pxy, ph, gxy, gv = sl(pred_xy, -3), sl(pred_heading, -2), sl(gt_xy, -3), sl(gt_valid, -2)
+    pv = gv if pred_valid is None else sl(pred_valid, -2)
+    a = gxy.shape[-2]
+    batch = gxy.shape[:-3]
+    ev = jnp.ones(batch + (a,), bool) if eval_mask is None else jnp.broadcast_to(eval_mask, batch + (a,))
+    is_ego = jnp.arange(a) == 0
+    groups = {"ego": ev & is_ego, "agent": ev & ~is_ego}  # [..., A]
+
+    err = jnp.linalg.norm(pxy - gxy, axis=-1)  # [..., F, A]
+    err = jnp.where(gv, err, 0.0)
+    f32 = lambda x: jnp.sum(x.astype(jnp.float32))
+
+    if variant == "paper":
+        collide = jnp.any(box_overlap_pairwise(pxy, ph, jnp.array(PAPER_BOX, pxy.dtype), gv), -1)  # [..., F, A]
+        exists = jnp.any(gv, axis=-2)  # [..., A] valid anywhere in the future
+        # The ego's N_exist is the number of scenarios (one per scenario), as in the official code.
+        n_exist = {"ego": f32(jnp.broadcast_to(groups["ego"][..., 0], batch)),
+                   "agent": f32(exists & groups["agent"])}
+    else:
+        present = gv & pv
+        own = box_overlap_pairwise(pxy, ph, jnp.broadcast_to(size[..., None, :, :], pxy.shape), present)
+        collide = jnp.any(own, -1) & present
+
+    out = {}
+    for h in horizons:
+        e, m, c = err[..., :h, :], gv[..., :h, :], collide[..., :h, :]
+        fde_err, any_valid = _last_valid_error(e, m)
+        d = {}
+        for g, sel in groups.items():
+            s = sel[..., None, :]
+            if variant == "paper":
+                d[f"{g}_ade_num"] = f32(jnp.where(s & m, e, 0.0))
+                d[f"{g}_ade_den"] = h * n_exist[g]
+                d[f"{g}_fde_num"] = f32(jnp.where(sel, fde_err, 0.0))
+                d[f"{g}_fde_den"] = n_exist[g]
+                d[f"{g}_collision_num"] = f32(c & m & s)
+                d[f"{g}_collision_den"] = h * n_exist[g]
+            else:
+                pres = present[..., :h, :] & s
+                d[f"{g}_ade_num"] = f32(jnp.where(s & m, e, 0.0))
+                d[f"{g}_ade_den"] = f32(s & m)
+                d[f"{g}_fde_num"] = f32(jnp.where(sel & any_valid, fde_err, 0.0))
+                d[f"{g}_fde_den"] = f32(sel & any_valid)
+                d[f"{g}_collision_num"] = f32(c & pres)
+                d[f"{g}_collision_den"] = f32(pres)
+        out[horizon_label(h, dt)] = d
+    return out
+
+
+def accumulate(a, b):
+    """Adds two sums pytrees (from `agent_metric_sums` or `map_metric_sums`); `a` may be None."""
+    return b if a is None else jax.tree.map(jnp.add, a, b)
+
+
+def reduce_agent_metrics(sums: dict[str, dict[str, jax.Array]]) -> dict[str, dict[str, float]]:
+    """Sums -> {horizon_label: {ego_ade, ego_fde, ego_collision, agent_ade, agent_fde, agent_collision}}.
+
+    ADE / FDE in metres, collision rates in percent; NaN where the denominator is 0 (nothing to score).
+    """
+    out = {}
+    for hl, d in sums.items():
+        r = {}
+        for g in ("ego", "agent"):
+            for n in _NAMES:
+                num, den = float(d[f"{g}_{n}_num"]), float(d[f"{g}_{n}_den"])
+                v = num / den if den > 0 else float("nan")
+                r[f"{g}_{n}"] = 100.0 * v if n == "collision" else v
+        out[hl] = r
+    return out
+
+
+_STATIC = ("num_history", "horizons", "variant", "dt")
+_agent_metric_sums_jit = jax.jit(agent_metric_sums, static_argnames=_STATIC)
+
+
+def agent_metrics(*args, **kwargs) -> dict[str, dict[str, float]]:
+    """`reduce_agent_metrics(agent_metric_sums(...))` for one batch (same arguments as `agent_metric_sums`), jitted."""
+    if "horizons" in kwargs:
+        kwargs["horizons"] = tuple(kwargs["horizons"])
+    return reduce_agent_metrics(_agent_metric_sums_jit(*args, **kwargs))
