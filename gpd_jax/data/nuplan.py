@@ -262,12 +262,20 @@ class _Tracks:
 
 
 def _read_vehicles(conn: sqlite3.Connection, path, frames: _Frames) -> _Tracks:
+    # The kept frames go into a temporary table so that SQLite joins only their boxes.
+    _query(conn, path, "CREATE TEMP TABLE IF NOT EXISTS gpd_kept_pc (token PRIMARY KEY) WITHOUT ROWID")
+    _query(conn, path, "DELETE FROM temp.gpd_kept_pc")
+    try:
+        conn.executemany("INSERT OR IGNORE INTO temp.gpd_kept_pc VALUES (?)", [(t,) for t in frames.tokens])
+    except sqlite3.Error as e:
+        raise DataError(path, f"SQLite error ({e}) while selecting frames") from e
     rows = _query(
         conn,
         path,
         "SELECT lb.lidar_pc_token, lb.track_token, lb.x, lb.y, lb.yaw, lb.length, lb.width, lb.confidence, "
         "t.length, t.width "
-        "FROM lidar_box AS lb JOIN track AS t ON t.token = lb.track_token "
+        "FROM lidar_box AS lb JOIN temp.gpd_kept_pc AS k ON k.token = lb.lidar_pc_token "
+        "JOIN track AS t ON t.token = lb.track_token "
         "JOIN category AS c ON c.token = t.category_token WHERE c.name = ? ORDER BY lb.rowid",
         (VEHICLE_CATEGORY,),
     )
@@ -310,19 +318,31 @@ def _read_vehicles(conn: sqlite3.Connection, path, frames: _Frames) -> _Tracks:
     heading[fi[order], ti[order]] = wrap_angle(vals[order, 2])
     valid[fi, ti] = True
 
-    size = np.empty((num, 2), np.float64)
-    for n in range(num):
-        sel = ti == n
-        for j, (col_track, col_box) in enumerate(((6, 3), (7, 4))):
-            s = vals[sel, col_track][0]
-            if not (np.isfinite(s) and s > 0):
-                boxes = vals[sel, col_box]
-                boxes = boxes[np.isfinite(boxes) & (boxes > 0)]
-                s = float(np.median(boxes)) if boxes.size else np.nan
-            if not np.isfinite(s):
-                raise DataError(path, f"track {_token_str(tokens[n])} has no valid {('length', 'width')[j]}")
-            size[n, j] = s
+    size = _track_sizes(ti, vals[:, 6:8], vals[:, 3:5], num)
+    bad = ~np.isfinite(size).all(axis=1)
+    if bad.any():
+        n = int(np.flatnonzero(bad)[0])
+        raise DataError(path, f"track {_token_str(tokens[n])} has no valid length/width in track or lidar_box")
     return _Tracks(tuple(_token_str(t) for t in tokens), xy, heading, valid, size.astype(np.float32))
+
+
+def _track_sizes(ti: np.ndarray, track_lw: np.ndarray, box_lw: np.ndarray, num: int) -> np.ndarray:
+    """(length, width) per track, f64[num, 2]: the `track` row's value (constant over a track's rows
+    `track_lw` f64[R, 2]), else the median of its boxes' `box_lw` f64[R, 2]; NaN when neither is positive."""
+    size = np.full((num, 2), np.nan)
+    size[ti] = track_lw  # the same value on every row of a track
+    size[~(size > 0)] = np.nan
+    need = np.flatnonzero(np.isnan(size).any(axis=1))
+    if need.size:
+        order = np.argsort(ti, kind="stable")
+        starts = np.searchsorted(ti[order], np.arange(num + 1))
+        for n in need:
+            rows = box_lw[order[starts[n] : starts[n + 1]]]
+            for j in range(2):
+                if np.isnan(size[n, j]):
+                    ok = rows[:, j][np.isfinite(rows[:, j]) & (rows[:, j] > 0)]
+                    size[n, j] = np.median(ok) if ok.size else np.nan
+    return size
 
 
 # ---------------------------------------------------------------------------------------------------------
