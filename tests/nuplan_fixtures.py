@@ -4,7 +4,7 @@ The tables and column names/types follow nuPlan's log database and map GeoPackag
 (`shared/reference/sledge_nuplan.md` §3-4); tokens are 8-byte blobs. Nothing here is copied from nuPlan.
 
 The scene: a straight two-lane road heading 30 degrees (north-east of east) near the Las Vegas strip in UTM
-zone 11N, a lane connector curving off it, and a far-away lane 5 km east. Over 3 s at 20 Hz (60 lidar_pc
+zone 11N, a lane connector turning left off lane 1 into lane 2, and a far-away lane 5 km east. Over 3 s at 20 Hz (60 lidar_pc
 rows) the ego drives along lane 0 at 10 m/s; three vehicles and one pedestrian are boxed:
 
   car   4.6 x 1.9 m ahead in lane 0, in every frame;
@@ -71,8 +71,16 @@ def lane_polylines_utm() -> dict[str, np.ndarray]:
     start = road_point(200.0, LANE_WIDTH)
     centre = start + 20.0 * NORMAL
     conn = centre + 20.0 * (np.sin(a)[:, None] * DIRECTION - np.cos(a)[:, None] * NORMAL)
+    lane2 = conn[-1] + np.linspace(0.0, 50.0, 11)[:, None] * NORMAL  # continues the connector
     far = ORIGIN + np.array([5000.0, 0.0]) + np.linspace(0, 50, 6)[:, None] * DIRECTION
-    return {"lane0": lane0, "lane1": lane1, "connector": conn, "far": far}
+    return {"lane0": lane0, "lane1": lane1, "connector": conn, "lane2": lane2, "far": far}
+
+
+def merged_polylines_utm() -> dict[str, np.ndarray]:
+    """The centrelines as SLEDGE-style chains: lane1 -> connector -> lane2 is one polyline."""
+    u = lane_polylines_utm()
+    chain = np.concatenate([u["lane1"], u["connector"][1:], u["lane2"][1:]])
+    return {"lane0": u["lane0"], "chain": chain, "far": u["far"]}
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -404,7 +412,7 @@ def write_map_gpkg(
             right_boundary_fid INTEGER, speed_limit_mps REAL)"""
         )
         register("lanes_polygons", "POLYGON")
-        for fid, name in ((1, "lane0"), (2, "lane1"), (4, "far")):
+        for fid, name in ((1, "lane0"), (2, "lane1"), (4, "far"), (6, "lane2")):
             c = utm[name]
             ring = np.concatenate([c - 1.75 * NORMAL, (c + 1.75 * NORMAL)[::-1], (c - 1.75 * NORMAL)[:1]])
             ring = project_from_utm11(ring, srs)
@@ -420,7 +428,7 @@ def write_map_gpkg(
             speed_limit_mps REAL, traffic_light_stop_line_fids TEXT)"""
         )
         register("lane_connectors", "LINESTRING")
-        conn.execute("INSERT INTO lane_connectors VALUES (3, ?, 2, 4, 1, 8.0, '')", (blob(stored["connector"]),))
+        conn.execute("INSERT INTO lane_connectors VALUES (3, ?, 2, 6, 1, 8.0, '')", (blob(stored["connector"]),))
     if "baseline_paths" in layers:
         conn.execute(
             """CREATE TABLE baseline_paths (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, geom LINESTRING,
@@ -439,6 +447,7 @@ def write_map_gpkg(
         if bad_blob:
             conn_blob = conn_blob[:-13]  # truncated WKB
         rows.append((3, conn_blob, None, 3))
+        rows.append((6, blob(stored["lane2"]), 6, None))
         rows.append((5, None, None, None))  # a row without geometry is skipped
         conn.executemany("INSERT INTO baseline_paths VALUES (?, ?, ?, ?)", rows)
     conn.commit()

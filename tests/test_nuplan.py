@@ -128,8 +128,9 @@ def test_sizes_and_types(raw):
 # ---------------------------------------------------------------------------------------------------------
 
 
-def _assert_lanes(lanes, names=("lane0", "lane1", "connector"), atol=1e-3):
-    utm = fx.lane_polylines_utm()
+def _assert_lanes(lanes, names=("lane0", "chain"), atol=1e-3):
+    u = fx.lane_polylines_utm()
+    utm = {**u, **fx.merged_polylines_utm(), "connector_lane2": np.concatenate([u["connector"], u["lane2"][1:]])}
     assert len(lanes) == len(names)
     for lane, name in zip(sorted(lanes, key=lambda a: (a[0, 0], a[0, 1])),
                           sorted(names, key=lambda k: (utm[k][0, 0], utm[k][0, 1]))):
@@ -146,7 +147,21 @@ def test_lanes_read_and_cropped(raw):
 
 def test_whole_map_without_margin(db, maps_root):
     raw = nuplan.read_log(db, maps_root, map_margin=None)
-    _assert_lanes(raw.lanes, names=("lane0", "lane1", "connector", "far"), atol=1e-9)
+    _assert_lanes(raw.lanes, names=("lane0", "chain", "far"), atol=1e-9)
+
+
+def test_unmerged_lanes(db, maps_root):
+    raw = nuplan.read_log(db, maps_root, map_margin=None, merge_lanes=False)
+    _assert_lanes(raw.lanes, names=("lane0", "lane1", "connector", "lane2", "far"), atol=1e-9)
+    m = nuplan.read_map_lanes(fx.write_maps_root(maps_root), "EPSG:32611", merge=False)
+    assert m.is_connector.tolist() == [False, False, True, False, False]  # fid order 1, 2, 3, 4, 6
+
+
+def test_merge_chains_rule():
+    # a -> b -> c, then c forks to d and e; f joins e; g <-> h is a loop; i stands alone.
+    edges = [("a", "b"), ("b", "c"), ("c", "d"), ("c", "e"), ("f", "e"), ("g", "h"), ("h", "g"), ("x", "i")]
+    chains = nuplan.merge_chains(list("abcdefghi"), edges)
+    assert chains == [["a", "b", "c"], ["d"], ["e"], ["f"], ["i"], ["g", "h"]]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -170,8 +185,9 @@ def test_multilinestring_parts_become_lanes(tmp_path, db):
     root = tmp_path / "maps"
     map_path = fx.write_maps_root(root, multi=True, srs=4326, little=False)
     m = nuplan.read_map_lanes(map_path, "EPSG:32611", projection="builtin")
-    assert len(m.lanes) == 4 and m.is_connector.tolist() == [False, False, False, True]
-    _assert_lanes(m.lanes, names=("lane0", "lane1", "far", "connector"), atol=1e-3)
+    # The two parts of lane 1's row stay separate (and unmerged); the connector still merges into lane 2.
+    assert len(m.lanes) == 4 and not m.is_connector.any()
+    _assert_lanes(m.lanes, names=("lane0", "lane1", "far", "connector_lane2"), atol=1e-3)
 
 
 def test_target_frame_without_meta_table(tmp_path, db):
@@ -385,4 +401,4 @@ def test_iter_logs_reads_each_map_once(tmp_path, maps_root, monkeypatch):
     monkeypatch.setattr(nuplan, "read_map_lanes", lambda *a, **k: calls.append(a) or real(*a, **k))
     raws = list(nuplan.iter_logs(logs, maps_root))
     assert len(raws) == 2 and len(calls) == 1
-    assert all(len(r.lanes) == 3 for r in raws)
+    assert all(len(r.lanes) == 2 for r in raws)

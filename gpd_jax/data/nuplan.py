@@ -27,8 +27,10 @@ What is read, and the conventions:
 * **Map**: the map name is `log.map_version` (a `.gpkg` suffix is stripped), or derived from `log.location`
   ("las_vegas" -> "us-nv-las-vegas-strip", ...) when that names no map. It is looked for under `maps_root`
   (see `find_map`). Lane centrelines are every geometry of the `baseline_paths` layer, which holds the
-  centrelines of both lanes (`lane_fid`) and lane connectors (`lane_connector_fid`), i.e. what SLEDGE
-  concatenates; each (Multi)LineString part becomes one polyline, unmerged. Coordinates are projected from
+  centrelines of both lanes (`lane_fid`) and lane connectors (`lane_connector_fid`). As SLEDGE does, lanes
+  and connectors are concatenated into maximal unbranched chains through `lane_connectors.exit_lane_fid` /
+  `entry_lane_fid` (`merge_chains`; `merge_lanes=False` keeps one polyline per row; the parts of a
+  MultiLineString are separate polylines and never merged). Coordinates are projected from
   the layer's SRS (`gpkg_geometry_columns.srs_id`) to the logs' frame, which is the map's
   `meta.projectedCoordSystem`, else the `ego_pose.epsg` of the log, else the known UTM zone of the four
   nuPlan cities (`MAP_UTM_EPSG`). Lanes are cropped to the bounding box of the log's boxes grown by
@@ -48,7 +50,7 @@ import os
 import re
 import sqlite3
 from pathlib import Path
-from typing import Iterator
+from typing import Hashable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -457,19 +459,100 @@ def map_crs(gpkg_path: str | os.PathLike, map_name: str = "", log_epsg: tuple = 
     raise DataError(gpkg_path, "cannot tell the logs' projected frame (no meta.projectedCoordSystem, no epsg)")
 
 
-def read_map_lanes(gpkg_path: str | os.PathLike, crs: str, projection: str = "auto") -> MapLanes:
+def merge_chains(nodes: Sequence[Hashable], edges: Iterable[tuple[Hashable, Hashable]]) -> list[list[Hashable]]:
+    """Groups the nodes of a directed lane graph into maximal chains, as SLEDGE merges lanes and connectors.
+
+    An edge u -> v is merged when u has exactly one successor and v exactly one predecessor (counting only
+    edges between `nodes`); chains are the maximal paths of merged edges, so a chain stops wherever lanes
+    fork or join. Every node is in exactly one chain; a closed loop is cut at its first node in `nodes`
+    order. Chains come in the `nodes` order of their first node (loops last).
+    """
+    index = {n: i for i, n in enumerate(nodes)}
+    succ: dict = {}
+    pred: dict = {}
+    for u, v in edges:
+        if u in index and v in index and u != v:
+            succ.setdefault(u, set()).add(v)
+            pred.setdefault(v, set()).add(u)
+    nxt = {}
+    for u, vs in succ.items():
+        if len(vs) == 1:
+            (v,) = vs
+            if len(pred[v]) == 1:
+                nxt[u] = v
+    has_prev = set(nxt.values())
+    chains: list[list[Hashable]] = []
+    seen: set = set()
+    for first_pass in (True, False):
+        for n in nodes:
+            if n in seen or (first_pass and n in has_prev):
+                continue
+            chain = [n]
+            seen.add(n)
+            while chain[-1] in nxt and nxt[chain[-1]] not in seen:
+                chain.append(nxt[chain[-1]])
+                seen.add(chain[-1])
+            chains.append(chain)
+    return chains
+
+
+def _fid_key(value) -> str | None:
+    if value is None:
+        return None
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    text = str(value).strip()
+    return text or None
+
+
+def _lane_graph_edges(conn: sqlite3.Connection) -> list[tuple] | None:
+    """Edges (("lane", fid) -> ("connector", fid) -> ("lane", fid)) from `lane_connectors`, or None when the
+    map lacks the table or its exit_lane_fid / entry_lane_fid columns."""
+    cols = set(gpkg.table_columns(conn, "lane_connectors"))
+    if not {"exit_lane_fid", "entry_lane_fid"} <= cols:
+        return None
+    fid_col = "fid" if "fid" in cols else "rowid"
+    edges = []
+    for fid, exit_lane, entry_lane in conn.execute(
+        f"SELECT {fid_col}, exit_lane_fid, entry_lane_fid FROM lane_connectors"
+    ):
+        c = ("connector", _fid_key(fid))
+        if _fid_key(exit_lane) is not None:
+            edges.append((("lane", _fid_key(exit_lane)), c))
+        if _fid_key(entry_lane) is not None:
+            edges.append((c, ("lane", _fid_key(entry_lane))))
+    return edges
+
+
+def _concat_polylines(parts: list[np.ndarray], tol: float = 1e-3) -> np.ndarray:
+    out = [parts[0]]
+    for p in parts[1:]:
+        out.append(p[1:] if np.linalg.norm(p[0] - out[-1][-1]) < tol else p)
+    return np.concatenate(out)
+
+
+def read_map_lanes(
+    gpkg_path: str | os.PathLike, crs: str, projection: str = "auto", merge: bool = True
+) -> MapLanes:
     """Reads every `baseline_paths` centreline of a nuPlan map and projects it to `crs`.
 
     Args:
       gpkg_path: the map GeoPackage.
       crs: target frame ('EPSG:32611', a proj string or WKT), usually from `map_crs`.
       projection: "auto" (pyproj if installed, else built-in), "pyproj" or "builtin" (WGS84/UTM only).
+      merge: concatenate lanes and connectors into maximal unbranched chains (`merge_chains`, SLEDGE's
+        rule), using `baseline_paths.lane_fid` / `lane_connector_fid` and `lane_connectors.exit_lane_fid` /
+        `entry_lane_fid`. Maps without those columns are read unmerged.
     """
     conn = gpkg.open_sqlite(gpkg_path, "GeoPackage")
     try:
         have = set(gpkg.table_columns(conn, BASELINE_LAYER))
         cols = tuple(c for c in ("lane_fid", "lane_connector_fid") if c in have)
         layer = gpkg.read_layer(gpkg_path, BASELINE_LAYER, cols, conn=conn)
+        try:
+            edges = _lane_graph_edges(conn) if merge and len(cols) == 2 else None
+        except sqlite3.Error as e:
+            raise DataError(gpkg_path, f"cannot read lane_connectors ({e})") from e
     finally:
         conn.close()
     src = layer.srs.user_input
@@ -482,22 +565,41 @@ def read_map_lanes(gpkg_path: str | os.PathLike, crs: str, projection: str = "au
     except ValueError as e:
         raise DataError(gpkg_path, f"cannot project layer '{BASELINE_LAYER}' to {str(crs)[:60]} ({e})") from e
 
-    lanes, connector = [], []
+    pieces: list[np.ndarray] = []
+    keys: list = []  # graph node of each piece (None: not part of the lane graph)
+    lane_col = layer.columns.get("lane_fid")
     conn_col = layer.columns.get("lane_connector_fid")
     for k, g in enumerate(layer.geometries):
         if g.kind not in ("LineString", "MultiLineString"):
             raise DataError(gpkg_path, f"layer '{BASELINE_LAYER}' fid {layer.fids[k]} is a {g.kind}, not a line")
-        for part in g.parts:
-            if len(part) >= 2:
-                lanes.append(part)
-                connector.append(conn_col is not None and conn_col[k] is not None)
-    if lanes:
-        flat = np.concatenate(lanes)
+        parts = [p for p in g.parts if len(p) >= 2]
+        lane_key = _fid_key(lane_col[k]) if lane_col is not None else None
+        conn_key = _fid_key(conn_col[k]) if conn_col is not None else None
+        if conn_key is not None:
+            key = ("connector", conn_key)
+        elif lane_key is not None:
+            key = ("lane", lane_key)
+        else:
+            key = ("row", int(layer.fids[k]))
+        for j, part in enumerate(parts):
+            pieces.append(part)
+            keys.append(key if len(parts) == 1 else (*key, "part", j))
+    if pieces:
+        flat = np.concatenate(pieces)
         x, y = transform(flat[:, 0], flat[:, 1])
         flat = np.stack([x, y], axis=-1)
         if not np.isfinite(flat).all():
             raise DataError(gpkg_path, f"projecting '{BASELINE_LAYER}' to {str(crs)[:60]} gave non-finite points")
-        lanes = np.split(flat, np.cumsum([len(p) for p in lanes])[:-1])
+        pieces = np.split(flat, np.cumsum([len(p) for p in pieces])[:-1])
+
+    if edges is not None and len(set(keys)) == len(keys):
+        chains = merge_chains(keys, edges)
+        at = {key: i for i, key in enumerate(keys)}
+        lanes = [_concat_polylines([pieces[at[key]] for key in chain]) for chain in chains]
+        connector = [all(key[0] == "connector" for key in chain) for chain in chains]
+    else:
+        lanes = list(pieces)
+        connector = [key[0] == "connector" for key in keys]
     bounds = np.array([[*p.min(0), *p.max(0)] for p in lanes], np.float64).reshape(-1, 4)
     return MapLanes(os.fspath(gpkg_path), str(crs), tuple(lanes), np.array(connector, bool), bounds)
 
@@ -513,6 +615,7 @@ def _read_log(
     map_margin: float | None,
     projection: str,
     max_step_error: float,
+    merge_lanes: bool,
     map_cache: dict,
 ) -> RawLog:
     conn = gpkg.open_sqlite(db_path, "nuPlan log database")
@@ -528,9 +631,10 @@ def _read_log(
         map_name, map_path = find_map(maps_root, header.map_version, header.location)
     except FileNotFoundError as e:
         raise DataError(db_path, str(e)) from e
-    key = (os.fspath(map_path.resolve()), frames.epsg, projection)
+    key = (os.fspath(map_path.resolve()), frames.epsg, projection, merge_lanes)
     if key not in map_cache:
-        map_cache[key] = read_map_lanes(map_path, map_crs(map_path, map_name, frames.epsg), projection)
+        crs = map_crs(map_path, map_name, frames.epsg)
+        map_cache[key] = read_map_lanes(map_path, crs, projection, merge=merge_lanes)
     lanes_map: MapLanes = map_cache[key]
 
     ego_heading = wrap_angle(quaternion_yaw(*frames.ego[:, 2:6].T))
@@ -576,6 +680,7 @@ def read_log(
     map_margin: float | None = 200.0,
     projection: str = "auto",
     max_step_error: float = 0.03,
+    merge_lanes: bool = True,
 ) -> RawLog:
     """Reads one nuPlan log database and its map into a 10 Hz `RawLog` (see the module docstring).
 
@@ -585,12 +690,14 @@ def read_log(
       map_margin: keep the lanes within this many metres of the log's boxes (None: the whole map).
       projection: "auto", "pyproj" or "builtin" (see `gpd_jax.data.gpkg.make_transform`).
       max_step_error: largest tolerated deviation (s) of a kept-frame step from 0.1 s.
+      merge_lanes: join lanes and lane connectors into unbranched chains as SLEDGE does (see
+        `read_map_lanes`); False keeps one polyline per `baseline_paths` row.
     Returns:
       RawLog with F kept frames and N = 1 + vehicles tracks; track 0 is the ego (`ego_index == 0`).
     Raises:
       DataError: naming the `.db` or `.gpkg` file and the reason.
     """
-    return _read_log(Path(db_path), maps_root, map_margin, projection, max_step_error, {})
+    return _read_log(Path(db_path), maps_root, map_margin, projection, max_step_error, merge_lanes, {})
 
 
 def find_logs(db_path_or_dir: str | os.PathLike) -> list[Path]:
@@ -615,6 +722,7 @@ def iter_logs(
     map_margin: float | None = 200.0,
     projection: str = "auto",
     max_step_error: float = 0.03,
+    merge_lanes: bool = True,
 ) -> Iterator[RawLog]:
     """Yields a `RawLog` per nuPlan log (a `.db` file, or every `*.db` under a directory, sorted).
 
@@ -624,12 +732,12 @@ def iter_logs(
       skip_bad: False: the first bad file raises its `DataError`. True: bad files are skipped, logged as
         warnings and appended to `errors` (so `len(errors)` is the skip count).
       errors: list receiving the `DataError`s of skipped files (only with skip_bad).
-      map_margin, projection, max_step_error: as in `read_log`.
+      map_margin, projection, max_step_error, merge_lanes: as in `read_log`.
     """
     map_cache: dict = {}
     for path in find_logs(db_path_or_dir):
         try:
-            raw = _read_log(path, maps_root, map_margin, projection, max_step_error, map_cache)
+            raw = _read_log(path, maps_root, map_margin, projection, max_step_error, merge_lanes, map_cache)
         except DataError as e:
             if not skip_bad:
                 raise
