@@ -14,8 +14,8 @@ What is read, and the conventions:
   `lidar_pc.ego_pose_token`. Its x, y are the *rear axle*; the heading is the quaternion's yaw
   atan2(2(qw qz + qx qy), 1 - 2(qy^2 + qz^2)). The box centre is the rear axle moved forward along the
   heading by `EGO_REAR_AXLE_TO_CENTER` = 1.461 m; the box is `EGO_LENGTH` x `EGO_WIDTH` = 5.176 x 2.297 m.
-  These are the nuPlan vehicle (Chrysler Pacifica) parameters: length 5.176 = front overhang + wheelbase
-  4.049 plus rear 1.127, so rear axle -> centre = 5.176 / 2 - 1.127 = 1.461 m.
+  These are the nuPlan vehicle (Chrysler Pacifica) parameters: rear axle -> front bumper 4.049 m, rear
+  axle -> rear bumper 1.127 m, so length 5.176 m and rear axle -> centre = 5.176 / 2 - 1.127 = 1.461 m.
 * **Vehicles**: `lidar_box` joined to `track` and `category`, category name `vehicle` only (pedestrians,
   bicycles and static objects are dropped). One track per `track_token` (id = the token in hex), in order
   of first appearance; `agent_valid[f, n]` says whether the track has a box in kept frame f. x, y are the
