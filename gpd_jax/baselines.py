@@ -11,6 +11,8 @@ History frames [0, num_history) are copied from the log, as a rollout does; the 
 
 from __future__ import annotations
 
+import functools
+
 import flax.struct
 import jax
 import jax.numpy as jnp
@@ -36,6 +38,7 @@ def log_replay(scene: Scene, num_history: int) -> Trajectories:
     return Trajectories(xy=scene.xy, heading=scene.heading, valid=scene.valid)
 
 
+@functools.partial(jax.jit, static_argnames="num_history")
 def constant_velocity(scene: Scene, num_history: int) -> Trajectories:
     """Constant-velocity, constant-heading extrapolation of every slot (ego included).
 

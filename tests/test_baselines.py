@@ -25,7 +25,7 @@ def _scene(batch=()):
 
 def test_constant_velocity_extrapolates_straight_lines_exactly():
     s = _scene()
-    p = jax.jit(constant_velocity, static_argnums=1)(s, H)
+    p = constant_velocity(s, H)  # jitted
     assert p.xy.shape == s.xy.shape and p.valid.shape == s.valid.shape
     np.testing.assert_allclose(p.xy[:, :3], s.xy[:, :3], atol=1e-5)  # ego, agent 1 and the gappy agent 2
     np.testing.assert_allclose(p.heading[:, :3], s.heading[:, :3], atol=1e-6)

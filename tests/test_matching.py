@@ -75,3 +75,17 @@ def test_match_lines_recovers_a_permutation():
     np.testing.assert_array_equal(perm[np.asarray(match)], np.arange(4))
     np.testing.assert_allclose(pts, gt + 0.01, atol=1e-5)
     chex.assert_shape(gather_matched(jnp.arange(4.0), match), (4,))
+
+
+def test_matching_inside_a_differentiated_loss():
+    rng = np.random.default_rng(3)
+    gt = jnp.asarray(rng.normal(size=(2, 3, 4, 2)), jnp.float32)
+    valid = jnp.array([[True, False, True], [True, True, False]])
+
+    def loss(pred):
+        pts, _, _ = match_lines(pred, jnp.zeros(pred.shape[:-2]), gt, valid)
+        return jnp.sum(jnp.abs(pts - gt) * valid[..., None, None])
+
+    g = jax.jit(jax.grad(loss))(gt + 0.1)
+    assert g.shape == gt.shape and np.all(np.isfinite(g))
+    assert float(jnp.sum(jnp.abs(g))) > 0  # gradients flow through the gathers

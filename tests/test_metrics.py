@@ -258,7 +258,7 @@ def test_map_corrected_skips_empty_frames():
 
 def test_map_batch_aggregation_exact_per_step():
     rng = np.random.default_rng(5)
-    b, s, q, p = 4, 3, 6, 5
+    b, s, q, p = 7, 3, 6, 5  # 21 frames: one chunk of 16 and a remainder
     gt = rng.normal(size=(b, s, q, p, 2)).astype(np.float32) * 3
     gv = rng.random((b, s, q)) < 0.6
     pred = gt + rng.normal(size=gt.shape).astype(np.float32) * 0.8

@@ -57,6 +57,7 @@ def box_corners(xy: jax.Array, heading: jax.Array, size: jax.Array) -> jax.Array
     return xy[..., None, :] + signs[:, 0:1] * fwd[..., None, :] + signs[:, 1:2] * left[..., None, :]
 
 
+@jax.jit
 def box_overlap_pairwise(xy: jax.Array, heading: jax.Array, size: jax.Array,
                          valid: jax.Array | None = None) -> jax.Array:
     """Pairwise oriented-box overlap by the separating-axis test.

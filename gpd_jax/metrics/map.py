@@ -12,7 +12,8 @@ Paper-faithful definitions (the official GPD-1 `map_metrics.py`, `reference/sled
 * Chamfer ("map_chamfer", m^2): matched predictions and GT are multiplied by the GT line mask (padded slots become
   the origin and still take part in the minima, a quirk); for each point index k, pred line i is compared with the
   point k of every GT line j (squared distance); pred->gt takes the min over j, gt->pred the min over i; both are
-  masked by the GT line mask, summed, and divided by 2 * P * #GT lines.
+  masked by the GT line mask, summed, and divided by 2 * P * #GT lines. The predicted existence is not used here:
+  a matched prediction with logit <= 0 still counts on a valid GT slot.
 
 Corrected Chamfer ("map_chamfer_corrected", metres): the symmetric mean nearest-point distance between the set of
 points of existing predicted lines (logit > 0) and the set of points of valid GT lines,
@@ -131,12 +132,22 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
     n_pred = jnp.sum(pred_exists, -1).astype(jnp.float32)
     n_gt = jnp.sum(gv, -1).astype(jnp.float32)
     lat = jnp.sum(jnp.where(tp_mask, lateral_distances(matched, gt_points), 0.0), (-2, -1))
-    cham = _paper_chamfer_sum(matched, gt_points, gv)
+    lead_shape = tp.shape
+    pv = jnp.broadcast_to(pred_exists[..., None], pred_points.shape[:-1])  # [..., Q, P]
+    gvp = jnp.broadcast_to(gv[..., None], gt_points.shape[:-1])  # [..., L, P]
 
-    flat = lambda x: x.reshape(x.shape[:-3] + (-1, 2))  # [..., L, P, 2] -> [..., L*P, 2]
-    pv = jnp.broadcast_to(pred_exists[..., None], pred_points.shape[:-1]).reshape(pred_points.shape[:-3] + (-1,))
-    gvp = jnp.broadcast_to(gv[..., None], gt_points.shape[:-1]).reshape(gt_points.shape[:-3] + (-1,))
-    cc, ok = set_chamfer(flat(pred_points), pv, flat(gt_points), gvp)
+    def chamfers(args):  # one frame: [L, P, 2] ... -> (paper numerator, corrected Chamfer, both sets non-empty)
+        m, g, v, pp, pvv, gpv = args
+        cc, ok = set_chamfer(pp.reshape(-1, 2), pvv.reshape(-1), g.reshape(-1, 2), gpv.reshape(-1))
+        return _paper_chamfer_sum(m, g, v), cc, ok
+
+    # Frames in chunks of 16 (vmapped inside lax.map) keep the [L*P]^2 pairwise distances small for big batches.
+    n = int(np.prod(lead_shape))
+    frames = lambda x, k: x.reshape((n,) + x.shape[x.ndim - k:])
+    cham, cc, ok = jax.lax.map(chamfers, (frames(matched, 3), frames(gt_points, 3), frames(gv, 1),
+                                          frames(pred_points, 3), frames(pv, 2), frames(gvp, 2)),
+                               batch_size=min(n, 16))
+    cham, cc, ok = (x.reshape(lead_shape) for x in (cham, cc, ok))
 
     per_frame = {
         "tp": tp, "fp": p * n_pred - tp, "fn": p * n_gt - tp, "lateral_sum": lat,

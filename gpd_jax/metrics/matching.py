@@ -66,9 +66,10 @@ def hungarian(cost: jax.Array) -> jax.Array:
 
     Returns:
       i32[..., G] for each GT slot the index of its matched query; -1 where no query is left (only when Q < G).
-      Jit- and vmap-able (host callback to `scipy.optimize.linear_sum_assignment`, one call per batch).
+      Jit- and vmap-able (host callback to `scipy.optimize.linear_sum_assignment`, one call per batch); safe inside
+      a differentiated loss (the cost is treated as a constant).
     """
-    cost = jnp.asarray(cost)
+    cost = jax.lax.stop_gradient(jnp.asarray(cost))  # the assignment is piecewise constant: no gradient
     out_shape = jax.ShapeDtypeStruct(cost.shape[:-2] + cost.shape[-1:], jnp.int32)
     # The host function handles any leading dims, so vmap can hand it the batched array in one call.
     return jax.pure_callback(_lsa_host, out_shape, cost, vmap_method="broadcast_all")
