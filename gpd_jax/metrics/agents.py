@@ -48,7 +48,7 @@ def box_corners(xy: jax.Array, heading: jax.Array, size: jax.Array) -> jax.Array
       xy: f32[..., 2] box centres; heading: f32[...]; size: f32[..., 2] (length, width).
 
     Returns:
-      f32[..., 4, 2] corners, counter-clockwise from front-left... (front-left, rear-left, rear-right, front-right).
+      f32[..., 4, 2] corners, counter-clockwise: front-left, rear-left, rear-right, front-right.
     """
     c, s = jnp.cos(heading), jnp.sin(heading)
     fwd = jnp.stack([c, s], -1) * (size[..., 0:1] / 2)
