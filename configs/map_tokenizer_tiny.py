@@ -1,0 +1,77 @@
+"""Map tokenizer (stage 1), tiny: a basic-block ResNet and a 4-layer d=128 decoder, trainable on a 2-core CPU.
+
+    python train.py --config configs/map_tokenizer_tiny.py --workdir /tmp/map_tok
+"""
+
+import ml_collections
+
+
+def get_config() -> ml_collections.ConfigDict:
+    c = ml_collections.ConfigDict()
+    c.stage = "map_tokenizer"
+    c.seed = 0
+
+    c.data = ml_collections.ConfigDict()
+    c.data.dir = "/work/data/sumo_small"
+    c.data.train_split = "train"
+    c.data.eval_split = "val"
+    c.data.num_workers = 1  # loader prefetch threads
+
+    c.raster = ml_collections.ConfigDict()
+    c.raster.size = 256
+    c.raster.pixel_size = 0.25
+    c.raster.max_segment_length = 2.0
+
+    c.model = ml_collections.ConfigDict()
+    c.model.grid = 8
+    c.model.num_codes = 128
+    c.model.commitment = 0.25
+    e = c.model.encoder = ml_collections.ConfigDict()
+    e.block = "basic"
+    # Space-to-depth 8x8 (lossless) then a 3x3 conv: 32x32x32, then basic stages at 32, 16 and 8 cells.
+    e.stage_sizes = (1, 1, 1)
+    e.stage_strides = (1, 2, 2)
+    e.width = 32
+    e.stem_patch = 8
+    e.stem_kernel = 3
+    e.stem_stride = 1
+    e.stem_pool = False
+    e.norm_groups = 8
+    e.head_channels = 128
+    e.code_dim = 128
+    d = c.model.decoder = ml_collections.ConfigDict()
+    d.d_model = 128
+    d.num_heads = 4
+    d.num_layers = 3
+    d.ffn_dim = 512
+    d.num_queries = 50
+    d.num_points = 20
+    d.max_coord = 32.0
+
+    c.loss = ml_collections.ConfigDict()
+    c.loss.w_l1 = 2.0
+    c.loss.w_bce = 5.0
+    c.loss.vq_weight = 1.0
+
+    t = c.train = ml_collections.ConfigDict()
+    t.batch_size = 32
+    t.num_steps = 6000
+    t.warmup_steps = 200
+    t.lr = 1e-3
+    t.codebook_lr = 1e-3
+    t.end_lr_factor = 0.01
+    t.weight_decay = 0.0
+    t.grad_clip = 1.0
+    t.kmeans_rasters = 64  # rasters whose encoder outputs initialise the codebook (64 cells each)
+    t.kmeans_iters = 20
+    t.kmeans_at_step = 200  # k-means once the encoder has warmed up (0: at initialisation)
+    t.usage_decay = 0.99
+    t.restart_every = 100  # dead-code restart period in steps (0: never)
+    t.restart_threshold = 0.03  # a code is dead below threshold / K of the recent tokens
+    t.restart_until = 0.8  # fraction of training after which codes are no longer re-seeded
+    t.log_every = 50
+    t.eval_every = 500
+    t.eval_batches = 8
+    t.checkpoint_every = 250
+    t.keep_checkpoints = 2
+    return c

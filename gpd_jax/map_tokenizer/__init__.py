@@ -1,0 +1,21 @@
+"""GPD-1 map tokenizer: lane rasterizer, VQ-VAE (ResNet encoder, 128 x 128 codebook) and DETR lane decoder.
+
+Public API:
+  rasterize(polylines, valid, pose) -> f32[..., 256, 256]        (raster.py)
+  load_tokenizer(checkpoint_dir) -> MapTokenizer                  (tokenizer.py)
+    .codebook f32[K, D], .encode(params, rasters) -> i32[..., 64],
+    .decode(params, tokens) -> (f32[..., 50, 20, 2], f32[..., 50])
+  train_and_evaluate(config, workdir)                             (train.py, stage 1)
+CLI: python -m gpd_jax.map_tokenizer {evaluate,encode} ...        (__main__.py)
+"""
+
+from gpd_jax.map_tokenizer.raster import rasterize
+from gpd_jax.map_tokenizer.tokenizer import MapTokenizer, export_tokenizer, load_tokenizer
+
+__all__ = ["MapTokenizer", "export_tokenizer", "load_tokenizer", "rasterize", "train_and_evaluate"]
+
+
+def train_and_evaluate(config, workdir):
+    """Stage-1 training (imported lazily: it pulls in orbax and the data store)."""
+    from gpd_jax.map_tokenizer.train import train_and_evaluate as _run
+    return _run(config, workdir)

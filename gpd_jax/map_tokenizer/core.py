@@ -1,0 +1,116 @@
+"""Pure functions of a params pytree around `MapVQVAE`: forward pass, losses, k-means, dead-code restarts.
+
+`params` is the pure nested dict of the model's `nnx.Param` arrays (`nnx.to_pure_dict(nnx.state(model,
+nnx.Param))`) and `graphdef` comes from `nnx.split(model, nnx.Param)`; `nnx.merge(graphdef, params)` rebuilds
+the module inside a trace.
+Everything here is jit-able; the Hungarian matching runs on the host through `gpd_jax.metrics.matching`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
+from gpd_jax.metrics.matching import match_lines
+
+
+def codebook_of(params) -> jax.Array:
+    """The codebook f32[K, D] inside a params pytree."""
+    return params["codebook"]["embedding"]
+
+
+def with_codebook(params, codebook: jax.Array):
+    """A copy of `params` whose codebook is replaced by `codebook: f32[K, D]`."""
+    return {**params, "codebook": {**params["codebook"], "embedding": codebook}}
+
+
+def forward(graphdef, params, raster: jax.Array):
+    """`MapVQVAE.__call__` as a pure function: raster f32[B, 256, 256] -> dict (see the model)."""
+    model: MapVQVAE = nnx.merge(graphdef, params)
+    return model(raster)
+
+
+def encode_latents(graphdef, params, raster: jax.Array) -> jax.Array:
+    """Continuous encoder outputs f32[B, M, D] of rasters f32[B, 256, 256]."""
+    model: MapVQVAE = nnx.merge(graphdef, params)
+    return model.encode_latents(raster)
+
+
+def line_loss(points, logits, gt_points, gt_valid, w_l1: float = 2.0, w_bce: float = 5.0):
+    """SLEDGE / GPD-1 line loss after Hungarian matching.
+
+    Args:
+      points: f32[B, Q, P, 2]; logits: f32[B, Q]; gt_points: f32[B, G, P, 2]; gt_valid: bool[B, G].
+
+    Returns:
+      (loss, dict(l1, bce, match i32[B, G])): `w_l1 * L1 + w_bce * BCE`, where L1 is mean_k sum_xy |p - g| of
+      matched pairs masked by the GT label and BCE covers every query (queries matched to padding or to
+      nothing learn label 0); both are averaged over B x G (SLEDGE's normalisation).
+    """
+    m_pts, _, match = match_lines(points, logits, gt_points, gt_valid, w_bce, w_l1)
+    label = gt_valid.astype(jnp.float32)
+    b, g = gt_valid.shape
+    l1 = jnp.mean(jnp.sum(jnp.abs(m_pts - gt_points), -1), -1)  # [B, G]
+    l1 = jnp.sum(l1 * label * (match >= 0)) / (b * g)
+    q = logits.shape[-1]
+    # Per-query label: the label of the GT slot the query was matched to, 0 if unmatched.
+    onehot = jax.nn.one_hot(match, q, dtype=jnp.float32)  # [B, G, Q] (match -1 gives zeros)
+    q_label = jnp.einsum("bgq,bg->bq", onehot, label)
+    bce = jnp.mean(jax.nn.softplus(logits) - logits * q_label)
+    return w_l1 * l1 + w_bce * bce, dict(l1=l1, bce=bce, match=match)
+
+
+def code_stats(idx: jax.Array, num_codes: int):
+    """(counts f32[K], usage fraction of codes used, perplexity exp(H(p))) of token ids `idx: i32[...]`."""
+    counts = jnp.zeros((num_codes,), jnp.float32).at[idx.reshape(-1)].add(1.0)
+    p = counts / jnp.maximum(counts.sum(), 1.0)
+    perplexity = jnp.exp(-jnp.sum(jnp.where(p > 0, p * jnp.log(jnp.where(p > 0, p, 1.0)), 0.0)))
+    return counts, jnp.mean(counts > 0), perplexity
+
+
+def kmeans(key: jax.Array, x: jax.Array, k: int, iters: int = 20) -> jax.Array:
+    """Lloyd's k-means on `x: f32[N, D]` (N >= k) -> centres f32[k, D].
+
+    Initialised with k distinct random points; a cluster that empties is re-seeded with a random point.
+    """
+    n = x.shape[0]
+    if n < k:
+        raise ValueError(f"k-means needs at least k={k} points, got {n}")
+    k0, key = jax.random.split(key)
+    centres = x[jax.random.choice(k0, n, (k,), replace=False)]
+
+    def step(carry, key):
+        c = carry
+        a = nearest_code(c, x)
+        onehot = jax.nn.one_hot(a, k, dtype=x.dtype)  # [N, k]
+        cnt = onehot.sum(0)
+        mean = (onehot.T @ x) / jnp.maximum(cnt, 1.0)[:, None]
+        fresh = x[jax.random.randint(key, (k,), 0, n)]
+        return jnp.where((cnt > 0)[:, None], mean, fresh), None
+
+    centres, _ = jax.lax.scan(step, centres, jax.random.split(key, iters))
+    return centres
+
+
+def restart_dead_codes(key: jax.Array, codebook: jax.Array, usage: jax.Array, z: jax.Array, threshold: float):
+    """Re-seeds rarely used codes with recent encoder outputs (the dead-code remedy).
+
+    Args:
+      key: PRNG key.
+      codebook: f32[K, D].
+      usage: f32[K] running (EMA) fraction of tokens assigned to each code; sums to about 1.
+      z: f32[N, D] recent encoder outputs.
+      threshold: a code is dead when its usage is below `threshold / K`.
+
+    Returns:
+      (codebook f32[K, D], usage f32[K] with re-seeded codes set to 1/K, number of codes re-seeded).
+    """
+    k = codebook.shape[0]
+    dead = usage < threshold / k
+    pick = jax.random.randint(key, (k,), 0, z.shape[0])
+    new = z[pick] + 1e-3 * jax.random.normal(jax.random.fold_in(key, 1), codebook.shape) * jnp.std(z)
+    codebook = jnp.where(dead[:, None], new, codebook)
+    usage = jnp.where(dead, 1.0 / k, usage)
+    return codebook, usage, jnp.sum(dead)

@@ -1,0 +1,251 @@
+"""The map VQ-VAE: ResNet encoder to an 8x8 grid, a 128x128 codebook, and a DETR-style vector decoder.
+
+Parameters live in Flax NNX modules; the hot paths (`encode_latents`, `quantize`, `decode_lines`) are used
+as pure functions of a params pytree through `nnx.merge` (see `gpd_jax.map_tokenizer.tokenizer`).
+
+Differences from the official GPD-1 deployment configuration (`reference/gpd_official.md` §4), all deliberate:
+* GroupNorm replaces FrozenBatchNorm (no ImageNet weights here: the raster is a binary lane map, and batch
+  statistics would make the encoder impure);
+* the decoder is pre-norm (more stable from scratch) with learned query embeddings as the decoder input;
+* the codebook is its own module (`MapVQVAE.codebook`), so the optimizer can give it its own learning rate.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+from flax import nnx
+
+
+def _groups(channels: int, max_groups: int) -> int:
+    return math.gcd(channels, max_groups)
+
+
+class ConvNorm(nnx.Module):
+    """Conv (no bias) followed by GroupNorm."""
+
+    def __init__(self, cin: int, cout: int, kernel: int, stride: int, groups: int, rngs: nnx.Rngs,
+                 zero_scale: bool = False):
+        self.conv = nnx.Conv(cin, cout, (kernel, kernel), strides=stride, padding="SAME", use_bias=False,
+                             rngs=rngs)
+        self.norm = nnx.GroupNorm(cout, num_groups=_groups(cout, groups), rngs=rngs,
+                                  scale_init=nnx.initializers.zeros if zero_scale else nnx.initializers.ones)
+
+    def __call__(self, x):
+        return self.norm(self.conv(x))
+
+
+class BasicBlock(nnx.Module):
+    """Two 3x3 convs (ResNet-18/34 style)."""
+
+    expansion = 1
+
+    def __init__(self, cin: int, width: int, stride: int, groups: int, rngs: nnx.Rngs):
+        cout = width * self.expansion
+        self.c1 = ConvNorm(cin, width, 3, stride, groups, rngs)
+        self.c2 = ConvNorm(width, cout, 3, 1, groups, rngs, zero_scale=True)
+        self.proj = ConvNorm(cin, cout, 1, stride, groups, rngs) if (stride != 1 or cin != cout) else None
+
+    def __call__(self, x):
+        y = self.c2(jax.nn.relu(self.c1(x)))
+        sc = self.proj(x) if self.proj is not None else x
+        return jax.nn.relu(y + sc)
+
+
+class BottleneckBlock(nnx.Module):
+    """1x1 -> 3x3 (strided) -> 1x1 x4 (ResNet-50 style)."""
+
+    expansion = 4
+
+    def __init__(self, cin: int, width: int, stride: int, groups: int, rngs: nnx.Rngs):
+        cout = width * self.expansion
+        self.c1 = ConvNorm(cin, width, 1, 1, groups, rngs)
+        self.c2 = ConvNorm(width, width, 3, stride, groups, rngs)
+        self.c3 = ConvNorm(width, cout, 1, 1, groups, rngs, zero_scale=True)
+        self.proj = ConvNorm(cin, cout, 1, stride, groups, rngs) if (stride != 1 or cin != cout) else None
+
+    def __call__(self, x):
+        y = self.c3(jax.nn.relu(self.c2(jax.nn.relu(self.c1(x)))))
+        sc = self.proj(x) if self.proj is not None else x
+        return jax.nn.relu(y + sc)
+
+
+class Encoder(nnx.Module):
+    """ResNet over a 1-channel raster, then GroupNorm -> 3x3 conv -> 3x3 conv to the code dim -> Linear.
+
+    `cfg` fields: block ('basic' | 'bottleneck'), stage_sizes (blocks per stage), width (first stage width;
+    doubles each stage), stem_patch (space-to-depth factor applied to the raster before the stem conv: a
+    lossless reshape that makes CPU convolutions much cheaper; 1 = none, as in ResNet), stem_kernel,
+    stem_stride, stem_pool (3x3/2 max-pool after the stem),
+    stage_strides, norm_groups, head_channels, code_dim. The total stride must map 256 to the token grid.
+    """
+
+    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs):
+        block = {"basic": BasicBlock, "bottleneck": BottleneckBlock}[cfg.block]
+        g = cfg.norm_groups
+        self.patch = int(cfg.get("stem_patch", 1))
+        self.stem = ConvNorm(self.patch ** 2, cfg.width, cfg.stem_kernel, cfg.stem_stride, g, rngs)
+        self.stem_pool = bool(cfg.stem_pool)
+        blocks = []
+        cin = cfg.width
+        for i, (n, s) in enumerate(zip(cfg.stage_sizes, cfg.stage_strides)):
+            width = cfg.width * 2 ** i
+            for j in range(n):
+                blocks.append(block(cin, width, s if j == 0 else 1, g, rngs))
+                cin = width * block.expansion
+        self.blocks = nnx.List(blocks)
+        self.head_norm = nnx.GroupNorm(cin, num_groups=_groups(cin, g), rngs=rngs)
+        self.head_conv = nnx.Conv(cin, cfg.head_channels, (3, 3), padding="SAME", rngs=rngs)
+        self.pre_quant = nnx.Conv(cfg.head_channels, cfg.code_dim, (3, 3), padding="SAME", rngs=rngs)
+        self.out = nnx.Linear(cfg.code_dim, cfg.code_dim, rngs=rngs)
+
+    def __call__(self, raster: jax.Array) -> jax.Array:
+        """raster f32[B, H, W] -> latents f32[B, h, w, code_dim]."""
+        x = raster[..., None]
+        if self.patch > 1:
+            b, h, w, _ = x.shape
+            p = self.patch
+            x = x.reshape(b, h // p, p, w // p, p).transpose(0, 1, 3, 2, 4).reshape(b, h // p, w // p, p * p)
+        x = self.stem(x)
+        x = jax.nn.relu(x)
+        if self.stem_pool:
+            x = nnx.max_pool(x, (3, 3), strides=(2, 2), padding="SAME")
+        for blk in self.blocks:
+            x = blk(x)
+        x = jax.nn.relu(self.head_norm(x))
+        x = self.pre_quant(jax.nn.relu(self.head_conv(x)))
+        return self.out(x)
+
+
+class Codebook(nnx.Module):
+    """The VQ codebook f32[K, D] (its own module so that it can get its own learning rate)."""
+
+    def __init__(self, num_codes: int, code_dim: int, rngs: nnx.Rngs):
+        self.embedding = nnx.Param(jax.random.uniform(rngs.params(), (num_codes, code_dim), jnp.float32,
+                                                      -1.0 / num_codes, 1.0 / num_codes))
+
+
+def nearest_code(codebook: jax.Array, z: jax.Array) -> jax.Array:
+    """i32[...] index of the codebook row f32[K, D] nearest (L2) to each `z: f32[..., D]`."""
+    d = (jnp.sum(z * z, -1, keepdims=True) - 2.0 * z @ codebook.T + jnp.sum(codebook * codebook, -1))
+    return jnp.argmin(d, axis=-1).astype(jnp.int32)
+
+
+def quantize(codebook: jax.Array, z: jax.Array, commitment: float = 0.25):
+    """Vector quantization with a straight-through gradient.
+
+    Args:
+      codebook: f32[K, D].
+      z: f32[..., D] encoder outputs.
+      commitment: weight of the commitment term.
+
+    Returns:
+      (z_q f32[..., D] equal to the nearest codes in value, with the gradient of `z`;
+       idx i32[...]; loss = mean|q - sg(z)|^2 + commitment * mean|sg(q) - z|^2).
+    """
+    idx = nearest_code(codebook, z)
+    q = jnp.take(codebook, idx, axis=0)
+    loss = jnp.mean((q - jax.lax.stop_gradient(z)) ** 2) + commitment * jnp.mean((jax.lax.stop_gradient(q) - z) ** 2)
+    z_q = z + jax.lax.stop_gradient(q - z)
+    return z_q, idx, loss
+
+
+def sine_position_2d(h: int, w: int, dim: int, temperature: float = 10000.0) -> jax.Array:
+    """DETR's 2-D sine position code f32[h*w, dim] (half the channels for rows, half for columns), row-major."""
+    if dim % 4:
+        raise ValueError(f"dim {dim} must be a multiple of 4")
+    n = dim // 4
+    freq = 1.0 / temperature ** (jnp.arange(n, dtype=jnp.float32) / n)
+    ys = (jnp.arange(h, dtype=jnp.float32) + 0.5) / h * 2 * jnp.pi
+    xs = (jnp.arange(w, dtype=jnp.float32) + 0.5) / w * 2 * jnp.pi
+    py = ys[:, None] * freq  # [h, n]
+    px = xs[:, None] * freq  # [w, n]
+    py = jnp.concatenate([jnp.sin(py), jnp.cos(py)], -1)  # [h, 2n]
+    px = jnp.concatenate([jnp.sin(px), jnp.cos(px)], -1)  # [w, 2n]
+    grid = jnp.concatenate([jnp.broadcast_to(py[:, None], (h, w, 2 * n)),
+                            jnp.broadcast_to(px[None, :], (h, w, 2 * n))], -1)
+    return grid.reshape(h * w, dim)
+
+
+class DecoderLayer(nnx.Module):
+    """Pre-norm DETR decoder layer: self-attention over queries, cross-attention to the latent grid, FFN."""
+
+    def __init__(self, d: int, heads: int, ffn: int, rngs: nnx.Rngs):
+        self.n1 = nnx.LayerNorm(d, rngs=rngs)
+        self.self_attn = nnx.MultiHeadAttention(heads, d, decode=False, rngs=rngs)
+        self.n2 = nnx.LayerNorm(d, rngs=rngs)
+        self.cross_attn = nnx.MultiHeadAttention(heads, d, decode=False, rngs=rngs)
+        self.n3 = nnx.LayerNorm(d, rngs=rngs)
+        self.ff1 = nnx.Linear(d, ffn, rngs=rngs)
+        self.ff2 = nnx.Linear(ffn, d, rngs=rngs)
+
+    def __call__(self, x, query_pos, memory, memory_pos):
+        h = self.n1(x)
+        x = x + self.self_attn(h + query_pos, h + query_pos, h, deterministic=True)
+        h = self.n2(x)
+        x = x + self.cross_attn(h + query_pos, memory + memory_pos, memory, deterministic=True)
+        h = self.n3(x)
+        return x + self.ff2(jax.nn.relu(self.ff1(h)))
+
+
+class VectorDecoder(nnx.Module):
+    """DETR-style lane decoder: `num_queries` learned line queries over the latent grid.
+
+    Each query gives `num_points` points (tanh x `max_coord` metres) and an existence logit.
+    """
+
+    def __init__(self, cfg: ml_collections.ConfigDict, code_dim: int, grid: int, rngs: nnx.Rngs):
+        d = cfg.d_model
+        self.num_points = cfg.num_points
+        self.max_coord = float(cfg.max_coord)
+        self.grid = grid
+        self.memory_in = nnx.Linear(code_dim, d, rngs=rngs)
+        self.query_embed = nnx.Param(jax.random.normal(rngs.params(), (cfg.num_queries, d)) * 0.02)
+        self.query_pos = nnx.Param(jax.random.normal(rngs.params(), (cfg.num_queries, d)) * 0.02)
+        self.layers = nnx.List([DecoderLayer(d, cfg.num_heads, cfg.ffn_dim, rngs) for _ in range(cfg.num_layers)])
+        self.norm = nnx.LayerNorm(d, rngs=rngs)
+        self.points_head = nnx.Linear(d, cfg.num_points * 2, rngs=rngs)
+        self.logit_head = nnx.Linear(d, 1, rngs=rngs)
+
+    def __call__(self, latents: jax.Array):
+        """latents f32[B, h*w, D] -> (points f32[B, Q, P, 2], logits f32[B, Q])."""
+        b = latents.shape[0]
+        memory = self.memory_in(latents)
+        pos = sine_position_2d(self.grid, self.grid, memory.shape[-1])[None]
+        x = jnp.broadcast_to(self.query_embed[...][None], (b,) + self.query_embed.shape)
+        qpos = self.query_pos[...][None]
+        for layer in self.layers:
+            x = layer(x, qpos, memory, pos)
+        x = self.norm(x)
+        pts = jnp.tanh(self.points_head(x)) * self.max_coord
+        pts = pts.reshape(x.shape[:-1] + (self.num_points, 2))
+        return pts, self.logit_head(x)[..., 0]
+
+
+class MapVQVAE(nnx.Module):
+    """Encoder + codebook + vector decoder. `cfg` is the `model` section of a map-tokenizer config."""
+
+    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs):
+        self.grid = int(cfg.grid)
+        self.commitment = float(cfg.commitment)
+        self.encoder = Encoder(cfg.encoder, rngs)
+        self.codebook = Codebook(cfg.num_codes, cfg.encoder.code_dim, rngs)
+        self.decoder = VectorDecoder(cfg.decoder, cfg.encoder.code_dim, self.grid, rngs)
+
+    def encode_latents(self, raster: jax.Array) -> jax.Array:
+        """raster f32[B, 256, 256] -> continuous latents f32[B, grid*grid, D] (row-major cells)."""
+        z = self.encoder(raster)
+        if z.shape[1:3] != (self.grid, self.grid):
+            raise ValueError(f"encoder produced a {z.shape[1:3]} grid, config says {self.grid}x{self.grid}; "
+                             "fix the strides")
+        return z.reshape(z.shape[0], -1, z.shape[-1])
+
+    def __call__(self, raster: jax.Array):
+        """Full pass. Returns dict(points, logits, idx i32[B, M], vq_loss, z f32[B, M, D])."""
+        z = self.encode_latents(raster)
+        z_q, idx, vq_loss = quantize(self.codebook.embedding[...], z, self.commitment)
+        points, logits = self.decoder(z_q)
+        return dict(points=points, logits=logits, idx=idx, vq_loss=vq_loss, z=z)

@@ -1,0 +1,135 @@
+"""The trained map tokenizer as pure functions of a params pytree (what the GPD model and the metrics use).
+
+    tok = load_tokenizer("checkpoints/map_tokenizer")
+    tokens = jax.jit(tok.encode)(tok.params, rasters)          # f32[..., 256, 256] -> i32[..., 64]
+    points, logits = jax.jit(tok.decode)(tok.params, tokens)   # -> f32[..., 50, 20, 2], f32[..., 50]
+    tok.codebook                                               # f32[128, 128]
+
+A checkpoint directory is either an exported tokenizer (`config.json` + `params.npz`, what ships in
+`checkpoints/map_tokenizer/`) or a training workdir (`config.json` + orbax `checkpoints/`; the latest step is
+used). `export_tokenizer` writes the former (float16 by default, to keep the repository lean).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+from flax import nnx
+
+from gpd_jax.map_tokenizer import core
+from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MapTokenizer:
+    """A map tokenizer: its config, the module structure (`graphdef`) and the params pytree."""
+
+    config: ml_collections.ConfigDict
+    graphdef: Any
+    params: Any
+
+    @property
+    def codebook(self) -> jax.Array:
+        """f32[K, D] the codebook (what GPD embeds map tokens with)."""
+        return core.codebook_of(self.params)
+
+    @property
+    def num_tokens(self) -> int:
+        return int(self.config.model.grid) ** 2
+
+    def encode(self, params, rasters: jax.Array) -> jax.Array:
+        """Map tokens i32[..., 64] (row-major over the 8x8 grid, row 0 = front) of rasters f32[..., 256, 256]."""
+        lead = rasters.shape[:-2]
+        r = rasters.reshape((-1,) + rasters.shape[-2:]).astype(jnp.float32)
+        z = core.encode_latents(self.graphdef, params, r)
+        idx = nearest_code(core.codebook_of(params), z)
+        return idx.reshape(lead + (idx.shape[-1],))
+
+    def decode(self, params, tokens: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Vector lanes of tokens i32[..., 64]: (points f32[..., 50, 20, 2] metres in the frame's ego frame,
+        existence logits f32[..., 50]; a line exists where logit > 0)."""
+        lead = tokens.shape[:-1]
+        t = tokens.reshape((-1, tokens.shape[-1]))
+        z_q = jnp.take(core.codebook_of(params), t, axis=0)
+        model: MapVQVAE = nnx.merge(self.graphdef, params)
+        pts, logits = model.decoder(z_q)
+        return pts.reshape(lead + pts.shape[1:]), logits.reshape(lead + logits.shape[1:])
+
+    def reconstruct(self, params, rasters: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """`decode(encode(rasters))`."""
+        return self.decode(params, self.encode(params, rasters))
+
+
+def _path_key(path) -> str:
+    return "/".join(str(getattr(p, "key", getattr(p, "idx", p))) for p in path)
+
+
+def flatten_params(params) -> dict[str, np.ndarray]:
+    return {_path_key(p): np.asarray(v) for p, v in jax.tree_util.tree_flatten_with_path(params)[0]}
+
+
+def unflatten_params(template, flat: dict[str, np.ndarray]):
+    """Fills the structure of `template` from `flat` (keys from `flatten_params`), casting to the template dtypes."""
+    leaves_with_path, treedef = jax.tree_util.tree_flatten_with_path(template)
+    missing = [_path_key(p) for p, _ in leaves_with_path if _path_key(p) not in flat]
+    if missing:
+        raise ValueError(f"checkpoint lacks {len(missing)} parameters, e.g. {missing[:3]}")
+    leaves = []
+    for p, t in leaves_with_path:
+        v = np.asarray(flat[_path_key(p)])
+        if v.shape != t.shape:
+            raise ValueError(f"parameter {_path_key(p)}: checkpoint shape {v.shape}, model shape {t.shape}")
+        leaves.append(jnp.asarray(v, t.dtype))
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float16) -> None:
+    """Writes `config.json` and `params.npz` (parameters cast to `dtype`) to `out_dir`."""
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "config.json"), "w") as f:
+        f.write(config.to_json(indent=2))
+    flat = {k: v.astype(dtype) if v.dtype.kind == "f" else v for k, v in flatten_params(params).items()}
+    np.savez_compressed(os.path.join(out_dir, "params.npz"), **flat)
+
+
+def load_config_json(path: str) -> ml_collections.ConfigDict:
+    with open(path) as f:
+        d = json.load(f)
+
+    def tuples(x):  # JSON turns tuples into lists; the model wants tuples for stage sizes
+        if isinstance(x, dict):
+            return {k: tuples(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return tuple(tuples(v) for v in x)
+        return x
+
+    return ml_collections.ConfigDict(tuples(d))
+
+
+def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
+    """Loads an exported tokenizer or the latest checkpoint of a training workdir (see the module docstring)."""
+    cfg_path = os.path.join(checkpoint_dir, "config.json")
+    if not os.path.isfile(cfg_path):
+        raise FileNotFoundError(f"{checkpoint_dir} is not a map-tokenizer checkpoint (no config.json)")
+    config = load_config_json(cfg_path)
+    model = MapVQVAE(config.model, nnx.Rngs(0))
+    graphdef, state = nnx.split(model, nnx.Param)
+    template = nnx.to_pure_dict(state)
+    npz = os.path.join(checkpoint_dir, "params.npz")
+    if os.path.isfile(npz):
+        with np.load(npz) as f:
+            params = unflatten_params(template, dict(f))
+    else:
+        from gpd_jax.map_tokenizer.train import checkpoint_manager, restore_params
+        mgr = checkpoint_manager(checkpoint_dir)
+        if mgr.latest_step() is None:
+            raise FileNotFoundError(f"{checkpoint_dir} has neither params.npz nor orbax checkpoints")
+        params = restore_params(mgr, template, config)
+    return MapTokenizer(config=config, graphdef=graphdef, params=params)
