@@ -20,7 +20,7 @@ def get_config() -> ml_collections.ConfigDict:
     c.raster = ml_collections.ConfigDict()
     c.raster.size = 256
     c.raster.pixel_size = 0.25
-    c.raster.max_segment_length = 2.0
+    c.raster.max_segment_length = 1.0  # the data store resamples lanes every 1 m: 4 samples per segment, gap-free
 
     c.model = ml_collections.ConfigDict()
     c.model.grid = 8

@@ -71,18 +71,27 @@ def code_stats(idx: jax.Array, num_codes: int):
 
 
 def kmeans(key: jax.Array, x: jax.Array, k: int, iters: int = 20) -> jax.Array:
-    """Lloyd's k-means on `x: f32[N, D]` (N >= k) -> centres f32[k, D].
+    """k-means on `x: f32[N, D]` (N >= k) -> centres f32[k, D].
 
-    Initialised with k distinct random points; a cluster that empties is re-seeded with a random point.
+    k-means++ seeding (each new centre drawn with probability proportional to the squared distance to the
+    nearest chosen one), then `iters` Lloyd steps; a cluster that empties is re-seeded with a random point.
     """
     n = x.shape[0]
     if n < k:
         raise ValueError(f"k-means needs at least k={k} points, got {n}")
-    k0, key = jax.random.split(key)
-    centres = x[jax.random.choice(k0, n, (k,), replace=False)]
+    k_first, k_seed, k_lloyd = jax.random.split(key, 3)
+    centres = jnp.zeros((k, x.shape[1]), x.dtype).at[0].set(x[jax.random.randint(k_first, (), 0, n)])
+    d2 = jnp.sum((x - centres[0]) ** 2, -1)
 
-    def step(carry, key):
-        c = carry
+    def seed(i, carry):
+        c, d2 = carry
+        j = jax.random.categorical(jax.random.fold_in(k_seed, i), jnp.log(jnp.maximum(d2, 1e-30)))
+        c = c.at[i].set(x[j])
+        return c, jnp.minimum(d2, jnp.sum((x - x[j]) ** 2, -1))
+
+    centres, _ = jax.lax.fori_loop(1, k, seed, (centres, d2))
+
+    def step(c, key):
         a = nearest_code(c, x)
         onehot = jax.nn.one_hot(a, k, dtype=x.dtype)  # [N, k]
         cnt = onehot.sum(0)
@@ -90,7 +99,7 @@ def kmeans(key: jax.Array, x: jax.Array, k: int, iters: int = 20) -> jax.Array:
         fresh = x[jax.random.randint(key, (k,), 0, n)]
         return jnp.where((cnt > 0)[:, None], mean, fresh), None
 
-    centres, _ = jax.lax.scan(step, centres, jax.random.split(key, iters))
+    centres, _ = jax.lax.scan(step, centres, jax.random.split(k_lloyd, iters))
     return centres
 
 

@@ -90,12 +90,18 @@ def unflatten_params(template, flat: dict[str, np.ndarray]):
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
-def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float16) -> None:
-    """Writes `config.json` and `params.npz` (parameters cast to `dtype`) to `out_dir`."""
+def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float16,
+                     exact: tuple[str, ...] = ("encoder", "codebook")) -> None:
+    """Writes `config.json` and `params.npz` to `out_dir`.
+
+    Parameters under the top-level keys `exact` stay float32 (so that the exported encoder gives exactly the
+    tokens of the trained one); the others (the decoder) are cast to `dtype` to keep the file small.
+    """
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "config.json"), "w") as f:
         f.write(config.to_json(indent=2))
-    flat = {k: v.astype(dtype) if v.dtype.kind == "f" else v for k, v in flatten_params(params).items()}
+    flat = {k: v.astype(dtype) if v.dtype.kind == "f" and k.split("/")[0] not in exact else v
+            for k, v in flatten_params(params).items()}
     np.savez_compressed(os.path.join(out_dir, "params.npz"), **flat)
 
 

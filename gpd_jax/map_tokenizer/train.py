@@ -96,7 +96,7 @@ def make_train_step(graphdef, config, tx):
         counts, used, ppl = core.code_stats(aux["idx"], num_codes)
         usage = decay * state.usage + (1 - decay) * counts / jnp.maximum(counts.sum(), 1.0)
         metrics = dict(loss=aux["loss"], l1=aux["l1"], bce=aux["bce"], vq=aux["vq"], batch_usage=used,
-                       batch_perplexity=ppl, grad_norm=optax.global_norm(grads))
+                       batch_perplexity=ppl, grad_norm=optax.tree.norm(grads))
         z = aux["z"].reshape(-1, aux["z"].shape[-1])
         return state._replace(step=state.step + 1, params=params, opt_state=opt_state, usage=usage), metrics, z
 

@@ -1,0 +1,70 @@
+"""Frame batches for the map tokenizer from the processed data store (`gpd_jax.data.store`).
+
+Each item is one (sample, frame) pair: the sample's polylines (scene frame) and validity, the frame's ego pose,
+and the frame's SLEDGE vector lanes (`gpd_jax.data.lanes.vector_lanes`, the targets of the lane decoder).
+Rasterization is left to the consumer (it runs inside the jitted train / eval step).
+"""
+
+from __future__ import annotations
+
+from typing import Iterator
+
+import numpy as np
+
+from gpd_jax.data.lanes import vector_lanes
+from gpd_jax.data.store import Shard, list_shards
+
+_KEYS = ("polylines", "polyline_valid", "ego_pose")
+
+
+def open_split(data_dir: str, split: str) -> list[Shard]:
+    shards = [Shard(p) for p in list_shards(data_dir, split)]
+    if not shards:
+        raise FileNotFoundError(f"{data_dir} has no complete shards in split {split!r}")
+    return shards
+
+
+def _item(shard: Shard, i: int, t: int) -> dict[str, np.ndarray]:
+    s = shard.read(i, _KEYS)
+    pose = s["ego_pose"][t]
+    lanes, ok = vector_lanes(s["polylines"], s["polyline_valid"], pose)
+    return dict(polylines=s["polylines"], polyline_valid=s["polyline_valid"], pose=pose.astype(np.float32),
+                lanes=lanes.astype(np.float32), lanes_valid=ok, sample=np.int32(i), frame=np.int32(t))
+
+
+def _stack(items: list[dict]) -> dict[str, np.ndarray]:
+    return {k: np.stack([it[k] for it in items]) for k in items[0]}
+
+
+def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shuffle: bool = True,
+                  repeat: bool = True, max_batches: int | None = None, all_frames: bool = False,
+                  frame_stride: int | None = None) -> Iterator[dict[str, np.ndarray]]:
+    """Batches of frames (dict of numpy arrays, see `gpd_jax.map_tokenizer.data`).
+
+    One random frame per sample and pass (deterministic in `seed`), or with `frame_stride` the frames
+    0, stride, 2 stride, ... of every sample (evaluation), or with `all_frames` every frame.
+    """
+    shards = open_split(data_dir, split)
+    index = [(s, i) for s in range(len(shards)) for i in range(shards[s].num_samples)]
+    num_frames = shards[0].arrays["ego_pose"].shape[1]
+    rng = np.random.default_rng(seed)
+    made = 0
+    while True:
+        order = rng.permutation(len(index)) if shuffle else np.arange(len(index))
+        pairs = []
+        for j in order:
+            s, i = index[j]
+            if all_frames or frame_stride:
+                pairs.extend((s, i, t) for t in range(0, num_frames, 1 if all_frames else frame_stride))
+            else:
+                pairs.append((s, i, int(rng.integers(num_frames))))
+        for k in range(0, len(pairs), batch_size):
+            if max_batches is not None and made >= max_batches:
+                return
+            chunk = pairs[k:k + batch_size]
+            if repeat and len(chunk) < batch_size:
+                break  # keep shapes fixed while training
+            yield _stack([_item(shards[s], i, t) for s, i, t in chunk])
+            made += 1
+        if not repeat:
+            return

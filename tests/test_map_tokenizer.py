@@ -1,0 +1,151 @@
+"""Map tokenizer: straight-through VQ, k-means, dead codes, loss, training, encode/decode, checkpoints."""
+
+import os
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpd_jax.config import load_config
+from gpd_jax.map_tokenizer import core
+from gpd_jax.map_tokenizer.model import quantize, sine_position_2d
+from gpd_jax.map_tokenizer.synthetic import synthetic_lanes
+from gpd_jax.map_tokenizer.tokenizer import export_tokenizer, load_tokenizer
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+SMALL = ["--config.data.dir=synthetic", "--config.model.encoder.width=8", "--config.model.encoder.head_channels=32",
+         "--config.model.encoder.code_dim=16", "--config.model.num_codes=16", "--config.model.decoder.d_model=32",
+         "--config.model.decoder.num_layers=1", "--config.model.decoder.ffn_dim=64",
+         "--config.model.decoder.num_heads=2", "--config.train.batch_size=4", "--config.train.kmeans_rasters=4",
+         "--config.train.kmeans_at_step=0", "--config.train.warmup_steps=1", "--config.train.log_every=1",
+         "--config.train.eval_batches=1", "--config.train.lr=0.003"]
+
+
+def small_config(*extra):
+    return load_config(os.path.join(ROOT, "configs/map_tokenizer_tiny.py"), SMALL + list(extra))
+
+
+def test_quantize_straight_through():
+    cb = jnp.array([[0.0, 0.0], [1.0, 1.0], [-1.0, 2.0]])
+    z = jnp.array([[0.9, 1.2], [-0.1, 0.1], [-0.8, 1.7]])
+    zq, idx, loss = quantize(cb, z)
+    np.testing.assert_array_equal(idx, [1, 0, 2])
+    np.testing.assert_allclose(zq, cb[idx], atol=1e-6)
+    c = jnp.arange(6.0).reshape(3, 2)
+    g = jax.grad(lambda z: jnp.sum(quantize(cb, z)[0] * c))(z)
+    np.testing.assert_allclose(g, c)  # identity gradient to the encoder output
+    gcb = jax.grad(lambda cb: quantize(cb, z)[2])(cb)
+    assert jnp.all(jnp.isfinite(gcb)) and jnp.abs(gcb).sum() > 0  # codebook loss moves the codes
+
+
+def test_gradient_reaches_encoder():
+    from gpd_jax.map_tokenizer.train import build_model, loss_fn
+    cfg = small_config()
+    graphdef, params = build_model(cfg)
+    batch = synthetic_lanes(0, 2)
+    grads = jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch)[0])(params)
+    enc = jax.tree.leaves(grads["encoder"])
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in enc)
+    # the first conv sits before the quantizer: only the straight-through path can give it a gradient
+    assert float(jnp.abs(grads["encoder"]["stem"]["conv"]["kernel"]).sum()) > 0
+
+
+def test_kmeans_recovers_clusters():
+    centres = jnp.array([[5.0, 0.0], [-5.0, 0.0], [0.0, 5.0], [0.0, -5.0]])
+    x = jnp.repeat(centres, 50, axis=0) + 0.1 * jax.random.normal(jax.random.key(0), (200, 2))
+    found = core.kmeans(jax.random.key(1), x, 4, iters=10)
+    d = jnp.linalg.norm(found[:, None] - centres[None], axis=-1)
+    assert float(d.min(0).max()) < 0.1  # every true centre has a found centre near it
+
+
+def test_dead_codes_are_reseeded():
+    cb = jnp.zeros((8, 3))
+    usage = jnp.array([0.5, 0.5, 0, 0, 0, 0, 0, 0.0])
+    z = jnp.ones((10, 3)) * 7.0
+    new, u, n = core.restart_dead_codes(jax.random.key(0), cb, usage, z, 0.1)
+    assert int(n) == 6
+    np.testing.assert_array_equal(new[:2], 0.0)
+    np.testing.assert_allclose(new[2:], 7.0, atol=0.1)
+    np.testing.assert_allclose(u[2:], 1 / 8)
+
+
+def test_code_stats():
+    counts, used, ppl = core.code_stats(jnp.array([0, 0, 1, 1]), 4)
+    np.testing.assert_allclose(counts, [2, 2, 0, 0])
+    assert float(used) == 0.5 and abs(float(ppl) - 2.0) < 1e-5
+
+
+def test_line_loss_zero_for_perfect_prediction():
+    b = synthetic_lanes(3, 2)
+    logits = jnp.where(b["lanes_valid"], 20.0, -20.0)
+    loss, aux = core.line_loss(jnp.asarray(b["lanes"]), logits, b["lanes"], b["lanes_valid"])
+    assert float(aux["l1"]) < 1e-5 and float(aux["bce"]) < 1e-6
+    # shuffled queries are matched back
+    perm = np.random.default_rng(0).permutation(50)
+    loss2, aux2 = core.line_loss(jnp.asarray(b["lanes"])[:, perm], logits[:, perm], b["lanes"], b["lanes_valid"])
+    assert float(aux2["l1"]) < 1e-5
+
+
+def test_sine_position_code():
+    pe = sine_position_2d(8, 8, 32)
+    chex.assert_shape(pe, (64, 32))
+    assert len(np.unique(np.round(np.asarray(pe), 5), axis=0)) == 64  # every cell has its own code
+
+
+def test_training_steps_lower_the_loss():
+    import optax
+    from gpd_jax.map_tokenizer.train import TrainState, build_model, make_optimizer, make_train_step
+    cfg = small_config("--config.train.num_steps=30")
+    graphdef, params = build_model(cfg)
+    tx = make_optimizer(cfg.train, params)
+    k = cfg.model.num_codes
+    state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params), jnp.full((k,), 1 / k), jnp.ones((), bool))
+    step = jax.jit(make_train_step(graphdef, cfg, tx))
+    batch = synthetic_lanes(7, 4)
+    losses = []
+    for _ in range(12):
+        state, m, z = step(state, batch)
+        losses.append(float(m["loss"]))
+    assert np.isfinite(losses).all()
+    assert min(losses[-3:]) < 0.8 * losses[0], losses
+    chex.assert_shape(z, (4 * 64, cfg.model.encoder.code_dim))
+    assert isinstance(optax.tree.norm(state.params), jax.Array)
+
+
+def test_train_checkpoint_resume_and_encode_decode(tmp_path):
+    from gpd_jax.map_tokenizer.train import train_and_evaluate
+    wd = str(tmp_path / "wd")
+    cfg = small_config("--config.train.num_steps=2", "--config.train.checkpoint_every=2",
+                       "--config.train.eval_every=2", "--config.train.restart_every=1")
+    metrics = train_and_evaluate(cfg, wd)
+    for key in ("f1", "lateral", "chamfer", "chamfer_corrected", "codebook_usage", "perplexity"):
+        assert key in metrics
+    tok = load_tokenizer(wd)
+    cfg3 = small_config("--config.train.num_steps=3", "--config.train.checkpoint_every=1",
+                        "--config.train.eval_every=100")
+    train_and_evaluate(cfg3, wd)  # resumes at step 2, runs one step
+    lines = open(os.path.join(wd, "metrics.jsonl")).read().splitlines()
+    assert any('"step": 3' in ln for ln in lines)
+    tok3 = load_tokenizer(wd)
+    assert not np.allclose(tok.params["decoder"]["points_head"]["kernel"],
+                           tok3.params["decoder"]["points_head"]["kernel"])
+
+    chex.assert_shape(tok.codebook, (16, 16))
+    rasters = jnp.zeros((2, 3, 256, 256)).at[..., 100:110, 128].set(1.0)
+    tokens = jax.jit(tok.encode)(tok.params, rasters)
+    chex.assert_shape(tokens, (2, 3, 64))
+    assert tokens.dtype == jnp.int32 and int(tokens.max()) < 16
+    pts, logits = jax.jit(tok.decode)(tok.params, tokens)
+    chex.assert_shape(pts, (2, 3, 50, 20, 2))
+    chex.assert_shape(logits, (2, 3, 50))
+    assert float(jnp.abs(pts).max()) <= 32.0
+
+    out = str(tmp_path / "export")
+    export_tokenizer(tok.params, tok.config, out)
+    tok2 = load_tokenizer(out)
+    np.testing.assert_array_equal(tok2.encode(tok2.params, rasters), tokens)
+    p2, l2 = tok2.decode(tok2.params, tokens)
+    np.testing.assert_allclose(p2, pts, atol=0.1)  # float16 export
