@@ -1,0 +1,304 @@
+"""Sharded on-disk store of fixed-shape samples.
+
+Layout of a dataset directory `DIR`::
+
+    DIR/dataset.json                  manifest: format version, sample spec (key -> dtype, shape), splits
+                                      (shards, sample counts), build settings and statistics
+    DIR/<split>/shard_<jjjjj>/        one complete shard (split = train | val | test | any name)
+        meta.json                     {"num_samples": n, "keys": {key: {"dtype", "shape", "nbytes"}},
+                                       "scenario_ids": [n strings], "locations": [n strings], ...}
+        <key>.npy                     one numpy array per sample key, leading dim n (see below)
+        map_tokens.npy                optional, u8[n, T, 64]: written later by `save_map_tokens`
+    DIR/_jobs/job_<jjjjj>.json        build bookkeeping (resume): one file per finished build job
+
+Sample keys (paper configuration T=101, A=33, L=96, P=128; see `gpd_jax.data.preprocess`):
+
+    xy              f32[n, T, A, 2]   agent box centres, scene frame (ego frame of frame 20)
+    heading         f32[n, T, A]      agent headings, scene frame, [-pi, pi)
+    valid           bool[n, T, A]     agent observed; slot 0 = ego (valid in every frame)
+    size            f32[n, A, 2]      (length, width) in metres
+    agent_type      i8[n, A]          index into gpd_jax.scene.AGENT_TYPES
+    ego_pose        f32[n, T, 3]      ego (x, y, heading) per frame in the scene frame
+    polylines       f32[n, L, P, 2]   lane centrelines in the scene frame, 1 m spacing, clipped to what the
+                                      ego's 64x64 m window sees over the sample
+    polyline_valid  bool[n, L, P]     which polyline points exist (a prefix of each row)
+
+About 145 kB per sample (98 kB of it lanes). Shards are written to a hidden temporary directory in the split directory and
+renamed into place when complete (`os.replace`), so a shard directory that exists is complete; leftover
+temporaries from a killed build are ignored and removed by the next build. Files are plain `.npy` so
+that readers memory-map them (memory stays flat whatever the dataset size).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from typing import Any
+
+import numpy as np
+
+from gpd_jax.data.errors import DataError
+from gpd_jax.data.preprocess import SAMPLE_SPEC
+
+FORMAT_VERSION = 1
+MANIFEST = "dataset.json"
+SPLITS = ("train", "val", "test")
+MAP_TOKENS = "map_tokens.npy"
+NUM_MAP_TOKENS = 64
+
+
+def shard_name(index: int) -> str:
+    return f"shard_{int(index):05d}"
+
+
+def shard_dir(data_dir: str, split: str, index: int) -> str:
+    return os.path.join(data_dir, split, shard_name(index))
+
+
+def atomic_write_json(path: str, obj: Any) -> None:
+    d = os.path.dirname(path) or "."
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".json")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(obj, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def atomic_save_npy(path: str, arr: np.ndarray) -> None:
+    d = os.path.dirname(path) or "."
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".npy")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, arr)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def stack_samples(samples: list[dict[str, np.ndarray]], spec=SAMPLE_SPEC) -> dict[str, np.ndarray]:
+    """List of per-sample dicts -> dict of stacked arrays with the spec's dtypes (checked shapes)."""
+    out = {}
+    for k, (shape, dtype) in spec.items():
+        arr = np.stack([np.asarray(s[k]) for s in samples]).astype(dtype, copy=False)
+        if arr.shape[1:] != tuple(shape):
+            raise ValueError(f"sample key {k}: shape {arr.shape[1:]}, expected {tuple(shape)}")
+        out[k] = arr
+    return out
+
+
+def write_shard(data_dir: str, split: str, index: int, arrays: dict[str, np.ndarray],
+                scenario_ids: list[str], locations: list[str], extra: dict | None = None) -> str:
+    """Writes one shard atomically (temp dir, then rename). Returns its directory."""
+    n = len(scenario_ids)
+    if n == 0:
+        raise ValueError("refusing to write an empty shard")
+    for k, a in arrays.items():
+        if a.shape[0] != n:
+            raise ValueError(f"key {k} has {a.shape[0]} samples, expected {n}")
+    split_dir = os.path.join(data_dir, split)
+    os.makedirs(split_dir, exist_ok=True)
+    final = shard_dir(data_dir, split, index)
+    if os.path.exists(final):
+        raise FileExistsError(final)
+    tmp = tempfile.mkdtemp(dir=split_dir, prefix=f".tmp-{shard_name(index)}-")
+    try:
+        keys = {}
+        for k, a in arrays.items():
+            np.save(os.path.join(tmp, f"{k}.npy"), a)
+            keys[k] = {"dtype": str(a.dtype), "shape": list(a.shape[1:]),
+                       "nbytes": os.path.getsize(os.path.join(tmp, f"{k}.npy"))}
+        meta = {"format_version": FORMAT_VERSION, "num_samples": n, "keys": keys,
+                "scenario_ids": list(scenario_ids), "locations": list(locations), **(extra or {})}
+        with open(os.path.join(tmp, "meta.json"), "w") as f:
+            json.dump(meta, f)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def list_shards(data_dir: str, split: str) -> list[str]:
+    """Complete shard directories of a split, sorted by index (temporaries ignored)."""
+    d = os.path.join(data_dir, split)
+    if not os.path.isdir(d):
+        return []
+    return [os.path.join(d, n) for n in sorted(os.listdir(d)) if n.startswith("shard_")
+            and os.path.isdir(os.path.join(d, n))]
+
+
+def list_splits(data_dir: str) -> list[str]:
+    if not os.path.isdir(data_dir):
+        raise DataError(data_dir, "dataset directory not found")
+    return sorted(n for n in os.listdir(data_dir) if not n.startswith((".", "_"))
+                  and os.path.isdir(os.path.join(data_dir, n)))
+
+
+def clean_temporaries(data_dir: str) -> int:
+    """Removes leftover temporary shards/files of an interrupted build. Returns how many."""
+    n = 0
+    if not os.path.isdir(data_dir):
+        return 0
+    for root, dirs, files in os.walk(data_dir):
+        for name in list(dirs):
+            if name.startswith(".tmp-"):
+                shutil.rmtree(os.path.join(root, name), ignore_errors=True)
+                dirs.remove(name)
+                n += 1
+        for name in files:
+            if name.startswith(".tmp-"):
+                os.remove(os.path.join(root, name))
+                n += 1
+    return n
+
+
+class Shard:
+    """A complete shard, validated on open and read through memory maps.
+
+    Raises `DataError` naming the file if `meta.json` is missing or unreadable, a key file is missing,
+    truncated (size differs from the recorded one) or has the wrong dtype / shape.
+    """
+
+    def __init__(self, path: str, spec=SAMPLE_SPEC):
+        self.path = path
+        mpath = os.path.join(path, "meta.json")
+        try:
+            with open(mpath) as f:
+                meta = json.load(f)
+        except FileNotFoundError as e:
+            raise DataError(mpath, "shard has no meta.json (incomplete or not a shard)") from e
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise DataError(mpath, f"corrupt meta.json: {e}") from e
+        self.meta = meta
+        n = meta.get("num_samples")
+        if not isinstance(n, int) or n <= 0:
+            raise DataError(mpath, f"bad num_samples {n!r}")
+        self.num_samples = n
+        self.arrays: dict[str, np.ndarray] = {}
+        for k, (shape, dtype) in spec.items():
+            f = os.path.join(path, f"{k}.npy")
+            info = meta.get("keys", {}).get(k)
+            if info is None:
+                raise DataError(mpath, f"key {k!r} missing from the shard's meta.json")
+            if spec is SAMPLE_SPEC:  # sizes (T, A, L, P) come from the build's config; ranks must match
+                shape = tuple(info.get("shape", ()))
+                if len(shape) != len(SAMPLE_SPEC[k][0]):
+                    raise DataError(mpath, f"key {k!r}: shape {shape} has the wrong rank")
+            if not os.path.isfile(f):
+                raise DataError(f, "file missing from shard")
+            size = os.path.getsize(f)
+            if size != info.get("nbytes"):
+                raise DataError(f, f"truncated or corrupt: {size} bytes, meta.json says {info.get('nbytes')}")
+            try:
+                a = np.load(f, mmap_mode="r", allow_pickle=False)
+            except (ValueError, OSError, EOFError) as e:
+                raise DataError(f, f"unreadable .npy: {e}") from e
+            if a.shape != (n, *shape) or a.dtype != np.dtype(dtype):
+                raise DataError(f, f"shape {a.shape} dtype {a.dtype}, expected {(n, *shape)} {dtype}")
+            self.arrays[k] = a
+        self.map_tokens = None
+        tp = os.path.join(path, MAP_TOKENS)
+        if os.path.isfile(tp):
+            try:
+                t = np.load(tp, mmap_mode="r", allow_pickle=False)
+            except (ValueError, OSError, EOFError) as e:
+                raise DataError(tp, f"unreadable map tokens: {e}") from e
+            T = spec["xy"][0][0]
+            if t.shape != (n, T, NUM_MAP_TOKENS):
+                raise DataError(tp, f"map tokens shape {t.shape}, expected {(n, T, NUM_MAP_TOKENS)}")
+            self.map_tokens = t
+
+    def read(self, i: int, keys=None) -> dict[str, np.ndarray]:
+        """Sample i as a dict of arrays (copies). Raises DataError on non-finite agent or lane values."""
+        keys = self.arrays.keys() if keys is None else keys
+        out = {k: np.array(self.arrays[k][i]) for k in keys}
+        for k, vk in (("xy", "valid"), ("heading", "valid"), ("ego_pose", None), ("polylines", "polyline_valid")):
+            if k in out:
+                a = out[k]
+                m = out.get(vk) if vk else None
+                bad = ~np.isfinite(a) if m is None else (~np.isfinite(a) & (m if a.ndim == m.ndim else m[..., None]))
+                if bad.any():
+                    raise DataError(os.path.join(self.path, f"{k}.npy"), f"sample {i}: non-finite values")
+        return out
+
+
+def save_map_tokens(data_dir: str, split: str, shard_index: int, tokens: np.ndarray) -> str:
+    """Stores the map tokenizer's tokens of one shard next to its samples (atomic write).
+
+    Args:
+      data_dir: the dataset directory.
+      split: split name.
+      shard_index: the shard's index j (directory `shard_<jjjjj>`; see `shard_indices`).
+      tokens: uint8/int[n, T, 64] codebook indices (must fit in uint8), n = the shard's sample count.
+    Returns the written path (`<shard>/map_tokens.npy`, stored as uint8).
+    """
+    path = shard_dir(data_dir, split, shard_index)
+    meta_path = os.path.join(path, "meta.json")
+    if not os.path.isfile(meta_path):
+        raise DataError(path, "no such complete shard")
+    with open(meta_path) as f:
+        meta = json.load(f)
+    n, T = meta["num_samples"], meta["keys"]["xy"]["shape"][0]
+    tokens = np.asarray(tokens)
+    if tokens.shape != (n, T, NUM_MAP_TOKENS):
+        raise ValueError(f"tokens shape {tokens.shape}, expected {(n, T, NUM_MAP_TOKENS)} for {path}")
+    if tokens.dtype.kind not in "iu" or tokens.size and (tokens.min() < 0 or tokens.max() > 255):
+        raise ValueError("map tokens must be integers in [0, 255]")
+    out = os.path.join(path, MAP_TOKENS)
+    atomic_save_npy(out, tokens.astype(np.uint8))
+    return out
+
+
+def shard_indices(data_dir: str, split: str) -> list[int]:
+    """Indices j of the complete shards of a split (for `save_map_tokens`)."""
+    return [int(os.path.basename(p)[len("shard_"):]) for p in list_shards(data_dir, split)]
+
+
+def read_manifest(data_dir: str) -> dict:
+    p = os.path.join(data_dir, MANIFEST)
+    try:
+        with open(p) as f:
+            return json.load(f)
+    except FileNotFoundError as e:
+        raise DataError(p, "no dataset manifest (build not finished?)") from e
+    except json.JSONDecodeError as e:
+        raise DataError(p, f"corrupt manifest: {e}") from e
+
+
+def write_manifest(data_dir: str, extra: dict | None = None, spec=SAMPLE_SPEC) -> dict:
+    """(Re)writes `DIR/dataset.json` from the complete shards on disk."""
+    splits = {}
+    for split in list_splits(data_dir):
+        shards = []
+        for p in list_shards(data_dir, split):
+            try:
+                with open(os.path.join(p, "meta.json")) as f:
+                    meta = json.load(f)
+            except (OSError, json.JSONDecodeError):
+                continue
+            shards.append({"index": int(os.path.basename(p)[6:]), "num_samples": meta["num_samples"],
+                           "locations": sorted(set(meta.get("locations", [])))})
+        splits[split] = {"num_samples": sum(s["num_samples"] for s in shards), "num_shards": len(shards),
+                         "shards": shards}
+    manifest = {
+        "format_version": FORMAT_VERSION,
+        "layout": "DIR/<split>/shard_<jjjjj>/<key>.npy (+ meta.json, optional map_tokens.npy u8[n, T, 64])",
+        "keys": {k: {"dtype": d, "shape": ["n", *s]} for k, (s, d) in spec.items()},
+        "optional_keys": {"map_tokens": {"dtype": "uint8", "shape": ["n", spec["xy"][0][0], NUM_MAP_TOKENS]}},
+        "conventions": "scene frame = ego frame of frame 20 (x forward, y left, CCW heading); slot 0 = ego; "
+                       "polylines in the scene frame; map of frame t in the frame of ego_pose[t]",
+        "splits": splits,
+        "num_samples": sum(s["num_samples"] for s in splits.values()),
+        **(extra or {}),
+    }
+    atomic_write_json(os.path.join(data_dir, MANIFEST), manifest)
+    return manifest
