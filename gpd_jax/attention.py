@@ -7,14 +7,16 @@ the mask is computed from positions; no (T*N)^2 matrix is ever materialized.
 Keys and values are processed in chunks of whole frames with an online softmax (the flash-attention
 recurrence). Two drivers share the chunk step:
 
-* `attend_static`: a `lax.scan` over a static number of chunks with a rematerialized body, so reverse-mode
-  memory is linear in sequence length (only the running (max, sum, acc) carry is saved per chunk). Used for
-  teacher-forced training and the recompute baseline.
+* `attend_static`: a `lax.scan` over a static number of chunks with a flash-attention custom VJP, so memory
+  is linear in sequence length in the forward and the backward pass (only the output and the per-query
+  log-sum-exp are saved). Used for teacher-forced training and the recompute baseline.
 * `attend_dynamic`: a `lax.fori_loop` over the chunks that are filled so far (a traced trip count), used by
   the KV-cached rollout so a step never touches empty cache slots beyond the last partial chunk.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -25,76 +27,119 @@ _NEG = -1e30
 def _chunk_step(q, q_frame, k, v, start, chunk_len, tokens_per_frame, carry):
     """One online-softmax update with keys/values [start, start + chunk_len).
 
-    q: f32[Sq, H, Dh] (pre-scaled), q_frame: i32[Sq], k, v: f32[S, H, Dh], carry: (m f32[H, Sq],
-    l f32[H, Sq], acc f32[H, Sq, Dh]).
+    q: f32[H, Sq, Dh] (pre-scaled), q_frame: i32[Sq], k, v: f32[H, S, Dh], carry: (m f32[H, Sq],
+    l f32[H, Sq], acc f32[H, Sq, Dh]). Head-major so both products are plain batched matmuls.
     """
     m, l, acc = carry
-    kc = jax.lax.dynamic_slice_in_dim(k, start, chunk_len, axis=0)
-    vc = jax.lax.dynamic_slice_in_dim(v, start, chunk_len, axis=0)
+    kc = jax.lax.dynamic_slice_in_dim(k, start, chunk_len, axis=1)
+    vc = jax.lax.dynamic_slice_in_dim(v, start, chunk_len, axis=1)
     k_frame = (start + jnp.arange(chunk_len)) // tokens_per_frame
-    mask = k_frame[None, :] <= q_frame[:, None]  # [Sq, C]
-    s = jnp.einsum("qhd,khd->hqk", q, kc)
-    s = jnp.where(mask[None], s, _NEG)
+    bias = jnp.where(k_frame[None, :] <= q_frame[:, None], 0.0, _NEG)  # [Sq, C], shared by heads
+    s = jnp.einsum("hqd,hkd->hqk", q, kc) + bias[None]
     m_new = jnp.maximum(m, jnp.max(s, axis=-1))
-    p = jnp.where(mask[None], jnp.exp(s - m_new[..., None]), 0.0)
+    # Every query sees frame 0, which is in the first chunk, so m_new is a real score from the first chunk
+    # on and masked entries underflow to exactly 0.
+    p = jnp.exp(s - m_new[..., None])
     corr = jnp.exp(m - m_new)
     l = l * corr + jnp.sum(p, axis=-1)
-    acc = acc * corr[..., None] + jnp.einsum("hqk,khd->hqd", p, vc)
+    acc = acc * corr[..., None] + jnp.einsum("hqk,hkd->hqd", p, vc)
     return m_new, l, acc
 
 
 def _init_carry(q):
-    sq, h, dh = q.shape
+    h, sq, dh = q.shape
     return (jnp.full((h, sq), _NEG, q.dtype), jnp.zeros((h, sq), q.dtype), jnp.zeros((h, sq, dh), q.dtype))
 
 
 def _finish(carry):
     _, l, acc = carry
-    out = acc / jnp.maximum(l, 1e-30)[..., None]  # [H, Sq, Dh]
-    return jnp.transpose(out, (1, 0, 2))
+    return acc / jnp.maximum(l, 1e-30)[..., None]  # [H, Sq, Dh]
 
 
-def attend_static(q, k, v, q_frame, tokens_per_frame: int, chunk_len: int):
-    """Block-causal attention, all keys, static chunk count; memory-linear under reverse-mode autodiff.
+def attend_static(q, k, v, tokens_per_frame: int, chunk_len: int):
+    """Block-causal attention of a whole sequence starting at frame 0; memory-linear, forward and backward.
+
+    The query of position p has frame p // tokens_per_frame. A custom VJP (the flash-attention backward)
+    saves only the output and the per-query log-sum-exp, and recomputes each chunk's probabilities in the
+    backward scan, so neither pass stores more than one [H, Sq, chunk] block.
 
     Args:
-      q: f32[Sq, H, Dh] queries. k, v: f32[S, H, Dh] keys/values with S a multiple of `chunk_len`.
-      q_frame: i32[Sq] frame index of each query.
+      q: f32[H, Sq, Dh] queries. k, v: f32[H, S, Dh] keys/values, S a multiple of `chunk_len`, S >= Sq.
     Returns:
-      f32[Sq, H, Dh].
+      f32[H, Sq, Dh].
     """
-    s_len = k.shape[0]
-    if s_len % chunk_len:
-        raise ValueError(f"key length {s_len} is not a multiple of the chunk length {chunk_len}")
-    q = q * (q.shape[-1] ** -0.5)
+    if k.shape[1] % chunk_len:
+        raise ValueError(f"key length {k.shape[1]} is not a multiple of the chunk length {chunk_len}")
+    return _flash(q * (q.shape[-1] ** -0.5), k, v, tokens_per_frame, chunk_len)
 
-    @jax.checkpoint
+
+def _flash_fwd_impl(q, k, v, n, c):
+    q_frame = jnp.arange(q.shape[1]) // n
+
     def body(carry, start):
-        return _chunk_step(q, q_frame, k, v, start, chunk_len, tokens_per_frame, carry), None
+        return _chunk_step(q, q_frame, k, v, start, c, n, carry), None
 
-    carry, _ = jax.lax.scan(body, _init_carry(q), jnp.arange(0, s_len, chunk_len))
-    return _finish(carry)
+    carry, _ = jax.lax.scan(body, _init_carry(q), jnp.arange(0, k.shape[1], c))
+    m, l, _ = carry
+    return _finish(carry), m + jnp.log(jnp.maximum(l, 1e-30))
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
+def _flash(q, k, v, n, c):
+    return _flash_fwd_impl(q, k, v, n, c)[0]
+
+
+def _flash_fwd(q, k, v, n, c):
+    out, lse = _flash_fwd_impl(q, k, v, n, c)
+    return out, (q, k, v, out, lse)
+
+
+def _flash_bwd(n, c, res, dout):
+    q, k, v, out, lse = res
+    q_frame = jnp.arange(q.shape[1]) // n
+    delta = jnp.sum(dout * out, axis=-1)  # [H, Sq]
+
+    def body(dq, start):
+        kc = jax.lax.dynamic_slice_in_dim(k, start, c, axis=1)
+        vc = jax.lax.dynamic_slice_in_dim(v, start, c, axis=1)
+        mask = ((start + jnp.arange(c)) // n)[None, :] <= q_frame[:, None]
+        s = jnp.einsum("hqd,hkd->hqk", q, kc)
+        p = jnp.where(mask[None], jnp.exp(s - lse[..., None]), 0.0)
+        dv = jnp.einsum("hqk,hqd->hkd", p, dout)
+        dp = jnp.einsum("hqd,hkd->hqk", dout, vc)
+        ds = p * (dp - delta[..., None])
+        dq = dq + jnp.einsum("hqk,hkd->hqd", ds, kc)
+        dk = jnp.einsum("hqk,hqd->hkd", ds, q)
+        return dq, (dk, dv)
+
+    dq, (dk, dv) = jax.lax.scan(body, jnp.zeros_like(q), jnp.arange(0, k.shape[1], c))
+    # scan stacks chunks on a new leading axis: [n_chunks, H, C, Dh] -> [H, S, Dh]
+    unchunk = lambda x: jnp.transpose(x, (1, 0, 2, 3)).reshape(k.shape)
+    return dq, unchunk(dk), unchunk(dv)
+
+
+_flash.defvjp(_flash_fwd, _flash_bwd)
 
 
 def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_len: int):
     """Block-causal attention over the first `num_chunks` (traced) key chunks only.
 
-    Same arguments as `attend_static`, plus `num_chunks: i32[]`: how many chunks of the cache are filled
-    (at least partly). Not reverse-differentiable (a loop with a traced trip count); used for inference.
+    Same arguments as `attend_static` (q f32[H, Sq, Dh], k, v f32[H, S, Dh]) plus `q_frame: i32[Sq]` and
+    `num_chunks: i32[]`, how many chunks of the cache are filled (at least partly). Not
+    reverse-differentiable (a loop with a traced trip count); used for inference.
     """
     q = q * (q.shape[-1] ** -0.5)
 
     def body(i, carry):
         return _chunk_step(q, q_frame, k, v, i * chunk_len, chunk_len, tokens_per_frame, carry)
 
-    carry = jax.lax.fori_loop(0, num_chunks, body, _init_carry(q))
-    return _finish(carry)
+    return _finish(jax.lax.fori_loop(0, num_chunks, body, _init_carry(q)))
 
 
 def dense_block_causal(q, k, v, q_frame, k_frame):
     """Reference implementation materializing the full mask (tests only). Shapes as `attend_static`."""
-    s = jnp.einsum("qhd,khd->hqk", q, k) * (q.shape[-1] ** -0.5)
+    s = jnp.einsum("hqd,hkd->hqk", q, k) * (q.shape[-1] ** -0.5)
     mask = k_frame[None, :] <= q_frame[:, None]
     s = jnp.where(mask[None], s, _NEG)
     p = jax.nn.softmax(s, axis=-1)
-    return jnp.einsum("hqk,khd->qhd", p, v)
+    return jnp.einsum("hqk,hkd->hqd", p, v)

@@ -71,14 +71,15 @@ class Block(nnx.Module):
         self.ff2 = nnx.Linear(ffn, d, rngs=rngs)
 
     def qkv_heads(self, x):
-        """x f32[S, d] -> q, k, v f32[S, H, Dh]."""
+        """x f32[S, d] -> q, k, v f32[H, S, Dh] (head-major)."""
         s, d = x.shape
         qkv = self.qkv(self.ln1(x)).reshape(s, 3, self.heads, d // self.heads)
-        return qkv[:, 0], qkv[:, 1], qkv[:, 2]
+        qkv = jnp.transpose(qkv, (1, 2, 0, 3))
+        return qkv[0], qkv[1], qkv[2]
 
     def finish(self, x, attn):
-        """Residual updates given the attention output `attn f32[S, H, Dh]`."""
-        x = x + self.proj(attn.reshape(x.shape))
+        """Residual updates given the attention output `attn f32[H, S, Dh]`."""
+        x = x + self.proj(jnp.transpose(attn, (1, 0, 2)).reshape(x.shape))
         return x + self.ff2(jax.nn.gelu(self.ff1(self.ln2(x))))
 
 
@@ -96,7 +97,7 @@ class Prediction(NamedTuple):
 
 @flax.struct.dataclass
 class KVCache:
-    """Keys and values per layer: k, v are tuples of L arrays f32[S, H, Dh] (S = frames * N padded to a chunk
+    """Keys and values per layer: k, v are tuples of L arrays f32[H, S, Dh] (S = frames * N padded to a chunk
     multiple). One array per layer so that a scan carrying the cache updates each in place."""
 
     k: tuple[jax.Array, ...]
@@ -199,7 +200,7 @@ class GPD(nnx.Module):
         frames = self.num_frames if frames is None else frames
         blk = self.blocks[0]
         d = blk.qkv.in_features
-        shape = (self.padded_len(frames), blk.heads, d // blk.heads)
+        shape = (blk.heads, self.padded_len(frames), d // blk.heads)
         return KVCache(k=tuple(jnp.zeros(shape, dtype) for _ in self.blocks),
                        v=tuple(jnp.zeros(shape, dtype) for _ in self.blocks))
 
@@ -207,18 +208,17 @@ class GPD(nnx.Module):
 def forward(model: GPD, tokens):
     """Teacher-forced pass over whole frames. tokens f32[F, N, d] -> hidden f32[F, N, d].
 
-    Attention is chunked over keys with a rematerialized scan: memory stays linear in F * N under autodiff.
+    Attention is chunked over keys with a flash-attention VJP: memory stays linear in F * N under autodiff.
     """
     f, n, d = tokens.shape
     s = f * n
     pad = model.padded_len(f) - s
-    q_frame = jnp.arange(s) // n
     x = tokens.reshape(s, d)
     for blk in model.blocks:
         q, k, v = blk.qkv_heads(x)
-        k = jnp.pad(k, ((0, pad), (0, 0), (0, 0)))
-        v = jnp.pad(v, ((0, pad), (0, 0), (0, 0)))
-        x = blk.finish(x, attend_static(q, k, v, q_frame, n, model.chunk_len))
+        k = jnp.pad(k, ((0, 0), (0, pad), (0, 0)))
+        v = jnp.pad(v, ((0, 0), (0, pad), (0, 0)))
+        x = blk.finish(x, attend_static(q, k, v, n, model.chunk_len))
     return x.reshape(f, n, d)
 
 
@@ -241,8 +241,8 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
     ks, vs = [], []
     for i, blk in enumerate(model.blocks):
         q, k, v = blk.qkv_heads(x)
-        kc = jax.lax.dynamic_update_slice_in_dim(cache.k[i], k.astype(cache.k[i].dtype), start, axis=0)
-        vc = jax.lax.dynamic_update_slice_in_dim(cache.v[i], v.astype(cache.v[i].dtype), start, axis=0)
+        kc = jax.lax.dynamic_update_slice_in_dim(cache.k[i], k.astype(cache.k[i].dtype), start, axis=1)
+        vc = jax.lax.dynamic_update_slice_in_dim(cache.v[i], v.astype(cache.v[i].dtype), start, axis=1)
         ks.append(kc)
         vs.append(vc)
         x = blk.finish(x, attend_dynamic(q, kc, vc, q_frame, num_chunks, n, model.chunk_len))

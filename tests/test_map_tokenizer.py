@@ -149,3 +149,14 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     np.testing.assert_array_equal(tok2.encode(tok2.params, rasters), tokens)
     p2, l2 = tok2.decode(tok2.params, tokens)
     np.testing.assert_allclose(p2, pts, atol=0.1)  # float16 export
+
+
+def test_auction_matches_scipy_total_cost():
+    from scipy.optimize import linear_sum_assignment
+    from gpd_jax.map_tokenizer.auction import auction
+    cost = np.random.default_rng(0).uniform(0, 10, (3, 7, 7)).astype(np.float32)
+    m = np.asarray(auction(jnp.asarray(cost)))
+    for b in range(3):
+        r, c = linear_sum_assignment(cost[b])
+        assert sorted(m[b]) == list(range(7))  # a permutation
+        assert cost[b][m[b], np.arange(7)].sum() <= cost[b][r, c].sum() + 7 * 1e-3 + 1e-4

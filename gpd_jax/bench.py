@@ -1,0 +1,237 @@
+"""Benchmarks that print figures (never timed tests).
+
+    python -m gpd_jax.bench rollout --config configs/gpd_paper.py --batch 1 16 --json PATH
+        [--future-frames F] [--recompute-points K] [--repeats R] [--config.model.x=y ...]
+
+Measures, in one run (so ratios are meaningful on a noisy shared machine):
+
+* `matmul_gflops`: throughput of a large fp32 matmul (4096^2 x 4096^2 by default), the machine's ceiling.
+* cached rollout per scenario at each batch size (a batch that mixes all six tasks, random weights,
+  synthetic scenes), with its compile time;
+* the recompute rollout (the official method: a full forward over the whole prefix for every future frame,
+  same model and weights) at batch 1. Timing 80 forwards of up to 9.7k tokens takes many minutes on a CPU,
+  so by default a forward is timed at K prefix lengths spread over [H, T-1], a quadratic in the prefix
+  length is fitted, and the fit is summed over every future frame's prefix; the JSON says so
+  (`recompute_method`). `--recompute-points 0` runs the full recompute rollout instead.
+* `achieved_gflops`: useful FLOPs of the cached rollout divided by its time. Useful FLOPs are counted
+  analytically (`rollout_flops`): 2 per multiply-add of every linear layer on every token processed
+  (embedding MLPs, q/k/v/out projections, FFN, heads) plus, for attention, 2 * d per (query, visible key)
+  pair for scores and again for the value mix, where visible keys are the tokens of the query's own and
+  earlier frames only (masked-out pairs and empty cache slots do not count).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from gpd_jax.config import load_config, split_config_args
+from gpd_jax.model import GPD, forward
+from gpd_jax.rollout import rollout_batch, rollout_recompute
+from gpd_jax.synthetic import synthetic_scenes
+from gpd_jax.tasks import TASK_NAMES, make_tasks
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _time(fn, repeats: int) -> float:
+    """Median wall time of `fn()` (which must block until its result is ready)."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def matmul_gflops(n: int = 4096, repeats: int = 5) -> float:
+    """fp32 GFLOP/s of an n x n by n x n matmul under jit."""
+    ka, kb = jax.random.split(jax.random.key(0))
+    a = jax.random.normal(ka, (n, n), jnp.float32)
+    b = jax.random.normal(kb, (n, n), jnp.float32)
+    f = jax.jit(jnp.matmul)
+    f(a, b).block_until_ready()
+    t = _time(lambda: f(a, b).block_until_ready(), repeats)
+    return 2 * n**3 / t / 1e9
+
+
+def linear_flops_per_token(m) -> tuple[float, float]:
+    """(FLOPs per agent token, FLOPs per map token) of all linear layers, excluding attention itself."""
+    d, ffn, hh = m.d_model, m.ffn_dim, m.head_hidden
+    tok_dim = 2 * len(m.xy_levels) * m.xy_code_dim + len(m.heading_levels_deg) * m.heading_code_dim
+    block = 2 * (d * 3 * d + d * d + 2 * d * ffn)
+    trunk = m.num_layers * block
+    agent = 2 * (tok_dim * d + d * d + d * d) + 3 * 2 * (d * hh + hh) + trunk
+    mapt = 2 * d * d + 2 * (d * hh + hh * m.codebook_size) + trunk
+    return float(agent), float(mapt)
+
+
+def rollout_flops(m, num_frames: int, num_history: int) -> float:
+    """Useful FLOPs of one cached rollout of one scenario (see the module docstring)."""
+    n = m.num_map_tokens + m.num_agents
+    fa, fm = linear_flops_per_token(m)
+    per_frame_linear = m.num_agents * fa + m.num_map_tokens * fm
+    frames_processed = num_frames - 1  # history in the prefill, then every future frame but the last
+    linear = frames_processed * per_frame_linear
+    # a query of frame f sees (f + 1) * n keys: 2 * d FLOPs for scores and 2 * d for the value mix each
+    attn = sum(n * (f + 1) * n * 4 * m.d_model for f in range(frames_processed)) * m.num_layers
+    return float(linear + attn)
+
+
+def _mixed_tasks(batch: int, m):
+    names = [TASK_NAMES[i % len(TASK_NAMES)] for i in range(batch)]
+    return make_tasks(names, m.num_map_tokens, m.num_agents)
+
+
+def bench_rollout(args, overrides) -> dict:
+    cfg = load_config(args.config, overrides)
+    m = cfg.model
+    h = m.num_history
+    future = args.future_frames if args.future_frames is not None else m.num_frames - h
+    t_total = h + future
+    if t_total > m.num_frames:
+        raise SystemExit(f"--future-frames {future}: history {h} + future exceeds num_frames {m.num_frames}")
+    _log(f"devices: {jax.devices()}")
+    mm = matmul_gflops(args.matmul_size)
+    _log(f"matmul: {mm:.1f} GFLOP/s")
+    model = GPD(m, nnx.Rngs(cfg.seed))
+    graphdef, state = nnx.split(model)
+    config_name = os.path.splitext(os.path.basename(args.config))[0]
+
+    def cached(state, scenes, tasks, keys):
+        return rollout_batch(nnx.merge(graphdef, state), scenes, tasks, keys, h, cfg.rollout.temperature)
+
+    cached_jit = jax.jit(cached)
+    runs = []
+    flops = rollout_flops(m, t_total, h)
+    bytes_per_scenario = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * 4
+    for batch in args.batch:
+        scenes = synthetic_scenes(batch, batch, t_total, h, m.num_agents, m.num_map_tokens, m.codebook_size)
+        scenes = jax.tree.map(jnp.asarray, scenes)
+        tasks = jax.tree.map(jnp.asarray, _mixed_tasks(batch, m))
+        keys = jax.random.split(jax.random.key(1), batch)
+        t0 = time.perf_counter()
+        compiled = cached_jit.lower(state, scenes, tasks, keys).compile()
+        compile_s = time.perf_counter() - t0
+        _log(f"batch {batch}: compiled in {compile_s:.1f} s")
+        run = lambda: jax.block_until_ready(compiled(state, scenes, tasks, keys))
+        run()
+        t = _time(run, args.repeats)
+        per = t / batch
+        _log(f"batch {batch}: cached {per:.3f} s per scenario")
+        runs.append({
+            "config": config_name, "batch": batch, "future_frames": future,
+            "cached_s_per_scenario": per, "recompute_s_per_scenario": None, "speedup": None,
+            "compile_s": compile_s, "achieved_gflops": flops * batch / t / 1e9,
+            "kv_cache_bytes": bytes_per_scenario * batch,
+        })
+    out = {"matmul_gflops": mm, "rollout_gflop_per_scenario": flops / 1e9, "runs": runs}
+    if 1 in args.batch:
+        rec, method = bench_recompute(model, m, cfg, t_total, h, args)
+        for r in runs:
+            if r["batch"] == 1:
+                r["recompute_s_per_scenario"] = rec
+                r["speedup"] = rec / r["cached_s_per_scenario"]
+        out["recompute_method"] = method
+    for r in runs:
+        r["achieved_over_matmul"] = r["achieved_gflops"] / mm
+    return out
+
+
+def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, str]:
+    """Seconds per scenario of the official full-prefix recompute rollout at batch 1."""
+    graphdef, state = nnx.split(model)
+    scene = synthetic_scenes(0, 1, t_total, h, m.num_agents, m.num_map_tokens, m.codebook_size)
+    scene = jax.tree.map(lambda x: jnp.asarray(x[0]), scene)
+    if args.recompute_points <= 0:
+        task = jax.tree.map(lambda x: jnp.asarray(x[0]), _mixed_tasks(1, m))
+        f = jax.jit(lambda s, sc, tk: rollout_recompute(nnx.merge(graphdef, s), sc, tk, jax.random.key(0), h,
+                                                            cfg.rollout.temperature))
+        jax.block_until_ready(f(state, scene, task))
+        t = _time(lambda: jax.block_until_ready(f(state, scene, task)), 1)
+        return t, "full recompute rollout timed end to end (fixed-length buffer of all frames per step)"
+
+    def prefix_forward(s, xy, heading, valid, maps):
+        mdl = nnx.merge(graphdef, s)
+        p = xy.shape[0]
+        hid = forward(mdl, mdl.embed(xy, heading, valid, maps, jnp.arange(p)))
+        return mdl.predict(hid[-1:], xy[-1:], heading[-1:], valid[-1:])
+
+    fwd = jax.jit(prefix_forward)
+    lengths = np.unique(np.linspace(h, t_total - 1, args.recompute_points).round().astype(int))
+    times = []
+    for p in lengths:
+        a = (state, scene.xy[:p], scene.heading[:p], scene.valid[:p], scene.map_tokens[:p])
+        jax.block_until_ready(fwd(*a))
+        t = _time(lambda: jax.block_until_ready(fwd(*a)), max(1, args.repeats // 2))
+        times.append(t)
+        _log(f"recompute: forward over {p} frames {t:.3f} s")
+    deg = min(2, len(lengths) - 1)
+    coef = np.polyfit(lengths, times, deg)
+    total = float(np.sum(np.polyval(coef, np.arange(h, t_total))))
+    method = (f"forward over the prefix timed at {len(lengths)} prefix lengths {lengths.tolist()} frames "
+              f"(s: {[round(x, 4) for x in times]}), degree-{deg} fit summed over the {t_total - h} prefixes "
+              f"[{h}, {t_total - 1}]")
+    return total, method
+
+
+def _print_table(out: dict) -> None:
+    print(f"matmul fp32: {out['matmul_gflops']:.1f} GFLOP/s; cached rollout: "
+          f"{out['rollout_gflop_per_scenario']:.1f} GFLOP per scenario")
+    head = ("config", "batch", "future", "cached s/scn", "recompute s/scn", "speedup", "compile s",
+            "GFLOP/s", "of matmul", "KV cache MiB")
+    print(" | ".join(head))
+    for r in out["runs"]:
+        rec = "-" if r["recompute_s_per_scenario"] is None else f"{r['recompute_s_per_scenario']:.2f}"
+        sp = "-" if r["speedup"] is None else f"{r['speedup']:.1f}x"
+        print(" | ".join([r["config"], str(r["batch"]), str(r["future_frames"]),
+                          f"{r['cached_s_per_scenario']:.3f}", rec, sp, f"{r['compile_s']:.1f}",
+                          f"{r['achieved_gflops']:.1f}", f"{r['achieved_over_matmul']:.2f}",
+                          f"{r['kv_cache_bytes'] / 2**20:.1f}"]))
+    if len(out["runs"]) > 1:
+        base = out["runs"][0]
+        for r in out["runs"][1:]:
+            print(f"batch {r['batch']} throughput per scenario = "
+                  f"{base['cached_s_per_scenario'] / r['cached_s_per_scenario']:.2f}x batch {base['batch']}")
+    if "recompute_method" in out:
+        print(f"recompute: {out['recompute_method']}")
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    overrides, rest = split_config_args(argv)
+    p = argparse.ArgumentParser(prog="python -m gpd_jax.bench", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    r = sub.add_parser("rollout", help="cached vs recompute rollout speed")
+    r.add_argument("--config", default="configs/gpd_paper.py")
+    r.add_argument("--batch", type=int, nargs="+", default=[1, 16])
+    r.add_argument("--future-frames", type=int, default=None, help="default: all (num_frames - num_history)")
+    r.add_argument("--recompute-points", type=int, default=5,
+                   help="prefix lengths at which to time the recompute forward (0: time the whole rollout)")
+    r.add_argument("--repeats", type=int, default=3)
+    r.add_argument("--matmul-size", type=int, default=4096)
+    r.add_argument("--json", default=None, help="write the results here")
+    args = p.parse_args(rest)
+    out = bench_rollout(args, overrides)
+    _print_table(out)
+    if args.json:
+        tmp = args.json + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(out, f, indent=2)
+        os.replace(tmp, args.json)
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""Teacher-forced losses, the optimizer and a jitted train step for the GPD transformer.
+
+Inputs are frames [0, T-1), targets frames [1, T): every slot's output at frame t predicts the same slot at
+frame t+1. Losses (weights from `config.loss`; official values 5, 5.73, 1, 1):
+
+* position: smooth-L1 (beta 1, metres), summed over x and y, averaged over valid target agents;
+* heading: smooth-L1 of the *wrapped* difference (radians), averaged over valid target agents;
+* valid: binary cross-entropy of the validity logit over every agent slot;
+* map: cross-entropy of the K-way map logits over map tokens of frames whose map is known.
+
+The step is a pure function of (params, opt_state, batch); NNX only defines the parameter tree.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx
+
+from gpd_jax.model import GPD, forward
+from gpd_jax.scene import Scene, wrap_angle
+
+
+def _smooth_l1(x, beta: float = 1.0):
+    ax = jnp.abs(x)
+    return jnp.where(ax < beta, 0.5 * ax * ax / beta, ax - 0.5 * beta)
+
+
+def loss_terms(model: GPD, scene: Scene) -> dict[str, jax.Array]:
+    """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide)."""
+    t = scene.num_frames
+    tokens = model.embed(scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], scene.map_tokens[:-1],
+                         jnp.arange(t - 1))
+    hidden = forward(model, tokens)
+    pred = model.predict(hidden, scene.xy[:-1], scene.heading[:-1], scene.valid[:-1])
+    tv = scene.valid[1:].astype(jnp.float32)
+    pos = jnp.sum(_smooth_l1(pred.xy - scene.xy[1:]), axis=-1)
+    head = _smooth_l1(wrap_angle(pred.heading - scene.heading[1:]))
+    bce = optax.sigmoid_binary_cross_entropy(pred.valid_logit, tv)
+    ce = optax.softmax_cross_entropy_with_integer_labels(pred.map_logits, scene.map_tokens[1:])
+    mv = jnp.broadcast_to(scene.map_valid[1:, None], ce.shape).astype(jnp.float32)
+    return {
+        "position_sum": jnp.sum(pos * tv), "heading_sum": jnp.sum(head * tv), "agent_count": jnp.sum(tv),
+        "valid_sum": jnp.sum(bce), "valid_count": jnp.asarray(bce.size, jnp.float32),
+        "map_sum": jnp.sum(ce * mv), "map_count": jnp.sum(mv),
+        "map_correct": jnp.sum((jnp.argmax(pred.map_logits, -1) == scene.map_tokens[1:]) * mv),
+    }
+
+
+def batch_loss(model: GPD, scenes: Scene, weights) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Weighted total loss over a batch of scenes (leading dim B) and its parts."""
+    terms = jax.vmap(lambda s: loss_terms(model, s))(scenes)
+    terms = jax.tree.map(jnp.sum, terms)
+    n_agents = jnp.maximum(terms["agent_count"], 1.0)
+    n_map = jnp.maximum(terms["map_count"], 1.0)
+    parts = {
+        "position": terms["position_sum"] / n_agents,
+        "heading": terms["heading_sum"] / n_agents,
+        "valid": terms["valid_sum"] / jnp.maximum(terms["valid_count"], 1.0),
+        "map": terms["map_sum"] / n_map,
+    }
+    total = (weights.position * parts["position"] + weights.heading * parts["heading"]
+             + weights.valid * parts["valid"] + weights.map * parts["map"])
+    parts["map_accuracy"] = terms["map_correct"] / n_map
+    parts["loss"] = total
+    return total, parts
+
+
+def make_optimizer(train_cfg) -> optax.GradientTransformation:
+    """AdamW with linear warm-up then cosine decay, global-norm clipping, and weight decay on kernels only."""
+    schedule = optax.warmup_cosine_decay_schedule(
+        init_value=0.0, peak_value=train_cfg.learning_rate, warmup_steps=train_cfg.warmup_steps,
+        decay_steps=max(train_cfg.steps, train_cfg.warmup_steps + 1), end_value=train_cfg.min_learning_rate)
+
+    def decay_mask(params):
+        return jax.tree_util.tree_map_with_path(
+            lambda path, x: getattr(path[-1], "key", getattr(path[-1], "name", None)) == "kernel", params)
+
+    return optax.chain(
+        optax.clip_by_global_norm(train_cfg.grad_clip),
+        optax.adamw(schedule, weight_decay=train_cfg.weight_decay, mask=decay_mask),
+    )
+
+
+class TrainState(NamedTuple):
+    """step: i32[]; params: the model's nnx.Param state; opt_state: optax state."""
+
+    step: jax.Array
+    params: Any
+    opt_state: Any
+
+
+class Trainer(NamedTuple):
+    """A model's static structure with its pure, jitted train and eval steps.
+
+    `train_step(state, scenes) -> (state, metrics)`; `eval_step(params, scenes) -> metrics`.
+    `merge(params)` rebuilds an NNX model from a params state.
+    """
+
+    graphdef: Any
+    rest: Any
+    tx: optax.GradientTransformation
+    train_step: Any
+    eval_step: Any
+
+    def merge(self, params) -> GPD:
+        return nnx.merge(self.graphdef, params, self.rest)
+
+    def init_state(self, params) -> TrainState:
+        return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=self.tx.init(params))
+
+
+def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, TrainState]:
+    """Splits `model` into a static graph and parameters and builds the jitted steps."""
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    tx = make_optimizer(config.train)
+    weights = config.loss
+
+    def loss_of(p, scenes):
+        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights)
+
+    def train_step(state: TrainState, scenes: Scene):
+        (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        parts["grad_norm"] = optax.tree.norm(grads)
+        return TrainState(step=state.step + 1, params=params, opt_state=opt_state), parts
+
+    def eval_step(p, scenes: Scene):
+        return loss_of(p, scenes)[1]
+
+    trainer = Trainer(graphdef=graphdef, rest=rest, tx=tx,
+                      train_step=jax.jit(train_step, donate_argnums=(0,) if donate else ()),
+                      eval_step=jax.jit(eval_step))
+    return trainer, trainer.init_state(params)

@@ -1,0 +1,125 @@
+"""Cached rollout == recompute rollout (every task), mask semantics, tasks as data, one trace per batch."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from gpd_jax.model import forward
+from gpd_jax.rollout import rollout, rollout_batch, rollout_recompute, rollout_tasks
+from gpd_jax.tasks import TASK_NAMES, TASKS, make_task, make_tasks
+
+
+@pytest.fixture(scope="module")
+def setup(tiny_model, tiny_config, tiny_scenes):
+    graphdef, state = nnx.split(tiny_model)
+    return graphdef, state, tiny_config.model, jax.tree.map(jnp.asarray, tiny_scenes)
+
+
+@pytest.mark.parametrize("temperature", [0.0, 1.0])
+def test_cached_equals_recompute_every_task(setup, temperature):
+    graphdef, state, m, scenes = setup
+    tasks = jax.tree.map(jnp.asarray, make_tasks(["all"], m.num_map_tokens, m.num_agents))
+    h = m.num_history
+
+    @jax.jit
+    def both(state, scenes, tasks):
+        model = nnx.merge(graphdef, state)
+        key = jax.random.key(3)
+        cached = rollout_tasks(model, scenes, tasks, key, h, temperature)
+        keys = jax.random.split(key, (scenes.xy.shape[0], tasks.from_log.shape[0]))
+        rec = jax.vmap(lambda sc, ks: jax.vmap(
+            lambda t, k: rollout_recompute(model, sc, t, k, h, temperature))(tasks, ks))(scenes, keys)
+        return cached, rec
+
+    cached, rec = both(state, scenes, tasks)
+    assert cached.xy.shape == (3, len(TASK_NAMES), m.num_frames, m.num_agents, 2)
+    np.testing.assert_allclose(cached.xy, rec.xy, atol=1e-4)
+    np.testing.assert_allclose(cached.heading, rec.heading, atol=1e-4)
+    np.testing.assert_allclose(cached.valid_logit, rec.valid_logit, atol=1e-4)
+    np.testing.assert_array_equal(cached.valid, rec.valid)
+    np.testing.assert_array_equal(cached.map_tokens, rec.map_tokens)
+    # history is the log; the generated frames differ from it
+    np.testing.assert_array_equal(cached.map_tokens[:, :, :h], np.broadcast_to(
+        scenes.map_tokens[:, None, :h], cached.map_tokens[:, :, :h].shape))
+    if temperature > 0:  # sampling actually used the key: some generated map token is not the argmax
+        greedy = jax.jit(lambda s, sc, t: rollout_tasks(nnx.merge(graphdef, s), sc, t, jax.random.key(3), h))(
+            state, scenes, tasks)
+        assert (np.asarray(greedy.map_tokens) != np.asarray(cached.map_tokens)).any()
+
+
+def test_tasks_take_log_slots_and_hide_agents(setup):
+    graphdef, state, m, scenes = setup
+    tasks = make_tasks(["all"], m.num_map_tokens, m.num_agents)
+    out = jax.jit(lambda s, sc, t: rollout_tasks(nnx.merge(graphdef, s), sc, t, jax.random.key(0),
+                                                 m.num_history))(state, scenes, jax.tree.map(jnp.asarray, tasks))
+    h = m.num_history
+    for i, name in enumerate(TASK_NAMES):
+        map_log, ego_log, agents_log, hide = TASKS[name]
+        o = jax.tree.map(lambda x: np.asarray(x[:, i, h:]), out)
+        log_map = np.asarray(scenes.map_tokens[:, h:])
+        assert (o.map_tokens == log_map).all() == map_log or not map_log
+        if map_log:
+            np.testing.assert_array_equal(o.map_tokens, log_map)
+        if ego_log:
+            np.testing.assert_array_equal(o.xy[:, :, 0], np.asarray(scenes.xy[:, h:, 0]))
+            np.testing.assert_array_equal(o.valid[:, :, 0], np.asarray(scenes.valid[:, h:, 0]))
+        else:
+            assert not np.allclose(o.xy[:, :, 0], np.asarray(scenes.xy[:, h:, 0]))
+        if agents_log:
+            np.testing.assert_array_equal(o.xy[:, :, 1:], np.asarray(scenes.xy[:, h:, 1:]))
+        if hide:
+            assert not np.asarray(out.valid[:, i, :, 1:]).any()  # hidden in every frame, history too
+            assert np.asarray(out.valid[:, i, :, 0]).all()
+
+
+def test_one_trace_for_mixed_task_batches(setup):
+    graphdef, state, m, scenes = setup
+    h = m.num_history
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def run(state, scenes, tasks, keys):
+        return rollout_batch(nnx.merge(graphdef, state), scenes, tasks, keys, h)
+
+    keys = jax.random.split(jax.random.key(0), 3)
+    mix_a = make_tasks(["scene_generation", "motion_planning", "map_prediction_ego_only"], m.num_map_tokens,
+                       m.num_agents)
+    mix_b = make_tasks(["closed_loop", "closed_loop", "traffic_simulation"], m.num_map_tokens, m.num_agents)
+    out_a = run(state, scenes, mix_a, keys)
+    out_b = run(state, scenes, mix_b, keys)  # different tasks, same compiled function
+    assert out_a.xy.shape == out_b.xy.shape
+    # each element of the mixed batch equals its own single-task rollout
+    single = jax.jit(lambda s, sc, t: rollout(nnx.merge(graphdef, s), sc, t, jax.random.key(0), h))
+    for i in range(3):
+        one = single(state, jax.tree.map(lambda x: x[i], scenes), jax.tree.map(lambda x: x[i], mix_a))
+        np.testing.assert_allclose(np.asarray(out_a.xy[i]), np.asarray(one.xy), atol=1e-4)
+
+
+def test_mask_future_frames_do_not_leak(setup):
+    """A token's output is unchanged when a later frame changes and changes when its own frame changes."""
+    graphdef, state, m, scenes = setup
+    sc = jax.tree.map(lambda x: jnp.asarray(x[0]), scenes)
+
+    @jax.jit
+    def hidden_of(state, xy, map_tokens):
+        model = nnx.merge(graphdef, state)
+        return forward(model, model.embed(xy, sc.heading, sc.valid, map_tokens, jnp.arange(m.num_frames)))
+
+    base = hidden_of(state, sc.xy, sc.map_tokens)
+    t = 4
+    later = hidden_of(state, sc.xy.at[t + 1:, 0].add(5.0), sc.map_tokens.at[t + 1:].set(0))
+    np.testing.assert_allclose(later[: t + 1], base[: t + 1], atol=1e-5)
+    assert not np.allclose(later[t + 1:], base[t + 1:], atol=1e-3)
+    # changing one agent of frame t changes every token of frame t (bi-directional within the frame)
+    own = hidden_of(state, sc.xy.at[t, 0].add(5.0), sc.map_tokens)
+    np.testing.assert_allclose(own[:t], base[:t], atol=1e-5)
+    diff = np.abs(np.asarray(own[t] - base[t])).max(axis=-1)
+    assert (diff > 1e-4).all(), diff
+
+
+def test_unknown_task_is_a_clear_error():
+    with pytest.raises(KeyError, match="unknown task 'planning'"):
+        make_task("planning", 4, 3)
