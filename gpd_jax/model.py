@@ -251,3 +251,14 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
 
 def count_params(model: nnx.Module) -> int:
     return sum(int(np.prod(x.shape)) for x in jax.tree.leaves(nnx.state(model, nnx.Param)))
+
+
+def build_model(config, seed: int | None = None, codebook: np.ndarray | None = None) -> GPD:
+    """The GPD model of a full config. Map tokens are embedded with the codebook of the map tokenizer
+    checkpoint named by `config.model.map_tokenizer` when set (or with `codebook` when given)."""
+    m = config.model
+    if codebook is None and m.get("map_tokenizer"):
+        from gpd_jax.map_tokenizer import load_tokenizer
+
+        codebook = np.asarray(load_tokenizer(m.map_tokenizer).codebook)
+    return GPD(m, nnx.Rngs(config.seed if seed is None else seed), codebook=codebook)

@@ -30,3 +30,24 @@ def test_loss_falls_by_half_and_step_compiles_once():
     # the heads learned something real: map tokens are predicted better than chance (1/32)
     ev = trainer.eval_step(state.params, scenes)
     assert float(ev["map_accuracy"]) > 0.3
+
+
+def test_codebook_embedding_is_frozen_and_used():
+    cfg = load_config(f"{ROOT}/configs/gpd_tiny.py")
+    m = cfg.model
+    from gpd_jax.model import build_model
+
+    codebook = np.random.default_rng(0).normal(size=(m.codebook_size, 12)).astype(np.float32)
+    model = build_model(cfg, codebook=codebook)
+    trainer, state = make_trainer(model, cfg)
+    # the codebook is not a trainable parameter
+    leaves = jax.tree_util.tree_leaves_with_path(state.params)
+    assert not any("codebook" in jax.tree_util.keystr(p) for p, _ in leaves)
+    scenes = synthetic_scenes(1, 2, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
+    tok = model.embed(scenes.xy[0], scenes.heading[0], scenes.valid[0], scenes.map_tokens[0],
+                      np.arange(m.num_frames))
+    other = model.embed(scenes.xy[0], scenes.heading[0], scenes.valid[0], (scenes.map_tokens[0] + 1) % 32,
+                        np.arange(m.num_frames))
+    assert tok.shape == (m.num_frames, m.num_map_tokens + m.num_agents, m.d_model)
+    assert not np.allclose(tok[:, : m.num_map_tokens], other[:, : m.num_map_tokens])
+    np.testing.assert_allclose(tok[:, m.num_map_tokens:], other[:, m.num_map_tokens:])
