@@ -44,7 +44,7 @@ class SampleConfig:
     num_history: int = 21
     num_future: int = 80
     num_agents: int = 33  # ego + 32 nearest vehicles
-    agent_radius: float = 60.0  # metres from the ego centre at the current frame
+    agent_radius: float = 80.0  # metres from the ego centre at the current frame
     max_coord: float = 300.0  # |x|, |y| must stay strictly below this in the scene frame
     view_half: float = 32.0  # half side of the ego's map window
     view_margin: float = 1.5  # extra clip margin so that the resampled lines reach the window border

@@ -1,0 +1,71 @@
+"""SLEDGE vector-lane processing of hand-built polylines."""
+
+import numpy as np
+
+from gpd_jax.data import lanes
+
+
+def _poly(lines, P=64):
+    out = np.zeros((len(lines), P, 2), np.float32)
+    ok = np.zeros((len(lines), P), bool)
+    for i, l in enumerate(lines):
+        out[i, :len(l)] = l
+        ok[i, :len(l)] = True
+    return out, ok
+
+
+def test_crop_resample_and_order():
+    x = np.linspace(-40, 40, 41)
+    far = np.stack([x, np.full_like(x, 50.0)], -1)    # outside the window
+    near = np.stack([x, np.full_like(x, 1.0)], -1)
+    mid = np.stack([x, np.full_like(x, -10.0)], -1)
+    p, v = _poly([far, mid, near])
+    l, ok = lanes.vector_lanes(p, v, np.zeros(3))
+    assert l.shape == (50, 20, 2) and ok.shape == (50,) and ok.sum() == 2
+    # nearest first; cropped to +-32, 20 points evenly spaced with end points included
+    np.testing.assert_allclose(l[0, :, 1], 1.0, atol=1e-5)
+    np.testing.assert_allclose(l[0, :, 0], np.linspace(-32, 32, 20), atol=1e-4)
+    np.testing.assert_allclose(l[1, :, 1], -10.0, atol=1e-5)
+    assert (l[2:] == 0).all()
+
+
+def test_pose_transform():
+    x = np.linspace(-40, 40, 41)
+    p, v = _poly([np.stack([x, np.zeros_like(x)], -1)])
+    # ego at (10, 0) facing +y: the line (world y = 0) runs along the ego's lateral axis through it
+    l, ok = lanes.vector_lanes(p, v, np.array([10.0, 0.0, np.pi / 2]))
+    assert ok[0]
+    np.testing.assert_allclose(l[0, :, 0], 0.0, atol=1e-5)
+    np.testing.assert_allclose(l[0, [0, -1], 1], [32.0, -30.0], atol=1e-4)  # world x from -22 to 40
+
+
+def test_split_runs_and_min_points():
+    # a line that leaves and re-enters the window gives two runs; a 0.2 m stub (2 points at 0.25 m spacing) is dropped
+    l1 = np.array([[-20.0, 0.0], [20.0, 0.0], [20.0, 40.0], [25.0, 40.0], [25.0, 0.0], [30.0, 0.0]])
+    stub = np.array([[0.0, 5.0], [0.2, 5.0]])
+    p, v = _poly([l1, stub])
+    l, ok = lanes.vector_lanes(p, v, np.zeros(3))
+    assert ok.sum() == 2
+    ends = sorted([tuple(np.round(l[i, 0], 3)) for i in range(2)])
+    assert ends[0][0] == -20.0  # the first run starts at the line's start
+
+
+def test_keep_50_nearest_and_batch():
+    lines = [np.array([[-5.0, y], [5.0, y]]) for y in np.linspace(-30, 30, 61)]
+    p, v = _poly(lines, P=4)
+    l, ok = lanes.vector_lanes(p, v, np.zeros(3))
+    assert ok.sum() == 50
+    assert np.abs(l[ok][:, 0, 1]).max() <= 25.0  # the 11 farthest (|y| > 25) are dropped
+    poses = np.zeros((3, 3))
+    poses[1, 0] = 100.0  # nothing visible
+    L, OK = lanes.vector_lanes_frames(p, v, poses)
+    assert L.shape == (3, 50, 20, 2) and OK[0].sum() == 50 and OK[1].sum() == 0
+    np.testing.assert_array_equal(L[0], l)
+    LB, OKB = lanes.vector_lanes_batch(p[None], v[None], poses[None])
+    np.testing.assert_array_equal(LB[0], L)
+
+
+def test_empty():
+    p, v = _poly([np.zeros((0, 2))])
+    l, ok = lanes.vector_lanes(p, v, np.zeros(3))
+    assert not ok.any() and (l == 0).all()
