@@ -1,6 +1,8 @@
-"""Map tokenizer (stage 1), tiny: a basic-block ResNet and a 4-layer d=128 decoder, trainable on a 2-core CPU.
+"""Map tokenizer (stage 1), tiny: a basic-block ResNet (space-to-depth stem) and a 3-layer d=128 decoder, trainable on a 2-core CPU.
 
     python train.py --config configs/map_tokenizer_tiny.py --workdir /tmp/map_tok
+
+The shipped checkpoint (checkpoints/map_tokenizer/) was trained with exactly this config on /work/data/sumo1k.
 """
 
 import ml_collections
@@ -12,7 +14,7 @@ def get_config() -> ml_collections.ConfigDict:
     c.seed = 0
 
     c.data = ml_collections.ConfigDict()
-    c.data.dir = "/work/data/sumo_small"
+    c.data.dir = "/work/data/sumo1k"
     c.data.train_split = "train"
     c.data.eval_split = "val"
     c.data.num_workers = 1  # loader prefetch threads
@@ -55,7 +57,7 @@ def get_config() -> ml_collections.ConfigDict:
 
     t = c.train = ml_collections.ConfigDict()
     t.batch_size = 32
-    t.num_steps = 6000
+    t.num_steps = 5000
     t.warmup_steps = 200
     t.lr = 1e-3
     t.codebook_lr = 1e-3
