@@ -105,7 +105,7 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
     """Runs one SUMO job (network, demand, simulation, samples, shard). Returns its summary."""
     from gpd_jax.data import sumo
 
-    sim_cfg = sim_cfg or sumo.SimConfig()
+    sim_cfg = sim_cfg or (sumo.REAL_NETWORK_SIM if job.net_path else sumo.SimConfig())
     t0 = time.time()
     work = os.path.join(out_dir, "_work", f"job_{job.index:05d}")
     shutil.rmtree(work, ignore_errors=True)

@@ -303,6 +303,9 @@ def iter_samples(log: RawLog, cfg: SampleConfig = SampleConfig(), num: int | Non
     """Yields (scenario id, sample) for the windows of `log` (see `sample_windows`)."""
     rng = np.random.default_rng(seed)
     stats = Counter() if stats is None else stats
+    if log.num_frames < cfg.num_frames:
+        stats["skip_log_too_short"] += 1
+        return
     lp = lane_points(log.lanes, cfg.lane_spacing)
     # with the overlap gate, draw spare candidate windows so that `num` samples still come out
     want = None if num is None else (3 * num if cfg.reject_overlaps else num)

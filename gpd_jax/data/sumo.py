@@ -235,6 +235,19 @@ class SimConfig:
     time_to_teleport: float = 90.0
     max_stopped_fraction: float = 0.5
     min_vehicles: int = 30
+    # Runs with any jam teleport, or more yield / wrong-lane teleports than this fraction of the inserted
+    # vehicles, are rejected. In accepted runs with teleports the teleported vehicles' tracks (gaps or
+    # jumps in the FCD) are removed, never recorded. 0 for generated networks: any teleport rejects.
+    tolerated_teleport_fraction: float = 0.0
+    extra_sumo_args: tuple[str, ...] = ()
+
+
+# Real (OSM-imported) networks have a few junctions where SUMO's right-of-way model leaves vehicles waiting
+# whatever the demand (measured on the shipped bs3d and A10KW networks: 14-20 'yield' teleports at both 100
+# and 200 veh/h/km, none from jams). For them: impatience and junction-blocker remedies, tolerate up to 10 %
+# such teleports (whose tracks are dropped), and lower demand.
+REAL_NETWORK_SIM = SimConfig(insertion_density=150.0, tolerated_teleport_fraction=0.1,
+                             extra_sumo_args=("--time-to-impatience", "30", "--ignore-junction-blocker", "20"))
 
 
 def _vtypes_xml() -> str:
@@ -285,14 +298,19 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
               "--fcd-output.attributes", "x,y,angle,speed", "--device.fcd.begin", f"{cfg.warmup_s:.1f}",
               "-e", f"{end - 0.05:.2f}", "--statistic-output", stats, "--time-to-teleport",
               f"{cfg.time_to_teleport:.0f}", "--no-step-log", "true", "--no-warnings", "true",
-              "--seed", str(seed % (2**31)), "--collision.action", "warn", "--precision", "3"],
+              "--seed", str(seed % (2**31)), "--collision.action", "warn", "--precision", "3",
+              *cfg.extra_sumo_args],
              what=f"sumo on {net_path}")
         st = _read_stats(stats)
         teleports = int(float(st.get("teleports_total", 0) or 0))
-        if teleports > 0:
-            raise SumoRunRejected(f"{name}: {teleports} teleports (jammed)")
+        inserted = int(float(st.get("vehicles_inserted", 0) or 0))
+        jams = int(float(st.get("teleports_jam", 0) or 0))
+        if teleports and (jams or teleports > cfg.tolerated_teleport_fraction * max(inserted, 1)):
+            raise SumoRunRejected(f"{name}: {teleports} teleports ({jams} in jams) of {inserted} vehicles")
         types = _vehicle_types(text)
         raw = _fcd_to_rawlog(fcd, types, name, location, cfg)
+        if teleports:  # a few isolated teleports (deadlocks at odd real junctions): drop those tracks
+            raw = drop_discontinuous_tracks(raw)
     finally:
         if own_tmp:
             import shutil
@@ -302,6 +320,22 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
     if lanes is None:
         lanes = read_network_lanes(net_path)
     return dataclasses.replace(raw, lanes=lanes)
+
+
+def drop_discontinuous_tracks(raw: RawLog, max_speed: float = 70.0) -> RawLog:
+    """Marks invalid every frame of tracks that vanish and reappear or jump (> max_speed m/s): teleports."""
+    v = raw.agent_valid
+    reappear = np.any(v[1:] & ~v[:-1] & (np.cumsum(v, 0)[:-1] > 0), axis=0)
+    step = np.linalg.norm(np.diff(raw.agent_xy, axis=0), axis=-1)
+    jump = np.any((v[1:] & v[:-1]) & (np.nan_to_num(step, nan=0.0) > max_speed * 0.1), axis=0)
+    bad = reappear | jump
+    if not bad.any():
+        return raw
+    log.info("%s: dropping %d teleported tracks", raw.name, int(bad.sum()))
+    valid = v & ~bad[None]
+    xy = np.where(valid[..., None], raw.agent_xy, np.nan)
+    return dataclasses.replace(raw, agent_valid=valid, agent_xy=xy,
+                               agent_heading=np.where(valid, raw.agent_heading, np.nan))
 
 
 def _read_stats(path: str) -> dict[str, str]:

@@ -1,0 +1,90 @@
+"""Tiny end-to-end SUMO builds (generated and real networks), resume, splits by network, nuPlan wiring."""
+
+import dataclasses
+import json
+import os
+
+import numpy as np
+import pytest
+
+from gpd_jax.data import build, loader, preprocess, store, sumo
+
+SMALL_SIM = sumo.SimConfig(warmup_s=60.0, record_s=30.0)
+
+
+def test_net_spec_varies_and_splits_by_network():
+    specs = {(s.layout, s.lanes, s.junction) for s in map(sumo.random_net_spec, range(30))}
+    assert {l for l, _, _ in specs} == {"rand", "grid", "spider"} and {n for _, n, _ in specs} == {1, 2, 3}
+    jobs = build.plan_sumo_jobs(1000, 0, None)
+    assert len(jobs) == 20 and sum(j.num_samples for j in jobs) == 1000
+    by_split = {}
+    for j in jobs:
+        by_split.setdefault(j.split, set()).add(j.location)
+    assert {k: len(v) for k, v in by_split.items()} == {"train": 16, "val": 2, "test": 2}
+    assert all(j.split == "val" for j in build.plan_sumo_jobs(100, 0, None, split="val"))
+
+
+def test_tiny_build_resume_and_load(tmp_path):
+    out = str(tmp_path / "ds")
+    man = build.build_sumo(out, 4, seed=3, workers=1, per_job=2, sim_cfg=SMALL_SIM)
+    assert man["num_samples"] == 4 and man["build"]["build_wall_s"] > 0
+    locs = {s: {l for sh in v["shards"] for l in sh["locations"]} for s, v in man["splits"].items()}
+    assert sum(len(v) for v in locs.values()) == 2  # two networks, each in exactly one split
+    scene = loader.load_split(out, next(iter(man["splits"])))
+    scene.validate()
+    assert scene.valid[:, :, 0].all() and np.abs(scene.xy[:, 20, 0]).max() < 1e-4
+    assert (scene.size[:, 0, 0] >= 4.0).all()
+    # resume: a killed job (no marker, a stale temporary) is redone, finished jobs are not
+    marker = os.path.join(out, "_jobs", "job_00001.json")
+    old0 = json.load(open(os.path.join(out, "_jobs", "job_00000.json")))
+    os.remove(marker)
+    os.makedirs(os.path.join(out, "train", ".tmp-shard_00001-dead"))
+    man2 = build.build_sumo(out, 4, seed=3, workers=1, per_job=2, sim_cfg=SMALL_SIM)
+    assert man2["num_samples"] == 4 and os.path.isfile(marker)
+    assert json.load(open(os.path.join(out, "_jobs", "job_00000.json"))) == old0
+    assert not any(n.startswith(".tmp-") for n in os.listdir(os.path.join(out, "train")))
+    with pytest.raises(ValueError, match="other settings"):
+        build.build_sumo(out, 6, seed=3, workers=1, per_job=2, sim_cfg=SMALL_SIM)
+
+
+def test_real_network_build(tmp_path):
+    net = os.path.join(sumo.sumo_home(), "tools", "game", "fokr_bs_demo", "fokr_bs.net.xml.gz")
+    if not os.path.isfile(net):
+        pytest.skip("SUMO's fokr_bs_demo network is not installed")
+    lanes = sumo.read_network_lanes(net)
+    assert len(lanes) > 20
+    out = str(tmp_path / "real")
+    cfg = dataclasses.replace(sumo.REAL_NETWORK_SIM, warmup_s=120.0, record_s=40.0)
+    man = build.build_sumo(out, 2, seed=0, nets=[net], workers=1, per_job=2, split="test", sim_cfg=cfg)
+    assert man["num_samples"] == 2, man["build"]["rejections"]
+    assert man["splits"]["test"]["shards"][0]["locations"] == ["fokr_bs_demo_fokr_bs"]
+
+
+def test_teleported_tracks_are_dropped():
+    from data_fixtures import straight_road_log
+    raw = straight_road_log()
+    xy = raw.agent_xy.copy()
+    xy[70:, 5] += 50.0  # a 50 m jump between two frames
+    raw = dataclasses.replace(raw, agent_xy=xy)
+    out = sumo.drop_discontinuous_tracks(raw)
+    assert not out.agent_valid[:, 5].any() and out.agent_valid[:, 4].all()
+    assert out.agent_valid[:60, 1].all()  # track 1 just ends (leaves the network): kept
+
+
+def test_nuplan_wiring(tmp_path):
+    """`build --source nuplan` runs gpd_jax.data.nuplan.iter_logs on the nuPlan fixture (short windows)."""
+    nfx = pytest.importorskip("nuplan_fixtures")
+    nfx.write_maps_root(tmp_path / "maps")
+    (tmp_path / "logs").mkdir()
+    nfx.write_log_db(tmp_path / "logs" / "2021.05.12.22.00.38_veh-35_01008_01518.db")
+    cfg = preprocess.SampleConfig(num_history=5, num_future=10, window_stride=5)
+    man = build.build_nuplan(str(tmp_path / "out"), str(tmp_path / "logs"), str(tmp_path / "maps"), split="test",
+                             sample_cfg=cfg)
+    assert man["num_samples"] >= 2
+    scene = loader.load_split(str(tmp_path / "out"), "test")
+    scene.validate()
+    assert scene.xy.shape[1:] == (15, 33, 2) and scene.valid[:, :, 0].all()
+    np.testing.assert_allclose(scene.xy[:, 4, 0], 0.0, atol=1e-4)
+    # too-short windows for the default config: no samples, counted
+    man = build.build_nuplan(str(tmp_path / "out2"), str(tmp_path / "logs"), str(tmp_path / "maps"))
+    assert man["num_samples"] == 0 and man["build"]["stats"]["skip_log_too_short"] == 1
