@@ -115,3 +115,22 @@ def test_to_frame_inverse(theta):
     pose = np.array([3.0, -2.0, theta])
     p = np.array([[3.0 + np.cos(theta), -2.0 + np.sin(theta)]])
     np.testing.assert_allclose(pp.to_frame(p, pose), [[1.0, 0.0]], atol=1e-12)
+
+
+def test_malformed_and_empty_logs():
+    import dataclasses
+
+    from gpd_jax.data.errors import DataError
+    log = straight_road_log()
+    bad = dataclasses.replace(log, agent_heading=log.agent_heading[:, :3])
+    with pytest.raises(DataError, match="straight: bad RawLog: agent_heading shape"):
+        list(pp.iter_samples(bad))
+    empty = dataclasses.replace(log, agent_xy=np.zeros((0, 0, 2)), agent_heading=np.zeros((0, 0)),
+                                agent_valid=np.zeros((0, 0), bool), agent_size=np.zeros((0, 2)),
+                                agent_type=np.zeros((0,), np.int32), agent_ids=(), timestamps=np.zeros(0))
+    with pytest.raises(DataError, match="empty log"):
+        list(pp.iter_samples(empty))
+    st = Counter()
+    short = dataclasses.replace(log, agent_xy=log.agent_xy[:50], agent_heading=log.agent_heading[:50],
+                                agent_valid=log.agent_valid[:50], timestamps=log.timestamps[:50])
+    assert list(pp.iter_samples(short, stats=st)) == [] and st["skip_log_too_short"] == 1

@@ -3,6 +3,7 @@
   build --source sumo --out DIR --scenarios N --seed S [--net FILE.net.xml ...] [--workers W] [--split NAME]
   build --source nuplan --out DIR --db PATH_OR_DIR --maps DIR [--max-per-log K] [--split NAME]
   inspect DIR [--json PATH] [--no-lanes]
+  bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
 
 A stopped build started again with the same arguments resumes where it left off.
 """
@@ -35,6 +36,13 @@ def main(argv=None) -> int:
     i.add_argument("dir")
     i.add_argument("--json", default=None, help="also write the statistics to this JSON file")
     i.add_argument("--no-lanes", action="store_true", help="skip the (slower) vector-lane statistics")
+    bl = sub.add_parser("bench-loader", help="loader throughput and memory")
+    bl.add_argument("dir")
+    bl.add_argument("--split", default="train")
+    bl.add_argument("--batch-size", type=int, default=32)
+    bl.add_argument("--batches", type=int, default=200)
+    bl.add_argument("--threads", type=int, default=4)
+    bl.add_argument("--with-lanes", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
@@ -54,6 +62,12 @@ def main(argv=None) -> int:
             print(json.dumps({"num_samples": man["num_samples"],
                               "splits": {k: v["num_samples"] for k, v in man["splits"].items()},
                               "build_wall_s": round(man["build"]["build_wall_s"], 1)}))
+        elif args.cmd == "bench-loader":
+            from gpd_jax.data import loader
+
+            print(json.dumps(loader.benchmark(args.dir, args.split, args.batch_size, args.batches,
+                                              num_threads=args.threads, with_lanes=args.with_lanes,
+                                              with_polylines=args.with_lanes)))
         else:
             from gpd_jax.data import inspection
 

@@ -201,3 +201,28 @@ def load_split(data_dir: str, split: str, *, with_polylines: bool = False, with_
         recs = [add_lanes(r) for r in recs]
     batch = {k: np.stack([r[k] for r in recs]) for k in recs[0]}
     return _split_output(with_polylines)(batch)
+
+
+def benchmark(data_dir: str, split: str = "train", batch_size: int = 32, num_batches: int = 200, seed: int = 0,
+              **kw) -> dict:
+    """Loader throughput (samples/s after the first batch) and memory (peak RSS and its growth over the run)."""
+    import resource
+    import time
+
+    def rss_mb():
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+    it = make_loader(data_dir, split, batch_size, seed, **kw)
+    next(it)
+    rss0 = rss_mb()
+    t0 = time.perf_counter()
+    rss_max = rss0
+    for k in range(num_batches):
+        next(it)
+        if k % 10 == 0:
+            rss_max = max(rss_max, rss_mb())
+    dt = time.perf_counter() - t0
+    return {"samples_per_s": num_batches * batch_size / dt, "batch_size": batch_size, "num_batches": num_batches,
+            "rss_after_first_batch_mb": rss0, "rss_max_mb": max(rss_max, rss_mb()),
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "options": kw}

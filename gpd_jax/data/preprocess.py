@@ -34,6 +34,7 @@ from typing import Iterator
 
 import numpy as np
 
+from gpd_jax.data.errors import DataError
 from gpd_jax.data.geometry import sample_has_overlap
 from gpd_jax.data.raw import RawLog
 from gpd_jax.scene import TYPE_ID
@@ -298,9 +299,34 @@ def sample_windows(log: RawLog, cfg: SampleConfig, num: int | None, rng: np.rand
     return out[:num]
 
 
+def check_rawlog(log: RawLog) -> None:
+    """Raises `DataError` (naming the log) if the arrays of a RawLog disagree in shape or are empty."""
+    F, N = np.shape(log.agent_xy)[:2] if np.ndim(log.agent_xy) == 3 else (None, None)
+    problems = []
+    if F is None or np.shape(log.agent_xy)[2] != 2:
+        problems.append(f"agent_xy shape {np.shape(log.agent_xy)} is not [F, N, 2]")
+    else:
+        for name, want in (("agent_heading", (F, N)), ("agent_valid", (F, N)), ("agent_size", (N, 2)),
+                           ("agent_type", (N,)), ("timestamps", (F,))):
+            if np.shape(getattr(log, name)) != want:
+                problems.append(f"{name} shape {np.shape(getattr(log, name))}, expected {want}")
+        if len(log.agent_ids) != N:
+            problems.append(f"{len(log.agent_ids)} agent ids for {N} tracks")
+        if N == 0 or F == 0:
+            problems.append("empty log (no frames or no tracks)")
+        if log.ego_index is not None and not 0 <= log.ego_index < N:
+            problems.append(f"ego_index {log.ego_index} out of range")
+    if problems:
+        raise DataError(log.name, "bad RawLog: " + "; ".join(problems))
+
+
 def iter_samples(log: RawLog, cfg: SampleConfig = SampleConfig(), num: int | None = None, seed: int = 0,
                  stats: Counter | None = None) -> Iterator[tuple[str, dict[str, np.ndarray]]]:
-    """Yields (scenario id, sample) for the windows of `log` (see `sample_windows`)."""
+    """Yields (scenario id, sample) for the windows of `log` (see `sample_windows`).
+
+    Raises `DataError` for a malformed log; too-short logs and unusable windows are skipped and counted.
+    """
+    check_rawlog(log)
     rng = np.random.default_rng(seed)
     stats = Counter() if stats is None else stats
     if log.num_frames < cfg.num_frames:
