@@ -288,28 +288,58 @@ def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: st
     settings = {"source": "nuplan", "db": os.path.abspath(db), "maps": os.path.abspath(maps_root), "seed": seed,
                 "split": split, "max_per_log": max_per_log, "sample_config": dataclasses.asdict(sample_cfg)}
     _check_settings(out_dir, settings)
-    raws = list(nuplan.iter_logs(db, maps_root))
-    splits = {r.location: split for r in raws} if split else assign_splits([r.location for r in raws], seed)
+    # Splits by map: read only the log headers first, then stream the logs one at a time (flat memory).
+    paths = nuplan.find_logs(db)
+    if split:
+        split_of = {p: split for p in paths}
+    else:
+        key = {}
+        for p in paths:
+            try:
+                key[p] = nuplan.read_log_header(p).map_version.removesuffix(".gpkg")
+            except Exception:  # noqa: BLE001 - a bad file is reported (and skipped) when it is read
+                pass
+        by_loc = assign_splits(list(key.values()), seed)
+        split_of = {p: by_loc.get(key.get(p), "train") for p in paths}
     results = []
+    errors: list = []
     from tqdm import tqdm
-    for i, raw in enumerate(tqdm(raws, desc="nuplan build", unit="log")):
+
+    bar = tqdm(total=len(paths), desc="nuplan build", unit="log")
+    done = {}
+    for i, p in enumerate(paths):
         m = _job_marker(out_dir, i)
         if os.path.isfile(m):
             with open(m) as f:
-                results.append(json.load(f))
+                done[i] = json.load(f)
+    todo = [p for i, p in enumerate(paths) if i not in done]
+    results = list(done.values())
+    bar.update(len(done))
+    index_of = {p: i for i, p in enumerate(paths)}
+    raws = nuplan.iter_logs(todo[0] if len(todo) == 1 else db, maps_root, skip_bad=True, errors=errors) if todo else []
+    for raw in raws:
+        i = next((index_of[p] for p in todo if os.path.splitext(os.path.basename(p))[0] == raw.name), None)
+        if i is None or i in done:
             continue
         t1 = time.time()
         stats: Counter = Counter()
         pairs = list(preprocess.iter_samples(raw, sample_cfg, num=max_per_log, seed=seed, stats=stats))
+        sp = split_of[paths[i]]
         if pairs:
-            arrays = store.stack_samples([p[1] for p in pairs], preprocess.sample_spec(sample_cfg))
+            arrays = store.stack_samples([q[1] for q in pairs], preprocess.sample_spec(sample_cfg))
             existing = _existing_shard(out_dir, i)
             if existing:
                 shutil.rmtree(existing)
-            store.write_shard(out_dir, splits[raw.location], i, arrays, [p[0] for p in pairs],
-                              [raw.location] * len(pairs), extra={"source": "nuplan", "log": raw.name})
-        r = {"index": i, "split": splits[raw.location], "location": raw.location, "num_samples": len(pairs),
+            store.write_shard(out_dir, sp, i, arrays, [q[0] for q in pairs], [raw.location] * len(pairs),
+                              extra={"source": "nuplan", "log": raw.name})
+        r = {"index": i, "split": sp, "location": raw.location, "num_samples": len(pairs),
              "requested": len(pairs), "wall_s": time.time() - t1, "stats": dict(stats), "rejections": []}
-        store.atomic_write_json(m, r)
+        store.atomic_write_json(_job_marker(out_dir, i), r)
         results.append(r)
+        bar.update(1)
+    bar.close()
+    if errors:
+        log.warning("skipped %d bad nuPlan logs: %s", len(errors), "; ".join(map(str, errors[:5])))
+        results.append({"index": -1, "num_samples": 0, "requested": 0, "stats": {"logs_skipped_bad": len(errors)},
+                        "rejections": [str(e) for e in errors]})
     return _finish(out_dir, settings, results, time.time() - t0)
