@@ -21,9 +21,11 @@ in the scene frame; the frame poses are `scene.ego_pose` (what the rasterizer ta
 
 from __future__ import annotations
 
+import atexit
 import collections
 import os
 import threading
+import weakref
 from typing import Any, Iterator
 
 import numpy as np
@@ -185,7 +187,41 @@ def make_loader(data_dir: str, split: str, batch_size: int, seed: int = 0, *, sh
     it = it.map(_split_output(with_polylines))
     if prefetch > 0:
         it = grain.experimental.ThreadPrefetchIterDataset(it, prefetch_buffer_size=prefetch)
-    return iter(it)
+    return _Iterator(iter(it))
+
+
+class _Iterator:
+    """The loader's iterator: forwards to grain's, and releases it at interpreter exit (grain's prefetch
+    iterators stop their threads in `__del__`, which fails noisily during interpreter teardown)."""
+
+    def __init__(self, it):
+        self._it = it
+        _LIVE.add(self)
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._it)
+
+    def close(self) -> None:
+        if self._it is not None:
+            it, self._it = self._it, None
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()
+
+
+_LIVE: "weakref.WeakSet" = weakref.WeakSet()
+
+
+@atexit.register
+def _close_live_iterators():
+    for it in list(_LIVE):
+        try:
+            it.close()
+        except Exception:  # noqa: BLE001 - best effort at exit
+            pass
 
 
 def load_split(data_dir: str, split: str, *, with_polylines: bool = False, with_lanes: bool = False,
