@@ -7,7 +7,8 @@ Measures, in one run (so ratios are meaningful on a noisy shared machine):
 
 * `matmul_gflops`: throughput of a large fp32 matmul (4096^2 x 4096^2 by default), the machine's ceiling.
 * cached rollout per scenario at each batch size (a batch that mixes all six tasks, random weights,
-  synthetic scenes), with its compile time;
+  synthetic scenes), with its compile time. A batch is sharded over the local devices (on a CPU, one XLA
+  device per core; see gpd_jax/parallel.py), so batches use every core; batch 1 runs on one device;
 * the recompute rollout (the official method: a full forward over the whole prefix for every future frame,
   same model and weights) at batch 1. Timing 80 forwards of up to 9.7k tokens takes many minutes on a CPU,
   so by default a forward is timed at K prefix lengths spread over [H, T-1], a quadratic in the prefix
@@ -34,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from gpd_jax import parallel
 from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
 from gpd_jax.rollout import rollout_batch, rollout_recompute
@@ -118,20 +120,23 @@ def bench_rollout(args, overrides) -> dict:
     bytes_per_scenario = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * 4
     for batch in args.batch:
         scenes = synthetic_scenes(batch, batch, t_total, h, m.num_agents, m.num_map_tokens, m.codebook_size)
-        scenes = jax.tree.map(jnp.asarray, scenes)
-        tasks = jax.tree.map(jnp.asarray, _mixed_tasks(batch, m))
+        tasks = _mixed_tasks(batch, m)
         keys = jax.random.split(jax.random.key(1), batch)
+        ndev = parallel.devices_for_batch(batch, min(args.devices or len(jax.devices()), len(jax.devices())))
+        mesh = parallel.data_mesh(ndev)
+        scenes, tasks, keys = parallel.shard_batch((scenes, tasks, keys), mesh)
+        state_b = parallel.replicate(state, mesh)
         t0 = time.perf_counter()
-        compiled = cached_jit.lower(state, scenes, tasks, keys).compile()
+        compiled = cached_jit.lower(state_b, scenes, tasks, keys).compile()
         compile_s = time.perf_counter() - t0
-        _log(f"batch {batch}: compiled in {compile_s:.1f} s")
-        run = lambda: jax.block_until_ready(compiled(state, scenes, tasks, keys))
+        _log(f"batch {batch}: compiled in {compile_s:.1f} s ({ndev} device(s))")
+        run = lambda: jax.block_until_ready(compiled(state_b, scenes, tasks, keys))
         run()
         t = _time(run, args.repeats)
         per = t / batch
         _log(f"batch {batch}: cached {per:.3f} s per scenario")
         runs.append({
-            "config": config_name, "batch": batch, "future_frames": future,
+            "config": config_name, "batch": batch, "future_frames": future, "devices": ndev,
             "cached_s_per_scenario": per, "recompute_s_per_scenario": None, "speedup": None,
             "compile_s": compile_s, "achieved_gflops": flops * batch / t / 1e9,
             "kv_cache_bytes": bytes_per_scenario * batch,
@@ -221,8 +226,11 @@ def main(argv=None) -> None:
                    help="prefix lengths at which to time the recompute forward (0: time the whole rollout)")
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--matmul-size", type=int, default=4096)
+    r.add_argument("--devices", type=int, default=None,
+                   help="shard each batch over this many local devices (default: all; on a CPU one per core)")
     r.add_argument("--json", default=None, help="write the results here")
     args = p.parse_args(rest)
+    parallel.use_host_cores()
     out = bench_rollout(args, overrides)
     _print_table(out)
     if args.json:

@@ -149,10 +149,13 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task, key: jax.Array, num_hi
                   temperature: float = 0.0) -> RolloutOutput:
     """Every scenario under every task: scenes [S, ...], tasks [K, ...] -> outputs with leading dims [S, K].
 
-    vmaps over tasks inside a vmap over scenarios; keys are split per (scenario, task).
+    The S x K pairs are flattened into one vmapped batch (so the attention kernel's per-scenario batching
+    rule sees the whole batch); keys are split per (scenario, task).
     """
     s = scenes.xy.shape[0]
     k = tasks.from_log.shape[0]
-    keys = jax.random.split(key, (s, k))
-    inner = lambda sc, ks: jax.vmap(lambda t, kk: rollout(model, sc, t, kk, num_history, temperature))(tasks, ks)
-    return jax.vmap(inner)(scenes, keys)
+    flat_scenes = jax.tree.map(lambda x: jnp.repeat(x, k, axis=0), scenes)
+    flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
+    keys = jax.random.split(key, s * k)
+    out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature)
+    return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)

@@ -71,3 +71,22 @@ def test_training_gradient_is_memory_linear(tiny_config):
     # the largest intermediate is one [H, S, chunk] score block (plus [S, ffn]-sized activations)
     assert biggest <= max(m.num_heads * s * model.chunk_len, 40 * 21 * m.ffn_dim), (biggest, s * s)
     assert biggest * 4 < s * s
+
+
+def test_vmapped_dynamic_attention_equals_per_scenario():
+    """The custom batching rule (one scenario at a time) matches unbatched calls, also for a batched
+    chunk count and unbatched keys."""
+    n, frames, chunk, b = 5, 6, 10, 3
+    s = n * frames
+    qs, ks, vs = zip(*[_qkv(s, seed=i) for i in range(b)])
+    q, k, v = jnp.stack(qs), jnp.stack(ks), jnp.stack(vs)
+    frame = jnp.arange(s) // n
+    counts = jnp.array([1, 3, 2])
+    got = jax.jit(jax.vmap(lambda q, k, v, c: attend_dynamic(q, k, v, frame, c, n, chunk)))(q, k, v, counts)
+    for i in range(b):
+        ref = dense_block_causal(q[i], k[i], v[i], frame, frame)
+        # rows whose visible keys all lie inside the processed chunks are exact
+        rows = frame < (int(counts[i]) * chunk) // n
+        np.testing.assert_allclose(got[i][:, rows], ref[:, rows], atol=1e-5)
+    shared = jax.vmap(lambda q: attend_dynamic(q, k[0], v[0], frame, 3, n, chunk))(q)
+    np.testing.assert_allclose(shared[1], dense_block_causal(q[1], k[0], v[0], frame, frame), atol=1e-5)

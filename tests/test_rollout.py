@@ -29,7 +29,8 @@ def test_cached_equals_recompute_every_task(setup, temperature):
         model = nnx.merge(graphdef, state)
         key = jax.random.key(3)
         cached = rollout_tasks(model, scenes, tasks, key, h, temperature)
-        keys = jax.random.split(key, (scenes.xy.shape[0], tasks.from_log.shape[0]))
+        keys = jax.random.split(key, scenes.xy.shape[0] * tasks.from_log.shape[0]).reshape(
+            scenes.xy.shape[0], tasks.from_log.shape[0])
         rec = jax.vmap(lambda sc, ks: jax.vmap(
             lambda t, k: rollout_recompute(model, sc, t, k, h, temperature))(tasks, ks))(scenes, keys)
         return cached, rec
