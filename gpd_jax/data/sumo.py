@@ -8,8 +8,9 @@ One *job* = one network + one demand seed + one SUMO run. The pipeline of a job:
    networks get comparable traffic) with `departLane="best" departSpeed="max"`; each vehicle's type is drawn
    by us from a size mix (car, SUV, van, truck, bus) with the job's RNG, so the FCD needs no string columns;
 3. `sumo --step-length 0.1 --lanechange.duration 3` (continuous lane changes), FCD written as CSV from
-   the C++ side every step (10 Hz), after a warm-up. This measured faster than recording through TraCI
-   (Python round trips per step) and needs no libsumo;
+   the C++ side every step (10 Hz), after a warm-up. This measured faster than recording through TraCI:
+   on one generated network (270 simulated s, ~240 vehicles) trips + SUMO + FCD parsing took 2.8 s, the
+   same simulation stepped through TraCI with subscriptions 5.6 s; it also needs no libsumo;
 4. quality gate: runs with teleports (SUMO's jam resolution) or where more than `max_stopped_fraction` of
    recorded vehicle-frames stand still (gridlock) are rejected (`SumoRunRejected`), and the caller
    retries with lower demand and another seed;
