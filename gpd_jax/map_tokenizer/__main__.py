@@ -2,6 +2,7 @@
 
   python -m gpd_jax.map_tokenizer evaluate [--checkpoint DIR] --data DIR [--split test] [--json PATH]
   python -m gpd_jax.map_tokenizer encode [--checkpoint DIR] --data DIR [--splits train val test]
+  python -m gpd_jax.map_tokenizer export --workdir WORKDIR [--out checkpoints/map_tokenizer]
   python -m gpd_jax.map_tokenizer bench [--batch 64]
 
 `evaluate` reconstructs frames (raster -> tokens -> lanes) and reports the map metrics of
@@ -73,6 +74,15 @@ def cmd_encode(args) -> None:
             print(f"{split} shard {j}: {tokens.shape[0]} samples x {tokens.shape[1]} frames -> {path}")
 
 
+def cmd_export(args) -> None:
+    from gpd_jax.map_tokenizer.tokenizer import export_tokenizer, load_tokenizer
+
+    tok = load_tokenizer(args.workdir)
+    export_tokenizer(tok.params, tok.config, args.out)
+    size = sum(os.path.getsize(os.path.join(args.out, f)) for f in os.listdir(args.out))
+    print(f"exported {args.workdir} -> {args.out} ({size / 1e6:.2f} MB)")
+
+
 def cmd_bench(args) -> None:
     from gpd_jax.map_tokenizer.bench import run
     print(json.dumps(run(batch=args.batch), indent=2))
@@ -94,10 +104,13 @@ def main(argv=None) -> int:
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     c.add_argument("--data", required=True)
     c.add_argument("--splits", nargs="*", default=None)
+    x = sub.add_parser("export", help="write a training workdir's latest params as a compact checkpoint")
+    x.add_argument("--workdir", required=True)
+    x.add_argument("--out", default=DEFAULT_CHECKPOINT)
     b = sub.add_parser("bench", help="rasterizer and matching throughput")
     b.add_argument("--batch", type=int, default=64)
     args = p.parse_args(argv)
-    {"evaluate": cmd_evaluate, "encode": cmd_encode, "bench": cmd_bench}[args.cmd](args)
+    {"evaluate": cmd_evaluate, "encode": cmd_encode, "export": cmd_export, "bench": cmd_bench}[args.cmd](args)
     return 0
 
 

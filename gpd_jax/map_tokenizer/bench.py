@@ -1,6 +1,6 @@
 """Throughput of the rasterizer and of the two assignment solvers (`python -m gpd_jax.map_tokenizer bench`).
 
-Inputs are synthetic but sized like the data store (192 polylines x 96 points at 1 m) and like training
+Inputs are synthetic but sized like the data store (96 polylines x 128 points at 1 m) and like training
 (50 x 50 matching costs of a half-trained decoder: GT lines plus noise, permuted, random logits).
 """
 
@@ -26,7 +26,7 @@ def _time(f, *args, reps: int = 5) -> float:
     return (time.perf_counter() - t0) / reps
 
 
-def raster_inputs(batch: int, lines: int = 192, points: int = 96, seed: int = 0):
+def raster_inputs(batch: int, lines: int = 96, points: int = 128, seed: int = 0):
     rng = np.random.default_rng(seed)
     start = rng.uniform(-60, 60, (batch, lines, 1, 2))
     ang = rng.uniform(-np.pi, np.pi, (batch, lines, 1))
@@ -51,8 +51,9 @@ def matching_costs(batch: int, seed: int = 0) -> jax.Array:
 def run(batch: int = 64) -> dict:
     out = {"device": str(jax.devices()[0]), "batch": batch}
     pts, valid, pose = raster_inputs(batch)
-    dt = _time(jax.jit(rasterize), pts, valid, pose)
-    out["raster_192x96_per_s"] = batch / dt
+    for msl in (1.0, 2.0):  # 4 or 8 samples per segment
+        f = jax.jit(lambda a, b, c, m=msl: rasterize(a, b, c, max_segment_length=m))
+        out[f"rasters_per_s_max_segment_{msl:g}m"] = batch / _time(f, pts, valid, pose)
     for b in (32, 256):
         cost = matching_costs(b)
         t_h = _time(jax.jit(hungarian), cost)
