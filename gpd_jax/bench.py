@@ -114,7 +114,6 @@ def bench_rollout(args, overrides) -> dict:
     def cached(state, scenes, tasks, keys):
         return rollout_batch(nnx.merge(graphdef, state), scenes, tasks, keys, h, cfg.rollout.temperature)
 
-    cached_jit = jax.jit(cached)
     runs = []
     flops = rollout_flops(m, t_total, h)
     bytes_per_scenario = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * 4
@@ -126,6 +125,7 @@ def bench_rollout(args, overrides) -> dict:
         mesh = parallel.data_mesh(ndev)
         scenes, tasks, keys = parallel.shard_batch((scenes, tasks, keys), mesh)
         state_b = parallel.replicate(state, mesh)
+        cached_jit = jax.jit(parallel.data_parallel(cached, mesh))
         t0 = time.perf_counter()
         compiled = cached_jit.lower(state_b, scenes, tasks, keys).compile()
         compile_s = time.perf_counter() - t0

@@ -60,6 +60,22 @@ def replicate(tree, mesh: Mesh):
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
 
 
+def data_parallel(fn, mesh: Mesh, num_replicated: int = 1):
+    """`fn(*replicated, *batched)` run on every device with its own slice of the batch (`shard_map`).
+
+    The first `num_replicated` arguments (parameters) are whole on every device; the rest and every output
+    are split along their leading dim. Each device runs the plain single-device program on its slice, so
+    batch-indexed loops inside `fn` (such as the attention kernel's per-scenario rule) stay local instead
+    of making the partitioner gather whole arrays.
+    """
+
+    def wrapped(*args):
+        specs = tuple(PartitionSpec() if i < num_replicated else PartitionSpec("data") for i in range(len(args)))
+        return jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec("data"), check_vma=False)(*args)
+
+    return wrapped
+
+
 def devices_for_batch(batch: int, available: int) -> int:
     """The largest device count <= available that divides the batch."""
     return max(d for d in range(1, available + 1) if batch % d == 0)
