@@ -24,19 +24,18 @@ import jax.numpy as jnp
 _NEG = -1e30
 
 
-def _chunk_step(q, q_frame, k, v, start, chunk_len, tokens_per_frame, carry):
-    """One online-softmax update with keys/values [start, start + chunk_len).
-
-    q: f32[H, Sq, Dh] (pre-scaled), q_frame: i32[Sq], k, v: f32[H, S, Dh], carry: (m f32[H, Sq],
-    l f32[H, Sq], acc f32[H, Sq, Dh]). Head-major so both products are plain batched matmuls.
-    """
-    kc = jax.lax.dynamic_slice_in_dim(k, start, chunk_len, axis=1)
-    vc = jax.lax.dynamic_slice_in_dim(v, start, chunk_len, axis=1)
-    return _chunk_update(q, q_frame, kc, vc, start, tokens_per_frame, carry)
+def _chunk(k, v, start, chunk_len):
+    """Keys and values [start, start + chunk_len) of k, v f32[H, S, Dh]."""
+    return (jax.lax.dynamic_slice_in_dim(k, start, chunk_len, axis=1),
+            jax.lax.dynamic_slice_in_dim(v, start, chunk_len, axis=1))
 
 
 def _chunk_update(q, q_frame, kc, vc, start, tokens_per_frame, carry):
-    """The online-softmax update with one chunk kc, vc f32[H, C, Dh] whose first key is at `start`."""
+    """One online-softmax update with a chunk kc, vc f32[H, C, Dh] whose first key is at `start`.
+
+    q: f32[H, Sq, Dh] (pre-scaled), q_frame: i32[Sq], carry: (m f32[H, Sq], l f32[H, Sq], acc f32[H, Sq, Dh]).
+    Head-major so both products are plain batched matmuls.
+    """
     m, l, acc = carry
     k_frame = (start + jnp.arange(kc.shape[1])) // tokens_per_frame
     bias = jnp.where(k_frame[None, :] <= q_frame[:, None], 0.0, _NEG)  # [Sq, C], shared by heads
@@ -82,7 +81,8 @@ def _flash_fwd_impl(q, k, v, n, c):
     q_frame = jnp.arange(q.shape[1]) // n
 
     def body(carry, start):
-        return _chunk_step(q, q_frame, k, v, start, c, n, carry), None
+        kc, vc = _chunk(k, v, start, c)
+        return _chunk_update(q, q_frame, kc, vc, start, n, carry), None
 
     carry, _ = jax.lax.scan(body, _init_carry(q), jnp.arange(0, k.shape[1], c))
     m, l, _ = carry
@@ -105,8 +105,7 @@ def _flash_bwd(n, c, res, dout):
     delta = jnp.sum(dout * out, axis=-1)  # [H, Sq]
 
     def body(dq, start):
-        kc = jax.lax.dynamic_slice_in_dim(k, start, c, axis=1)
-        vc = jax.lax.dynamic_slice_in_dim(v, start, c, axis=1)
+        kc, vc = _chunk(k, v, start, c)
         mask = ((start + jnp.arange(c)) // n)[None, :] <= q_frame[:, None]
         s = jnp.einsum("hqd,hkd->hqk", q, kc)
         p = jnp.where(mask[None], jnp.exp(s - lse[..., None]), 0.0)
@@ -154,9 +153,7 @@ def _attend_one(q, q_frame, num_chunks, n, c, kv_slice):
 @functools.lru_cache(maxsize=None)
 def _dynamic_kernel(n: int, c: int):
     def one(q, k, v, q_frame, num_chunks):
-        sl = lambda start: (jax.lax.dynamic_slice_in_dim(k, start, c, axis=1),
-                            jax.lax.dynamic_slice_in_dim(v, start, c, axis=1))
-        return _attend_one(q, q_frame, num_chunks, n, c, sl)
+        return _attend_one(q, q_frame, num_chunks, n, c, lambda start: _chunk(k, v, start, c))
 
     kernel = jax.custom_batching.custom_vmap(one)
 
