@@ -1,0 +1,164 @@
+"""rollout.py end to end on a tiny store with a tiny exported model: metrics.json layout, pictures, bad input."""
+
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from data_fixtures import write_small_store
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+import rollout  # noqa: E402
+from gpd_jax.tasks import TASK_NAMES  # noqa: E402
+
+AGENT_KEYS = {f"{g}_{n}{s}" for g in ("ego", "agent") for n in ("ade", "fde", "collision") for s in ("", "_corrected")}
+
+
+def tiny_config():
+    """gpd_tiny with the shipped map tokenizer (64 tokens, 128 codes) at 1 Hz: 3 history + 8 future frames."""
+    from gpd_jax.config import load_config
+
+    c = load_config(os.path.join(ROOT, "configs", "gpd_tiny.py"))
+    c.model.num_map_tokens = 64
+    c.model.codebook_size = 128
+    c.model.map_tokenizer = "checkpoints/map_tokenizer"
+    c.model.num_frames = 11
+    c.model.num_history = 3
+    if "data" not in c:
+        import ml_collections
+        c.data = ml_collections.ConfigDict({"dir": "", "frame_period_s": 0.1, "frame_stride": 1})
+    c.data.frame_stride = 10
+    c.data.frame_period_s = 0.1
+    return c
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    from flax import nnx
+
+    from gpd_jax.checkpoint import export_model, model_from_config
+    from gpd_jax.data import store
+    from gpd_jax.evaluate import encode_map_frames
+    from gpd_jax.map_tokenizer import load_tokenizer
+
+    d = tmp_path_factory.mktemp("cli")
+    data = str(d / "store")
+    write_small_store(data, n_shards=2, per_shard=2, split="test")
+    # shard 0 gets map tokens (what `python -m gpd_jax.map_tokenizer encode` writes); shard 1 has none
+    tok = load_tokenizer(os.path.join(ROOT, "checkpoints", "map_tokenizer"))
+    sh = store.Shard(store.shard_dir(data, "test", 0))
+    a = sh.arrays
+    tokens = np.asarray(encode_map_frames(tok, tok.params, np.asarray(a["polylines"]),
+                                          np.asarray(a["polyline_valid"]), np.asarray(a["ego_pose"])))
+    store.save_map_tokens(data, "test", 0, tokens)
+    config = tiny_config()
+    _, params, _ = nnx.split(model_from_config(config), nnx.Param, ...)
+    model = export_model(params, config, str(d / "model"))
+    return d, data, model
+
+
+@pytest.fixture(scope="module")
+def run_ok(setup):
+    d, data, model = setup
+    out = str(d / "out")
+    rc = rollout.main(["--checkpoint", model, "--data", data, "--out", out, "--scenarios", "3", "--batch", "2",
+                       "--render", "1", "--render-size", "96", "--no-progress"])
+    return rc, out
+
+
+def _strict_json(path):
+    def no_nan(c):
+        raise ValueError(f"non-JSON constant {c}")
+    with open(path) as f:
+        return json.load(f, parse_constant=no_nan)
+
+
+def test_metrics_json_layout(run_ok, setup):
+    rc, out = run_ok
+    assert rc == 0
+    m = _strict_json(os.path.join(out, "metrics.json"))
+    assert m["variant"] == "paper" and m["scenarios"] == 3 and m["split"] == "test"
+    assert m["checkpoint"] == setup[2] and m["data"] == setup[1]
+    assert m["frame_period_s"] == pytest.approx(1.0) and m["horizons"] == {"3s": 3, "5s": 5, "8s": 8}
+    assert m["scored_agents"] == "valid at the current frame"
+    assert m["map_tokens"] == {"from_store": 2, "encoded": 1}  # shard 0 has tokens, shard 1 is encoded
+    assert set(m["tasks"]) == set(TASK_NAMES)
+    assert set(m["baselines"]) == {"constant_velocity", "log_replay"}
+    for name, per in m["tasks"].items():
+        assert set(per) == {"3s", "5s", "8s"}
+        keys = set(per["8s"])
+        gen = m["task_generates"][name]
+        for g in ("ego", "agent"):
+            has = {k for k in keys if k.startswith(g + "_")}
+            assert bool(has) == (g in gen), (name, g)
+            if g in gen:
+                assert has == {k for k in AGENT_KEYS if k.startswith(g + "_")}
+        maps = {k for k in keys if k.startswith("map_")}
+        assert bool(maps) == ("map" in gen), name
+        if "map" in gen:
+            assert {"map_f1", "map_lateral", "map_chamfer", "map_chamfer_corrected"} <= maps
+            assert 0.0 <= per["3s"]["map_f1"] <= 1.0
+    assert m["task_generates"]["closed_loop"] == ["agent"] and m["task_generates"]["motion_planning"] == ["ego"]
+    for lb in ("3s", "5s", "8s"):
+        lr = m["baselines"]["log_replay"][lb]
+        assert lr["agent_ade"] == 0.0 and lr["ego_ade"] == 0.0 and lr["agent_fde_corrected"] == 0.0
+        assert m["baselines"]["constant_velocity"][lb].keys() == lr.keys() == AGENT_KEYS
+    ratio = m["ratios"]["traffic_simulation_agent_ade_over_constant_velocity"]
+    assert set(ratio) == {"3s", "5s", "8s"}
+    assert os.path.isfile(os.path.join(out, "tables.txt"))
+    assert not [f for f in os.listdir(out) if f.startswith(".")]  # no temporaries left
+
+
+def test_render_writes_gif_and_png_per_task(run_ok):
+    rc, out = run_ok
+    assert rc == 0
+    files = sorted(os.listdir(os.path.join(out, "render")))
+    assert files == sorted(f"0000_{t}.{e}" for t in TASK_NAMES for e in ("gif", "png"))
+    with Image.open(os.path.join(out, "render", "0000_scene_generation.gif")) as im:
+        assert im.n_frames == 11 and im.size == (96, 96)
+    with Image.open(os.path.join(out, "render", "0000_map_prediction.png")) as im:
+        assert im.size[1] == 96 and im.size[0] > 3 * 96
+
+
+def _bad_model(setup, name, edit):
+    d, _, model = setup
+    bad = d / name
+    bad.mkdir(exist_ok=True)
+    cfg = json.load(open(os.path.join(model, "config.json")))
+    edit(cfg)
+    json.dump(cfg, open(bad / "config.json", "w"))
+    os.symlink(os.path.join(model, "params.npz"), bad / "params.npz")
+    return str(bad)
+
+
+def _shape_mismatch(cfg):
+    cfg["model"]["num_frames"] = 21  # 21 frames at stride 10 need 201 stored frames
+    cfg["model"]["num_agents"] = 40  # the store has 33 slots
+
+
+@pytest.mark.parametrize("case, args, message", [
+    ("missing checkpoint", ["--checkpoint", "{d}/nope"], "checkpoint directory not found"),
+    ("missing data", ["--data", "{d}/nodata"], "data directory not found"),
+    ("missing split", ["--split", "val"], "split 'val' not found"),
+    ("unknown task", ["--tasks", "traffic_simulation,flying"], "unknown task 'flying'"),
+    ("too many scenarios", ["--scenarios", "5"], "5 scenarios asked for, but"),
+    ("shape mismatch", ["--checkpoint", "{bad}"], "model and data do not match"),
+    ("bad override", ["--config.model.d_model=8"], "only --config.rollout"),
+    ("bad variant", ["--variant", "best"], "invalid choice"),
+])
+def test_bad_input_exits_2_and_writes_nothing(setup, capsys, case, args, message):
+    d, data, model = setup
+    bad = _bad_model(setup, "bad_shapes", _shape_mismatch) if case == "shape mismatch" else ""
+    out = d / f"out_{case.replace(' ', '_')}"
+    # later occurrences of an option win (argparse), so the case's arguments go after the good ones
+    argv = ["--checkpoint", model, "--data", data, "--out", str(out), "--no-progress"]
+    argv += [a.format(d=d, bad=bad) for a in args]
+    assert rollout.main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert not out.exists()
