@@ -22,7 +22,15 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="train.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--config", required=True, help="a configs/*.py file")
     p.add_argument("--workdir", required=True, help="checkpoints, metrics and logs go here")
+    p.add_argument("--stop-after", type=int, default=None,
+                   help="stage 2: stop (with a checkpoint) after this many steps of this invocation")
+    p.add_argument("--distributed", action="store_true",
+                   help="call jax.distributed.initialize() first (several hosts; coordinator from the environment)")
     args = p.parse_args(rest)
+    if args.distributed:
+        import jax
+
+        jax.distributed.initialize()
     config = load_config(args.config, overrides)
     stage = config.get("stage")
     if stage == "map_tokenizer":
@@ -31,14 +39,14 @@ def main(argv=None) -> int:
         train_and_evaluate(config, args.workdir)
         return 0
     if stage == "gpd":
+        from gpd_jax.data.errors import DataError
+        from gpd_jax.train_loop import train_and_evaluate as train_gpd
+
         try:
-            from gpd_jax.train_loop import train_and_evaluate as train_gpd
-        except ImportError:
-            print("train.py: stage-2 (GPD) training from the data store is not available yet "
-                  "(the end-to-end training issue); gpd_jax.train_lib has the jitted train step.",
-                  file=sys.stderr)
+            train_gpd(config, args.workdir, stop_after=args.stop_after)
+        except (DataError, ValueError, FileNotFoundError) as e:
+            print(f"train.py: {e}", file=sys.stderr)
             return 2
-        train_gpd(config, args.workdir)
         return 0
     print(f"train.py: {args.config} has stage={stage!r}; expected 'map_tokenizer' or 'gpd'", file=sys.stderr)
     return 2

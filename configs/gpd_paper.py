@@ -26,8 +26,16 @@ def get_config() -> ml_collections.ConfigDict:
     m.heading_levels_deg = (20.0, 1.0)
     m.heading_code_dim = 32
     m.attn_chunk_frames = 8     # key chunk (in frames) of the chunked attention (measured best on CPU)
+    m.train_attention = "flash"  # "flash": chunked, memory-linear; "dense": one masked softmax (short sequences)
     m.predict_delta = False     # regress absolute positions (official) or displacements from frame t
     m.map_tokenizer = ""        # checkpoint dir of the map tokenizer whose codebook embeds map tokens
+
+    d = c.data = ml_collections.ConfigDict()
+    d.dir = ""                  # a data store (python -m gpd_jax.data build); map tokens encoded into it
+    d.train_split = "train"
+    d.val_split = "val"
+    d.frame_stride = 1          # model frame k is stored frame k * stride (stored data is 10 Hz, 101 frames)
+    d.frame_period_s = 0.1      # seconds between stored frames
 
     lw = c.loss = ml_collections.ConfigDict()
     lw.position = 5.0
@@ -43,6 +51,13 @@ def get_config() -> ml_collections.ConfigDict:
     t.min_learning_rate = 1e-6
     t.weight_decay = 1e-4
     t.grad_clip = 5.0
+    t.log_every = 50
+    t.eval_every = 1_000        # validation loss + validation rollouts
+    t.eval_batches = 8          # validation loss over this many batches
+    t.eval_rollout_scenarios = 32  # traffic_simulation rollouts (ADE vs constant velocity) at each evaluation
+    t.checkpoint_every = 500
+    t.keep_checkpoints = 2
+    t.loader_threads = 4
 
     r = c.rollout = ml_collections.ConfigDict()
     r.temperature = 0.0         # 0: greedy (argmax) map tokens

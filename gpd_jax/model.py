@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax.attention import attend_dynamic, attend_static
+from gpd_jax.attention import attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
 from gpd_jax.tokenizer import AgentTokenizer, sinusoid_table
 
@@ -122,6 +122,7 @@ class GPD(nnx.Module):
         self.tokens_per_frame = self.num_map + self.num_agents
         self.chunk_len = int(cfg.attn_chunk_frames) * self.tokens_per_frame
         self.predict_delta = bool(cfg.predict_delta)
+        self.dense_attention = cfg.get("train_attention", "flash") == "dense"
         self.tokenizer = AgentTokenizer.from_config(cfg)
         grid = int(round(math.sqrt(self.num_map)))
         if grid * grid != self.num_map:
@@ -209,11 +210,19 @@ def forward(model: GPD, tokens):
     """Teacher-forced pass over whole frames. tokens f32[F, N, d] -> hidden f32[F, N, d].
 
     Attention is chunked over keys with a flash-attention VJP: memory stays linear in F * N under autodiff.
+    With `model.train_attention = "dense"` it is one masked [H, S, S] softmax instead: quadratic memory, but
+    faster on a CPU for short sequences (XLA:CPU runs the chunk loop's elementwise work on one thread).
     """
     f, n, d = tokens.shape
     s = f * n
-    pad = model.padded_len(f) - s
     x = tokens.reshape(s, d)
+    if model.dense_attention:
+        frame = jnp.arange(s) // n
+        for blk in model.blocks:
+            q, k, v = blk.qkv_heads(x)
+            x = blk.finish(x, dense_block_causal(q, k, v, frame, frame))
+        return x.reshape(f, n, d)
+    pad = model.padded_len(f) - s
     for blk in model.blocks:
         q, k, v = blk.qkv_heads(x)
         k = jnp.pad(k, ((0, 0), (0, pad), (0, 0)))

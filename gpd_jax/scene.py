@@ -99,6 +99,33 @@ class Scene:
                 updates[name] = jax.lax.slice_in_dim(v, start, stop, axis=v.ndim + axis)
         return self.replace(**updates)
 
+    def subsample(self, stride: int = 1, num_frames: int | None = None, num_agents: int | None = None,
+                  start: int = 0) -> "Scene":
+        """Every `stride`-th frame from `start` (at most `num_frames` of them) and the first `num_agents` slots.
+
+        Works on numpy and JAX leaves alike (plain strided slicing). Slot 0 (the ego) is always kept; the
+        stored slots are ordered by distance to the ego, so a prefix keeps the nearest agents.
+        """
+        stop = self.num_frames if num_frames is None else start + stride * (num_frames - 1) + 1
+        if stop > self.num_frames:
+            raise ValueError(f"{num_frames} frames at stride {stride} from frame {start} need {stop} frames; "
+                             f"the scene has {self.num_frames}")
+        a = self.num_agents if num_agents is None else num_agents
+        if not 1 <= a <= self.num_agents:
+            raise ValueError(f"num_agents {a} not in [1, {self.num_agents}]")
+        fr = slice(start, stop, stride)
+        e = (Ellipsis,)
+        upd = {
+            "xy": self.xy[e + (fr, slice(0, a), slice(None))], "heading": self.heading[e + (fr, slice(0, a))],
+            "valid": self.valid[e + (fr, slice(0, a))], "size": self.size[e + (slice(0, a), slice(None))],
+            "agent_type": self.agent_type[e + (slice(0, a),)], "map_tokens": self.map_tokens[e + (fr, slice(None))],
+            "map_valid": self.map_valid[e + (fr,)], "ego_pose": self.ego_pose[e + (fr, slice(None))],
+        }
+        if self.lanes is not None:
+            upd["lanes"] = self.lanes[e + (fr,) + (slice(None),) * 3]
+            upd["lanes_valid"] = self.lanes_valid[e + (fr, slice(None))]
+        return self.replace(**upd)
+
 
 def _scene_spec(scene: Scene) -> dict[str, tuple[tuple[Any, ...], Any]]:
     """Expected (shape suffix, dtype kind) of each field, with symbolic dims resolved from `xy`/`map_tokens`."""

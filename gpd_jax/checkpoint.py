@@ -1,0 +1,159 @@
+"""Trained GPD models on disk: exported (what ships) and training workdirs (orbax).
+
+    config, model = load_model("checkpoints/gpd_sumo")          # exported: config.json + params.npz
+    config, model = load_model("runs/gpd")                      # a train.py workdir: latest orbax step
+
+An exported model is a directory with `config.json` (the full training config) and `params.npz` (the model's
+`nnx.Param` leaves keyed by their path, float32 or float16). The map tokenizer whose frozen codebook embeds
+map tokens is named by `config.model.map_tokenizer`; a relative path is looked up next to the checkpoint
+first, then in the repository, then in the working directory (`resolve_tokenizer_path`), so an exported
+model and its tokenizer can travel together (`export_model(..., tokenizer_dir=...)` copies it in).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+
+import jax
+import ml_collections
+import numpy as np
+from flax import nnx
+
+from gpd_jax.model import GPD, build_model
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CONFIG_FILE = "config.json"
+PARAMS_FILE = "params.npz"
+
+
+def _path_key(path) -> str:
+    return "/".join(str(getattr(p, "key", getattr(p, "name", getattr(p, "idx", p)))) for p in path)
+
+
+def flatten_params(params) -> dict[str, np.ndarray]:
+    """{path: array} of a params state (the keys of `params.npz`)."""
+    return {_path_key(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(params)}
+
+
+def unflatten_params(template, flat: dict[str, np.ndarray], where: str = "params"):
+    """Fills `template` (a params state) from `flatten_params` output, checking names, shapes; float32 out."""
+    missing, bad = [], []
+
+    def fill(path, x):
+        k = _path_key(path)
+        if k not in flat:
+            missing.append(k)
+            return x
+        v = np.asarray(flat[k])
+        if v.shape != x.shape:
+            bad.append(f"{k}: stored {v.shape}, model {x.shape}")
+            return x
+        return jax.numpy.asarray(v.astype(np.float32))
+
+    out = jax.tree_util.tree_map_with_path(fill, template)
+    extra = sorted(set(flat) - {_path_key(p) for p, _ in jax.tree_util.tree_leaves_with_path(template)})
+    if missing or bad or extra:
+        raise ValueError(f"{where} does not match the model of its config: missing {missing[:5]}, "
+                         f"wrong shapes {bad[:5]}, unexpected {extra[:5]}")
+    return out
+
+
+def config_from_json(path: str) -> ml_collections.ConfigDict:
+    try:
+        with open(path) as f:
+            d = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable config ({e})") from e
+
+    def lists_to_tuples(x):
+        if isinstance(x, dict):
+            return {k: lists_to_tuples(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return tuple(lists_to_tuples(v) for v in x)
+        return x
+
+    return ml_collections.ConfigDict(lists_to_tuples(d))
+
+
+def resolve_tokenizer_path(path: str, checkpoint_dir: str | None = None) -> str:
+    """An absolute path to the map tokenizer `path` names (see the module docstring for the search order)."""
+    if not path or os.path.isabs(path):
+        return path
+    bases = ([checkpoint_dir] if checkpoint_dir else []) + [REPO_ROOT, os.getcwd()]
+    for base in bases:
+        p = os.path.normpath(os.path.join(base, path))
+        if os.path.exists(os.path.join(p, "config.json")):
+            return p
+    raise FileNotFoundError(f"map tokenizer {path!r} not found next to {checkpoint_dir}, in {REPO_ROOT} "
+                            f"or in {os.getcwd()}")
+
+
+def model_from_config(config: ml_collections.ConfigDict, checkpoint_dir: str | None = None, seed: int = 0) -> GPD:
+    """A freshly initialised model of `config`, its tokenizer path resolved relative to `checkpoint_dir`."""
+    config = ml_collections.ConfigDict(config.to_dict())
+    if config.model.get("map_tokenizer"):
+        config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer, checkpoint_dir)
+    return build_model(config, seed=seed)
+
+
+def is_exported(path: str) -> bool:
+    return os.path.exists(os.path.join(path, PARAMS_FILE))
+
+
+def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float32,
+                 tokenizer_dir: str | None = None) -> str:
+    """Writes `config.json` + `params.npz` to `out_dir` atomically (a temporary directory renamed into place).
+
+    With `tokenizer_dir`, the map tokenizer is copied to `out_dir/map_tokenizer` and the config points there.
+    """
+    out_dir = os.path.abspath(out_dir)
+    parent = os.path.dirname(out_dir)
+    os.makedirs(parent, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".export-", dir=parent)
+    try:
+        config = ml_collections.ConfigDict(config.to_dict())
+        if tokenizer_dir:
+            shutil.copytree(tokenizer_dir, os.path.join(tmp, "map_tokenizer"),
+                            ignore=shutil.ignore_patterns("checkpoints", "*.jsonl"))
+            config.model.map_tokenizer = "map_tokenizer"
+        flat = {k: v.astype(dtype) if np.issubdtype(v.dtype, np.floating) else v
+                for k, v in flatten_params(params).items()}
+        np.savez(os.path.join(tmp, PARAMS_FILE), **flat)
+        with open(os.path.join(tmp, CONFIG_FILE), "w") as f:
+            f.write(config.to_json(indent=2))
+        if os.path.exists(out_dir):
+            old = out_dir + ".old"
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(out_dir, old)
+            os.replace(tmp, out_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def load_model(path: str, step: int | None = None) -> tuple[ml_collections.ConfigDict, GPD]:
+    """(config, model) of an exported model directory or a train.py workdir (latest step, or `step`)."""
+    path = os.path.abspath(path)
+    cfg_path = os.path.join(path, CONFIG_FILE)
+    if not os.path.exists(cfg_path):
+        raise FileNotFoundError(f"{path}: no {CONFIG_FILE}; expected an exported GPD model or a train.py workdir")
+    config = config_from_json(cfg_path)
+    if config.get("stage") != "gpd":
+        raise ValueError(f"{cfg_path}: stage is {config.get('stage')!r}, not a GPD model")
+    model = model_from_config(config, path)
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    if is_exported(path):
+        with np.load(os.path.join(path, PARAMS_FILE)) as z:
+            params = unflatten_params(params, dict(z), where=os.path.join(path, PARAMS_FILE))
+    else:
+        from gpd_jax.train_loop import restore_params
+
+        params = restore_params(path, model, config, step)
+    return config, nnx.merge(graphdef, params, rest)

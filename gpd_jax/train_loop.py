@@ -1,0 +1,368 @@
+"""Stage-2 training: GPD on a data store with map tokens (`python train.py --config configs/gpd_sumo.py ...`).
+
+* Data: `gpd_jax.data.loader.make_loader` (grain; seeded shuffle, a new permutation per epoch), every batch cut
+  to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. Map tokens must
+  have been encoded into the store (`python -m gpd_jax.map_tokenizer encode --data DIR`).
+* Step: teacher forcing (`gpd_jax.train_lib`): AdamW, linear warm-up then cosine decay, global-norm clipping.
+* Parallelism: the batch is split over every device of every process (a 1-D `data` mesh, `jax.sharding`);
+  parameters and optimizer state are replicated; XLA's partitioner inserts the gradient all-reduce. Several
+  hosts: `train.py --distributed` calls `jax.distributed.initialize()` first; each process then loads its own
+  disjoint share of every global batch (`process_index::process_count`). On one CPU,
+  `XLA_FLAGS=--xla_force_host_platform_device_count=N` exposes N devices.
+* Checkpoints: orbax, every `train.checkpoint_every` steps, at the end, and when the run is stopped (Ctrl-C or
+  SIGTERM). A restarted run restores the latest step and asks the loader for batches from that step on, so a
+  stopped-and-resumed run is the same run (same data order, same step, same parameters).
+* Logs: a tqdm bar (loss, samples/s), `WORKDIR/metrics.jsonl` (one JSON record per log/eval), TensorBoard event
+  files when `tensorboardX` is installed. Every `train.eval_every` steps: validation loss over
+  `train.eval_batches` fixed batches and `traffic_simulation` rollouts of the first
+  `train.eval_rollout_scenarios` validation scenes, scored (agent ADE/FDE at 3/5/8 s, agents valid at the
+  current frame) against constant velocity computed at the stored frame rate.
+* At the end the model is exported to `WORKDIR/export` (`gpd_jax.checkpoint.export_model`, with its map
+  tokenizer), which `rollout.py --checkpoint` loads.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import orbax.checkpoint as ocp
+import tqdm
+from flax import nnx
+from jax.sharding import NamedSharding, PartitionSpec
+
+from gpd_jax import baselines
+from gpd_jax.checkpoint import export_model, model_from_config, resolve_tokenizer_path
+from gpd_jax.data import loader as data_loader
+from gpd_jax.data.errors import DataError
+from gpd_jax.metrics import agents as agent_metrics_lib
+from gpd_jax.model import count_params
+from gpd_jax.parallel import data_mesh
+from gpd_jax.rollout import rollout_batch
+from gpd_jax.scene import Scene
+from gpd_jax.tasks import make_task
+from gpd_jax.train_lib import TrainState, make_trainer
+
+HORIZONS_S = (3.0, 5.0, 8.0)
+
+
+# ----------------------------------------------------------------------------------------------- data
+def model_view(scene: Scene, config) -> Scene:
+    """The model's frames and slots of a stored scene (see `Scene.subsample`)."""
+    return scene.subsample(int(config.data.frame_stride), int(config.model.num_frames), int(config.model.num_agents))
+
+
+def frame_period(config) -> float:
+    """Seconds between model frames."""
+    return float(config.data.frame_stride) * float(config.data.get("frame_period_s", 0.1))
+
+
+def horizon_frames(config, horizons_s=HORIZONS_S) -> tuple[int, ...]:
+    """Future frame counts of the horizons that fit in the model's future."""
+    dt = frame_period(config)
+    fut = int(config.model.num_frames) - int(config.model.num_history)
+    return tuple(n for n in (int(round(h / dt)) for h in horizons_s) if 0 < n <= fut)
+
+
+def resolve_data_dir(path: str) -> str:
+    if not path:
+        raise DataError("config.data.dir", "no data directory configured (set --config.data.dir=DIR)")
+    return path if os.path.isabs(path) else os.path.abspath(path)
+
+
+def _check_store(config, data_dir: str, split: str) -> int:
+    src = data_loader.SplitSource(data_dir, split)
+    rec = src[0]
+    t, a = rec["xy"].shape[:2]
+    m = config.model
+    need = int(config.data.frame_stride) * (int(m.num_frames) - 1) + 1
+    if t < need or a < int(m.num_agents):
+        raise DataError(os.path.join(data_dir, split), f"samples have {t} frames and {a} agent slots; the config "
+                        f"needs {need} frames (stride {config.data.frame_stride}) and {m.num_agents} slots")
+    if not rec["map_valid"].all():
+        raise DataError(os.path.join(data_dir, split), "no map tokens in this split; encode them first: "
+                        f"python -m gpd_jax.map_tokenizer encode --data {data_dir}")
+    if rec["map_tokens"].shape[-1] != int(m.num_map_tokens):
+        raise DataError(os.path.join(data_dir, split), f"{rec['map_tokens'].shape[-1]} map tokens per frame, "
+                        f"config has {m.num_map_tokens}")
+    return len(src)
+
+
+# ----------------------------------------------------------------------------------------------- checkpoints
+def checkpoint_manager(workdir: str, keep: int = 2) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, "checkpoints")),
+                                 options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
+
+
+def _tree(state: TrainState) -> dict:
+    return {"step": state.step, "params": state.params, "opt_state": state.opt_state}
+
+
+def _restore(mgr: ocp.CheckpointManager, template: TrainState, step: int) -> TrainState:
+    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _tree(template))
+    tree = mgr.restore(step, args=ocp.args.StandardRestore(abstract))
+    # Back into the template's structure (optax states are namedtuples; the checkpoint stores dicts).
+    restored = jax.tree.unflatten(jax.tree.structure(_tree(template)), jax.tree.leaves(tree))
+    return TrainState(**restored)
+
+
+def restore_params(workdir: str, model, config, step: int | None = None):
+    """The params of a training workdir's checkpoint (latest by default), in `model`'s params structure."""
+    mgr = checkpoint_manager(workdir)
+    step = mgr.latest_step() if step is None else step
+    if step is None:
+        raise FileNotFoundError(f"{workdir}: no checkpoints")
+    _, state = make_trainer(model, config, donate=False)
+    return _restore(mgr, state, step).params
+
+
+# ----------------------------------------------------------------------------------------------- logging
+class MetricsLog:
+    """Appends JSON records to WORKDIR/metrics.jsonl and, when tensorboardX is installed, scalars to
+    WORKDIR/tensorboard."""
+
+    def __init__(self, workdir: str, enabled: bool = True):
+        self.path = os.path.join(workdir, "metrics.jsonl")
+        self.enabled = enabled
+        self.tb = None
+        if enabled:
+            try:
+                from tensorboardX import SummaryWriter
+
+                self.tb = SummaryWriter(os.path.join(workdir, "tensorboard"))
+            except ImportError:
+                pass
+
+    def write(self, step: int, split: str, values: dict[str, Any]) -> None:
+        if not self.enabled:
+            return
+        rec = {"step": int(step), "split": split, "time": time.time()}
+        for k, v in values.items():
+            v = float(v) if isinstance(v, (int, float, np.number, jax.Array)) else v
+            rec[k] = None if isinstance(v, float) and not math.isfinite(v) else v
+        with open(self.path, "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        if self.tb is not None:
+            for k, v in rec.items():
+                if isinstance(v, float):
+                    self.tb.add_scalar(f"{split}/{k}", v, step)
+            self.tb.flush()
+
+
+# ----------------------------------------------------------------------------------------------- evaluation
+class Validator:
+    """Validation loss over fixed batches and traffic-simulation rollouts scored against constant velocity."""
+
+    def __init__(self, config, data_dir: str, trainer, mesh):
+        tc, m = config.train, config.model
+        self.config, self.trainer, self.mesh = config, trainer, mesh
+        split = config.data.val_split
+        n_val = len(data_loader.SplitSource(data_dir, split))
+        bs = int(tc.batch_size)
+        n_batches = min(int(tc.eval_batches), n_val // bs)
+        self.loss_batches = []
+        if n_batches:
+            it = data_loader.make_loader(data_dir, split, bs, seed=12345, num_epochs=1, num_threads=2, prefetch=0)
+            for _ in range(n_batches):
+                self.loss_batches.append(model_view(next(it), config))
+            it.close()
+        n_roll = min(int(tc.eval_rollout_scenarios), n_val)
+        self.scenes = data_loader.load_split(data_dir, split, indices=range(n_roll)) if n_roll else None
+        self.horizons = horizon_frames(config)
+        self.h = int(m.num_history)
+        self.dt = frame_period(config)
+        if self.scenes is not None:
+            full_h = int(config.data.frame_stride) * (self.h - 1) + 1
+            cv = baselines.constant_velocity(self.scenes, full_h)
+            self.cv = model_view(self.scenes.replace(xy=cv.xy, heading=cv.heading, valid=cv.valid), config)
+            self.view = model_view(self.scenes, config)
+            task = make_task("traffic_simulation", int(m.num_map_tokens), int(m.num_agents))
+            tasks = jax.tree.map(lambda x: jnp.broadcast_to(x, (n_roll,) + x.shape), task)
+            graphdef, rest = trainer.graphdef, trainer.rest
+            temp = float(config.rollout.temperature)
+
+            @jax.jit
+            def roll(params, scenes, keys):
+                model = nnx.merge(graphdef, params, rest)
+                return rollout_batch(model, scenes, tasks, keys, self.h, temp)
+
+            self._roll = roll
+
+    def _score(self, xy, heading) -> dict[str, float]:
+        v = self.view
+        scored = v.valid[:, self.h - 1]
+        sums = agent_metrics_lib.agent_metric_sums(
+            xy, heading, v.xy, v.valid, v.size, num_history=self.h, eval_mask=scored, horizons=self.horizons,
+            variant="corrected", dt=self.dt)
+        red = agent_metrics_lib.reduce_agent_metrics(sums)
+        return {f"{k}_{hl}": val for hl, d in red.items() for k, val in d.items()
+                if k in ("agent_ade", "agent_fde", "ego_ade", "agent_collision")}
+
+    def __call__(self, params, step: int) -> dict[str, float]:
+        out: dict[str, float] = {}
+        if self.loss_batches:
+            acc: dict[str, float] = {}
+            for b in self.loss_batches:
+                parts = jax.device_get(self.trainer.eval_step(params, b))
+                for k, v in parts.items():
+                    acc[k] = acc.get(k, 0.0) + float(v) / len(self.loss_batches)
+            out.update(acc)
+        if self.scenes is not None:
+            keys = jax.random.split(jax.random.key(step), self.view.xy.shape[0])
+            pred = self._roll(params, self.view, keys)
+            model = self._score(pred.xy, pred.heading)
+            cv = self._score(self.cv.xy, self.cv.heading)
+            for k, v in model.items():
+                out[f"rollout_{k}"] = v
+                out[f"cv_{k}"] = cv[k]
+                if k.startswith("agent_ade") and cv[k] > 0:
+                    out[f"rollout_{k}_vs_cv"] = v / cv[k]
+        return out
+
+
+# ----------------------------------------------------------------------------------------------- training
+def _global_batch(local: Scene, mesh) -> Scene:
+    sharding = NamedSharding(mesh, PartitionSpec("data"))
+    return jax.tree.map(lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), local)
+
+
+class _Stop:
+    """Turns SIGTERM into a clean stop (checkpoint, then exit) like Ctrl-C."""
+
+    def __init__(self):
+        self.requested = False
+        self._old = None
+
+    def __enter__(self):
+        try:
+            self._old = signal.signal(signal.SIGTERM, self._handler)
+        except ValueError:  # not the main thread
+            self._old = None
+        return self
+
+    def _handler(self, signum, frame):
+        self.requested = True
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
+        return False
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_after: int | None = None,
+                       quiet: bool = False) -> dict[str, Any]:
+    """Trains the GPD of `config` in `workdir`, resuming from its latest checkpoint.
+
+    Args:
+      config: a full config (configs/gpd_sumo.py); `config.data.dir` names the data store.
+      workdir: checkpoints, `config.json`, `metrics.jsonl`, `export/` go here.
+      stop_after: stop (with a checkpoint) after this many steps of *this* invocation, as if interrupted; the
+        schedule still follows `train.steps`, so a later call resumes the same run.
+      quiet: no progress bar.
+
+    Returns:
+      {"step": last step, "train": last logged train metrics, "eval": last evaluation, "export": dir or None}.
+    """
+    tc = config.train
+    data_dir = resolve_data_dir(config.data.dir)
+    n_train = _check_store(config, data_dir, config.data.train_split)
+    pcount, pindex = jax.process_count(), jax.process_index()
+    mesh = data_mesh()
+    bs = int(tc.batch_size)
+    if bs % mesh.devices.size or bs % pcount:
+        raise ValueError(f"train.batch_size {bs} must be divisible by the {mesh.devices.size} devices and "
+                         f"{pcount} processes")
+    if config.model.get("map_tokenizer"):
+        config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
+
+    lead = pindex == 0
+    os.makedirs(workdir, exist_ok=True)
+    cfg_path = os.path.join(workdir, "config.json")
+    if lead:
+        if os.path.exists(cfg_path):
+            with open(cfg_path) as f:
+                old = json.load(f)
+            if old.get("model") != json.loads(config.to_json()).get("model"):
+                raise ValueError(f"{cfg_path}: the workdir holds a run with a different model config; "
+                                 "use a new --workdir")
+        tmp = cfg_path + ".tmp"
+        with open(tmp, "w") as f:
+            f.write(config.to_json(indent=2))
+        os.replace(tmp, cfg_path)
+
+    model = model_from_config(config)
+    trainer, state = make_trainer(model, config)
+    mgr = checkpoint_manager(workdir, int(tc.keep_checkpoints))
+    latest = mgr.latest_step()
+    if latest is not None:
+        state = _restore(mgr, state, latest)
+    start = int(state.step)
+    replicated = NamedSharding(mesh, PartitionSpec())
+    state = jax.device_put(state, replicated)
+    log = MetricsLog(workdir, enabled=lead)
+    if start and lead:
+        print(f"resumed {workdir} at step {start}")
+    elif lead:
+        print(f"training {count_params(model):,} parameters on {n_train} scenes, {mesh.devices.size} device(s)")
+
+    it = data_loader.make_loader(data_dir, config.data.train_split, bs // pcount, seed=int(config.seed),
+                                 process_index=pindex, process_count=pcount, start_step=start,
+                                 num_threads=int(tc.get("loader_threads", 4)))
+    validator = Validator(config, data_dir, trainer, mesh) if int(tc.eval_every) > 0 else None
+
+    total = int(tc.steps)
+    end = total if stop_after is None else min(total, start + int(stop_after))
+    last_train: dict[str, float] = {}
+    last_eval: dict[str, float] = {}
+    bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True, mininterval=2.0, disable=quiet or not lead,
+                    desc="gpd")
+    step = start
+    window_t, window_n = time.perf_counter(), 0
+    with _Stop() as stop:
+        try:
+            while step < end and not stop.requested:
+                batch = _global_batch(model_view(next(it), config), mesh)
+                state, parts = trainer.train_step(state, batch)
+                step += 1
+                window_n += bs
+                bar.update(1)
+                if step % int(tc.log_every) == 0 or step == end:
+                    parts = {k: float(v) for k, v in jax.device_get(parts).items()}
+                    dt = time.perf_counter() - window_t
+                    parts["samples_per_s"] = window_n / max(dt, 1e-9)
+                    window_t, window_n = time.perf_counter(), 0
+                    last_train = parts
+                    log.write(step, "train", parts)
+                    bar.set_postfix(loss=f"{parts['loss']:.3f}", sps=f"{parts['samples_per_s']:.1f}")
+                if validator is not None and (step % int(tc.eval_every) == 0 or step == total):
+                    last_eval = validator(state.params, step)
+                    log.write(step, config.data.val_split, last_eval)
+                    if lead:
+                        keys = [k for k in last_eval if k in ("loss", "position") or k.endswith("_vs_cv")]
+                        bar.write(f"step {step} val: " + ", ".join(f"{k}={last_eval[k]:.4g}" for k in keys))
+                    window_t, window_n = time.perf_counter(), 0
+                if step % int(tc.checkpoint_every) == 0 or step == total:
+                    mgr.save(step, args=ocp.args.StandardSave(_tree(state)))
+        except KeyboardInterrupt:
+            stop.requested = True
+        finally:
+            bar.close()
+            it.close()
+            if mgr.latest_step() != step:
+                mgr.save(step, args=ocp.args.StandardSave(_tree(state)), force=True)
+            mgr.wait_until_finished()
+    exported = None
+    if step == total and lead:
+        exported = export_model(jax.device_get(state.params), config, os.path.join(workdir, "export"),
+                                tokenizer_dir=config.model.get("map_tokenizer") or None)
+    if stop.requested and lead:
+        print(f"stopped at step {step}; run the same command again to resume")
+    return {"step": step, "train": last_train, "eval": last_eval, "export": exported}

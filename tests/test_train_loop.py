@@ -1,0 +1,153 @@
+"""Stage-2 training loop: resume after a stop is the same run; data-parallel steps equal single-device steps."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+
+from conftest import ROOT
+from data_fixtures import write_small_store
+
+
+def _store(path):
+    from gpd_jax.data import store
+
+    write_small_store(path, n_shards=2, per_shard=4, split="train")
+    write_small_store(path, n_shards=1, per_shard=4, split="val")
+    rng = np.random.default_rng(0)
+    for split in ("train", "val"):
+        for j in store.shard_indices(path, split):
+            store.save_map_tokens(path, split, j, rng.integers(0, 32, (4, 101, 64)).astype(np.uint8))
+    return path
+
+
+def _config(data_dir, **train):
+    from gpd_jax.config import load_config
+
+    c = load_config(os.path.join(ROOT, "configs", "gpd_tiny.py"))
+    c.data.dir = data_dir
+    c.data.frame_stride = 10
+    c.model.num_frames = 6
+    c.model.num_history = 3
+    c.model.num_map_tokens = 64
+    c.model.attn_chunk_frames = 3
+    c.model.predict_delta = True
+    t = c.train
+    t.batch_size, t.steps, t.warmup_steps = 4, 6, 2
+    t.log_every, t.eval_every, t.checkpoint_every = 1, 3, 2
+    t.eval_batches, t.eval_rollout_scenarios, t.loader_threads = 1, 2, 1
+    for k, v in train.items():
+        t[k] = v
+    return c
+
+
+@pytest.fixture(scope="module")
+def store_dir(tmp_path_factory):
+    return _store(str(tmp_path_factory.mktemp("gpdstore")))
+
+
+def _params(workdir):
+    from gpd_jax.checkpoint import load_model
+
+    _, model = load_model(workdir)
+    return nnx.state(model, nnx.Param)
+
+
+def test_resume_after_stop_equals_uninterrupted_run(store_dir, tmp_path):
+    from gpd_jax.train_loop import train_and_evaluate
+
+    full = str(tmp_path / "full")
+    out = train_and_evaluate(_config(store_dir), full, quiet=True)
+    assert out["step"] == 6 and out["export"]
+    part = str(tmp_path / "part")
+    assert train_and_evaluate(_config(store_dir), part, stop_after=4, quiet=True)["step"] == 4
+    assert train_and_evaluate(_config(store_dir), part, quiet=True)["step"] == 6
+
+    a, b = _params(full), _params(part)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
+    # The export is loadable and equals the final checkpoint.
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(_params(os.path.join(full, "export")))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # Each record once per step: the resumed run logged steps 5 and 6 and the evaluation at step 6.
+    recs = [json.loads(l) for l in open(os.path.join(part, "metrics.jsonl"))]
+    train_steps = [r["step"] for r in recs if r["split"] == "train"]
+    assert train_steps == [1, 2, 3, 4, 5, 6]
+    evals = [r for r in recs if r["split"] == "val"]
+    assert [r["step"] for r in evals] == [3, 6]
+    assert np.isfinite(evals[-1]["loss"]) and "rollout_agent_ade_3s" in evals[-1] and "cv_agent_ade_3s" in evals[-1]
+
+
+def test_store_without_map_tokens_is_refused(tmp_path):
+    from gpd_jax.data.errors import DataError
+    from gpd_jax.train_loop import train_and_evaluate
+
+    d = str(tmp_path / "raw")
+    write_small_store(d, n_shards=1, per_shard=4)
+    with pytest.raises(DataError, match="map tokens"):
+        train_and_evaluate(_config(d), str(tmp_path / "w"), quiet=True)
+    assert not os.path.exists(tmp_path / "w" / "checkpoints")
+
+
+def test_workdir_with_another_model_is_refused(store_dir, tmp_path):
+    from gpd_jax.train_loop import train_and_evaluate
+
+    w = str(tmp_path / "w")
+    train_and_evaluate(_config(store_dir, steps=1, eval_every=0), w, quiet=True)
+    c = _config(store_dir, steps=1, eval_every=0)
+    c.model.d_model = 48
+    with pytest.raises(ValueError, match="different model config"):
+        train_and_evaluate(c, w, quiet=True)
+
+
+_DP_SCRIPT = textwrap.dedent("""
+    import os, sys
+    import jax, numpy as np
+    sys.path.insert(0, {tests!r})
+    from test_train_loop import _config
+    from gpd_jax.model import build_model
+    from gpd_jax.parallel import data_mesh
+    from gpd_jax.synthetic import synthetic_scenes
+    from gpd_jax.train_lib import batch_loss, make_trainer
+    from gpd_jax.train_loop import _global_batch
+    from jax.sharding import NamedSharding, PartitionSpec
+    assert len(jax.devices()) == 4, jax.devices()
+    c = _config("unused")
+    m = c.model
+    scenes = synthetic_scenes(1, 4, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
+    out = []
+    for n in (1, 4):
+        mesh = data_mesh(n)
+        trainer, state = make_trainer(build_model(c, seed=0), c, donate=False)
+        state = jax.device_put(state, NamedSharding(mesh, PartitionSpec()))
+        batch = _global_batch(scenes, mesh)
+        assert len(batch.xy.sharding.device_set) == n
+        loss = lambda p, b: batch_loss(trainer.merge(p), b, c.loss)[0]
+        grads = jax.jit(jax.grad(loss))(state.params, batch)
+        state, parts = trainer.train_step(state, batch)
+        out.append((jax.device_get(grads), jax.device_get(state.params), float(parts["loss"])))
+    (g1, p1, l1), (g4, p4, l4) = out
+    assert abs(l1 - l4) < 1e-5 * max(1.0, abs(l1)), (l1, l4)
+    for a, b, pa, pb in zip(*(jax.tree.leaves(t) for t in (g1, g4, p1, p4))):
+        a, b, pa, pb = (np.asarray(x) for x in (a, b, pa, pb))
+        scale = np.abs(a).max() + 1e-12
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * scale)
+        # Adam's first update is ~lr * sign(g): compare the step where the gradient is not rounding noise.
+        big = np.abs(a) > 1e-3 * scale
+        np.testing.assert_allclose(pa[big], pb[big], rtol=0, atol=1e-6)
+    print("OK", l1, l4)
+""")
+
+
+def test_four_device_data_parallel_step_equals_single_device(tmp_path):
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    script = tmp_path / "dp.py"
+    script.write_text(_DP_SCRIPT.format(tests=os.path.dirname(os.path.abspath(__file__))))
+    r = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert r.returncode == 0 and "OK" in r.stdout, r.stdout[-2000:] + r.stderr[-4000:]
