@@ -38,14 +38,14 @@ def get_config():
     m.map_tokenizer = "checkpoints/map_tokenizer"
     t = c.train
     t.batch_size = 8
-    t.steps = 1_300
+    t.steps = 4_000
     t.learning_rate = 1e-3
-    t.warmup_steps = 100
+    t.warmup_steps = 200
     t.min_learning_rate = 1e-5
     t.weight_decay = 1e-4
     t.grad_clip = 1.0
     t.log_every = 25
-    t.eval_every = 250
+    t.eval_every = 500
     t.eval_batches = 8
     t.eval_rollout_scenarios = 32
     t.checkpoint_every = 100

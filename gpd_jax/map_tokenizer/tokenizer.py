@@ -125,14 +125,17 @@ def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
     if not os.path.isfile(cfg_path):
         raise FileNotFoundError(f"{checkpoint_dir} is not a map-tokenizer checkpoint (no config.json)")
     config = load_config_json(cfg_path)
-    model = MapVQVAE(config.model, nnx.Rngs(0))
-    graphdef, state = nnx.split(model, nnx.Param)
-    template = nnx.to_pure_dict(state)
     npz = os.path.join(checkpoint_dir, "params.npz")
     if os.path.isfile(npz):
+        # Only shapes are needed to read an export: skip the (slow) random initialisation.
+        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0)))
+        graphdef, state = nnx.split(model, nnx.Param)
         with np.load(npz) as f:
-            params = unflatten_params(template, dict(f))
+            params = unflatten_params(nnx.to_pure_dict(state), dict(f))
     else:
+        model = MapVQVAE(config.model, nnx.Rngs(0))
+        graphdef, state = nnx.split(model, nnx.Param)
+        template = nnx.to_pure_dict(state)
         from gpd_jax.map_tokenizer.train import checkpoint_manager, restore_params
         mgr = checkpoint_manager(checkpoint_dir)
         if mgr.latest_step() is None:
