@@ -28,6 +28,7 @@ def get_config() -> ml_collections.ConfigDict:
     m.attn_chunk_frames = 8     # key chunk (in frames) of the chunked attention (measured best on CPU)
     m.train_attention = "flash"  # "flash": chunked, memory-linear; "dense": one masked softmax (short sequences)
     m.predict_delta = False     # regress absolute positions (official) or displacements from frame t
+    m.velocity_residual = False  # with predict_delta: regress the residual over constant velocity instead
     m.map_tokenizer = ""        # checkpoint dir of the map tokenizer whose codebook embeds map tokens
 
     d = c.data = ml_collections.ConfigDict()

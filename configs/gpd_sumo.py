@@ -35,10 +35,11 @@ def get_config():
     m.attn_chunk_frames = 4
     m.train_attention = "flash"
     m.predict_delta = True
+    m.velocity_residual = True
     m.map_tokenizer = "checkpoints/map_tokenizer"
     t = c.train
     t.batch_size = 8
-    t.steps = 4_000
+    t.steps = 3_500
     t.learning_rate = 1e-3
     t.warmup_steps = 200
     t.min_learning_rate = 1e-5

@@ -171,7 +171,7 @@ def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, s
         mdl = nnx.merge(graphdef, s)
         p = xy.shape[0]
         hid = forward(mdl, mdl.embed(xy, heading, valid, maps, jnp.arange(p)))
-        return mdl.predict(hid[-1:], xy[-1:], heading[-1:], valid[-1:])
+        return mdl.predict(hid[-1:], xy[-1:], heading[-1:], valid[-1:], xy[-2:-1], valid[-2:-1])
 
     fwd = jax.jit(prefix_forward)
     lengths = np.unique(np.linspace(h, t_total - 1, args.recompute_points).round().astype(int))

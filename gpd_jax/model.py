@@ -10,7 +10,7 @@ Entry points (all single-scenario; `jax.vmap` them over scenarios and tasks):
 * `GPD.embed(...)`: frame inputs -> tokens f32[F, N, d].
 * `forward(model, tokens)`: teacher-forced pass over whole frames, memory-linear attention.
 * `forward_cached(model, tokens, cache, start_frame)`: a block of frames appended to a KV cache.
-* `predict(model, hidden, xy, heading, valid)`: heads -> `Prediction` for the next frame.
+* `predict(model, hidden, xy, heading, valid[, prev_xy, prev_valid])`: heads -> `Prediction` for the next frame.
 """
 
 from __future__ import annotations
@@ -123,6 +123,9 @@ class GPD(nnx.Module):
         self.chunk_len = int(cfg.attn_chunk_frames) * self.tokens_per_frame
         self.predict_delta = bool(cfg.predict_delta)
         self.dense_attention = cfg.get("train_attention", "flash") == "dense"
+        self.velocity_residual = bool(cfg.get("velocity_residual", False))
+        if self.velocity_residual and not self.predict_delta:
+            raise ValueError("model.velocity_residual needs model.predict_delta")
         self.tokenizer = AgentTokenizer.from_config(cfg)
         grid = int(round(math.sqrt(self.num_map)))
         if grid * grid != self.num_map:
@@ -175,9 +178,13 @@ class GPD(nnx.Module):
         return tokens + self.slot_emb[...] + jnp.take(self.frame_emb[...], frames, axis=0)[:, None, :]
 
     # ------------------------------------------------------------------ heads
-    def predict(self, hidden, xy, heading, valid) -> Prediction:
+    def predict(self, hidden, xy, heading, valid, prev_xy=None, prev_valid=None) -> Prediction:
         """Next-frame predictions from hidden states `f32[F, N, d]` of frames whose inputs were
-        xy f32[F, A, 2], heading f32[F, A], valid bool[F, A] (used when predicting displacements)."""
+        xy f32[F, A, 2], heading f32[F, A], valid bool[F, A] (used when predicting displacements).
+
+        With `velocity_residual`, `prev_xy f32[F, A, 2]` / `prev_valid bool[F, A]` are each frame's previous
+        frame (invalid for frame 0): the position head then predicts the residual over constant velocity,
+        xy + (xy - prev_xy) + head (plain displacement where the previous frame is missing)."""
         h = self.final_ln(hidden)
         ha, hm = h[..., self.num_map:, :], h[..., : self.num_map, :]
         dxy = self.pos_head(ha)
@@ -185,6 +192,11 @@ class GPD(nnx.Module):
         if self.predict_delta:
             base = valid[..., None]
             pxy = dxy + jnp.where(base, xy, 0.0)
+            if self.velocity_residual:
+                if prev_xy is None or prev_valid is None:
+                    raise ValueError("a velocity-residual model needs prev_xy and prev_valid")
+                moving = (valid & prev_valid)[..., None]
+                pxy = pxy + jnp.where(moving, xy - prev_xy, 0.0)
             ph = wrap_angle(dh + jnp.where(valid, heading, 0.0))
         else:
             pxy, ph = dxy, wrap_angle(dh)

@@ -81,20 +81,30 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
     xy, heading, valid, maps = _log_inputs(scene, task)
     tokens = model.embed(xy[:h], heading[:h], valid[:h], maps[:h], jnp.arange(h))
     hidden, cache = forward_cached(model, tokens, model.init_cache(t_total), 0)
-    pred = model.predict(hidden[-1:], xy[h - 1:h], heading[h - 1:h], valid[h - 1:h])
+    pred = model.predict(hidden[-1:], xy[h - 1:h], heading[h - 1:h], valid[h - 1:h], *_prev(xy, valid, h - 1))
 
     def step(carry, t):
-        cache, pred = carry
+        cache, pred, last_xy, last_valid = carry
         frame = _choose_frame(pred, scene, task, t, key, temperature, num_map)
         fxy, fh, fv, _, fm = frame
         tok = model.embed(fxy[None], fh[None], fv[None], fm[None], t[None])
         hid, cache = forward_cached(model, tok, cache, t)
-        return (cache, model.predict(hid, fxy[None], fh[None], fv[None])), frame
+        pred = model.predict(hid, fxy[None], fh[None], fv[None], last_xy[None], last_valid[None])
+        return (cache, pred, fxy, fv), frame
 
-    (_, pred), frames = jax.lax.scan(step, (cache, pred), jnp.arange(h, t_total - 1))
+    carry = (cache, pred, xy[h - 1], valid[h - 1])
+    (_, pred, _, _), frames = jax.lax.scan(step, carry, jnp.arange(h, t_total - 1))
     last = _choose_frame(pred, scene, task, jnp.asarray(t_total - 1), key, temperature, num_map)
     frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
     return _assemble(xy, heading, valid, maps, frames, h)
+
+
+def _prev(xy, valid, t):
+    """The frame before frame t as a 1-frame block (invalid when t is 0); t may be traced."""
+    p = jnp.maximum(t - 1, 0)
+    pxy = jax.lax.dynamic_slice_in_dim(xy, p, 1, axis=0)
+    pv = jax.lax.dynamic_slice_in_dim(valid, p, 1, axis=0) & (t > 0)
+    return pxy, pv
 
 
 def _assemble(xy, heading, valid, maps, frames, h) -> RolloutOutput:
@@ -127,7 +137,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
         hid = forward(model, tokens)
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
-        pred = model.predict(sl(hid), sl(bxy), sl(bh), sl(bv))
+        pred = model.predict(sl(hid), sl(bxy), sl(bh), sl(bv), *_prev(bxy, bv, prev))
         frame = _choose_frame(pred, scene, task, t, key, temperature, num_map)
         buf = tuple(jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0)
                     for b, f in zip(buf, frame))

@@ -29,13 +29,21 @@ def _smooth_l1(x, beta: float = 1.0):
     return jnp.where(ax < beta, 0.5 * ax * ax / beta, ax - 0.5 * beta)
 
 
+def previous_frames(xy, valid):
+    """Each frame's previous frame: xy f32[F, A, 2], valid bool[F, A] -> the same shifted by one frame, with
+    frame 0's previous frame invalid."""
+    return (jnp.concatenate([xy[:1], xy[:-1]], 0),
+            jnp.concatenate([jnp.zeros_like(valid[:1]), valid[:-1]], 0))
+
+
 def loss_terms(model: GPD, scene: Scene) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide)."""
     t = scene.num_frames
     tokens = model.embed(scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], scene.map_tokens[:-1],
                          jnp.arange(t - 1))
     hidden = forward(model, tokens)
-    pred = model.predict(hidden, scene.xy[:-1], scene.heading[:-1], scene.valid[:-1])
+    prev_xy, prev_valid = previous_frames(scene.xy[:-1], scene.valid[:-1])
+    pred = model.predict(hidden, scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], prev_xy, prev_valid)
     tv = scene.valid[1:].astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(pred.xy - scene.xy[1:]), axis=-1)
     head = _smooth_l1(wrap_angle(pred.heading - scene.heading[1:]))
