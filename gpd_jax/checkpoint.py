@@ -113,6 +113,9 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=".export-", dir=parent)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; an export is meant to be shared
     try:
         config = ml_collections.ConfigDict(config.to_dict())
         if tokenizer_dir:
@@ -157,3 +160,42 @@ def load_model(path: str, step: int | None = None) -> tuple[ml_collections.Confi
 
         params = restore_params(path, model, config, step)
     return config, nnx.merge(graphdef, params, rest)
+
+
+def main(argv=None) -> int:
+    """`python -m gpd_jax.checkpoint export WORKDIR OUT [--step N] [--tokenizer-ref PATH] [--float16]`."""
+    import argparse
+    import sys
+
+    p = argparse.ArgumentParser(prog="python -m gpd_jax.checkpoint", description="export a trained GPD model")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    e = sub.add_parser("export", help="a train.py workdir's checkpoint -> config.json + params.npz")
+    e.add_argument("workdir")
+    e.add_argument("out")
+    e.add_argument("--step", type=int, default=None, help="default: the latest checkpoint")
+    e.add_argument("--tokenizer-ref", default=None,
+                   help="write this map-tokenizer path into the exported config instead of copying the tokenizer "
+                        "(relative paths are resolved next to the export first, e.g. ../map_tokenizer)")
+    e.add_argument("--float16", action="store_true", help="store parameters as float16 (half the size)")
+    args = p.parse_args(argv)
+    try:
+        config, model = load_model(args.workdir, args.step)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    params = nnx.state(model, nnx.Param)
+    dtype = np.float16 if args.float16 else np.float32
+    if args.tokenizer_ref is not None:
+        config.model.map_tokenizer = args.tokenizer_ref
+        out = export_model(params, config, args.out, dtype=dtype)
+        resolve_tokenizer_path(args.tokenizer_ref, out)  # fails loudly if the reference does not resolve
+    else:
+        tok = config.model.get("map_tokenizer") or None
+        out = export_model(params, config, args.out, dtype=dtype,
+                           tokenizer_dir=resolve_tokenizer_path(tok, args.workdir) if tok else None)
+    print(f"exported {args.workdir} -> {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
