@@ -50,7 +50,8 @@ metrics.json (written by rollout.py; NaN written as null)::
                              "<same>_corrected",                           # the other variant
                              "map_f1", "map_precision", "map_recall", "map_lateral",
                              "map_chamfer", "map_chamfer_corrected", "map_chamfer_corrected_skipped"}}},
-     "baselines": {"constant_velocity": {"3s": {ego_* and agent_* as above}}, "log_replay": {...}},
+     "baselines": {"constant_velocity": {"3s": {ego_* and agent_* as above}}, "log_replay": {...},
+                   "map_tokenizer_reconstruction": {"3s": {map_* as above}}},  # logged tokens decoded
      "ratios": {"traffic_simulation_agent_ade_over_constant_velocity": {"3s": r, "5s": r, "8s": r}},
      "ratio_targets": {...: {"3s": 0.8, "5s": 0.75, "8s": 0.7}},
      "timing_s": {...}, "render": {...}}                           # render: only with --render
@@ -83,6 +84,8 @@ from gpd_jax.tasks import TASKS, make_tasks, resolve_task_names
 
 HORIZONS_S = (3.0, 5.0, 8.0)
 BASELINE_NAMES = ("constant_velocity", "log_replay")
+# The logged map tokens decoded and scored like a map task: the ceiling any generated map can reach.
+TOKENIZER_CEILING = "map_tokenizer_reconstruction"
 SCORED_AGENTS = "valid at the current frame"
 AGENT_METRICS = ("ade", "fde", "collision")
 MAP_METRICS = ("map_f1", "map_precision", "map_recall", "map_lateral")
@@ -264,7 +267,9 @@ def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: Ev
       full: the full-rate scenes [B] (only xy / heading / valid / size are used), for the baselines.
       weight: bool[B], False for padding scenarios.
       map_pred: optional (points f32[B, Km, F, Q, P, 2], logits f32[B, Km, F, Q]) decoded predictions of the
-        map-generating tasks (`map_task_names(task_names)` order) at the first F >= max horizon future frames.
+        map-generating tasks (`map_task_names(task_names)` order) at the first F >= max horizon future frames;
+        one more slot after them (Km = #map tasks + 1) holds the logged tokens decoded, scored as the
+        `map_tokenizer_reconstruction` baseline (the ceiling any generated map can reach).
       gt_lanes: (points f32[B, F, L, P, 2], valid bool[B, F, L]) ground-truth lanes of the same frames.
 
     Returns:
@@ -287,6 +292,8 @@ def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: Ev
         ms = map_sums(pts[:, :, :f], logits[:, :, :f], gt_lanes[0][:, :f], gt_lanes[1][:, :f], weight)
         for j, name in enumerate(maps):
             out["tasks"][name]["map"] = {key: v[j] for key, v in ms.items()}
+        if pts.shape[1] > len(maps):  # the logged tokens decoded: the map tokenizer's own reconstruction
+            out["baselines"][TOKENIZER_CEILING] = {"map": {key: v[len(maps)] for key, v in ms.items()}}
     w = jnp.asarray(weight, bool)
     out["counts"] = {"scenarios": jnp.sum(w).astype(jnp.float32),
                      "scored_agents": jnp.sum(scored[:, 1:]).astype(jnp.float32)}
@@ -350,6 +357,10 @@ def reduce_results(acc: dict[str, Any], spec: EvalSpec, task_names: Sequence[str
     for name in BASELINE_NAMES:
         red = {v: reduce_agent_metrics(acc["baselines"][name][v]) for v in VARIANTS}
         res["baselines"][name] = {label: _agent_entries(red, label, ("ego", "agent"), variant) for label in labels}
+    if TOKENIZER_CEILING in acc["baselines"]:
+        s = acc["baselines"][TOKENIZER_CEILING]["map"]
+        res["baselines"][TOKENIZER_CEILING] = {label: _map_entries(s, h, variant)
+                                               for label, h in zip(labels, spec.horizons)}
     res["ratios"] = {}
     if "traffic_simulation" in res["tasks"]:
         ts, cv = res["tasks"]["traffic_simulation"], res["baselines"]["constant_velocity"]
@@ -395,7 +406,7 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
     tasks, base = results["tasks"], results["baselines"]
     traj = [n for n in tasks if any(g in generated(n) for g in ("ego", "agent"))]
     maps = [n for n in tasks if generated(n) == ("map",)]
-    labels = list(next(iter(base.values())).keys())
+    labels = list(base[BASELINE_NAMES[0]].keys())
     rows1: list[tuple[str, Any]] = []
     for n in traj:
         rows1.append((_title(n) + ":", None))
@@ -410,6 +421,9 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
         for n in maps:
             rows2.append((_title(n) + ":", None))
             rows2 += [(f"  {lb}", tasks[n][lb]) for lb in labels]
+        if TOKENIZER_CEILING in base:
+            rows2.append(("logged tokens decoded (tokenizer ceiling):", None))
+            rows2 += [(f"  {lb}", base[TOKENIZER_CEILING][lb]) for lb in labels]
         out += [""] + table(f"Table 2 - map prediction ({variant} Chamfer in 'Ch')", rows2, cols2)
     ratio = results.get("ratios", {}).get(RATIO_KEY)
     if ratio:
@@ -666,7 +680,9 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
             map_pred = None
             if maps:
                 mi = np.array([names.index(m_) for m_ in maps])
-                tokens = out.map_tokens[:, mi, spec.num_history:spec.num_history + spec.max_horizon]
+                fut = slice(spec.num_history, spec.num_history + spec.max_horizon)
+                tokens = jnp.concatenate([out.map_tokens[:, mi, fut],
+                                          jnp.asarray(scene.map_tokens)[:, None, fut]], axis=1)
                 map_pred = decode_map_tokens(tokenizer, tokenizer.params, tokens)
             sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes)
             acc = add_sums(acc, sums)
