@@ -108,6 +108,14 @@ def test_known_offset_gives_known_ade_fde_and_baselines():
         assert cv[lb]["agent_fde"] == pytest.approx(err1[h - 1] / 2, rel=1e-4)
         assert res["ratios"]["traffic_simulation_agent_ade_over_constant_velocity"][lb] == pytest.approx(
             1.0 / cv[lb]["agent_ade"], rel=1e-4)
+    # at the model's rate (0.5 s frames) the velocity is (x(1) - x(0.5)) / 0.5 = 4.25 m/s: error 1.5 d^2 + 0.75 d
+    cvm = res["baselines"]["constant_velocity_model_rate"]
+    err_m = 1.5 * d ** 2 + 0.75 * d
+    for lb, h in zip(SPEC.labels, SPEC.horizons):
+        assert cvm[lb]["ego_ade"] == pytest.approx(0.0, abs=1e-4)
+        assert cvm[lb]["agent_ade"] == pytest.approx(err_m[:h].mean() / 2, rel=1e-4)
+        assert res["ratios"]["traffic_simulation_agent_ade_over_constant_velocity_model_rate"][lb] == pytest.approx(
+            1.0 / cvm[lb]["agent_ade"], rel=1e-4)
 
 
 def test_overlapping_boxes_collide_and_separate_boxes_do_not():
@@ -218,7 +226,8 @@ def test_tables_and_json_nulls():
     res["tasks"]["closed_loop"]["1s"]["agent_ade"] = float("nan")
     text = format_tables(res)
     assert "Table 1" in text and "traffic simulation:" in text and "log replay (baseline):" in text
-    assert "traffic simulation agent ADE / constant velocity agent ADE" in text
+    assert "traffic simulation agent ADE / constant velocity (stored rate) agent ADE" in text
+    assert "traffic simulation agent ADE / constant velocity (model rate) agent ADE" in text
     out = json.loads(json.dumps(to_json_compatible(res), allow_nan=False))
     assert out["tasks"]["closed_loop"]["1s"]["agent_ade"] is None
     assert math.isfinite(out["tasks"]["traffic_simulation"]["3s"]["agent_ade"])

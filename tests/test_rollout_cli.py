@@ -88,7 +88,8 @@ def test_metrics_json_layout(run_ok, setup):
     assert m["scored_agents"] == "valid at the current frame"
     assert m["map_tokens"] == {"from_store": 2, "encoded": 1}  # shard 0 has tokens, shard 1 is encoded
     assert set(m["tasks"]) == set(TASK_NAMES)
-    assert set(m["baselines"]) == {"constant_velocity", "log_replay", "map_tokenizer_reconstruction"}
+    assert set(m["baselines"]) == {"constant_velocity", "constant_velocity_model_rate", "log_replay",
+                                   "map_tokenizer_reconstruction"}
     ceiling = m["baselines"]["map_tokenizer_reconstruction"]
     assert set(ceiling) == {"3s", "5s", "8s"} and 0.0 <= ceiling["3s"]["map_f1"] <= 1.0
     assert not any(k.startswith(("ego_", "agent_")) for k in ceiling["3s"])
@@ -111,8 +112,9 @@ def test_metrics_json_layout(run_ok, setup):
         lr = m["baselines"]["log_replay"][lb]
         assert lr["agent_ade"] == 0.0 and lr["ego_ade"] == 0.0 and lr["agent_fde_corrected"] == 0.0
         assert m["baselines"]["constant_velocity"][lb].keys() == lr.keys() == AGENT_KEYS
-    ratio = m["ratios"]["traffic_simulation_agent_ade_over_constant_velocity"]
-    assert set(ratio) == {"3s", "5s", "8s"}
+    for key in ("traffic_simulation_agent_ade_over_constant_velocity",
+                "traffic_simulation_agent_ade_over_constant_velocity_model_rate"):
+        assert set(m["ratios"][key]) == {"3s", "5s", "8s"}
     assert os.path.isfile(os.path.join(out, "tables.txt"))
     assert not [f for f in os.listdir(out) if f.startswith(".")]  # no temporaries left
 
