@@ -151,3 +151,15 @@ def test_four_device_data_parallel_step_equals_single_device(tmp_path):
     script.write_text(_DP_SCRIPT.format(tests=os.path.dirname(os.path.abspath(__file__))))
     r = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert r.returncode == 0 and "OK" in r.stdout, r.stdout[-2000:] + r.stderr[-4000:]
+
+
+def test_learning_curves_from_metrics_log(tmp_path):
+    from gpd_jax.curves import main
+
+    recs = [{"step": s, "split": "train", "loss": 10.0 / s, "position": 1.0 / s} for s in range(1, 6)]
+    recs += [{"step": 5, "split": "val", "loss": 2.0, "rollout_agent_ade_3s_vs_cv": 1.2}]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    out = tmp_path / "c.png"
+    assert main([str(tmp_path), str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main([str(tmp_path / "missing"), str(out)]) == 2
