@@ -90,3 +90,20 @@ def test_vmapped_dynamic_attention_equals_per_scenario():
         np.testing.assert_allclose(got[i][:, rows], ref[:, rows], atol=1e-5)
     shared = jax.vmap(lambda q: attend_dynamic(q, k[0], v[0], frame, 3, n, chunk))(q)
     np.testing.assert_allclose(shared[1], dense_block_causal(q[1], k[0], v[0], frame, frame), atol=1e-5)
+
+
+def test_model_dense_training_attention_equals_flash(tiny_model, tiny_scenes):
+    """`model.train_attention = "dense"` is the same function as the chunked flash path."""
+    import jax.numpy as jnp
+
+    from gpd_jax.model import forward
+
+    s = jax.tree.map(lambda x: jnp.asarray(x[0]), tiny_scenes)
+    tok = tiny_model.embed(s.xy, s.heading, s.valid, s.map_tokens, jnp.arange(s.num_frames))
+    flash = forward(tiny_model, tok)
+    tiny_model.dense_attention = True
+    try:
+        dense = forward(tiny_model, tok)
+    finally:
+        tiny_model.dense_attention = False
+    np.testing.assert_allclose(np.asarray(dense), np.asarray(flash), atol=1e-4, rtol=1e-4)
