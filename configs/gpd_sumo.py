@@ -3,7 +3,7 @@
 Every 10th stored frame (1 s apart): 3 history frames (2 s, the current one included) + 8 future frames (8 s),
 the ego and its 16 nearest agents, 64 map tokens from the shipped map tokenizer, d 128, 4 layers, 4 heads.
 11 x 81 = 891 tokens per scene against the paper's 101 x 97 = 9,797: attention, which dominates a CPU
-training step, is ~120x cheaper. Measured on 2 cores: a step of 8 scenes takes ~3 s here, ~10 s at 2 Hz
+training step, is ~120x cheaper. Measured on 2 cores: a step of 8 scenes takes ~1.2 s here, ~3.5 s at 2 Hz
 (21 frames) and the paper's size does not fit a CPU budget. Agents regress their displacement from the
 previous frame (`predict_delta`), which learned far faster than absolute positions in the core tests.
 
@@ -39,7 +39,7 @@ def get_config():
     m.map_tokenizer = "checkpoints/map_tokenizer"
     t = c.train
     t.batch_size = 8
-    t.steps = 3_500
+    t.steps = 4_500
     t.learning_rate = 1e-3
     t.warmup_steps = 200
     t.min_learning_rate = 1e-5
