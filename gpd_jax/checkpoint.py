@@ -34,12 +34,13 @@ def _path_key(path) -> str:
 
 
 def flatten_params(params) -> dict[str, np.ndarray]:
-    """{path: array} of a params state (the keys of `params.npz`)."""
+    """{path: array} of a params pytree (the keys of `params.npz`, for GPD and map-tokenizer exports)."""
     return {_path_key(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(params)}
 
 
 def unflatten_params(template, flat: dict[str, np.ndarray], where: str = "params"):
-    """Fills `template` (a params state) from `flatten_params` output, checking names, shapes; float32 out."""
+    """Fills `template` (a params pytree; leaves may be abstract) from `flatten_params` output, checking names
+    and shapes and casting to the template's dtypes (float16 exports come back as float32)."""
     missing, bad = [], []
 
     def fill(path, x):
@@ -51,7 +52,7 @@ def unflatten_params(template, flat: dict[str, np.ndarray], where: str = "params
         if v.shape != x.shape:
             bad.append(f"{k}: stored {v.shape}, model {x.shape}")
             return x
-        return jax.numpy.asarray(v.astype(np.float32))
+        return jax.numpy.asarray(v, x.dtype)
 
     out = jax.tree_util.tree_map_with_path(fill, template)
     extra = sorted(set(flat) - {_path_key(p) for p, _ in jax.tree_util.tree_leaves_with_path(template)})

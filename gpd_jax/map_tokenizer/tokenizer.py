@@ -13,7 +13,6 @@ used). `export_tokenizer` writes the former (float16 by default, to keep the rep
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from typing import Any
 
@@ -23,6 +22,7 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
+from gpd_jax.checkpoint import config_from_json, flatten_params, unflatten_params
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
 
@@ -67,29 +67,6 @@ class MapTokenizer:
         return self.decode(params, self.encode(params, rasters))
 
 
-def _path_key(path) -> str:
-    return "/".join(str(getattr(p, "key", getattr(p, "idx", p))) for p in path)
-
-
-def flatten_params(params) -> dict[str, np.ndarray]:
-    return {_path_key(p): np.asarray(v) for p, v in jax.tree_util.tree_flatten_with_path(params)[0]}
-
-
-def unflatten_params(template, flat: dict[str, np.ndarray]):
-    """Fills the structure of `template` from `flat` (keys from `flatten_params`), casting to the template dtypes."""
-    leaves_with_path, treedef = jax.tree_util.tree_flatten_with_path(template)
-    missing = [_path_key(p) for p, _ in leaves_with_path if _path_key(p) not in flat]
-    if missing:
-        raise ValueError(f"checkpoint lacks {len(missing)} parameters, e.g. {missing[:3]}")
-    leaves = []
-    for p, t in leaves_with_path:
-        v = np.asarray(flat[_path_key(p)])
-        if v.shape != t.shape:
-            raise ValueError(f"parameter {_path_key(p)}: checkpoint shape {v.shape}, model shape {t.shape}")
-        leaves.append(jnp.asarray(v, t.dtype))
-    return jax.tree_util.tree_unflatten(treedef, leaves)
-
-
 def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float16,
                      exact: tuple[str, ...] = ("encoder", "codebook")) -> None:
     """Writes `config.json` and `params.npz` to `out_dir`.
@@ -105,26 +82,12 @@ def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dt
     np.savez_compressed(os.path.join(out_dir, "params.npz"), **flat)
 
 
-def load_config_json(path: str) -> ml_collections.ConfigDict:
-    with open(path) as f:
-        d = json.load(f)
-
-    def tuples(x):  # JSON turns tuples into lists; the model wants tuples for stage sizes
-        if isinstance(x, dict):
-            return {k: tuples(v) for k, v in x.items()}
-        if isinstance(x, list):
-            return tuple(tuples(v) for v in x)
-        return x
-
-    return ml_collections.ConfigDict(tuples(d))
-
-
 def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
     """Loads an exported tokenizer or the latest checkpoint of a training workdir (see the module docstring)."""
     cfg_path = os.path.join(checkpoint_dir, "config.json")
     if not os.path.isfile(cfg_path):
         raise FileNotFoundError(f"{checkpoint_dir} is not a map-tokenizer checkpoint (no config.json)")
-    config = load_config_json(cfg_path)
+    config = config_from_json(cfg_path)
     npz = os.path.join(checkpoint_dir, "params.npz")
     if os.path.isfile(npz):
         # Only shapes are needed to read an export: skip the (slow) random initialisation.
