@@ -39,10 +39,10 @@ import tqdm
 from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from gpd_jax import baselines
 from gpd_jax.checkpoint import export_model, model_from_config, resolve_tokenizer_path
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data.errors import DataError
+from gpd_jax.evaluate import EvalError, baseline_predictions, spec_from_config
 from gpd_jax.metrics import agents as agent_metrics_lib
 from gpd_jax.model import count_params
 from gpd_jax.parallel import data_mesh
@@ -51,25 +51,11 @@ from gpd_jax.scene import Scene
 from gpd_jax.tasks import make_task
 from gpd_jax.train_lib import TrainState, make_trainer
 
-HORIZONS_S = (3.0, 5.0, 8.0)
-
 
 # ----------------------------------------------------------------------------------------------- data
 def model_view(scene: Scene, config) -> Scene:
     """The model's frames and slots of a stored scene (see `Scene.subsample`)."""
     return scene.subsample(int(config.data.frame_stride), int(config.model.num_frames), int(config.model.num_agents))
-
-
-def frame_period(config) -> float:
-    """Seconds between model frames."""
-    return float(config.data.frame_stride) * float(config.data.get("frame_period_s", 0.1))
-
-
-def horizon_frames(config, horizons_s=HORIZONS_S) -> tuple[int, ...]:
-    """Future frame counts of the horizons that fit in the model's future."""
-    dt = frame_period(config)
-    fut = int(config.model.num_frames) - int(config.model.num_history)
-    return tuple(n for n in (int(round(h / dt)) for h in horizons_s) if 0 < n <= fut)
 
 
 def resolve_data_dir(path: str) -> str:
@@ -161,9 +147,9 @@ class MetricsLog:
 class Validator:
     """Validation loss over fixed batches and traffic-simulation rollouts scored against constant velocity."""
 
-    def __init__(self, config, data_dir: str, trainer, mesh):
+    def __init__(self, config, data_dir: str, trainer):
         tc, m = config.train, config.model
-        self.config, self.trainer, self.mesh = config, trainer, mesh
+        self.config, self.trainer = config, trainer
         split = config.data.val_split
         n_val = len(data_loader.SplitSource(data_dir, split))
         bs = int(tc.batch_size)
@@ -175,33 +161,34 @@ class Validator:
                 self.loss_batches.append(model_view(next(it), config))
             it.close()
         n_roll = min(int(tc.eval_rollout_scenarios), n_val)
+        try:
+            self.spec, _ = spec_from_config(config)
+        except EvalError as e:
+            print(f"validation rollouts off: {e}")
+            n_roll = 0
         self.scenes = data_loader.load_split(data_dir, split, indices=range(n_roll)) if n_roll else None
-        self.horizons = horizon_frames(config)
-        self.h = int(m.num_history)
-        self.dt = frame_period(config)
         if self.scenes is not None:
-            full_h = int(config.data.frame_stride) * (self.h - 1) + 1
-            cv = baselines.constant_velocity(self.scenes, full_h)
-            self.cv = model_view(self.scenes.replace(xy=cv.xy, heading=cv.heading, valid=cv.valid), config)
             self.view = model_view(self.scenes, config)
+            # Constant velocity from the stored frame rate, as rollout.py scores it; fixed, so scored once here.
+            cv_xy, cv_heading, _ = baseline_predictions(self.scenes, self.spec)["constant_velocity"]
+            self.cv_scores = self._score(cv_xy, cv_heading)
             task = make_task("traffic_simulation", int(m.num_map_tokens), int(m.num_agents))
             tasks = jax.tree.map(lambda x: jnp.broadcast_to(x, (n_roll,) + x.shape), task)
             graphdef, rest = trainer.graphdef, trainer.rest
-            temp = float(config.rollout.temperature)
+            temp, h = float(config.rollout.temperature), self.spec.num_history
 
             @jax.jit
             def roll(params, scenes, keys):
                 model = nnx.merge(graphdef, params, rest)
-                return rollout_batch(model, scenes, tasks, keys, self.h, temp)
+                return rollout_batch(model, scenes, tasks, keys, h, temp)
 
             self._roll = roll
 
     def _score(self, xy, heading) -> dict[str, float]:
-        v = self.view
-        scored = v.valid[:, self.h - 1]
+        v, spec = self.view, self.spec
         sums = agent_metrics_lib.agent_metric_sums(
-            xy, heading, v.xy, v.valid, v.size, num_history=self.h, eval_mask=scored, horizons=self.horizons,
-            variant="corrected", dt=self.dt)
+            xy, heading, v.xy, v.valid, v.size, num_history=spec.num_history, eval_mask=v.valid[:, spec.current],
+            horizons=spec.horizons, variant="corrected", dt=spec.frame_period_s)
         red = agent_metrics_lib.reduce_agent_metrics(sums)
         return {f"{k}_{hl}": val for hl, d in red.items() for k, val in d.items()
                 if k in ("agent_ade", "agent_fde", "ego_ade", "agent_collision")}
@@ -218,8 +205,7 @@ class Validator:
         if self.scenes is not None:
             keys = jax.random.split(jax.random.key(step), self.view.xy.shape[0])
             pred = self._roll(params, self.view, keys)
-            model = self._score(pred.xy, pred.heading)
-            cv = self._score(self.cv.xy, self.cv.heading)
+            model, cv = self._score(pred.xy, pred.heading), self.cv_scores
             for k, v in model.items():
                 out[f"rollout_{k}"] = v
                 out[f"cv_{k}"] = cv[k]
@@ -316,7 +302,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     it = data_loader.make_loader(data_dir, config.data.train_split, bs // pcount, seed=int(config.seed),
                                  process_index=pindex, process_count=pcount, start_step=start,
                                  num_threads=int(tc.get("loader_threads", 4)))
-    validator = Validator(config, data_dir, trainer, mesh) if int(tc.eval_every) > 0 else None
+    validator = Validator(config, data_dir, trainer) if int(tc.eval_every) > 0 else None
 
     total = int(tc.steps)
     end = total if stop_after is None else min(total, start + int(stop_after))
