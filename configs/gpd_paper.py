@@ -29,6 +29,10 @@ def get_config() -> ml_collections.ConfigDict:
     m.train_attention = "flash"  # "flash": chunked, memory-linear; "dense": one masked softmax (short sequences)
     m.predict_delta = False     # regress absolute positions (official) or displacements from frame t
     m.velocity_residual = False  # with predict_delta: regress the residual over constant velocity instead
+    m.velocity_inputs = False   # not in the paper: tokens also encode velocity; a head predicts the next one
+    m.velocity_range = 50.0     # vx, vy representable in [-50, 50) m/s
+    m.velocity_levels = (1.0, 0.05)  # m/s
+    m.velocity_code_dim = 32
     m.map_tokenizer = ""        # checkpoint dir of the map tokenizer whose codebook embeds map tokens
 
     d = c.data = ml_collections.ConfigDict()
@@ -43,6 +47,7 @@ def get_config() -> ml_collections.ConfigDict:
     lw.heading = 5.73           # (180 / 3.14) * 0.1 as in the official code
     lw.valid = 1.0
     lw.map = 1.0
+    lw.velocity = 2.0           # only with model.velocity_inputs (smooth-L1 in m/s)
 
     t = c.train = ml_collections.ConfigDict()
     t.batch_size = 16

@@ -111,6 +111,7 @@ class EvalSpec:
     num_frames, num_history, num_agents, num_map_tokens: the model's T, H, A, M.
     frame_stride: model frame k is stored frame k * stride; stored_period_s: seconds between stored frames.
     horizons: future model frames of each horizon (e.g. (6, 10, 16) at 2 Hz).
+    velocity_inputs: whether the model's scenes carry instantaneous velocities (see `view`).
     """
 
     num_frames: int
@@ -120,6 +121,12 @@ class EvalSpec:
     frame_stride: int = 1
     stored_period_s: float = 0.1
     horizons: tuple[int, ...] = (30, 50, 80)
+    velocity_inputs: bool = False
+
+    def view(self, full: Scene) -> Scene:
+        """The model's frames and slots of a full-rate scene (with stored-rate velocities if the model takes them)."""
+        period = self.stored_period_s if self.velocity_inputs else None
+        return full.subsample(self.frame_stride, self.num_frames, self.num_agents, velocity_period_s=period)
 
     @property
     def frame_period_s(self) -> float:
@@ -188,7 +195,8 @@ def spec_from_config(config, horizons_s: Sequence[float] = HORIZONS_S) -> tuple[
     t, h = int(m.num_frames), int(m.num_history)
     frames, skipped = horizon_frames(horizons_s, stride * period, t - h)
     spec = EvalSpec(num_frames=t, num_history=h, num_agents=int(m.num_agents), num_map_tokens=int(m.num_map_tokens),
-                    frame_stride=stride, stored_period_s=period, horizons=frames)
+                    frame_stride=stride, stored_period_s=period, horizons=frames,
+                    velocity_inputs=bool(m.get("velocity_inputs", False)))
     return spec, skipped
 
 
@@ -673,7 +681,7 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
             except DataError as e:
                 raise EvalError(f"cannot read split {split!r}: {e}") from None
             full, polylines, poly_valid = _records_to_scene(recs)
-            scene = full.subsample(spec.frame_stride, spec.num_frames, spec.num_agents)
+            scene = spec.view(full)
             has = scene.map_valid.all(axis=-1)
             if not has[:real].all():
                 if tokenizer is None:

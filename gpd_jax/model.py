@@ -10,7 +10,13 @@ Entry points (all single-scenario; `jax.vmap` them over scenarios and tasks):
 * `GPD.embed(...)`: frame inputs -> tokens f32[F, N, d].
 * `forward(model, tokens)`: teacher-forced pass over whole frames, memory-linear attention.
 * `forward_cached(model, tokens, cache, start_frame)`: a block of frames appended to a KV cache.
-* `predict(model, hidden, xy, heading, valid[, prev_xy, prev_valid])`: heads -> `Prediction` for the next frame.
+* `predict(model, hidden, xy, heading, valid[, prev_xy, prev_valid][, velocity])`: heads -> `Prediction` for the
+  next frame.
+
+Option `velocity_inputs` (not in the paper): agent tokens also encode each agent's instantaneous velocity and a
+fifth head predicts the next frame's velocity, which is fed back like positions. With `velocity_residual` the
+position head then regresses the residual over xy + velocity * frame period, so a model at a low frame rate
+extrapolates from current motion (as constant velocity at the stored rate does) instead of last frame's.
 """
 
 from __future__ import annotations
@@ -86,13 +92,15 @@ class Block(nnx.Module):
 class Prediction(NamedTuple):
     """Next-frame prediction of every slot of a block of frames.
 
-    xy: f32[..., F, A, 2], heading: f32[..., F, A], valid_logit: f32[..., F, A], map_logits: f32[..., F, M, K].
+    xy: f32[..., F, A, 2], heading: f32[..., F, A], valid_logit: f32[..., F, A], map_logits: f32[..., F, M, K],
+    velocity: f32[..., F, A, 2] (m/s) for a `velocity_inputs` model, else None.
     """
 
     xy: jax.Array
     heading: jax.Array
     valid_logit: jax.Array
     map_logits: jax.Array
+    velocity: jax.Array | None = None
 
 
 @flax.struct.dataclass
@@ -112,9 +120,10 @@ class GPD(nnx.Module):
       rngs: parameter initialisation keys.
       codebook: optional f32[K, D] map-tokenizer codebook; map tokens are then embedded as their (frozen)
         codebook vectors projected to d, otherwise with a learned K x d table.
+      frame_period_s: seconds between the model's frames (velocity inputs turn into displacements with it).
     """
 
-    def __init__(self, cfg, rngs: nnx.Rngs, codebook: np.ndarray | None = None):
+    def __init__(self, cfg, rngs: nnx.Rngs, codebook: np.ndarray | None = None, frame_period_s: float = 0.1):
         d = int(cfg.d_model)
         self.num_agents = int(cfg.num_agents)
         self.num_map = int(cfg.num_map_tokens)
@@ -126,6 +135,8 @@ class GPD(nnx.Module):
         self.velocity_residual = bool(cfg.get("velocity_residual", False))
         if self.velocity_residual and not self.predict_delta:
             raise ValueError("model.velocity_residual needs model.predict_delta")
+        self.velocity_inputs = bool(cfg.get("velocity_inputs", False))
+        self.frame_period_s = float(frame_period_s)
         self.tokenizer = AgentTokenizer.from_config(cfg)
         grid = int(round(math.sqrt(self.num_map)))
         if grid * grid != self.num_map:
@@ -155,18 +166,20 @@ class GPD(nnx.Module):
         self.heading_head = MLP((d, hh, 1), rngs)
         self.valid_head = MLP((d, hh, 1), rngs)
         self.map_head = MLP((d, hh, k_codes), rngs)
+        self.velocity_head = MLP((d, hh, 2), rngs) if self.velocity_inputs else None
 
     # ------------------------------------------------------------------ embedding
-    def embed(self, xy, heading, valid, map_tokens, frames):
+    def embed(self, xy, heading, valid, map_tokens, frames, velocity=None):
         """Tokens of a block of frames.
 
         Args:
           xy: f32[F, A, 2], heading: f32[F, A], valid: bool[F, A], map_tokens: i32[F, M],
-          frames: i32[F] absolute frame indices (for the frame embedding).
+          frames: i32[F] absolute frame indices (for the frame embedding),
+          velocity: f32[F, A, 2] (m/s), required by a `velocity_inputs` model and ignored otherwise.
         Returns:
           f32[F, N, d] with N = M + A, map tokens first.
         """
-        codes = self.tokenizer.encode(xy, heading)
+        codes = self.tokenizer.encode(xy, heading, self._velocity(velocity))
         agents = self.agent_mlp(codes)
         agents = jnp.where(valid[..., None], agents, self.oob[...])
         if self.codebook is not None:
@@ -178,13 +191,23 @@ class GPD(nnx.Module):
         return tokens + self.slot_emb[...] + jnp.take(self.frame_emb[...], frames, axis=0)[:, None, :]
 
     # ------------------------------------------------------------------ heads
-    def predict(self, hidden, xy, heading, valid, prev_xy=None, prev_valid=None) -> Prediction:
+    def _velocity(self, velocity):
+        if not self.velocity_inputs:
+            return None
+        if velocity is None:
+            raise ValueError("a velocity_inputs model needs each frame's velocity (Scene.velocity: build the "
+                             "model's view with Scene.subsample(..., velocity_period_s=...))")
+        return velocity
+
+    def predict(self, hidden, xy, heading, valid, prev_xy=None, prev_valid=None, velocity=None) -> Prediction:
         """Next-frame predictions from hidden states `f32[F, N, d]` of frames whose inputs were
         xy f32[F, A, 2], heading f32[F, A], valid bool[F, A] (used when predicting displacements).
 
         With `velocity_residual`, `prev_xy f32[F, A, 2]` / `prev_valid bool[F, A]` are each frame's previous
         frame (invalid for frame 0): the position head then predicts the residual over constant velocity,
-        xy + (xy - prev_xy) + head (plain displacement where the previous frame is missing)."""
+        xy + (xy - prev_xy) + head (plain displacement where the previous frame is missing). A
+        `velocity_inputs` model takes `velocity f32[F, A, 2]` instead: the base is xy + velocity * frame period
+        and the predicted velocity is velocity + its head's output (both plain where the slot is invalid)."""
         h = self.final_ln(hidden)
         ha, hm = h[..., self.num_map:, :], h[..., : self.num_map, :]
         dxy = self.pos_head(ha)
@@ -192,7 +215,9 @@ class GPD(nnx.Module):
         if self.predict_delta:
             base = valid[..., None]
             pxy = dxy + jnp.where(base, xy, 0.0)
-            if self.velocity_residual:
+            if self.velocity_residual and self.velocity_inputs:
+                pxy = pxy + jnp.where(base, self._velocity(velocity) * self.frame_period_s, 0.0)
+            elif self.velocity_residual:
                 if prev_xy is None or prev_valid is None:
                     raise ValueError("a velocity-residual model needs prev_xy and prev_valid")
                 moving = (valid & prev_valid)[..., None]
@@ -200,8 +225,13 @@ class GPD(nnx.Module):
             ph = wrap_angle(dh + jnp.where(valid, heading, 0.0))
         else:
             pxy, ph = dxy, wrap_angle(dh)
+        pv = None
+        if self.velocity_inputs:
+            pv = self.velocity_head(ha)
+            if self.velocity_residual:
+                pv = pv + jnp.where(valid[..., None], self._velocity(velocity), 0.0)
         return Prediction(xy=pxy, heading=ph, valid_logit=self.valid_head(ha)[..., 0],
-                          map_logits=self.map_head(hm))
+                          map_logits=self.map_head(hm), velocity=pv)
 
     # ------------------------------------------------------------------ caches
     def padded_len(self, frames: int) -> int:
@@ -276,10 +306,18 @@ def count_params(model: nnx.Module) -> int:
 
 def build_model(config, seed: int | None = None, codebook: np.ndarray | None = None) -> GPD:
     """The GPD model of a full config. Map tokens are embedded with the codebook of the map tokenizer
-    checkpoint named by `config.model.map_tokenizer` when set (or with `codebook` when given)."""
+    checkpoint named by `config.model.map_tokenizer` when set (or with `codebook` when given). The frame period
+    is `data.frame_stride * data.frame_period_s`."""
     m = config.model
     if codebook is None and m.get("map_tokenizer"):
         from gpd_jax.map_tokenizer import load_tokenizer
 
         codebook = np.asarray(load_tokenizer(m.map_tokenizer).codebook)
-    return GPD(m, nnx.Rngs(config.seed if seed is None else seed), codebook=codebook)
+    return GPD(m, nnx.Rngs(config.seed if seed is None else seed), codebook=codebook,
+               frame_period_s=model_frame_period_s(config))
+
+
+def model_frame_period_s(config) -> float:
+    """Seconds between the model's frames: `data.frame_stride * data.frame_period_s` (defaults 1 and 0.1)."""
+    d = config.get("data") or {}
+    return int(d.get("frame_stride", 1)) * float(d.get("frame_period_s", 0.1))

@@ -8,8 +8,9 @@ fills a preallocated KV cache; then a `lax.scan` over future frames forms each f
 frame's prediction and the log (per the task mask), embeds its N tokens, appends their keys/values at the
 frame's offset and attends only to the filled part of the cache (chunked; see attention.py).
 
-Feedback: predicted positions and headings are re-tokenized as regressed; valid = logit > 0; a map token is
-the argmax of its logits (temperature 0, the default) or sampled at a temperature with an explicit key.
+Feedback: predicted positions and headings (and velocities, for a `velocity_inputs` model) are re-tokenized as
+regressed; valid = logit > 0; a map token is the argmax of its logits (temperature 0, the default) or sampled at
+a temperature with an explicit key.
 """
 
 from __future__ import annotations
@@ -39,15 +40,25 @@ class RolloutOutput:
     map_tokens: jax.Array
 
 
-def _log_inputs(scene: Scene, task: Task):
+def _log_inputs(model: GPD, scene: Scene, task: Task):
+    """The log's frames as model inputs: xy, heading, valid (hidden agents removed), map tokens, velocity
+    (zeros for a model without velocity inputs)."""
     valid = scene.valid & ~task.hidden[None, :]
-    return scene.xy, scene.heading, valid, scene.map_tokens
+    if scene.velocity is None:
+        if model.velocity_inputs:
+            raise ValueError("a velocity_inputs model needs Scene.velocity (Scene.subsample(..., "
+                             "velocity_period_s=...))")
+        vel = jnp.zeros_like(scene.xy)
+    else:
+        vel = scene.velocity
+    return scene.xy, scene.heading, valid, scene.map_tokens, vel
 
 
-def _choose_frame(pred: Prediction, scene: Scene, task: Task, t, key, temperature: float, num_map: int):
-    """Frame t's inputs: the log where the task says so, the prediction elsewhere.
+def _choose_frame(pred: Prediction, log_vel, scene: Scene, task: Task, t, key, temperature: float, num_map: int):
+    """Frame t's inputs (xy, heading, valid, valid logit, map tokens, velocity): the log where the task says so,
+    the prediction elsewhere.
 
-    `pred` holds the single-frame prediction made at frame t-1 (leading dim 1).
+    `pred` holds the single-frame prediction made at frame t-1 (leading dim 1); `log_vel f32[T, A, 2]`.
     """
     logits = pred.map_logits[0]
     if temperature > 0:
@@ -61,7 +72,9 @@ def _choose_frame(pred: Prediction, scene: Scene, task: Task, t, key, temperatur
     heading_t = jnp.where(fl_agent, scene.heading[t], pred.heading[0])
     valid_t = jnp.where(fl_agent, scene.valid[t], pred.valid_logit[0] > 0) & ~task.hidden
     logit_t = jnp.where(fl_agent, 0.0, pred.valid_logit[0])
-    return xy_t, heading_t, valid_t, logit_t, map_t
+    pred_vel = jnp.zeros_like(log_vel[t]) if pred.velocity is None else pred.velocity[0]
+    vel_t = jnp.where(fl_agent[:, None], log_vel[t], pred_vel)
+    return xy_t, heading_t, valid_t, logit_t, map_t, vel_t
 
 
 def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
@@ -78,23 +91,24 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
     """
     t_total, h = scene.num_frames, num_history
     num_map = scene.num_map_tokens
-    xy, heading, valid, maps = _log_inputs(scene, task)
-    tokens = model.embed(xy[:h], heading[:h], valid[:h], maps[:h], jnp.arange(h))
+    xy, heading, valid, maps, vel = _log_inputs(model, scene, task)
+    tokens = model.embed(xy[:h], heading[:h], valid[:h], maps[:h], jnp.arange(h), vel[:h])
     hidden, cache = forward_cached(model, tokens, model.init_cache(t_total), 0)
-    pred = model.predict(hidden[-1:], xy[h - 1:h], heading[h - 1:h], valid[h - 1:h], *_prev(xy, valid, h - 1))
+    pred = model.predict(hidden[-1:], xy[h - 1:h], heading[h - 1:h], valid[h - 1:h], *_prev(xy, valid, h - 1),
+                         vel[h - 1:h])
 
     def step(carry, t):
         cache, pred, last_xy, last_valid = carry
-        frame = _choose_frame(pred, scene, task, t, key, temperature, num_map)
-        fxy, fh, fv, _, fm = frame
-        tok = model.embed(fxy[None], fh[None], fv[None], fm[None], t[None])
+        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map)
+        fxy, fh, fv, _, fm, fvel = frame
+        tok = model.embed(fxy[None], fh[None], fv[None], fm[None], t[None], fvel[None])
         hid, cache = forward_cached(model, tok, cache, t)
-        pred = model.predict(hid, fxy[None], fh[None], fv[None], last_xy[None], last_valid[None])
+        pred = model.predict(hid, fxy[None], fh[None], fv[None], last_xy[None], last_valid[None], fvel[None])
         return (cache, pred, fxy, fv), frame
 
     carry = (cache, pred, xy[h - 1], valid[h - 1])
     (_, pred, _, _), frames = jax.lax.scan(step, carry, jnp.arange(h, t_total - 1))
-    last = _choose_frame(pred, scene, task, jnp.asarray(t_total - 1), key, temperature, num_map)
+    last = _choose_frame(pred, vel, scene, task, jnp.asarray(t_total - 1), key, temperature, num_map)
     frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
     return _assemble(xy, heading, valid, maps, frames, h)
 
@@ -108,7 +122,7 @@ def _prev(xy, valid, t):
 
 
 def _assemble(xy, heading, valid, maps, frames, h) -> RolloutOutput:
-    fxy, fh, fv, fl, fm = frames
+    fxy, fh, fv, fl, fm, _ = frames
     return RolloutOutput(
         xy=jnp.concatenate([xy[:h], fxy], 0),
         heading=jnp.concatenate([heading[:h], fh], 0),
@@ -128,23 +142,23 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
     """
     t_total, h = scene.num_frames, num_history
     num_map = scene.num_map_tokens
-    xy, heading, valid, maps = _log_inputs(scene, task)
+    xy, heading, valid, maps, vel = _log_inputs(model, scene, task)
     logits0 = jnp.zeros(valid.shape, jnp.float32)
 
     def step(buf, t):
-        bxy, bh, bv, bl, bm = buf
-        tokens = model.embed(bxy, bh, bv, bm, jnp.arange(t_total))
+        bxy, bh, bv, bl, bm, bvel = buf
+        tokens = model.embed(bxy, bh, bv, bm, jnp.arange(t_total), bvel)
         hid = forward(model, tokens)
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
-        pred = model.predict(sl(hid), sl(bxy), sl(bh), sl(bv), *_prev(bxy, bv, prev))
-        frame = _choose_frame(pred, scene, task, t, key, temperature, num_map)
+        pred = model.predict(sl(hid), sl(bxy), sl(bh), sl(bv), *_prev(bxy, bv, prev), sl(bvel))
+        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map)
         buf = tuple(jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0)
                     for b, f in zip(buf, frame))
         return buf, None
 
-    buf, _ = jax.lax.scan(step, (xy, heading, valid, logits0, maps), jnp.arange(h, t_total))
-    bxy, bh, bv, bl, bm = buf
+    buf, _ = jax.lax.scan(step, (xy, heading, valid, logits0, maps, vel), jnp.arange(h, t_total))
+    bxy, bh, bv, bl, bm, _ = buf
     return RolloutOutput(xy=bxy, heading=bh, valid=bv, valid_logit=bl, map_tokens=bm)
 
 

@@ -49,6 +49,8 @@ class Scene:
       lanes: optional f32[..., T, L, P, 2] vector lanes of each frame in that frame's ego frame
         (SLEDGE processing: L=50 nearest lines, P=20 points each).
       lanes_valid: optional bool[..., T, L] which lane slots are present.
+      velocity: optional f32[..., T, A, 2] instantaneous velocity (m/s, scene frame) of each agent, a finite
+        difference at the stored frame rate (see `subsample`); zero where no neighbouring frame is valid.
     """
 
     xy: jax.Array
@@ -61,6 +63,7 @@ class Scene:
     ego_pose: jax.Array
     lanes: jax.Array | None = None
     lanes_valid: jax.Array | None = None
+    velocity: jax.Array | None = None
 
     # ---------------------------------------------------------------- shapes
     @property
@@ -91,7 +94,7 @@ class Scene:
     def slice_frames(self, start: int, stop: int) -> "Scene":
         """Frames [start, stop) of every per-frame field."""
         per_frame = {"xy": -3, "heading": -2, "valid": -2, "map_tokens": -2, "map_valid": -1, "ego_pose": -2,
-                     "lanes": -4, "lanes_valid": -2}
+                     "lanes": -4, "lanes_valid": -2, "velocity": -3}
         updates = {}
         for name, axis in per_frame.items():
             v = getattr(self, name)
@@ -100,12 +103,16 @@ class Scene:
         return self.replace(**updates)
 
     def subsample(self, stride: int = 1, num_frames: int | None = None, num_agents: int | None = None,
-                  start: int = 0) -> "Scene":
+                  start: int = 0, velocity_period_s: float | None = None) -> "Scene":
         """Every `stride`-th frame from `start` (at most `num_frames` of them) and the first `num_agents` slots.
 
         Works on numpy and JAX leaves alike (plain strided slicing). Slot 0 (the ego) is always kept; the
-        stored slots are ordered by distance to the ego, so a prefix keeps the nearest agents.
+        stored slots are ordered by distance to the ego, so a prefix keeps the nearest agents. With
+        `velocity_period_s` (seconds between this scene's frames), `velocity` is first computed at this scene's
+        full frame rate (`with_velocity`), so a subsampled frame still carries its instantaneous velocity.
         """
+        if velocity_period_s is not None:
+            return self.with_velocity(velocity_period_s).subsample(stride, num_frames, num_agents, start)
         stop = self.num_frames if num_frames is None else start + stride * (num_frames - 1) + 1
         if stop > self.num_frames:
             raise ValueError(f"{num_frames} frames at stride {stride} from frame {start} need {stop} frames; "
@@ -124,7 +131,24 @@ class Scene:
         if self.lanes is not None:
             upd["lanes"] = self.lanes[e + (fr,) + (slice(None),) * 3]
             upd["lanes_valid"] = self.lanes_valid[e + (fr, slice(None))]
+        if self.velocity is not None:
+            upd["velocity"] = self.velocity[e + (fr, slice(0, a), slice(None))]
         return self.replace(**upd)
+
+    def with_velocity(self, period_s: float) -> "Scene":
+        """The scene with `velocity` set from its own frames, `period_s` seconds apart (numpy or JAX leaves).
+
+        Frame t's velocity is the backward difference (xy[t] - xy[t-1]) / period_s where the agent is valid at
+        both frames, else zero (never a forward difference: that would show a model the future).
+        """
+        if period_s <= 0:
+            raise ValueError(f"velocity period must be positive, got {period_s}")
+        xp = jnp if isinstance(self.xy, jax.Array) else np
+        xy, valid = self.xy, self.valid
+        diff = (xy[..., 1:, :, :] - xy[..., :-1, :, :]) / period_s  # frame t-1 -> t, for t >= 1
+        ok = (valid[..., 1:, :] & valid[..., :-1, :])[..., None]
+        vel = xp.concatenate([xp.zeros_like(diff[..., :1, :, :]), xp.where(ok, diff, 0.0)], -3).astype(xy.dtype)
+        return self.replace(velocity=vel)
 
 
 def _scene_spec(scene: Scene) -> dict[str, tuple[tuple[Any, ...], Any]]:
@@ -142,6 +166,8 @@ def _scene_spec(scene: Scene) -> dict[str, tuple[tuple[Any, ...], Any]]:
     if scene.lanes is not None or scene.lanes_valid is not None:
         spec["lanes"] = (("T", "L", "P", 2), "f")
         spec["lanes_valid"] = (("T", "L"), "b")
+    if scene.velocity is not None:
+        spec["velocity"] = (("T", "A", 2), "f")
     return spec
 
 

@@ -12,6 +12,9 @@ concatenated. The learned MLP to the model width and the embedding of invisible 
 Paper configuration: x and y in [-300, 300) m with levels {1 m, 0.01 m} (600 and 100 bins); heading in
 [-180, 180) degrees with levels {20 deg, 1 deg} (18 and 20 bins). Values outside the representable range are
 clamped (never indexed out of bounds) and `count_clamped` says how many were.
+
+Optional extension (not in the paper; `model.velocity_inputs`): each agent's instantaneous velocity (vx, vy in
+m/s) quantized the same way and appended, so a model at a low frame rate still sees current motion.
 """
 
 from __future__ import annotations
@@ -58,28 +61,37 @@ class LevelSpec:
 
 @dataclasses.dataclass(frozen=True)
 class AgentTokenizer:
-    """The full agent tokenizer: x, y (metres) and heading (radians) specs.
+    """The full agent tokenizer: x, y (metres) and heading (radians) specs, and optionally a velocity spec
+    (m/s, used for both components).
 
-    `encode(xy f32[..., 2], heading f32[...]) -> f32[..., dim]` is the concatenated sinusoidal code.
+    `encode(xy f32[..., 2], heading f32[...][, velocity f32[..., 2]]) -> f32[..., dim]` is the concatenated
+    sinusoidal code.
     """
 
     x: LevelSpec
     y: LevelSpec
     heading: LevelSpec
+    velocity: LevelSpec | None = None
 
     @property
     def dim(self) -> int:
-        return self.x.dim + self.y.dim + self.heading.dim
+        v = 0 if self.velocity is None else 2 * self.velocity.dim
+        return self.x.dim + self.y.dim + self.heading.dim + v
 
     @classmethod
     def from_config(cls, cfg) -> "AgentTokenizer":
         """Builds from a model config with fields xy_range, xy_levels, xy_code_dim, heading_levels_deg,
-        heading_code_dim."""
+        heading_code_dim, and with `velocity_inputs` set also velocity_range, velocity_levels,
+        velocity_code_dim."""
         xy = LevelSpec(offset=float(cfg.xy_range), scales=tuple(float(s) for s in cfg.xy_levels),
                        code_dim=int(cfg.xy_code_dim))
         hd = LevelSpec(offset=180.0, scales=tuple(float(s) for s in cfg.heading_levels_deg),
                        code_dim=int(cfg.heading_code_dim), unit=180.0 / math.pi)
-        return cls(x=xy, y=xy, heading=hd)
+        vel = None
+        if cfg.get("velocity_inputs", False):
+            vel = LevelSpec(offset=float(cfg.velocity_range), scales=tuple(float(s) for s in cfg.velocity_levels),
+                            code_dim=int(cfg.velocity_code_dim))
+        return cls(x=xy, y=xy, heading=hd, velocity=vel)
 
     def quantize(self, xy: jax.Array, heading: jax.Array):
         """Level indices: ((i32[..., Nx], i32[..., Ny], i32[..., Nh]), clamped bool[...])."""
@@ -88,11 +100,17 @@ class AgentTokenizer:
         qh, ch = quantize(heading, self.heading)
         return (qx, qy, qh), cx | cy | ch
 
-    def encode(self, xy: jax.Array, heading: jax.Array) -> jax.Array:
-        """f32[..., dim] concatenated per-level sinusoidal codes of x, y and heading."""
+    def encode(self, xy: jax.Array, heading: jax.Array, velocity: jax.Array | None = None) -> jax.Array:
+        """f32[..., dim] concatenated per-level sinusoidal codes of x, y, heading (and vx, vy when the
+        tokenizer has a velocity spec, which then requires `velocity f32[..., 2]`)."""
         (qx, qy, qh), _ = self.quantize(xy, heading)
-        return jnp.concatenate(
-            [level_codes(qx, self.x), level_codes(qy, self.y), level_codes(qh, self.heading)], axis=-1)
+        codes = [level_codes(qx, self.x), level_codes(qy, self.y), level_codes(qh, self.heading)]
+        if self.velocity is not None:
+            if velocity is None:
+                raise ValueError("this tokenizer encodes velocity: pass velocity f32[..., 2]")
+            for c in range(2):
+                codes.append(level_codes(quantize(velocity[..., c], self.velocity)[0], self.velocity))
+        return jnp.concatenate(codes, axis=-1)
 
     def decode(self, qx, qy, qh):
         """Inverse of quantize: the lower corner of the finest cell (xy f32[..., 2], heading f32[...])."""

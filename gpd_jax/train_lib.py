@@ -6,7 +6,9 @@ frame t+1. Losses (weights from `config.loss`; official values 5, 5.73, 1, 1):
 * position: smooth-L1 (beta 1, metres), summed over x and y, averaged over valid target agents;
 * heading: smooth-L1 of the *wrapped* difference (radians), averaged over valid target agents;
 * valid: binary cross-entropy of the validity logit over every agent slot;
-* map: cross-entropy of the K-way map logits over map tokens of frames whose map is known.
+* map: cross-entropy of the K-way map logits over map tokens of frames whose map is known;
+* velocity (only for `velocity_inputs` models, weight `loss.velocity`): smooth-L1 (m/s) summed over vx and vy,
+  averaged over agents valid at both frames.
 
 The step is a pure function of (params, opt_state, batch); NNX only defines the parameter tree.
 """
@@ -39,18 +41,24 @@ def previous_frames(xy, valid):
 def loss_terms(model: GPD, scene: Scene) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide)."""
     t = scene.num_frames
+    vel = scene.velocity[:-1] if model.velocity_inputs and scene.velocity is not None else None
     tokens = model.embed(scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], scene.map_tokens[:-1],
-                         jnp.arange(t - 1))
+                         jnp.arange(t - 1), vel)
     hidden = forward(model, tokens)
     prev_xy, prev_valid = previous_frames(scene.xy[:-1], scene.valid[:-1])
-    pred = model.predict(hidden, scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], prev_xy, prev_valid)
+    pred = model.predict(hidden, scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], prev_xy, prev_valid, vel)
     tv = scene.valid[1:].astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(pred.xy - scene.xy[1:]), axis=-1)
     head = _smooth_l1(wrap_angle(pred.heading - scene.heading[1:]))
     bce = optax.sigmoid_binary_cross_entropy(pred.valid_logit, tv)
     ce = optax.softmax_cross_entropy_with_integer_labels(pred.map_logits, scene.map_tokens[1:])
     mv = jnp.broadcast_to(scene.map_valid[1:, None], ce.shape).astype(jnp.float32)
-    return {
+    terms = {}
+    if pred.velocity is not None:
+        both = tv * scene.valid[:-1]
+        terms["velocity_sum"] = jnp.sum(jnp.sum(_smooth_l1(pred.velocity - scene.velocity[1:]), -1) * both)
+        terms["velocity_count"] = jnp.sum(both)
+    return terms | {
         "position_sum": jnp.sum(pos * tv), "heading_sum": jnp.sum(head * tv), "agent_count": jnp.sum(tv),
         "valid_sum": jnp.sum(bce), "valid_count": jnp.asarray(bce.size, jnp.float32),
         "map_sum": jnp.sum(ce * mv), "map_count": jnp.sum(mv),
@@ -72,6 +80,9 @@ def batch_loss(model: GPD, scenes: Scene, weights) -> tuple[jax.Array, dict[str,
     }
     total = (weights.position * parts["position"] + weights.heading * parts["heading"]
              + weights.valid * parts["valid"] + weights.map * parts["map"])
+    if "velocity_sum" in terms:
+        parts["velocity"] = terms["velocity_sum"] / jnp.maximum(terms["velocity_count"], 1.0)
+        total = total + weights.velocity * parts["velocity"]
     parts["map_accuracy"] = terms["map_correct"] / n_map
     parts["loss"] = total
     return total, parts

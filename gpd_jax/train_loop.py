@@ -54,8 +54,11 @@ from gpd_jax.train_lib import TrainState, make_trainer
 
 # ----------------------------------------------------------------------------------------------- data
 def model_view(scene: Scene, config) -> Scene:
-    """The model's frames and slots of a stored scene (see `Scene.subsample`)."""
-    return scene.subsample(int(config.data.frame_stride), int(config.model.num_frames), int(config.model.num_agents))
+    """The model's frames and slots of a stored scene (see `Scene.subsample`), with stored-rate velocities for a
+    `velocity_inputs` model."""
+    m, d = config.model, config.data
+    period = float(d.get("frame_period_s", 0.1)) if m.get("velocity_inputs", False) else None
+    return scene.subsample(int(d.frame_stride), int(m.num_frames), int(m.num_agents), velocity_period_s=period)
 
 
 def resolve_data_dir(path: str) -> str:

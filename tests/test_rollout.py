@@ -173,3 +173,69 @@ def test_velocity_residual_with_a_zero_head_is_constant_velocity(velocity_setup)
     for k in range(1, m.num_frames - h + 1):
         np.testing.assert_allclose(np.asarray(out.xy[h - 1 + k])[both],
                                    (np.asarray(scene.xy[h - 1]) + k * v)[both], atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def kinematic_setup(tiny_config, tiny_scenes):
+    """A velocity_inputs model (positions regressed over xy + velocity * period) and scenes with velocities."""
+    from gpd_jax.model import GPD
+
+    cfg = tiny_config.model.copy_and_resolve_references()
+    cfg.predict_delta = True
+    cfg.velocity_residual = True
+    cfg.velocity_inputs = True
+    model = GPD(cfg, nnx.Rngs(2), frame_period_s=0.5)
+    scenes = jax.tree.map(jnp.asarray, tiny_scenes).with_velocity(0.5)
+    return model, cfg, scenes
+
+
+def test_velocity_inputs_cached_equals_recompute(kinematic_setup):
+    model, m, scenes = kinematic_setup
+    tasks = make_tasks(["scene_generation", "closed_loop"], m.num_map_tokens, m.num_agents)
+    graphdef, state = nnx.split(model)
+    scene = jax.tree.map(lambda x: x[0], scenes)
+
+    @jax.jit
+    def both(state):
+        mdl = nnx.merge(graphdef, state)
+        key = jax.random.key(0)
+        one = lambda t: (rollout(mdl, scene, t, key, m.num_history),
+                         rollout_recompute(mdl, scene, t, key, m.num_history))
+        return jax.vmap(one)(tasks)
+
+    cached, rec = both(state)
+    np.testing.assert_allclose(cached.xy, rec.xy, atol=1e-4)
+    np.testing.assert_array_equal(cached.valid, rec.valid)
+    # The velocity input matters: the same scene with other velocities rolls out differently.
+    other = jax.jit(lambda s: rollout(model, s, jax.tree.map(lambda x: x[0], tasks), jax.random.key(0),
+                                      m.num_history))(scene.replace(velocity=scene.velocity + 1.0))
+    assert not np.allclose(other.xy[m.num_history:], cached.xy[0, m.num_history:], atol=1e-3)
+
+
+def test_velocity_inputs_with_zero_heads_is_constant_velocity(kinematic_setup):
+    """Zero position and velocity heads: every agent continues at its logged current velocity (m/s x period)."""
+    model, m, scenes = kinematic_setup
+    graphdef, state = nnx.split(model)
+    mdl = nnx.merge(graphdef, jax.tree.map(lambda x: x, state))
+    for head in (mdl.pos_head, mdl.velocity_head):
+        last = head.linears[-1]
+        last.kernel[...] = jnp.zeros(last.kernel.shape)
+        last.bias[...] = jnp.zeros(last.bias.shape)
+    scene = jax.tree.map(lambda x: x[0], scenes)
+    scene = scene.replace(velocity=scene.velocity.at[m.num_history - 1].set(jnp.array([3.0, -1.0])))
+    task = make_task("traffic_simulation", m.num_map_tokens, m.num_agents)
+    out = jax.jit(lambda: rollout(mdl, scene, task, jax.random.key(0), m.num_history))()
+    h = m.num_history
+    keep = np.asarray(scene.valid[h - 1] & out.valid[h:].all(0))
+    assert keep.any()
+    for k in range(1, m.num_frames - h + 1):
+        np.testing.assert_allclose(np.asarray(out.xy[h - 1 + k])[keep],
+                                   (np.asarray(scene.xy[h - 1]) + k * 0.5 * np.array([3.0, -1.0]))[keep], atol=1e-3)
+
+
+def test_velocity_inputs_without_velocities_is_a_clear_error(kinematic_setup):
+    model, m, scenes = kinematic_setup
+    scene = jax.tree.map(lambda x: x[0], scenes).replace(velocity=None)
+    task = make_task("traffic_simulation", m.num_map_tokens, m.num_agents)
+    with pytest.raises(ValueError, match="velocity"):
+        rollout(model, scene, task, jax.random.key(0), m.num_history)

@@ -20,7 +20,8 @@ AGENT_KEYS = {f"{g}_{n}{s}" for g in ("ego", "agent") for n in ("ade", "fde", "c
 
 
 def tiny_config():
-    """gpd_tiny with the shipped map tokenizer (64 tokens, 128 codes) at 1 Hz: 3 history + 8 future frames."""
+    """gpd_tiny with the shipped map tokenizer (64 tokens, 128 codes) at 1 Hz: 3 history + 8 future frames, and
+    velocity inputs with the velocity residual, like the shipped model."""
     from gpd_jax.config import load_config
 
     c = load_config(os.path.join(ROOT, "configs", "gpd_tiny.py"))
@@ -29,6 +30,9 @@ def tiny_config():
     c.model.map_tokenizer = "checkpoints/map_tokenizer"
     c.model.num_frames = 11
     c.model.num_history = 3
+    c.model.predict_delta = True
+    c.model.velocity_residual = True
+    c.model.velocity_inputs = True
     if "data" not in c:
         import ml_collections
         c.data = ml_collections.ConfigDict({"dir": "", "frame_period_s": 0.1, "frame_stride": 1})

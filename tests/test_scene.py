@@ -28,3 +28,31 @@ def test_wrap_angle():
     w = np.asarray(wrap_angle(a))
     assert ((w >= -np.pi) & (w < np.pi)).all()
     np.testing.assert_allclose(np.cos(w), np.cos(np.asarray(a)), atol=1e-5)
+
+
+def test_with_velocity_and_subsample_keep_the_stored_rate_velocity():
+    """Velocities are backward differences at the full rate (zero without a valid previous frame), and a
+    subsampled scene keeps each kept frame's full-rate velocity, not the difference of the kept frames."""
+    t, a = 21, 3
+    s = empty_scene(t, a, 4)
+    time = np.arange(t, dtype=np.float32) * 0.1
+    xy = np.zeros((t, a, 2), np.float32)
+    xy[:, 0, 0] = 10.0 * time                    # ego: 10 m/s forward
+    xy[:, 1, 1] = 2.0 * time ** 2 / 2            # agent 1 accelerating laterally at 2 m/s^2
+    valid = np.ones((t, a), bool)
+    valid[:5, 2] = False                         # agent 2 appears at frame 5
+    s = s.replace(xy=jnp.asarray(xy), valid=jnp.asarray(valid))
+    v = np.asarray(s.with_velocity(0.1).velocity)
+    np.testing.assert_allclose(v[0], 0.0)
+    np.testing.assert_allclose(v[1:, 0], [[10.0, 0.0]] * (t - 1), atol=1e-3)
+    np.testing.assert_allclose(v[1:, 1, 1], 2.0 * (time[1:] - 0.05), atol=1e-3)
+    np.testing.assert_allclose(v[:6, 2], 0.0)
+    view = s.subsample(10, 3, 2, velocity_period_s=0.1).validate()
+    assert view.velocity.shape == (3, 2, 2)
+    np.testing.assert_allclose(np.asarray(view.velocity[2, 1, 1]), 2.0 * 1.95, atol=1e-3)
+    # numpy leaves work too (the data loader's batches)
+    npv = s.replace(xy=xy, valid=valid).with_velocity(0.1).velocity
+    assert isinstance(npv, np.ndarray)
+    np.testing.assert_allclose(npv, v, atol=1e-5)
+    with pytest.raises(ValueError, match="positive"):
+        s.with_velocity(0.0)

@@ -73,3 +73,18 @@ def test_generic_levels_and_jit():
     q, _ = jax.jit(lambda p: quantize(p, spec))(jnp.array([-10.0, 3.7, 9.9]))
     np.testing.assert_array_equal(np.asarray(q), [[0, 0, 0], [2, 3, 1], [3, 4, 1]])
     np.testing.assert_allclose(np.asarray(dequantize(q, spec)), [-10.0, 3.5, 9.5])
+
+
+def test_velocity_codes_are_optional_and_appended():
+    cfg = load_config(f"{ROOT}/configs/gpd_paper.py", ["--config.model.velocity_inputs=true"]).model
+    vt = AgentTokenizer.from_config(cfg)
+    plain = AgentTokenizer.from_config(load_config(f"{ROOT}/configs/gpd_paper.py").model)
+    assert vt.velocity.bins == (100, 20)
+    assert vt.dim == plain.dim + 2 * 2 * cfg.velocity_code_dim
+    xy, hd = jnp.array([[1.5, -2.0]]), jnp.array([0.3])
+    a = vt.encode(xy, hd, jnp.array([[12.0, -0.5]]))
+    b = vt.encode(xy, hd, jnp.array([[12.0, -0.55]]))
+    np.testing.assert_allclose(a[..., : plain.dim], plain.encode(xy, hd))
+    assert not np.allclose(a, b)
+    with pytest.raises(ValueError, match="velocity"):
+        vt.encode(xy, hd)

@@ -51,3 +51,23 @@ def test_codebook_embedding_is_frozen_and_used():
     assert tok.shape == (m.num_frames, m.num_map_tokens + m.num_agents, m.d_model)
     assert not np.allclose(tok[:, : m.num_map_tokens], other[:, : m.num_map_tokens])
     np.testing.assert_allclose(tok[:, m.num_map_tokens:], other[:, m.num_map_tokens:])
+
+
+def test_velocity_inputs_add_a_velocity_loss_that_trains_its_head():
+    cfg = load_config(f"{ROOT}/configs/gpd_tiny.py", ["--config.model.predict_delta=true",
+                                                      "--config.model.velocity_residual=true",
+                                                      "--config.model.velocity_inputs=true"])
+    m = cfg.model
+    model = GPD(m, nnx.Rngs(0), frame_period_s=0.5)
+    trainer, state = make_trainer(model, cfg, donate=False)
+    scenes = synthetic_scenes(2, 4, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
+    ev = trainer.eval_step(state.params, scenes.with_velocity(0.5))
+    assert float(ev["velocity"]) > 0
+    np.testing.assert_allclose(float(ev["loss"]), sum(float(cfg.loss[k]) * float(ev[k]) for k in
+                                                      ("position", "heading", "valid", "map", "velocity")), rtol=1e-5)
+    new = state
+    for _ in range(2):  # the warm-up's first learning rate is 0
+        new, _ = trainer.train_step(new, scenes.with_velocity(0.5))
+    moved = jax.tree.map(lambda a, b: float(np.abs(np.asarray(a) - np.asarray(b)).max()),
+                         new.params["velocity_head"], state.params["velocity_head"])
+    assert max(jax.tree.leaves(moved)) > 0

@@ -38,6 +38,8 @@ def _config(data_dir, **train):
     c.model.num_map_tokens = 64
     c.model.attn_chunk_frames = 3
     c.model.predict_delta = True
+    c.model.velocity_residual = True
+    c.model.velocity_inputs = True  # model views carry stored-rate velocities (train batches and validation)
     t = c.train
     t.batch_size, t.steps, t.warmup_steps = 4, 6, 2
     t.log_every, t.eval_every, t.checkpoint_every = 1, 3, 2
@@ -121,6 +123,7 @@ _DP_SCRIPT = textwrap.dedent("""
     c = _config("unused")
     m = c.model
     scenes = synthetic_scenes(1, 4, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
+    scenes = scenes.with_velocity(1.0)
     out = []
     for n in (1, 4):
         mesh = data_mesh(n)
