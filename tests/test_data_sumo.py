@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from gpd_jax.data import build, loader, preprocess, store, sumo
+from gpd_jax.data import build, loader, preprocess, sumo
 
 SMALL_SIM = sumo.SimConfig(warmup_s=60.0, record_s=30.0)
 

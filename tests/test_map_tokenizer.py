@@ -6,7 +6,6 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from gpd_jax.config import load_config
 from gpd_jax.map_tokenizer import core

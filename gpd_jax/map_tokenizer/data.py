@@ -15,8 +15,6 @@ import queue
 import threading
 from typing import Iterator
 
-import numpy as np
-
 from gpd_jax.map_tokenizer.synthetic import synthetic_lanes
 
 
