@@ -29,7 +29,7 @@ def plot_curves(records: list[dict], out_png: str, title: str = "") -> str:
     train = [r for r in records if r.get("split") == "train"]
     val = [r for r in records if r.get("split") not in ("train", None)]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    for key in ("loss", "position", "heading", "valid", "map"):
+    for key in ("loss", "position", "heading", "valid", "map", "velocity"):
         pts = [(r["step"], r[key]) for r in train if r.get(key) is not None]
         if pts:
             axes[0].plot(*zip(*pts), label=key, lw=1)
@@ -37,7 +37,7 @@ def plot_curves(records: list[dict], out_png: str, title: str = "") -> str:
     axes[0].set_title("training loss (weighted total and parts)")
     axes[0].set_xlabel("step")
     axes[0].legend(fontsize=8)
-    for key in ("loss", "position", "map"):
+    for key in ("loss", "position", "map", "velocity"):
         pts = [(r["step"], r[key]) for r in val if r.get(key) is not None]
         if pts:
             axes[1].plot(*zip(*pts), "o-", label=f"val {key}", lw=1)

@@ -3,8 +3,9 @@
 What `evaluate` does (the command line is `rollout.py` at the repository root):
 
 1. Reads the first N scenarios of a split in store order (10 Hz, 101 frames, 33 slots) and gives the model
-   `scene.subsample(frame_stride, num_frames, num_agents)`: the model's frame period is
-   `frame_stride * frame_period_s` (0.5 s for configs/gpd_sumo.py, 0.1 s for the paper), and the horizons
+   `EvalSpec.view(scene)` (`scene.subsample(frame_stride, num_frames, num_agents)`, plus stored-rate velocities
+   for a `velocity_inputs` model): the model's frame period is
+   `frame_stride * frame_period_s` (1 s for configs/gpd_sumo.py, 0.1 s for the paper), and the horizons
    3, 5 and 8 s become that many model frames (6 / 10 / 16 at 2 Hz, 30 / 50 / 80 at 10 Hz), labelled "3s" ...
 2. Map tokens come from the store where it has them (`map_valid`); otherwise the model's map tokenizer encodes
    the needed frames on the fly (rasterized polylines at each frame's `ego_pose`, as
