@@ -179,7 +179,7 @@ class GPD(nnx.Module):
         Returns:
           f32[F, N, d] with N = M + A, map tokens first.
         """
-        codes = self.tokenizer.encode(xy, heading, self._velocity(velocity))
+        codes = self.tokenizer.encode(xy, heading, self.input_velocity(velocity))
         agents = self.agent_mlp(codes)
         agents = jnp.where(valid[..., None], agents, self.oob[...])
         if self.codebook is not None:
@@ -191,7 +191,8 @@ class GPD(nnx.Module):
         return tokens + self.slot_emb[...] + jnp.take(self.frame_emb[...], frames, axis=0)[:, None, :]
 
     # ------------------------------------------------------------------ heads
-    def _velocity(self, velocity):
+    def input_velocity(self, velocity):
+        """`velocity` for a `velocity_inputs` model (a clear error if it is None), None for any other model."""
         if not self.velocity_inputs:
             return None
         if velocity is None:
@@ -216,7 +217,7 @@ class GPD(nnx.Module):
             base = valid[..., None]
             pxy = dxy + jnp.where(base, xy, 0.0)
             if self.velocity_residual and self.velocity_inputs:
-                pxy = pxy + jnp.where(base, self._velocity(velocity) * self.frame_period_s, 0.0)
+                pxy = pxy + jnp.where(base, self.input_velocity(velocity) * self.frame_period_s, 0.0)
             elif self.velocity_residual:
                 if prev_xy is None or prev_valid is None:
                     raise ValueError("a velocity-residual model needs prev_xy and prev_valid")
@@ -229,7 +230,7 @@ class GPD(nnx.Module):
         if self.velocity_inputs:
             pv = self.velocity_head(ha)
             if self.velocity_residual:
-                pv = pv + jnp.where(valid[..., None], self._velocity(velocity), 0.0)
+                pv = pv + jnp.where(valid[..., None], self.input_velocity(velocity), 0.0)
         return Prediction(xy=pxy, heading=ph, valid_logit=self.valid_head(ha)[..., 0],
                           map_logits=self.map_head(hm), velocity=pv)
 

@@ -44,13 +44,8 @@ def _log_inputs(model: GPD, scene: Scene, task: Task):
     """The log's frames as model inputs: xy, heading, valid (hidden agents removed), map tokens, velocity
     (zeros for a model without velocity inputs)."""
     valid = scene.valid & ~task.hidden[None, :]
-    if scene.velocity is None:
-        if model.velocity_inputs:
-            raise ValueError("a velocity_inputs model needs Scene.velocity (Scene.subsample(..., "
-                             "velocity_period_s=...))")
-        vel = jnp.zeros_like(scene.xy)
-    else:
-        vel = scene.velocity
+    vel = model.input_velocity(scene.velocity)  # raises if the model needs velocities and the scene has none
+    vel = jnp.zeros_like(scene.xy) if vel is None else vel
     return scene.xy, scene.heading, valid, scene.map_tokens, vel
 
 

@@ -50,7 +50,8 @@ class Scene:
         (SLEDGE processing: L=50 nearest lines, P=20 points each).
       lanes_valid: optional bool[..., T, L] which lane slots are present.
       velocity: optional f32[..., T, A, 2] instantaneous velocity (m/s, scene frame) of each agent, a finite
-        difference at the stored frame rate (see `subsample`); zero where no neighbouring frame is valid.
+        backward difference at the stored frame rate (see `with_velocity`); zero where the agent was not
+        valid in the previous frame, and at frame 0.
     """
 
     xy: jax.Array

@@ -41,7 +41,8 @@ def previous_frames(xy, valid):
 def loss_terms(model: GPD, scene: Scene) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide)."""
     t = scene.num_frames
-    vel = scene.velocity[:-1] if model.velocity_inputs and scene.velocity is not None else None
+    vel = model.input_velocity(scene.velocity)
+    vel = None if vel is None else vel[:-1]
     tokens = model.embed(scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], scene.map_tokens[:-1],
                          jnp.arange(t - 1), vel)
     hidden = forward(model, tokens)
