@@ -137,31 +137,43 @@ def velocity_setup(tiny_config, tiny_scenes):
     return model, cfg, jax.tree.map(jnp.asarray, tiny_scenes)
 
 
-def test_velocity_residual_cached_equals_recompute(velocity_setup):
-    model, m, scenes = velocity_setup
-    task = make_task("scene_generation", m.num_map_tokens, m.num_agents)
+def _cached_and_recompute(model, scene, task_names, m):
+    """Both rollouts of one scene under each named task (one jitted call; outputs with a leading task dim)."""
+    tasks = make_tasks(task_names, m.num_map_tokens, m.num_agents)
     graphdef, state = nnx.split(model)
-    scene = jax.tree.map(lambda x: x[0], scenes)
 
     @jax.jit
     def both(state):
         mdl = nnx.merge(graphdef, state)
         key = jax.random.key(0)
-        return (rollout(mdl, scene, task, key, m.num_history),
-                rollout_recompute(mdl, scene, task, key, m.num_history))
+        one = lambda t: (rollout(mdl, scene, t, key, m.num_history),
+                         rollout_recompute(mdl, scene, t, key, m.num_history))
+        return jax.vmap(one)(tasks)
 
-    cached, rec = both(state)
+    return both(state)
+
+
+def _with_zero_heads(model, *heads):
+    """A copy of `model` whose named heads output exactly 0 (last layer's kernel and bias zeroed)."""
+    graphdef, state = nnx.split(model)
+    mdl = nnx.merge(graphdef, jax.tree.map(lambda x: x, state))
+    for name in heads:
+        last = getattr(mdl, name).linears[-1]
+        last.kernel[...] = jnp.zeros(last.kernel.shape)
+        last.bias[...] = jnp.zeros(last.bias.shape)
+    return mdl
+
+
+def test_velocity_residual_cached_equals_recompute(velocity_setup):
+    model, m, scenes = velocity_setup
+    cached, rec = _cached_and_recompute(model, jax.tree.map(lambda x: x[0], scenes), ["scene_generation"], m)
     np.testing.assert_allclose(cached.xy, rec.xy, atol=1e-4)
     np.testing.assert_array_equal(cached.valid, rec.valid)
 
 
 def test_velocity_residual_with_a_zero_head_is_constant_velocity(velocity_setup):
     model, m, scenes = velocity_setup
-    graphdef, state = nnx.split(model)
-    mdl = nnx.merge(graphdef, jax.tree.map(lambda x: x, state))
-    last = mdl.pos_head.linears[-1]
-    last.kernel[...] = jnp.zeros(last.kernel.shape)
-    last.bias[...] = jnp.zeros(last.bias.shape)
+    mdl = _with_zero_heads(model, "pos_head")
     scene = jax.tree.map(lambda x: x[0], scenes)
     task = make_task("traffic_simulation", m.num_map_tokens, m.num_agents)
     out = jax.jit(lambda: rollout(mdl, scene, task, jax.random.key(0), m.num_history))()
@@ -191,23 +203,13 @@ def kinematic_setup(tiny_config, tiny_scenes):
 
 def test_velocity_inputs_cached_equals_recompute(kinematic_setup):
     model, m, scenes = kinematic_setup
-    tasks = make_tasks(["scene_generation", "closed_loop"], m.num_map_tokens, m.num_agents)
-    graphdef, state = nnx.split(model)
     scene = jax.tree.map(lambda x: x[0], scenes)
-
-    @jax.jit
-    def both(state):
-        mdl = nnx.merge(graphdef, state)
-        key = jax.random.key(0)
-        one = lambda t: (rollout(mdl, scene, t, key, m.num_history),
-                         rollout_recompute(mdl, scene, t, key, m.num_history))
-        return jax.vmap(one)(tasks)
-
-    cached, rec = both(state)
+    cached, rec = _cached_and_recompute(model, scene, ["scene_generation", "closed_loop"], m)
     np.testing.assert_allclose(cached.xy, rec.xy, atol=1e-4)
     np.testing.assert_array_equal(cached.valid, rec.valid)
     # The velocity input matters: the same scene with other velocities rolls out differently.
-    other = jax.jit(lambda s: rollout(model, s, jax.tree.map(lambda x: x[0], tasks), jax.random.key(0),
+    task = make_task("scene_generation", m.num_map_tokens, m.num_agents)
+    other = jax.jit(lambda s: rollout(model, s, task, jax.random.key(0),
                                       m.num_history))(scene.replace(velocity=scene.velocity + 1.0))
     assert not np.allclose(other.xy[m.num_history:], cached.xy[0, m.num_history:], atol=1e-3)
 
@@ -215,12 +217,7 @@ def test_velocity_inputs_cached_equals_recompute(kinematic_setup):
 def test_velocity_inputs_with_zero_heads_is_constant_velocity(kinematic_setup):
     """Zero position and velocity heads: every agent continues at its logged current velocity (m/s x period)."""
     model, m, scenes = kinematic_setup
-    graphdef, state = nnx.split(model)
-    mdl = nnx.merge(graphdef, jax.tree.map(lambda x: x, state))
-    for head in (mdl.pos_head, mdl.velocity_head):
-        last = head.linears[-1]
-        last.kernel[...] = jnp.zeros(last.kernel.shape)
-        last.bias[...] = jnp.zeros(last.bias.shape)
+    mdl = _with_zero_heads(model, "pos_head", "velocity_head")
     scene = jax.tree.map(lambda x: x[0], scenes)
     scene = scene.replace(velocity=scene.velocity.at[m.num_history - 1].set(jnp.array([3.0, -1.0])))
     task = make_task("traffic_simulation", m.num_map_tokens, m.num_agents)
