@@ -12,6 +12,10 @@ recurrence). Two drivers share the chunk step:
   log-sum-exp are saved). Used for teacher-forced training and the recompute baseline.
 * `attend_dynamic`: a `lax.fori_loop` over the chunks that are filled so far (a traced trip count), used by
   the KV-cached rollout so a step never touches empty cache slots beyond the last partial chunk.
+
+On a CPU the KV-cached rollout can instead call a fused native kernel (`gpd_jax.native`, an XLA FFI custom
+call with the same semantics) that keeps score tiles in cache and uses every core: `kernel="native"`, or
+`"auto"` (the default) to use it whenever it builds and the computation runs on a CPU.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
+
+from gpd_jax import native
 
 _NEG = -1e30
 
@@ -125,7 +131,25 @@ def _flash_bwd(n, c, res, dout):
 _flash.defvjp(_flash_fwd, _flash_bwd)
 
 
-def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_len: int):
+KERNELS = ("auto", "xla", "native")
+
+
+def use_native(kernel: str) -> bool:
+    """Whether `attend_dynamic(..., kernel=kernel)` calls the native kernel."""
+    if kernel not in KERNELS:
+        raise ValueError(f"attention kernel {kernel!r}: expected one of {KERNELS}")
+    if kernel == "xla":
+        return False
+    if kernel == "native":
+        if jax.default_backend() != "cpu":
+            raise ValueError(f"the native attention kernel runs on CPU only (backend: {jax.default_backend()})")
+        if not native.available():
+            raise RuntimeError("the native attention kernel could not be built (see the warning above)")
+        return True
+    return jax.default_backend() == "cpu" and native.available()
+
+
+def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_len: int, kernel: str = "auto"):
     """Block-causal attention over the first `num_chunks` (traced) key chunks only.
 
     Same arguments as `attend_static` (q f32[H, Sq, Dh], k, v f32[H, S, Dh]) plus `q_frame: i32[Sq]` and
@@ -136,8 +160,18 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
     key chunk straight out of the batched cache: the score block of one scenario ([H, Sq, chunk], about a
     megabyte at paper size) stays in the CPU caches, where the memory-bound softmax runs several times
     faster per element than on a [B, H, Sq, chunk] block. The linear layers around it still see the batch.
+
+    `kernel`: "xla" (the above), "native" (the fused CPU kernel of `gpd_jax.native`, float32 only; same
+    results within float rounding) or "auto" (native when it is available, the default backend is a CPU and
+    q, k, v are float32).
     """
-    return _dynamic_kernel(tokens_per_frame, chunk_len)(q * (q.shape[-1] ** -0.5), k, v, q_frame, num_chunks)
+    q = q * (q.shape[-1] ** -0.5)
+    f32 = all(x.dtype == jnp.float32 for x in (q, k, v))
+    if kernel == "native" and not f32:
+        raise ValueError(f"the native attention kernel takes float32, got q {q.dtype}, k {k.dtype}, v {v.dtype}")
+    if f32 and use_native(kernel):
+        return native.block_causal_attention(q, k, v, q_frame, num_chunks, tokens_per_frame, chunk_len)
+    return _dynamic_kernel(tokens_per_frame, chunk_len)(q, k, v, q_frame, num_chunks)
 
 
 def _attend_one(q, q_frame, num_chunks, n, c, kv_slice):

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax.attention import attend_dynamic, attend_static, dense_block_causal
+from gpd_jax.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
 from gpd_jax.tokenizer import AgentTokenizer, sinusoid_table
 
@@ -132,6 +132,9 @@ class GPD(nnx.Module):
         self.chunk_len = int(cfg.attn_chunk_frames) * self.tokens_per_frame
         self.predict_delta = bool(cfg.predict_delta)
         self.dense_attention = cfg.get("train_attention", "flash") == "dense"
+        self.decode_attention = str(cfg.get("decode_attention", "auto"))
+        if self.decode_attention not in KERNELS:
+            raise ValueError(f"model.decode_attention {self.decode_attention!r}: expected one of {KERNELS}")
         self.velocity_residual = bool(cfg.get("velocity_residual", False))
         if self.velocity_residual and not self.predict_delta:
             raise ValueError("model.velocity_residual needs model.predict_delta")
@@ -297,7 +300,8 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
         vc = jax.lax.dynamic_update_slice_in_dim(cache.v[i], v.astype(cache.v[i].dtype), start, axis=1)
         ks.append(kc)
         vs.append(vc)
-        x = blk.finish(x, attend_dynamic(q, kc, vc, q_frame, num_chunks, n, model.chunk_len))
+        x = blk.finish(x, attend_dynamic(q, kc, vc, q_frame, num_chunks, n, model.chunk_len,
+                                         model.decode_attention))
     return x.reshape(f, n, d), KVCache(k=tuple(ks), v=tuple(vs))
 
 

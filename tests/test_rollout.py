@@ -99,6 +99,27 @@ def test_one_trace_for_mixed_task_batches(setup):
         np.testing.assert_allclose(np.asarray(out_a.xy[i]), np.asarray(one.xy), atol=1e-4)
 
 
+def test_xla_and_native_decode_attention_give_the_same_rollout(setup):
+    """The rollout's two attention kernels (cached == recompute above runs the default, native on a CPU)."""
+    from gpd_jax.attention import use_native
+
+    graphdef, state, m, scenes = setup
+    if not use_native("auto"):
+        pytest.skip("the native attention kernel is unavailable here")
+    tasks = make_tasks(["scene_generation", "closed_loop", "map_prediction"], m.num_map_tokens, m.num_agents)
+    keys = jax.random.split(jax.random.key(0), 3)
+    outs = {}
+    for kernel in ("xla", "native"):
+        model = nnx.merge(graphdef, state)
+        model.decode_attention = kernel
+        g = nnx.graphdef(model)
+        outs[kernel] = jax.jit(lambda s, sc, t, k: rollout_batch(nnx.merge(g, s), sc, t, k, m.num_history))(
+            state, scenes, tasks, keys)
+    np.testing.assert_allclose(outs["xla"].xy, outs["native"].xy, atol=1e-4)
+    np.testing.assert_array_equal(outs["xla"].map_tokens, outs["native"].map_tokens)
+    np.testing.assert_array_equal(outs["xla"].valid, outs["native"].valid)
+
+
 def test_mask_future_frames_do_not_leak(setup):
     """A token's output is unchanged when a later frame changes and changes when its own frame changes."""
     graphdef, state, m, scenes = setup
