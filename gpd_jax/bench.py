@@ -1,14 +1,17 @@
 """Benchmarks that print figures (never timed tests).
 
     python -m gpd_jax.bench rollout --config configs/gpd_paper.py --batch 1 16 --json PATH
-        [--future-frames F] [--recompute-points K] [--repeats R] [--config.model.x=y ...]
+        [--future-frames F] [--recompute-points K] [--repeats R] [--decode-attention native xla]
+        [--config.model.x=y ...]
 
 Measures, in one run (so ratios are meaningful on a noisy shared machine):
 
 * `matmul_gflops`: throughput of a large fp32 matmul (4096^2 x 4096^2 by default), the machine's ceiling.
 * cached rollout per scenario at each batch size (a batch that mixes all six tasks, random weights,
   synthetic scenes), with its compile time. A batch is sharded over the local devices (on a CPU, one XLA
-  device per core; see gpd_jax/parallel.py), so batches use every core; batch 1 runs on one device;
+  device per core; see gpd_jax/parallel.py), so batches use every core; batch 1 runs on one device. With
+  `--decode-attention native xla` every batch size is measured with each attention kernel of the rollout
+  (the fused native CPU kernel of gpd_jax/native.py, which uses every core by itself, and the pure-XLA one);
 * the recompute rollout (the official method: a full forward over the whole prefix for every future frame,
   same model and weights) at batch 1. Timing 80 forwards of up to 9.7k tokens takes many minutes on a CPU,
   so by default a forward is timed at K prefix lengths spread over [H, T-1], a quadratic in the prefix
@@ -24,6 +27,7 @@ Measures, in one run (so ratios are meaningful on a noisy shared machine):
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import statistics
@@ -36,6 +40,7 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax import parallel
+from gpd_jax.attention import KERNELS, use_native
 from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
 from gpd_jax.rollout import rollout_batch, rollout_recompute
@@ -108,16 +113,19 @@ def bench_rollout(args, overrides) -> dict:
     mm = matmul_gflops(args.matmul_size)
     _log(f"matmul: {mm:.1f} GFLOP/s")
     model = GPD(m, nnx.Rngs(cfg.seed))
-    graphdef, state = nnx.split(model)
+    state = nnx.state(model)
     config_name = os.path.splitext(os.path.basename(args.config))[0]
 
-    def cached(state, scenes, tasks, keys):
+    def cached(graphdef, state, scenes, tasks, keys):
         return rollout_batch(nnx.merge(graphdef, state), scenes, tasks, keys, h, cfg.rollout.temperature)
 
     runs = []
     flops = rollout_flops(m, t_total, h)
     bytes_per_scenario = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * 4
-    for batch in args.batch:
+    kernels = args.decode_attention or [m.get("decode_attention", "auto")]
+    for kernel, batch in ((k, b) for k in kernels for b in args.batch):
+        model.decode_attention = kernel  # a static attribute: part of the graph definition
+        graphdef = nnx.graphdef(model)
         scenes = synthetic_scenes(batch, batch, t_total, h, m.num_agents, m.num_map_tokens, m.codebook_size)
         tasks = _mixed_tasks(batch, m)
         keys = jax.random.split(jax.random.key(1), batch)
@@ -125,11 +133,11 @@ def bench_rollout(args, overrides) -> dict:
         mesh = parallel.data_mesh(ndev)
         scenes, tasks, keys = parallel.shard_batch((scenes, tasks, keys), mesh)
         state_b = parallel.replicate(state, mesh)
-        cached_jit = jax.jit(parallel.data_parallel(cached, mesh))
+        cached_jit = jax.jit(parallel.data_parallel(functools.partial(cached, graphdef), mesh))
         t0 = time.perf_counter()
         compiled = cached_jit.lower(state_b, scenes, tasks, keys).compile()
         compile_s = time.perf_counter() - t0
-        _log(f"batch {batch}: compiled in {compile_s:.1f} s ({ndev} device(s))")
+        _log(f"batch {batch}, {kernel} attention: compiled in {compile_s:.1f} s ({ndev} device(s))")
         run = lambda: jax.block_until_ready(compiled(state_b, scenes, tasks, keys))
         run()
         t = _time(run, args.repeats)
@@ -137,6 +145,7 @@ def bench_rollout(args, overrides) -> dict:
         _log(f"batch {batch}: cached {per:.3f} s per scenario")
         runs.append({
             "config": config_name, "batch": batch, "future_frames": future, "devices": ndev,
+            "decode_attention": "native" if use_native(kernel) else "xla",
             "cached_s_per_scenario": per, "recompute_s_per_scenario": None, "speedup": None,
             "compile_s": compile_s, "achieved_gflops": flops * batch / t / 1e9,
             "kv_cache_bytes": bytes_per_scenario * batch,
@@ -194,21 +203,21 @@ def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, s
 def _print_table(out: dict) -> None:
     print(f"matmul fp32: {out['matmul_gflops']:.1f} GFLOP/s; cached rollout: "
           f"{out['rollout_gflop_per_scenario']:.1f} GFLOP per scenario")
-    head = ("config", "batch", "future", "cached s/scn", "recompute s/scn", "speedup", "compile s",
+    head = ("config", "attention", "batch", "future", "cached s/scn", "recompute s/scn", "speedup", "compile s",
             "GFLOP/s", "of matmul", "KV cache MiB")
     print(" | ".join(head))
     for r in out["runs"]:
         rec = "-" if r["recompute_s_per_scenario"] is None else f"{r['recompute_s_per_scenario']:.2f}"
         sp = "-" if r["speedup"] is None else f"{r['speedup']:.1f}x"
-        print(" | ".join([r["config"], str(r["batch"]), str(r["future_frames"]),
+        print(" | ".join([r["config"], r["decode_attention"], str(r["batch"]), str(r["future_frames"]),
                           f"{r['cached_s_per_scenario']:.3f}", rec, sp, f"{r['compile_s']:.1f}",
                           f"{r['achieved_gflops']:.1f}", f"{r['achieved_over_matmul']:.2f}",
                           f"{r['kv_cache_bytes'] / 2**20:.1f}"]))
-    if len(out["runs"]) > 1:
-        base = out["runs"][0]
-        for r in out["runs"][1:]:
-            print(f"batch {r['batch']} throughput per scenario = "
-                  f"{base['cached_s_per_scenario'] / r['cached_s_per_scenario']:.2f}x batch {base['batch']}")
+    for kernel in dict.fromkeys(r["decode_attention"] for r in out["runs"]):
+        runs = [r for r in out["runs"] if r["decode_attention"] == kernel]
+        for r in runs[1:]:
+            print(f"{kernel}: batch {r['batch']} throughput per scenario = "
+                  f"{runs[0]['cached_s_per_scenario'] / r['cached_s_per_scenario']:.2f}x batch {runs[0]['batch']}")
     if "recompute_method" in out:
         print(f"recompute: {out['recompute_method']}")
 
@@ -228,6 +237,9 @@ def main(argv=None) -> None:
     r.add_argument("--matmul-size", type=int, default=4096)
     r.add_argument("--devices", type=int, default=None,
                    help="shard each batch over this many local devices (default: all; on a CPU one per core)")
+    r.add_argument("--decode-attention", nargs="+", choices=KERNELS, default=None,
+                   help="attention kernel(s) of the cached rollout, each measured at every batch size "
+                        "(default: the config's model.decode_attention)")
     r.add_argument("--json", default=None, help="write the results here")
     args = p.parse_args(rest)
     parallel.use_host_cores()
