@@ -3,8 +3,9 @@
 // Why: in the KV-cached rollout, attention of one frame's queries against the filled cache is almost all of
 // the work, and XLA:CPU cannot fuse a dot with a softmax: it writes every score block to memory, reads it
 // back for the max, again for the exponentials, and runs those elementwise passes on one thread. This kernel
-// keeps a [query tile x key block] of scores in registers / L1, uses an online softmax, and spreads
-// (scenario, head, query tile) work items over XLA's intra-op thread pool.
+// transposes each 128-key block once into L1, keeps one query's 128 scores and its output accumulator in
+// vector registers, uses an online softmax, and spreads (scenario, head) work items over XLA's intra-op
+// thread pool.
 //
 // Semantics (identical to gpd_jax.attention.attend_dynamic): query i of a scenario sees key positions
 // p < min((q_frame[i] + 1) * tokens_per_frame, num_chunks * chunk_len, S), i.e. its own and earlier frames,
