@@ -3,7 +3,7 @@
 The only kernel is the fused block-causal attention of the KV-cached rollout
 (`gpd_jax/kernels/block_causal_attention.cc`, semantics of `attention.attend_dynamic`). XLA:CPU cannot fuse a
 dot with a softmax, so the pure-XLA decode step is memory-bound and single-threaded; the kernel keeps score
-tiles in cache and uses the intra-op thread pool (see `python -m gpd_jax.bench rollout --attention-kernel`).
+tiles in cache and uses the intra-op thread pool (see `python -m gpd_jax.bench rollout --decode-attention native xla`).
 
 The shared library is compiled once per source, compiler flags, JAX version and CPU into
 `$GPD_JAX_CACHE` (default `~/.cache/gpd_jax/kernels`), written to a temporary file and renamed. When no
