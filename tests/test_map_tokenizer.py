@@ -148,6 +148,38 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     np.testing.assert_array_equal(tok2.encode(tok2.params, rasters), tokens)
     p2, l2 = tok2.decode(tok2.params, tokens)
     np.testing.assert_allclose(p2, pts, atol=0.1)  # float16 export
+    # the export makes the same tokens, so it has the workdir's fingerprint; other parameters do not
+    assert tok2.fingerprint() == tok.fingerprint() != tok3.fingerprint()
+    _check_encode_cli(tmp_path, out, tok2)
+
+
+def _check_encode_cli(tmp_path, checkpoint, tok):
+    """`python -m gpd_jax.map_tokenizer encode` writes every frame's tokens and skips what it already did."""
+    from data_fixtures import write_small_store
+    from gpd_jax.data import store
+    from gpd_jax.map_tokenizer.__main__ import main
+    from gpd_jax.map_tokenizer.raster import rasterize
+    d = str(tmp_path / "ds")
+    write_small_store(d, n_shards=2, per_shard=1)
+    path = os.path.join(store.shard_dir(d, "train", 1), store.MAP_TOKENS)
+    main(["encode", "--checkpoint", checkpoint, "--data", d])
+    sh = store.Shard(store.shard_dir(d, "train", 0))
+    a = sh.read(0)
+    r = tok.config.raster
+    want = tok.encode(tok.params, rasterize(a["polylines"], a["polyline_valid"], a["ego_pose"], size=r.size,
+                                            pixel_size=r.pixel_size, max_segment_length=r.max_segment_length))
+    np.testing.assert_array_equal(sh.map_tokens[0], want)
+    assert store.map_tokens_source(d, "train", 1) == tok.fingerprint()
+    stamp = os.stat(path).st_ino  # a rewrite is a new file (temporary + rename)
+    main(["encode", "--checkpoint", checkpoint, "--data", d])  # nothing to do: both shards are skipped
+    assert os.stat(path).st_ino == stamp
+    store.save_map_tokens(d, "train", 1, np.asarray(sh.map_tokens))  # tokens of unknown origin ...
+    assert store.map_tokens_source(d, "train", 1) is None
+    main(["encode", "--checkpoint", checkpoint, "--data", d])  # ... are re-encoded
+    assert store.map_tokens_source(d, "train", 1) == tok.fingerprint()
+    stamp = os.stat(path).st_ino
+    main(["encode", "--checkpoint", checkpoint, "--data", d, "--force"])
+    assert os.stat(path).st_ino != stamp
 
 
 def test_auction_matches_scipy_total_cost():

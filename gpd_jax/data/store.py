@@ -46,6 +46,7 @@ FORMAT_VERSION = 1
 MANIFEST = "dataset.json"
 SPLITS = ("train", "val", "test")
 MAP_TOKENS = "map_tokens.npy"
+MAP_TOKENS_SOURCE = "map_tokens.json"  # which tokenizer wrote map_tokens.npy (see `save_map_tokens`)
 NUM_MAP_TOKENS = 64
 
 
@@ -231,7 +232,8 @@ class Shard:
         return out
 
 
-def save_map_tokens(data_dir: str, split: str, shard_index: int, tokens: np.ndarray) -> str:
+def save_map_tokens(data_dir: str, split: str, shard_index: int, tokens: np.ndarray,
+                    tokenizer: str | None = None) -> str:
     """Stores the map tokenizer's tokens of one shard next to its samples (atomic write).
 
     Args:
@@ -239,6 +241,8 @@ def save_map_tokens(data_dir: str, split: str, shard_index: int, tokens: np.ndar
       split: split name.
       shard_index: the shard's index j (directory `shard_<jjjjj>`; see `shard_indices`).
       tokens: uint8/int[n, T, 64] codebook indices (must fit in uint8), n = the shard's sample count.
+      tokenizer: an identifier of the tokenizer that produced them (`MapTokenizer.fingerprint`), recorded in
+        `<shard>/map_tokens.json` so that a later `encode` can skip shards it already did.
     Returns the written path (`<shard>/map_tokens.npy`, stored as uint8).
     """
     path = shard_dir(data_dir, split, shard_index)
@@ -254,8 +258,25 @@ def save_map_tokens(data_dir: str, split: str, shard_index: int, tokens: np.ndar
     if tokens.dtype.kind not in "iu" or tokens.size and (tokens.min() < 0 or tokens.max() > 255):
         raise ValueError("map tokens must be integers in [0, 255]")
     out = os.path.join(path, MAP_TOKENS)
+    src = os.path.join(path, MAP_TOKENS_SOURCE)
+    if os.path.exists(src):  # never leave a stale record beside new tokens
+        os.remove(src)
     atomic_save_npy(out, tokens.astype(np.uint8))
+    if tokenizer is not None:
+        atomic_write_json(src, {"tokenizer": tokenizer, "shape": list(tokens.shape)})
     return out
+
+
+def map_tokens_source(data_dir: str, split: str, shard_index: int) -> str | None:
+    """The `tokenizer` identifier recorded with a shard's map tokens, or None (no tokens, or no record)."""
+    path = shard_dir(data_dir, split, shard_index)
+    if not os.path.isfile(os.path.join(path, MAP_TOKENS)):
+        return None
+    try:
+        with open(os.path.join(path, MAP_TOKENS_SOURCE)) as f:
+            return json.load(f).get("tokenizer")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def shard_indices(data_dir: str, split: str) -> list[int]:

@@ -1,7 +1,7 @@
 """Command line of the map tokenizer.
 
   python -m gpd_jax.map_tokenizer evaluate [--checkpoint DIR] --data DIR [--split test] [--json PATH]
-  python -m gpd_jax.map_tokenizer encode [--checkpoint DIR] --data DIR [--splits train val test]
+  python -m gpd_jax.map_tokenizer encode [--checkpoint DIR] --data DIR [--splits train val test] [--force]
   python -m gpd_jax.map_tokenizer export --workdir WORKDIR [--out checkpoints/map_tokenizer]
   python -m gpd_jax.map_tokenizer bench [--batch 64]
 
@@ -9,7 +9,9 @@
 `gpd_jax.metrics.map` against the frames' SLEDGE vector lanes: f1 (paper-faithful, 1.5 m), precision, recall,
 lateral, chamfer (paper-faithful, m^2), chamfer_corrected (set-based, metres), plus codebook_usage (fraction
 of codes used by the evaluated tokens) and perplexity. Frames 0, s, 2s, ... (`--frame-stride s`) of every
-sample are evaluated. `encode` writes every frame's 64 tokens next to the samples (`save_map_tokens`).
+sample are evaluated. `encode` writes every frame's 64 tokens next to the samples (`save_map_tokens`) and
+records the tokenizer's fingerprint with them; shards this tokenizer already encoded are skipped, so an
+interrupted run resumes (`--force` re-encodes).
 The checkpoint defaults to the shipped one, `checkpoints/map_tokenizer/`.
 """
 
@@ -50,11 +52,12 @@ def cmd_encode(args) -> None:
     import jax
     import numpy as np
 
-    from gpd_jax.data.store import Shard, list_splits, save_map_tokens, shard_dir, shard_indices
+    from gpd_jax.data.store import Shard, list_splits, map_tokens_source, save_map_tokens, shard_dir, shard_indices
     from gpd_jax.map_tokenizer.raster import rasterize
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
 
     tok = load_tokenizer(args.checkpoint)
+    fingerprint = tok.fingerprint()
     r = tok.config.raster
 
     @jax.jit
@@ -66,11 +69,14 @@ def cmd_encode(args) -> None:
     splits = args.splits or list_splits(args.data)
     for split in splits:
         for j in shard_indices(args.data, split):
+            if not args.force and map_tokens_source(args.data, split, j) == fingerprint:
+                print(f"{split} shard {j}: already encoded by this tokenizer ({fingerprint}), skipped")
+                continue
             shard = Shard(shard_dir(args.data, split, j))
             a = shard.arrays
             tokens = np.stack([np.asarray(encode_sample(tok.params, a["polylines"][i], a["polyline_valid"][i],
                                                         a["ego_pose"][i])) for i in range(shard.num_samples)])
-            path = save_map_tokens(args.data, split, j, tokens)
+            path = save_map_tokens(args.data, split, j, tokens, tokenizer=fingerprint)
             print(f"{split} shard {j}: {tokens.shape[0]} samples x {tokens.shape[1]} frames -> {path}")
 
 
@@ -104,6 +110,9 @@ def main(argv=None) -> int:
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     c.add_argument("--data", required=True)
     c.add_argument("--splits", nargs="*", default=None)
+    c.add_argument("--force", action="store_true",
+                   help="re-encode shards whose tokens this tokenizer already wrote (skipped by default, so an "
+                        "interrupted encode resumes)")
     x = sub.add_parser("export", help="write a training workdir's latest params as a compact checkpoint")
     x.add_argument("--workdir", required=True)
     x.add_argument("--out", default=DEFAULT_CHECKPOINT)

@@ -44,6 +44,21 @@ class MapTokenizer:
     def num_tokens(self) -> int:
         return int(self.config.model.grid) ** 2
 
+    def fingerprint(self) -> str:
+        """16 hex digits identifying the tokens this tokenizer produces: a SHA-256 over the raster settings and
+        the encoder and codebook parameters (float32; the decoder does not change tokens). An export and the
+        workdir it came from share it."""
+        import hashlib
+        h = hashlib.sha256(repr(sorted(self.config.raster.to_dict().items())).encode())
+        flat = flatten_params(jax.device_get(self.params))
+        for k in sorted(flat):
+            if k.startswith(("encoder/", "codebook/")):
+                a = np.ascontiguousarray(np.asarray(flat[k], np.float32))
+                h.update(k.encode())
+                h.update(repr(a.shape).encode())
+                h.update(a.tobytes())
+        return h.hexdigest()[:16]
+
     def encode(self, params, rasters: jax.Array) -> jax.Array:
         """Map tokens i32[..., 64] (row-major over the 8x8 grid, row 0 = front) of rasters f32[..., 256, 256]."""
         lead = rasters.shape[:-2]
