@@ -33,6 +33,20 @@ def test_round_trip_and_manifest(small_store):
     assert rec["agent_type"].dtype == np.int8
 
 
+def test_store_files_follow_the_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        d = str(tmp_path / "ds")
+        write_small_store(d, n_shards=1, per_shard=2)
+        store.save_map_tokens(d, "train", 0, np.zeros((2, 101, 64), np.uint8), tokenizer="t")
+    finally:
+        os.umask(old)
+    sh = store.shard_dir(d, "train", 0)
+    for p, mode in [(sh, 0o755), (os.path.join(d, "dataset.json"), 0o644), (os.path.join(sh, "meta.json"), 0o644),
+                    (os.path.join(sh, store.MAP_TOKENS), 0o644), (os.path.join(sh, store.MAP_TOKENS_SOURCE), 0o644)]:
+        assert os.stat(p).st_mode & 0o777 == mode, p
+
+
 def test_temporaries_are_not_shards(small_store):
     d, _ = small_store
     os.makedirs(os.path.join(d, "train", ".tmp-shard_00009-x"))
