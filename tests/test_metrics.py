@@ -9,6 +9,7 @@ import pytest
 from gpd_jax.metrics import (accumulate, agent_metric_sums, agent_metrics, box_corners, box_overlap_pairwise,
                              lateral_distances, map_metric_sums, map_metrics, reduce_agent_metrics,
                              reduce_map_metrics, set_chamfer)
+from gpd_jax.metrics.map import LENGTH_EDGES_M, length_labels
 
 SIZE = np.array([4.5, 1.9], np.float32)
 
@@ -215,6 +216,22 @@ def test_map_f1_shifted_lines_hand_computed():
     assert map_metrics(pred, logits, gt, gv, threshold=2.5)["map_f1"] == pytest.approx(2 * 40 / (80 + 20 + 0))
 
 
+def test_map_recall_by_gt_length():
+    gt, gv, pred, logits = _map_case()
+    gt[1] = np.stack([np.linspace(0.0, 3.0, 20), np.full(20, 10.0)], -1)  # a 3 m line
+    pred[0] = gt[0] + np.array([0.0, 0.5])  # every point a hit
+    pred[1] = gt[1] + np.array([0.0, 2.0])  # every point a miss
+    logits[:2] = 5.0
+    long_len = float(np.linalg.norm(np.diff(gt[0], axis=0), axis=-1).sum())
+    edges = (5.0, long_len - 1.0, long_len + 1.0)
+    r = map_metrics(pred, logits, gt, gv, length_edges=edges)
+    assert length_labels(edges)[0] == "<5 m" and len(length_labels(edges)) == 4
+    assert r["map_recall_by_length"][0] == 0.0 and r["map_recall_by_length"][2] == 1.0
+    assert np.isnan(r["map_recall_by_length"][1]) and np.isnan(r["map_recall_by_length"][3])  # no GT lines there
+    assert r["map_gt_points_by_length"] == [20.0, 0.0, 20.0, 0.0]
+    assert r["map_recall"] == pytest.approx(0.5)  # the groups split the overall recall
+
+
 def test_lateral_hand_computed():
     gt = jnp.array([[0.0, 0.0], [1.0, 0.0], [2.0, 1.0]])
     pred = jnp.array([[0.0, 1.0], [1.0, 0.5], [2.0, 2.0]])
@@ -263,7 +280,7 @@ def test_map_batch_aggregation_exact_per_step():
     gv = rng.random((b, s, q)) < 0.6
     pred = gt + rng.normal(size=gt.shape).astype(np.float32) * 0.8
     logits = rng.normal(size=(b, s, q)).astype(np.float32) * 3
-    fn = jax.jit(functools.partial(map_metric_sums, step_axis=1))
+    fn = jax.jit(functools.partial(map_metric_sums, step_axis=1, length_edges=LENGTH_EDGES_M))
     sums = fn(pred, logits, gt, gv)
     chex.assert_shape(sums["tp"], (s,))
     whole = reduce_map_metrics(sums)

@@ -32,7 +32,7 @@ from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.data import frame_batches
 from gpd_jax.map_tokenizer.model import MapVQVAE
 from gpd_jax.map_tokenizer.raster import rasterize
-from gpd_jax.metrics.map import map_metric_sums, reduce_map_metrics
+from gpd_jax.metrics.map import LENGTH_EDGES_M, length_labels, map_metric_sums, reduce_map_metrics
 
 
 class TrainState(NamedTuple):
@@ -106,7 +106,7 @@ def make_train_step(graphdef, config, tx):
 def make_eval_step(graphdef):
     def eval_step(params, raster, lanes, lanes_valid):
         out = core.forward(graphdef, params, raster)
-        sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid)
+        sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M)
         return sums, out["idx"]
 
     return eval_step
@@ -128,6 +128,7 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
         frames += int(np.shape(batch["lanes_valid"])[0])
     if total is None:
         raise ValueError("evaluation got no batches")
+    lanes_points = int(np.shape(batch["lanes"])[-2])
     m = reduce_map_metrics(total)
     p = counts / max(counts.sum(), 1.0)
     nz = p[p > 0]
@@ -138,6 +139,10 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
         "chamfer_corrected_skipped": m["map_chamfer_corrected_skipped"],
         "codebook_usage": float(np.mean(counts > 0)), "perplexity": float(np.exp(-np.sum(nz * np.log(nz)))),
         "frames": frames,
+        # diagnostic: the per-point recall for GT lines of each length, and how many GT lines each group has
+        "recall_by_gt_length": dict(zip(length_labels(), m["map_recall_by_length"])),
+        "gt_lines_by_length": dict(zip(length_labels(), (int(round(x / lanes_points)) for x in
+                                                         m["map_gt_points_by_length"]))),
     }
 
 
@@ -258,7 +263,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
         if s1 % tcfg.eval_every == 0 or s1 == tcfg.num_steps:
             last_eval = evaluate(graphdef, state.params, config, eval_batches(), eval_step)
             _write_metrics(metrics_path, dict(step=s1, split=config.data.eval_split, **last_eval))
-            bar.write(f"step {s1} eval: " + ", ".join(f"{k}={v:.4g}" for k, v in last_eval.items()))
+            bar.write(f"step {s1} eval: " + ", ".join(f"{k}={v:.4g}" for k, v in last_eval.items()
+                                                       if isinstance(v, (int, float))))
         if s1 % tcfg.checkpoint_every == 0 or s1 == tcfg.num_steps:
             mgr.save(s1, args=ocp.args.StandardSave(_to_tree(state)))
     mgr.wait_until_finished()

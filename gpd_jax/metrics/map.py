@@ -20,6 +20,10 @@ points of existing predicted lines (logit > 0) and the set of points of valid GT
 0.5 * (mean_p min_g |p - g| + mean_g min_p |g - p|), per frame; frames where either set is empty are skipped and
 counted in `map_chamfer_corrected_skipped`.
 
+Diagnostic ("map_recall_by_length", with `length_edges`): the paper's per-point recall, TP / (P * #GT lines),
+separately for GT lines grouped by arc length (e.g. short junction connectors against long through lanes),
+pooled over all frames and steps.
+
 Aggregation: `map_metric_sums` sums over every leading batch dim except an optional step axis (the future frame,
 kept when `step_axis` is given); `reduce_map_metrics` forms the ratios per step (TP/FP/FN and lateral / Chamfer
 sums pooled over the data set, as the official code does per step) and averages the per-step values over steps.
@@ -33,6 +37,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.metrics.matching import match_lines
+
+LENGTH_EDGES_M = (5.0, 15.0, 30.0, 60.0)  # default GT line length groups of the recall diagnostic, metres
+
+
+def length_labels(edges=LENGTH_EDGES_M) -> list[str]:
+    """Names of the length groups that `edges` (ascending, metres) make: '<5 m', '5-15 m', ..., '>=60 m'."""
+    e = [f"{x:g}" for x in edges]
+    return [f"<{e[0]} m"] + [f"{a}-{b} m" for a, b in zip(e[:-1], e[1:])] + [f">={e[-1]} m"]
+
 
 _SUM_KEYS = ("tp", "fp", "fn", "lateral_sum", "chamfer_sum", "chamfer_den", "chamfer_corrected_sum",
              "chamfer_corrected_count", "chamfer_corrected_skipped")
@@ -102,7 +115,8 @@ def set_chamfer(a: jax.Array, a_valid: jax.Array, b: jax.Array, b_valid: jax.Arr
 
 def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: jax.Array, gt_valid: jax.Array, *,
                     threshold: float = 1.5, step_axis: int | None = None,
-                    count_exact_hits: bool = False) -> dict[str, jax.Array]:
+                    count_exact_hits: bool = False,
+                    length_edges: tuple[float, ...] | None = None) -> dict[str, jax.Array]:
     """Sums and counts of the map metrics for a batch of decoded frames.
 
     Args:
@@ -115,6 +129,8 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
       step_axis: index (in the leading dims `...`, e.g. 1 for [B, T_future, ...]) of the future-step axis to keep,
         so that ratios are formed per step and then averaged over steps, as the official code does; None pools
         every frame as one step.
+      length_edges: ascending GT line lengths (metres, e.g. `LENGTH_EDGES_M`) that split the GT lines into
+        len + 1 groups; adds the sums of the recall-by-length diagnostic ("length_tp", "length_gt": f32[S, G]).
 
     Returns:
       {key: f32[S]} with S the step-axis length (1 if None); feed to `reduce_map_metrics`.
@@ -128,7 +144,8 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
     d = jnp.linalg.norm(matched - gt_points, axis=-1)  # [..., L, P]
     both = (matched_exists & gv)[..., None]
     tp_mask = both & ((d >= 0) if count_exact_hits else (d > 0)) & (d <= threshold)
-    tp = jnp.sum(tp_mask, (-2, -1)).astype(jnp.float32)
+    tp_line = jnp.sum(tp_mask, -1).astype(jnp.float32)  # [..., L]
+    tp = jnp.sum(tp_line, -1)
     n_pred = jnp.sum(pred_exists, -1).astype(jnp.float32)
     n_gt = jnp.sum(gv, -1).astype(jnp.float32)
     lat = jnp.sum(jnp.where(tp_mask, lateral_distances(matched, gt_points), 0.0), (-2, -1))
@@ -164,12 +181,26 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         ax = step_axis % lead if lead else 0
         return jnp.sum(jnp.moveaxis(x, ax, 0).reshape(x.shape[ax], -1), -1)
 
-    return {k: reduce(v) for k, v in per_frame.items()}
+    out = {k: reduce(v) for k, v in per_frame.items()}
+    if length_edges is not None:
+        glen = jnp.sum(jnp.linalg.norm(jnp.diff(gt_points, axis=-2), axis=-1), -1)  # [..., L]
+        group = jnp.searchsorted(jnp.asarray(length_edges, glen.dtype), glen, side="right")
+        onehot = jax.nn.one_hot(group, len(length_edges) + 1) * gv[..., None]  # [..., L, G]
+        for k, v in (("length_tp", jnp.einsum("...l,...lg->...g", tp_line, onehot)),
+                     ("length_gt", p * jnp.sum(onehot, -2))):
+            if step_axis is None:
+                out[k] = v.reshape(-1, v.shape[-1]).sum(0, keepdims=True)
+            else:
+                ax = step_axis % lead if lead else 0
+                v = jnp.moveaxis(v, ax, 0)
+                out[k] = v.reshape(v.shape[0], -1, v.shape[-1]).sum(1)
+    return out
 
 
 def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
     """Sums -> {map_f1, map_precision, map_recall, map_lateral, map_chamfer, map_chamfer_corrected,
-    map_chamfer_corrected_skipped}.
+    map_chamfer_corrected_skipped} (+ map_recall_by_length and map_gt_points_by_length, lists over the length
+    groups, when the sums have them).
 
     Per step: precision = TP/(TP+FP), recall = TP/(TP+FN), F1 = 2TP/(2TP+FP+FN) (= 2PR/(P+R)), lateral = sum/TP,
     Chamfer = sum/(2 P #GT lines), corrected Chamfer = mean over frames with both sets non-empty. Each is then the
@@ -198,10 +229,13 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         "map_chamfer": mean(ratio(s["chamfer_sum"], s["chamfer_den"])),
         "map_chamfer_corrected": mean(ratio(s["chamfer_corrected_sum"], s["chamfer_corrected_count"])),
         "map_chamfer_corrected_skipped": float(s["chamfer_corrected_skipped"].sum()),
+        **({"map_recall_by_length": [float(x) for x in ratio(s["length_tp"].sum(0), s["length_gt"].sum(0))],
+            "map_gt_points_by_length": [float(x) for x in s["length_gt"].sum(0)]} if "length_tp" in s else {}),
     }
 
 
-_map_metric_sums_jit = jax.jit(map_metric_sums, static_argnames=("threshold", "step_axis", "count_exact_hits"))
+_map_metric_sums_jit = jax.jit(map_metric_sums, static_argnames=("threshold", "step_axis", "count_exact_hits",
+                                                                 "length_edges"))
 
 
 def map_metrics(*args, **kwargs) -> dict[str, float]:
