@@ -1,6 +1,6 @@
 """Multi-task evaluation of a trained GPD model: rollouts of every task, metrics, baselines, pictures.
 
-    python rollout.py --data data/sumo3k --out runs/eval                         # checkpoints/gpd_sumo, test split
+    python rollout.py --data data/sumo6k --out runs/eval                         # checkpoints/gpd_sumo, test split
     python rollout.py --checkpoint DIR --data DIR [--split test] [--tasks all|a,b] --out DIR
                       [--scenarios N] [--batch B] [--render K] [--seed S] [--variant paper|corrected]
                       [--horizons 3,5,8] [--config.rollout.temperature=0.5]

@@ -11,9 +11,12 @@ velocity at the stored 10 Hz rate and a head predicts the next one (`velocity_in
 over the current velocity rather than the last 1 s displacement: the validation ADE ratio to 10 Hz constant
 velocity at step 500 went from 1.57 / 1.37 / 1.27 (without) to 0.99 / 0.99 / 0.99.
 
-    python -m gpd_jax.data build --source sumo --out data/sumo3k --scenarios 3000 --seed 0
-    python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data data/sumo3k
+    python -m gpd_jax.data build --source sumo --out data/sumo6k --scenarios 6000 --seed 11 --per-job 25
+    python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data data/sumo6k
     python train.py --config configs/gpd_sumo.py --workdir runs/gpd_sumo
+
+(240 networks, 25 scenes each; with 48 networks of 50 scenes the same model scored 0.03 worse at every horizon
+on held-out networks.)
 """
 
 import os
@@ -25,7 +28,7 @@ import gpd_paper  # noqa: E402
 
 def get_config():
     c = gpd_paper.get_config()
-    c.data.dir = "data/sumo3k"
+    c.data.dir = "data/sumo6k"
     c.data.frame_stride = 10
     m = c.model
     m.num_frames = 11
