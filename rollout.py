@@ -30,12 +30,6 @@ DEFAULT_CHECKPOINT = os.path.join(REPO_ROOT, "checkpoints", "gpd_sumo")
 PROG = "rollout.py"
 
 
-def _umask() -> int:
-    m = os.umask(0)
-    os.umask(m)
-    return m
-
-
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse exits on its own; main() turns it into a return code
         raise _UsageError(message)
@@ -72,12 +66,14 @@ def _fail(msg: str) -> int:
 
 
 def _atomic_write(path: str, text: str) -> None:
+    from gpd_jax.fsutil import umask_mode
+
     d = os.path.dirname(path)
     fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=os.path.basename(path))
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
-        os.chmod(tmp, 0o666 & ~_umask())
+        umask_mode(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -189,6 +185,7 @@ def main(argv=None) -> int:
 
     os.makedirs(out_dir, exist_ok=True)
     if items:
+        from gpd_jax.fsutil import umask_mode
         from gpd_jax.render import render_items
 
         t1 = time.perf_counter()
@@ -201,7 +198,7 @@ def main(argv=None) -> int:
                 old = tempfile.mkdtemp(prefix=".render-old-", dir=out_dir)
                 os.replace(final, os.path.join(old, "render"))
                 shutil.rmtree(old, ignore_errors=True)
-            os.chmod(tmp, 0o777 & ~_umask())
+            umask_mode(tmp, directory=True)
             os.replace(tmp, final)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)

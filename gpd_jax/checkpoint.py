@@ -22,6 +22,7 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
+from gpd_jax.fsutil import umask_mode
 from gpd_jax.model import GPD, build_model
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -114,9 +115,7 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=".export-", dir=parent)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; an export is meant to be shared
+    umask_mode(tmp, directory=True)  # mkdtemp makes it private; an export is meant to be shared
     try:
         config = ml_collections.ConfigDict(config.to_dict())
         if tokenizer_dir:

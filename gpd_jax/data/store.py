@@ -41,6 +41,7 @@ import numpy as np
 
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.preprocess import SAMPLE_SPEC
+from gpd_jax.fsutil import umask_mode
 
 FORMAT_VERSION = 1
 MANIFEST = "dataset.json"
@@ -58,14 +59,6 @@ def shard_dir(data_dir: str, split: str, index: int) -> str:
     return os.path.join(data_dir, split, shard_name(index))
 
 
-def _umask_mode(path: str, directory: bool = False) -> None:
-    """Gives a temporary from mkstemp/mkdtemp (private: 0600/0700) the mode a plain open/makedirs would have,
-    so that a data store can be read by the other users the umask allows."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, (0o777 if directory else 0o666) & ~umask)
-
-
 def atomic_write_json(path: str, obj: Any) -> None:
     d = os.path.dirname(path) or "."
     os.makedirs(d, exist_ok=True)
@@ -73,7 +66,7 @@ def atomic_write_json(path: str, obj: Any) -> None:
     try:
         with os.fdopen(fd, "w") as f:
             json.dump(obj, f, indent=1)
-        _umask_mode(tmp)
+        umask_mode(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -87,7 +80,7 @@ def atomic_save_npy(path: str, arr: np.ndarray) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             np.save(f, arr)
-        _umask_mode(tmp)
+        umask_mode(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -131,7 +124,7 @@ def write_shard(data_dir: str, split: str, index: int, arrays: dict[str, np.ndar
                 "scenario_ids": list(scenario_ids), "locations": list(locations), **(extra or {})}
         with open(os.path.join(tmp, "meta.json"), "w") as f:
             json.dump(meta, f)
-        _umask_mode(tmp, directory=True)
+        umask_mode(tmp, directory=True)
         os.replace(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

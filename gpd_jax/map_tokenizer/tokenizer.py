@@ -13,6 +13,7 @@ used). `export_tokenizer` writes the former (float16 by default, to keep the rep
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 from typing import Any
 
@@ -48,7 +49,6 @@ class MapTokenizer:
         """16 hex digits identifying the tokens this tokenizer produces: a SHA-256 over the raster settings and
         the encoder and codebook parameters (float32; the decoder does not change tokens). An export and the
         workdir it came from share it."""
-        import hashlib
         h = hashlib.sha256(repr(sorted(self.config.raster.to_dict().items())).encode())
         flat = flatten_params(jax.device_get(self.params))
         for k in sorted(flat):

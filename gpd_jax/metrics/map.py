@@ -174,26 +174,21 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
     }
     lead = tp.ndim
 
-    def reduce(x):
+    def reduce(x, groups: int = 0):  # sum over the leading dims but the step axis; keep `groups` trailing dims
         x = x.astype(jnp.float32)
+        tail = x.shape[x.ndim - groups:]
         if step_axis is None:
-            return jnp.sum(x).reshape(1)
-        ax = step_axis % lead if lead else 0
-        return jnp.sum(jnp.moveaxis(x, ax, 0).reshape(x.shape[ax], -1), -1)
+            return jnp.sum(x.reshape((-1,) + tail), 0)[None]
+        x = jnp.moveaxis(x, step_axis % lead if lead else 0, 0)
+        return jnp.sum(x.reshape((x.shape[0], -1) + tail), 1)
 
     out = {k: reduce(v) for k, v in per_frame.items()}
     if length_edges is not None:
         glen = jnp.sum(jnp.linalg.norm(jnp.diff(gt_points, axis=-2), axis=-1), -1)  # [..., L]
         group = jnp.searchsorted(jnp.asarray(length_edges, glen.dtype), glen, side="right")
         onehot = jax.nn.one_hot(group, len(length_edges) + 1) * gv[..., None]  # [..., L, G]
-        for k, v in (("length_tp", jnp.einsum("...l,...lg->...g", tp_line, onehot)),
-                     ("length_gt", p * jnp.sum(onehot, -2))):
-            if step_axis is None:
-                out[k] = v.reshape(-1, v.shape[-1]).sum(0, keepdims=True)
-            else:
-                ax = step_axis % lead if lead else 0
-                v = jnp.moveaxis(v, ax, 0)
-                out[k] = v.reshape(v.shape[0], -1, v.shape[-1]).sum(1)
+        out["length_tp"] = reduce(jnp.einsum("...l,...lg->...g", tp_line, onehot), groups=1)
+        out["length_gt"] = reduce(p * jnp.sum(onehot, -2), groups=1)
     return out
 
 
