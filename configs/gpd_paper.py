@@ -65,6 +65,8 @@ def get_config() -> ml_collections.ConfigDict:
     t.checkpoint_every = 500
     t.keep_checkpoints = 2
     t.loader_threads = 4
+    t.rollout_passes = 0        # >0: future frames' agent inputs are the model's own predictions (train_lib)
+    t.init_from = ""            # exported model or workdir whose parameters start a new run (fine-tuning)
 
     r = c.rollout = ml_collections.ConfigDict()
     r.temperature = 0.0         # 0: greedy (argmax) map tokens

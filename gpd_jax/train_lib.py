@@ -1,7 +1,10 @@
 """Teacher-forced losses, the optimizer and a jitted train step for the GPD transformer.
 
 Inputs are frames [0, T-1), targets frames [1, T): every slot's output at frame t predicts the same slot at
-frame t+1. Losses (weights from `config.loss`; official values 5, 5.73, 1, 1):
+frame t+1. With `train.rollout_passes` = k > 0 the agent inputs of the future frames are the model's own
+predictions instead (k teacher-forced passes without gradient; exact for the first k future frames), the
+targets still the log's: training then sees the inputs a rollout sees and learns to recover from its own
+errors. Losses (weights from `config.loss`; official values 5, 5.73, 1, 1):
 
 * position: smooth-L1 (beta 1, metres), summed over x and y, averaged over valid target agents;
 * heading: smooth-L1 of the *wrapped* difference (radians), averaged over valid target agents;
@@ -22,7 +25,7 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
-from gpd_jax.model import GPD, forward
+from gpd_jax.model import GPD, Prediction, forward
 from gpd_jax.scene import Scene, wrap_angle
 
 
@@ -38,16 +41,60 @@ def previous_frames(xy, valid):
             jnp.concatenate([jnp.zeros_like(valid[:1]), valid[:-1]], 0))
 
 
-def loss_terms(model: GPD, scene: Scene) -> dict[str, jax.Array]:
-    """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide)."""
-    t = scene.num_frames
+def teacher_forced(model: GPD, xy, heading, valid, map_tokens, velocity=None) -> Prediction:
+    """One teacher-forced pass: next-frame predictions from every frame's inputs.
+
+    xy f32[F, A, 2], heading f32[F, A], valid bool[F, A], map_tokens i32[F, M], velocity f32[F, A, 2] or None
+    (frames [0, F) of a scene) -> Prediction of frames [1, F + 1)."""
+    tokens = model.embed(xy, heading, valid, map_tokens, jnp.arange(xy.shape[0]), velocity)
+    hidden = forward(model, tokens)
+    prev_xy, prev_valid = previous_frames(xy, valid)
+    return model.predict(hidden, xy, heading, valid, prev_xy, prev_valid, velocity)
+
+
+def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int):
+    """The inputs a rollout would see, approximated by `passes` teacher-forced passes without gradient.
+
+    Frames [num_history, T-1) of agents valid there and in the previous frame take the model's own prediction
+    from the previous frame (xy, heading and, for a `velocity_inputs` model, velocity); everything else (map
+    tokens, validity, history frames, agents that just appeared) stays the log's. The model is causal over
+    frames, so after k passes the first k future frames equal a free-running rollout exactly (validity and
+    map kept from the log) and later frames approximate it. Returns (xy f32[T-1, A, 2], heading f32[T-1, A],
+    velocity f32[T-1, A, 2] or None).
+    """
+    xy, heading = scene.xy[:-1], scene.heading[:-1]
+    valid, maps = scene.valid[:-1], scene.map_tokens[:-1]
     vel = model.input_velocity(scene.velocity)
     vel = None if vel is None else vel[:-1]
-    tokens = model.embed(scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], scene.map_tokens[:-1],
-                         jnp.arange(t - 1), vel)
-    hidden = forward(model, tokens)
-    prev_xy, prev_valid = previous_frames(scene.xy[:-1], scene.valid[:-1])
-    pred = model.predict(hidden, scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], prev_xy, prev_valid, vel)
+    future = (jnp.arange(valid.shape[0]) >= num_history)[:, None]
+    own = future & valid & previous_frames(xy, valid)[1]
+
+    def take(logged, predicted):
+        shifted = jnp.concatenate([logged[:1], predicted[:-1]], 0)
+        mask = own.reshape(own.shape + (1,) * (logged.ndim - own.ndim))
+        return jnp.where(mask, jax.lax.stop_gradient(shifted), logged)
+
+    for _ in range(passes):
+        pred = teacher_forced(model, xy, heading, valid, maps, vel)
+        xy, heading = take(scene.xy[:-1], pred.xy), take(scene.heading[:-1], pred.heading)
+        if vel is not None:
+            vel = take(scene.velocity[:-1], pred.velocity)
+    return xy, heading, vel
+
+
+def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0) -> dict[str, jax.Array]:
+    """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide).
+
+    With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
+    predictions (`free_running_inputs`) while the targets stay the log's: the model learns to recover from its
+    own errors, as it must in a rollout."""
+    if rollout_passes > 0:
+        xy, heading, vel = free_running_inputs(model, scene, num_history, rollout_passes)
+    else:
+        xy, heading = scene.xy[:-1], scene.heading[:-1]
+        vel = model.input_velocity(scene.velocity)
+        vel = None if vel is None else vel[:-1]
+    pred = teacher_forced(model, xy, heading, scene.valid[:-1], scene.map_tokens[:-1], vel)
     tv = scene.valid[1:].astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(pred.xy - scene.xy[1:]), axis=-1)
     head = _smooth_l1(wrap_angle(pred.heading - scene.heading[1:]))
@@ -67,9 +114,10 @@ def loss_terms(model: GPD, scene: Scene) -> dict[str, jax.Array]:
     }
 
 
-def batch_loss(model: GPD, scenes: Scene, weights) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Weighted total loss over a batch of scenes (leading dim B) and its parts."""
-    terms = jax.vmap(lambda s: loss_terms(model, s))(scenes)
+def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0,
+               rollout_passes: int = 0) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Weighted total loss over a batch of scenes (leading dim B) and its parts (see `loss_terms`)."""
+    terms = jax.vmap(lambda s: loss_terms(model, s, num_history, rollout_passes))(scenes)
     terms = jax.tree.map(jnp.sum, terms)
     n_agents = jnp.maximum(terms["agent_count"], 1.0)
     n_map = jnp.maximum(terms["map_count"], 1.0)
@@ -138,9 +186,11 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     tx = make_optimizer(config.train)
     weights = config.loss
+    num_history = int(config.model.num_history)
+    passes = int(config.train.get("rollout_passes", 0))
 
     def loss_of(p, scenes):
-        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights)
+        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, num_history, passes)
 
     def train_step(state: TrainState, scenes: Scene):
         (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)

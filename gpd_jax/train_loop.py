@@ -3,7 +3,9 @@
 * Data: `gpd_jax.data.loader.make_loader` (grain; seeded shuffle, a new permutation per epoch), every batch cut
   to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. Map tokens must
   have been encoded into the store (`python -m gpd_jax.map_tokenizer encode --data DIR`).
-* Step: teacher forcing (`gpd_jax.train_lib`): AdamW, linear warm-up then cosine decay, global-norm clipping.
+* Step: teacher forcing (`gpd_jax.train_lib`): AdamW, linear warm-up then cosine decay, global-norm clipping;
+  with `train.rollout_passes` > 0 the future frames' agent inputs are the model's own predictions.
+  `train.init_from` (an exported model or a workdir) starts a new run from its parameters (fine-tuning).
 * Parallelism: the batch is split over every device of every process (a 1-D `data` mesh, `jax.sharding`);
   parameters and optimizer state are replicated; XLA's partitioner inserts the gradient all-reduce. Several
   hosts: `train.py --distributed` calls `jax.distributed.initialize()` first; each process then loads its own
@@ -111,6 +113,22 @@ def restore_params(workdir: str, model, config, step: int | None = None):
         raise FileNotFoundError(f"{workdir}: no checkpoints")
     _, state = make_trainer(model, config, donate=False)
     return _restore(mgr, state, step).params
+
+
+def initial_params(path: str, config):
+    """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its
+    model config must equal `config.model` (the map tokenizer's path aside)."""
+    from gpd_jax.checkpoint import load_model
+
+    src, model = load_model(path)
+    mine = json.loads(config.model.to_json())
+    theirs = json.loads(src.model.to_json())
+    diff = sorted(k for k in set(mine) | set(theirs)
+                  if k != "map_tokenizer" and mine.get(k) != theirs.get(k))
+    if diff:
+        raise ValueError(f"train.init_from {path}: its model config differs in " + ", ".join(
+            f"{k} ({theirs.get(k)!r} there, {mine.get(k)!r} here)" for k in diff))
+    return nnx.state(model, nnx.Param)
 
 
 # ----------------------------------------------------------------------------------------------- logging
@@ -293,6 +311,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     latest = mgr.latest_step()
     if latest is not None:
         state = _restore(mgr, state, latest)
+    elif tc.get("init_from"):
+        state = trainer.init_state(initial_params(str(tc.init_from), config))
     start = int(state.step)
     replicated = NamedSharding(mesh, PartitionSpec())
     state = jax.device_put(state, replicated)

@@ -166,3 +166,24 @@ def test_learning_curves_from_metrics_log(tmp_path):
     assert main([str(tmp_path), str(out)]) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main([str(tmp_path / "missing"), str(out)]) == 2
+
+
+def test_init_from_starts_a_new_run_from_a_models_parameters(store_dir, tmp_path):
+    from gpd_jax.checkpoint import export_model
+    from gpd_jax.model import build_model
+    from gpd_jax.train_loop import train_and_evaluate
+
+    c = _config(store_dir, eval_every=0)
+    src = str(tmp_path / "src")
+    export_model(nnx.state(build_model(c, seed=7), nnx.Param), c, src)
+    w = str(tmp_path / "w")
+    assert train_and_evaluate(_config(store_dir, eval_every=0, init_from=src), w, stop_after=0, quiet=True)["step"] == 0
+    fresh = nnx.state(build_model(c, seed=c.seed), nnx.Param)
+    for x, y, z in zip(*(jax.tree.leaves(t) for t in (_params(w), _params(src), fresh))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert any(not np.array_equal(np.asarray(y), np.asarray(z))
+               for y, z in zip(jax.tree.leaves(_params(src)), jax.tree.leaves(fresh)))
+    other = _config(store_dir, eval_every=0, init_from=src)
+    other.model.num_layers = 1
+    with pytest.raises(ValueError, match="init_from .* num_layers"):
+        train_and_evaluate(other, str(tmp_path / "w2"), stop_after=0, quiet=True)
