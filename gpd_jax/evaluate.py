@@ -579,7 +579,8 @@ def preflight(config, data_dir: str, split: str = "test", *, task_names: Sequenc
         raise EvalError(f"{n} scenarios asked for, but {split_dir} has only {available}")
     check_compatible(spec, config, first, split_dir, tokenizer)
     has_tokenizer = has_tokenizer or tokenizer is not None
-    store_has_tokens = bool(first["map_valid"].all())
+    model_frames = slice(0, spec.frame_stride * (spec.num_frames - 1) + 1, spec.frame_stride)
+    store_has_tokens = bool(first["map_valid"][model_frames].all())
     maps = map_task_names(names)
     if maps and not has_tokenizer:
         raise EvalError(f"tasks {', '.join(maps)} generate the map, but the model has no map tokenizer to decode "

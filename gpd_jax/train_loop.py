@@ -78,9 +78,14 @@ def _check_store(config, data_dir: str, split: str) -> int:
     if t < need or a < int(m.num_agents):
         raise DataError(os.path.join(data_dir, split), f"samples have {t} frames and {a} agent slots; the config "
                         f"needs {need} frames (stride {config.data.frame_stride}) and {m.num_agents} slots")
-    if not rec["map_valid"].all():
+    stride = int(config.data.frame_stride)
+    if not rec["map_valid"].any():
         raise DataError(os.path.join(data_dir, split), "no map tokens in this split; encode them first: "
-                        f"python -m gpd_jax.map_tokenizer encode --data {data_dir}")
+                        f"python -m gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride {stride}")
+    if not rec["map_valid"][:need:stride].all():
+        raise DataError(os.path.join(data_dir, split), f"map tokens are missing at some of the model's frames "
+                        f"(every {stride}th); encode them: python -m gpd_jax.map_tokenizer encode --data "
+                        f"{data_dir} --frame-stride {stride}")
     if rec["map_tokens"].shape[-1] != int(m.num_map_tokens):
         raise DataError(os.path.join(data_dir, split), f"{rec['map_tokens'].shape[-1]} map tokens per frame, "
                         f"config has {m.num_map_tokens}")
@@ -338,7 +343,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     with _Stop() as stop:
         try:
             while step < end and not stop.requested:
-                batch = _global_batch(model_view(next(it), config), mesh)
+                view = model_view(next(it), config)
+                if not np.all(view.map_valid):
+                    raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step {step + 1} "
+                                    "has model frames without map tokens; encode every shard: python -m "
+                                    f"gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
+                                    f"{config.data.frame_stride}")
+                batch = _global_batch(view, mesh)
                 state, parts = trainer.train_step(state, batch)
                 step += 1
                 window_n += bs

@@ -94,6 +94,21 @@ def test_map_tokens(small_store):
     assert s.map_valid[4:8].all() and not s.map_valid[:4].any()
     np.testing.assert_array_equal(s.map_tokens[4:8], tok)
     s.validate()
+    # frames that were not encoded (encode --frame-stride) load as map_valid False with token 0
+    part = tok.copy()
+    part[:, 1::10] = store.MISSING_MAP_TOKEN
+    store.save_map_tokens(d, "train", 2, part, tokenizer="t", frame_stride=10)
+    assert store.map_tokens_record(d, "train", 2)["frame_stride"] == 10
+    s = loader.load_split(d, "train")
+    want = np.ones(101, bool)
+    want[1::10] = False
+    np.testing.assert_array_equal(s.map_valid[8:12], np.broadcast_to(want, (4, 101)))
+    np.testing.assert_array_equal(s.map_tokens[8:12], np.where(want[:, None], tok, 0))
+    part[0, 1, 0] = 7  # a frame only partly marked missing
+    with pytest.raises(ValueError, match="only some tokens"):
+        store.save_map_tokens(d, "train", 2, part)
+    with pytest.raises(ValueError, match=r"\[0, 254\]"):
+        store.save_map_tokens(d, "train", 2, tok + 200)
 
 
 def _ids(batch):

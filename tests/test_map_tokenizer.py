@@ -180,6 +180,18 @@ def _check_encode_cli(tmp_path, checkpoint, tok):
     stamp = os.stat(path).st_ino
     main(["encode", "--checkpoint", checkpoint, "--data", d, "--force"])
     assert os.stat(path).st_ino != stamp
+    # --frame-stride S: the same tokens at frames 0, S, 2S, ...; the others stored as not encoded
+    full = np.array(store.Shard(store.shard_dir(d, "train", 0)).map_tokens)
+    main(["encode", "--checkpoint", checkpoint, "--data", d, "--frame-stride", "5", "--force"])
+    part = np.array(store.Shard(store.shard_dir(d, "train", 0)).map_tokens)
+    np.testing.assert_array_equal(part[:, ::5], full[:, ::5])
+    assert (np.delete(part, np.s_[::5], axis=1) == store.MISSING_MAP_TOKEN).all()
+    assert store.map_tokens_record(d, "train", 1)["frame_stride"] == 5
+    stamp = os.stat(path).st_ino
+    main(["encode", "--checkpoint", checkpoint, "--data", d, "--frame-stride", "10"])  # covered: skipped
+    assert os.stat(path).st_ino == stamp
+    main(["encode", "--checkpoint", checkpoint, "--data", d])  # every frame: not covered, re-encoded
+    assert os.stat(path).st_ino != stamp and store.map_tokens_record(d, "train", 1)["frame_stride"] == 1
 
 
 def test_auction_matches_scipy_total_cost():

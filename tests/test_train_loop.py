@@ -23,7 +23,10 @@ def _store(path):
     rng = np.random.default_rng(0)
     for split in ("train", "val"):
         for j in store.shard_indices(path, split):
-            store.save_map_tokens(path, split, j, rng.integers(0, 32, (4, 101, 64)).astype(np.uint8))
+            # only the model's frames (every 10th), as `encode --frame-stride 10` writes them
+            tokens = np.full((4, 101, 64), store.MISSING_MAP_TOKEN, np.uint8)
+            tokens[:, ::10] = rng.integers(0, 32, (4, 11, 64))
+            store.save_map_tokens(path, split, j, tokens, frame_stride=10)
     return path
 
 
@@ -95,6 +98,20 @@ def test_store_without_map_tokens_is_refused(tmp_path):
     with pytest.raises(DataError, match="map tokens"):
         train_and_evaluate(_config(d), str(tmp_path / "w"), quiet=True)
     assert not os.path.exists(tmp_path / "w" / "checkpoints")
+
+
+def test_map_tokens_encoded_at_a_coarser_stride_than_the_model_are_refused(tmp_path):
+    from gpd_jax.data import store
+    from gpd_jax.data.errors import DataError
+    from gpd_jax.train_loop import train_and_evaluate
+
+    d = str(tmp_path / "strided")
+    write_small_store(d, n_shards=1, per_shard=4)
+    tokens = np.full((4, 101, 64), store.MISSING_MAP_TOKEN, np.uint8)
+    tokens[:, ::20] = 3  # every 20th frame; the test config reads every 10th
+    store.save_map_tokens(d, "train", 0, tokens, tokenizer="t", frame_stride=20)
+    with pytest.raises(DataError, match="missing at some of the model's frames.*--frame-stride 10"):
+        train_and_evaluate(_config(d), str(tmp_path / "w"), quiet=True)
 
 
 def test_workdir_with_another_model_is_refused(store_dir, tmp_path):

@@ -12,7 +12,8 @@ Two APIs:
 * `load_split(data_dir, split)`: a whole (small) split as one stacked Scene, for evaluation.
 
 Map tokens written by the tokenizer (`store.save_map_tokens`) fill `Scene.map_tokens` with `map_valid`
-True; without them tokens are 0 and `map_valid` False. With `with_lanes=True` the SLEDGE vector lanes
+True; without them, and in frames that were not encoded (`encode --frame-stride`), tokens are 0 and
+`map_valid` False. With `with_lanes=True` the SLEDGE vector lanes
 of every frame (`gpd_jax.data.lanes`) fill `Scene.lanes` / `lanes_valid` (computed on the fly, ~10-20 ms
 per sample). With `with_polylines=True` each batch comes as `(scene, polylines)` where
 `polylines = {"polylines": f32[B, L, P, 2], "polyline_valid": bool[B, L, P]}`, the stored lane centrelines
@@ -92,8 +93,9 @@ class SplitSource:
         out = sh.read(j, self.keys)
         T = out["xy"].shape[0]
         if sh.map_tokens is not None:
-            out["map_tokens"] = np.asarray(sh.map_tokens[j], np.int32)
-            out["map_valid"] = np.ones((T,), bool)
+            tokens = np.asarray(sh.map_tokens[j], np.int32)
+            out["map_valid"] = ~(tokens == store.MISSING_MAP_TOKEN).all(-1)
+            out["map_tokens"] = np.where(out["map_valid"][:, None], tokens, 0)
         else:
             out["map_tokens"] = np.zeros((T, store.NUM_MAP_TOKENS), np.int32)
             out["map_valid"] = np.zeros((T,), bool)

@@ -8,7 +8,9 @@ Layout of a dataset directory `DIR`::
         meta.json                     {"num_samples": n, "keys": {key: {"dtype", "shape", "nbytes"}},
                                        "scenario_ids": [n strings], "locations": [n strings], ...}
         <key>.npy                     one numpy array per sample key, leading dim n (see below)
-        map_tokens.npy                optional, u8[n, T, 64]: written later by `save_map_tokens`
+        map_tokens.npy                optional, u8[n, T, 64]: written later by `save_map_tokens`; frames that
+                                      were not encoded (`encode --frame-stride S`) hold MISSING_MAP_TOKEN
+        map_tokens.json               optional: {"tokenizer", "shape", "frame_stride"} of map_tokens.npy
     DIR/_jobs/job_<jjjjj>.json        build bookkeeping (resume): one file per finished build job
 
 Sample keys (paper configuration T=101, A=33, L=96, P=128; see `gpd_jax.data.preprocess`):
@@ -49,6 +51,7 @@ SPLITS = ("train", "val", "test")
 MAP_TOKENS = "map_tokens.npy"
 MAP_TOKENS_SOURCE = "map_tokens.json"  # which tokenizer wrote map_tokens.npy (see `save_map_tokens`)
 NUM_MAP_TOKENS = 64
+MISSING_MAP_TOKEN = 255  # u8 value filling every token of a frame whose map was not encoded
 
 
 def shard_name(index: int) -> str:
@@ -237,16 +240,19 @@ class Shard:
 
 
 def save_map_tokens(data_dir: str, split: str, shard_index: int, tokens: np.ndarray,
-                    tokenizer: str | None = None) -> str:
+                    tokenizer: str | None = None, frame_stride: int = 1) -> str:
     """Stores the map tokenizer's tokens of one shard next to its samples (atomic write).
 
     Args:
       data_dir: the dataset directory.
       split: split name.
       shard_index: the shard's index j (directory `shard_<jjjjj>`; see `shard_indices`).
-      tokens: uint8/int[n, T, 64] codebook indices (must fit in uint8), n = the shard's sample count.
+      tokens: uint8/int[n, T, 64] codebook indices in [0, 254], n = the shard's sample count; a frame whose
+        map was not encoded has MISSING_MAP_TOKEN (255) in all 64 places (the loader marks it `map_valid`
+        False).
       tokenizer: an identifier of the tokenizer that produced them (`MapTokenizer.fingerprint`), recorded in
         `<shard>/map_tokens.json` so that a later `encode` can skip shards it already did.
+      frame_stride: which frames were encoded (0, s, 2s, ...), recorded with `tokenizer`.
     Returns the written path (`<shard>/map_tokens.npy`, stored as uint8).
     """
     path = shard_dir(data_dir, split, shard_index)
@@ -259,28 +265,42 @@ def save_map_tokens(data_dir: str, split: str, shard_index: int, tokens: np.ndar
     tokens = np.asarray(tokens)
     if tokens.shape != (n, T, NUM_MAP_TOKENS):
         raise ValueError(f"tokens shape {tokens.shape}, expected {(n, T, NUM_MAP_TOKENS)} for {path}")
-    if tokens.dtype.kind not in "iu" or tokens.size and (tokens.min() < 0 or tokens.max() > 255):
-        raise ValueError("map tokens must be integers in [0, 255]")
+    if tokens.dtype.kind not in "iu" or tokens.size and (tokens.min() < 0 or tokens.max() > MISSING_MAP_TOKEN):
+        raise ValueError(f"map tokens must be integers in [0, {MISSING_MAP_TOKEN - 1}] ({MISSING_MAP_TOKEN} for "
+                         f"frames not encoded), {path}")
+    missing = tokens == MISSING_MAP_TOKEN
+    if (missing.any(-1) != missing.all(-1)).any():
+        raise ValueError(f"map token {MISSING_MAP_TOKEN} marks whole frames that were not encoded; {path} has "
+                         "frames where only some tokens have it")
     out = os.path.join(path, MAP_TOKENS)
     src = os.path.join(path, MAP_TOKENS_SOURCE)
     if os.path.exists(src):  # never leave a stale record beside new tokens
         os.remove(src)
     atomic_save_npy(out, tokens.astype(np.uint8))
     if tokenizer is not None:
-        atomic_write_json(src, {"tokenizer": tokenizer, "shape": list(tokens.shape)})
+        atomic_write_json(src, {"tokenizer": tokenizer, "shape": list(tokens.shape),
+                                "frame_stride": int(frame_stride)})
     return out
 
 
-def map_tokens_source(data_dir: str, split: str, shard_index: int) -> str | None:
-    """The `tokenizer` identifier recorded with a shard's map tokens, or None (no tokens, or no record)."""
+def map_tokens_record(data_dir: str, split: str, shard_index: int) -> dict | None:
+    """What `save_map_tokens` recorded with a shard's map tokens ({"tokenizer", "shape", "frame_stride"};
+    frame_stride 1 for records that predate it), or None (no tokens, or no record)."""
     path = shard_dir(data_dir, split, shard_index)
     if not os.path.isfile(os.path.join(path, MAP_TOKENS)):
         return None
     try:
         with open(os.path.join(path, MAP_TOKENS_SOURCE)) as f:
-            return json.load(f).get("tokenizer")
-    except (OSError, ValueError, AttributeError):
+            rec = json.load(f)
+        return {"frame_stride": 1} | rec if isinstance(rec, dict) else None
+    except (OSError, ValueError):
         return None
+
+
+def map_tokens_source(data_dir: str, split: str, shard_index: int) -> str | None:
+    """The `tokenizer` identifier recorded with a shard's map tokens, or None (no tokens, or no record)."""
+    rec = map_tokens_record(data_dir, split, shard_index)
+    return None if rec is None else rec.get("tokenizer")
 
 
 def shard_indices(data_dir: str, split: str) -> list[int]:

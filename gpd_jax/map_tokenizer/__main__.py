@@ -10,8 +10,10 @@
 lateral, chamfer (paper-faithful, m^2), chamfer_corrected (set-based, metres), plus codebook_usage (fraction
 of codes used by the evaluated tokens) and perplexity. Frames 0, s, 2s, ... (`--frame-stride s`) of every
 sample are evaluated. `encode` writes every frame's 64 tokens next to the samples (`save_map_tokens`) and
-records the tokenizer's fingerprint with them; shards this tokenizer already encoded are skipped, so an
-interrupted run resumes (`--force` re-encodes).
+records the tokenizer's fingerprint with them; shards this tokenizer already encoded (at the same frames or
+more) are skipped, so an interrupted run resumes (`--force` re-encodes). `--frame-stride S` encodes only
+frames 0, S, 2S, ... (S times faster): enough for a model that reads every S-th frame
+(`config.data.frame_stride` a multiple of S); the other frames are stored as not encoded.
 The checkpoint defaults to the shipped one, `checkpoints/map_tokenizer/`.
 """
 
@@ -52,7 +54,8 @@ def cmd_encode(args) -> None:
     import jax
     import numpy as np
 
-    from gpd_jax.data.store import Shard, list_splits, map_tokens_source, save_map_tokens, shard_dir, shard_indices
+    from gpd_jax.data.store import (MISSING_MAP_TOKEN, NUM_MAP_TOKENS, Shard, list_splits, map_tokens_record,
+                                    save_map_tokens, shard_dir, shard_indices)
     from gpd_jax.map_tokenizer.raster import rasterize
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
 
@@ -60,8 +63,15 @@ def cmd_encode(args) -> None:
     fingerprint = tok.fingerprint()
     r = tok.config.raster
 
+    stride = int(args.frame_stride)
+    if stride < 1:
+        raise SystemExit(f"--frame-stride must be >= 1, got {stride}")
+    if int(tok.codebook.shape[0]) > MISSING_MAP_TOKEN:
+        raise SystemExit(f"{args.checkpoint}: {tok.codebook.shape[0]} codes do not fit the store's uint8 map "
+                         f"tokens (at most {MISSING_MAP_TOKEN})")
+
     @jax.jit
-    def encode_sample(params, polylines, valid, poses):  # one sample, all frames -> i32[T, 64]
+    def encode_sample(params, polylines, valid, poses):  # one sample, frames [F, 3] -> i32[F, 64]
         raster = rasterize(polylines, valid, poses, size=r.size, pixel_size=r.pixel_size,
                            max_segment_length=r.max_segment_length)
         return tok.encode(params, raster)
@@ -69,15 +79,21 @@ def cmd_encode(args) -> None:
     splits = args.splits or list_splits(args.data)
     for split in splits:
         for j in shard_indices(args.data, split):
-            if not args.force and map_tokens_source(args.data, split, j) == fingerprint:
-                print(f"{split} shard {j}: already encoded by this tokenizer ({fingerprint}), skipped")
+            rec = map_tokens_record(args.data, split, j)
+            if (not args.force and rec is not None and rec.get("tokenizer") == fingerprint
+                    and stride % int(rec["frame_stride"]) == 0):
+                print(f"{split} shard {j}: already encoded by this tokenizer ({fingerprint}, every "
+                      f"{rec['frame_stride']} frame(s)), skipped")
                 continue
             shard = Shard(shard_dir(args.data, split, j))
             a = shard.arrays
-            tokens = np.stack([np.asarray(encode_sample(tok.params, a["polylines"][i], a["polyline_valid"][i],
-                                                        a["ego_pose"][i])) for i in range(shard.num_samples)])
-            path = save_map_tokens(args.data, split, j, tokens, tokenizer=fingerprint)
-            print(f"{split} shard {j}: {tokens.shape[0]} samples x {tokens.shape[1]} frames -> {path}")
+            n, t = a["ego_pose"].shape[:2]
+            tokens = np.full((n, t, NUM_MAP_TOKENS), MISSING_MAP_TOKEN, np.uint8)
+            for i in range(n):
+                tokens[i, ::stride] = np.asarray(encode_sample(tok.params, a["polylines"][i],
+                                                               a["polyline_valid"][i], a["ego_pose"][i, ::stride]))
+            path = save_map_tokens(args.data, split, j, tokens, tokenizer=fingerprint, frame_stride=stride)
+            print(f"{split} shard {j}: {n} samples x {len(range(0, t, stride))} of {t} frames -> {path}")
 
 
 def cmd_export(args) -> None:
@@ -110,6 +126,9 @@ def main(argv=None) -> int:
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     c.add_argument("--data", required=True)
     c.add_argument("--splits", nargs="*", default=None)
+    c.add_argument("--frame-stride", type=int, default=1,
+                   help="encode frames 0, S, 2S, ... only (enough for models with data.frame_stride a multiple "
+                        "of S)")
     c.add_argument("--force", action="store_true",
                    help="re-encode shards whose tokens this tokenizer already wrote (skipped by default, so an "
                         "interrupted encode resumes)")
