@@ -1,4 +1,4 @@
-"""The CPU-trainable GPD that ships in checkpoints/gpd_sumo: trained on SUMO scenes at 1 Hz.
+"""Stage 1 of the GPD that ships in checkpoints/gpd_sumo (stage 2: gpd_sumo_finetune.py): SUMO scenes at 1 Hz.
 
 Every 10th stored frame (1 s apart): 3 history frames (2 s, the current one included) + 8 future frames (8 s),
 the ego and its 16 nearest agents, 64 map tokens from the shipped map tokenizer, d 128, 4 layers, 4 heads.
@@ -12,7 +12,7 @@ over the current velocity rather than the last 1 s displacement: the validation 
 velocity at step 500 went from 1.57 / 1.37 / 1.27 (without) to 0.99 / 0.99 / 0.99.
 
     python -m gpd_jax.data build --source sumo --out data/sumo6k --scenarios 6000 --seed 11 --per-job 25
-    python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data data/sumo6k
+    python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data data/sumo6k --frame-stride 10
     python train.py --config configs/gpd_sumo.py --workdir runs/gpd_sumo
 
 (240 networks, 25 scenes each; with 48 networks of 50 scenes the same model scored 0.03 worse at every horizon

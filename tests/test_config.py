@@ -30,3 +30,15 @@ def test_bad_overrides(bad, err):
 def test_split_args():
     o, r = split_config_args(["rollout", "--config.a=1", "--batch", "1"])
     assert o == ["--config.a=1"] and r == ["rollout", "--batch", "1"]
+
+
+def test_shipped_model_is_the_sumo_configs():
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo/config.json"))
+    for name in ("gpd_sumo", "gpd_sumo_finetune"):
+        m = json.loads(load_config(f"{ROOT}/configs/{name}.py").model.to_json())
+        assert {k: v for k, v in m.items() if k != "map_tokenizer"} == {
+            k: v for k, v in ship["model"].items() if k != "map_tokenizer"}, name
+    ft = load_config(f"{ROOT}/configs/gpd_sumo_finetune.py").train
+    assert ft.rollout_passes == 8 and ft.init_from and ship["train"]["rollout_passes"] == 8
