@@ -59,27 +59,31 @@ def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int)
     from the previous frame (xy, heading and, for a `velocity_inputs` model, velocity); everything else (map
     tokens, validity, history frames, agents that just appeared) stays the log's. The model is causal over
     frames, so after k passes the first k future frames equal a free-running rollout exactly (validity and
-    map kept from the log) and later frames approximate it. Returns (xy f32[T-1, A, 2], heading f32[T-1, A],
-    velocity f32[T-1, A, 2] or None).
+    map kept from the log) and later frames approximate it. With `passes` = 0 these are the log's inputs.
+    Returns (xy f32[T-1, A, 2], heading f32[T-1, A], velocity f32[T-1, A, 2] or None).
     """
-    xy, heading = scene.xy[:-1], scene.heading[:-1]
+    logged = (scene.xy[:-1], scene.heading[:-1],
+              None if model.input_velocity(scene.velocity) is None else scene.velocity[:-1])
+    if passes <= 0:
+        return logged
     valid, maps = scene.valid[:-1], scene.map_tokens[:-1]
-    vel = model.input_velocity(scene.velocity)
-    vel = None if vel is None else vel[:-1]
     future = (jnp.arange(valid.shape[0]) >= num_history)[:, None]
-    own = future & valid & previous_frames(xy, valid)[1]
+    own = future & valid & previous_frames(logged[0], valid)[1]
+    # The passes see frozen parameters: no tangents flow into the loop, which compiles once (not per pass).
+    graphdef, state = nnx.split(model)
+    frozen = nnx.merge(graphdef, jax.lax.stop_gradient(state))
 
-    def take(logged, predicted):
-        shifted = jnp.concatenate([logged[:1], predicted[:-1]], 0)
-        mask = own.reshape(own.shape + (1,) * (logged.ndim - own.ndim))
-        return jnp.where(mask, jax.lax.stop_gradient(shifted), logged)
+    def take(log, predicted):
+        shifted = jnp.concatenate([log[:1], predicted[:-1]], 0)
+        return jnp.where(own.reshape(own.shape + (1,) * (log.ndim - own.ndim)), shifted, log)
 
-    for _ in range(passes):
-        pred = teacher_forced(model, xy, heading, valid, maps, vel)
-        xy, heading = take(scene.xy[:-1], pred.xy), take(scene.heading[:-1], pred.heading)
-        if vel is not None:
-            vel = take(scene.velocity[:-1], pred.velocity)
-    return xy, heading, vel
+    def one_pass(_, inputs):
+        xy, heading, vel = inputs
+        pred = teacher_forced(frozen, xy, heading, valid, maps, vel)
+        return (take(logged[0], pred.xy), take(logged[1], pred.heading),
+                None if vel is None else take(logged[2], pred.velocity))
+
+    return jax.lax.fori_loop(0, passes, one_pass, logged)
 
 
 def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0) -> dict[str, jax.Array]:
@@ -88,12 +92,7 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
     With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
     predictions (`free_running_inputs`) while the targets stay the log's: the model learns to recover from its
     own errors, as it must in a rollout."""
-    if rollout_passes > 0:
-        xy, heading, vel = free_running_inputs(model, scene, num_history, rollout_passes)
-    else:
-        xy, heading = scene.xy[:-1], scene.heading[:-1]
-        vel = model.input_velocity(scene.velocity)
-        vel = None if vel is None else vel[:-1]
+    xy, heading, vel = free_running_inputs(model, scene, num_history, rollout_passes)
     pred = teacher_forced(model, xy, heading, scene.valid[:-1], scene.map_tokens[:-1], vel)
     tv = scene.valid[1:].astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(pred.xy - scene.xy[1:]), axis=-1)
