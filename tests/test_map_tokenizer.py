@@ -6,6 +6,7 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gpd_jax.config import load_config
 from gpd_jax.map_tokenizer import core
@@ -88,6 +89,55 @@ def test_line_loss_zero_for_perfect_prediction():
     assert float(aux2["l1"]) < 1e-5
 
 
+def test_every_layer_loss_sums_each_layers_matched_loss():
+    from gpd_jax.map_tokenizer.train import build_model
+    from flax import nnx
+    b = synthetic_lanes(4, 2)
+    gt, valid = jnp.asarray(b["lanes"]), jnp.asarray(b["lanes_valid"])
+    rng = np.random.default_rng(1)
+    pts = jnp.asarray(rng.normal(0, 10, (3, 2, 50, 20, 2)), jnp.float32)
+    perm = rng.permutation(50)
+    logits = jnp.asarray(rng.normal(0, 2, (3, 2, 50)), jnp.float32)
+    # layer 1 is perfect up to query order
+    pts, logits = pts.at[1].set(gt[:, perm]), logits.at[1].set(jnp.where(valid, 20.0, -20.0)[:, perm])
+    loss, aux = core.deep_line_loss(pts, logits, gt, valid)
+    per_layer = [core.line_loss(pts[i], logits[i], gt, valid) for i in range(3)]
+    np.testing.assert_allclose(float(loss), sum(float(p[0]) for p in per_layer), rtol=1e-5)
+    np.testing.assert_allclose(float(aux["l1"]), float(per_layer[-1][1]["l1"]), rtol=1e-5)
+    np.testing.assert_array_equal(aux["match"], per_layer[-1][1]["match"])
+    assert float(per_layer[1][1]["l1"]) < 1e-5  # each layer is matched on its own
+    # the decoder's every-layer output ends with its ordinary output
+    cfg = small_config("--config.model.decoder.num_layers=2")
+    graphdef, params = build_model(cfg)
+    z = jax.random.normal(jax.random.key(0), (2, 64, cfg.model.encoder.code_dim))
+    dec = nnx.merge(graphdef, params).decoder
+    p_all, l_all = dec(z, every_layer=True)
+    p_out, l_out = dec(z)
+    chex.assert_shape(p_all, (2, 2, 50, 20, 2))
+    np.testing.assert_allclose(p_all[-1], p_out, atol=1e-5)
+    np.testing.assert_allclose(l_all[-1], l_out, atol=1e-5)
+    assert float(jnp.abs(p_all[0] - p_all[1]).max()) > 0
+
+
+def test_continuous_warmup_bypasses_the_quantizer():
+    from flax import nnx
+    from gpd_jax.map_tokenizer.train import build_model, loss_fn
+    cfg = small_config()
+    graphdef, params = build_model(cfg)
+    raster = jnp.asarray(np.random.default_rng(0).random((2, 256, 256)) < 0.05, jnp.float32)
+    model = nnx.merge(graphdef, params)
+    z = model.encode_latents(raster)
+    cont = core.forward(graphdef, params, raster, quantized=jnp.bool_(False))
+    quant = core.forward(graphdef, params, raster, quantized=jnp.bool_(True))
+    np.testing.assert_allclose(cont["points"], model.decoder(z)[0], atol=1e-5)
+    np.testing.assert_allclose(quant["points"], core.forward(graphdef, params, raster)["points"], atol=1e-5)
+    assert float(jnp.abs(cont["points"] - quant["points"]).max()) > 1e-4
+    assert float(cont["vq_loss"]) == 0.0 and float(quant["vq_loss"]) > 0.0
+    batch = synthetic_lanes(0, 2)
+    g = jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch, jnp.bool_(False))[0])(params)
+    assert float(jnp.abs(g["codebook"]["embedding"]).max()) == 0.0  # the codebook is untouched while bypassed
+
+
 def test_sine_position_code():
     pe = sine_position_2d(8, 8, 32)
     chex.assert_shape(pe, (64, 32))
@@ -151,6 +201,22 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     # the export makes the same tokens, so it has the workdir's fingerprint; other parameters do not
     assert tok2.fingerprint() == tok.fingerprint() != tok3.fingerprint()
     _check_encode_cli(tmp_path, out, tok2)
+
+    # decoder-only fine-tuning from the export: same tokens (fingerprint), a different decoder
+    ft = str(tmp_path / "ft")
+    train_and_evaluate(small_config("--config.train.num_steps=2", "--config.train.eval_every=100",
+                                    f"--config.train.init_from={out}", "--config.train.decoder_only=True",
+                                    "--config.train.restart_every=1"), ft)
+    tok4 = load_tokenizer(ft)
+    assert tok4.fingerprint() == tok2.fingerprint()
+    assert not np.allclose(tok4.params["decoder"]["points_head"]["kernel"],
+                           np.asarray(tok2.params["decoder"]["points_head"]["kernel"], np.float32))
+    assert '"event": "kmeans_init"' not in open(os.path.join(ft, "metrics.jsonl")).read()
+    with pytest.raises(ValueError, match="model config differs in num_codes"):
+        train_and_evaluate(small_config("--config.model.num_codes=8", f"--config.train.init_from={out}"),
+                           str(tmp_path / "bad"))
+    with pytest.raises(ValueError, match="set train.init_from"):
+        train_and_evaluate(small_config("--config.train.decoder_only=True"), str(tmp_path / "bad2"))
 
 
 def _check_encode_cli(tmp_path, checkpoint, tok):

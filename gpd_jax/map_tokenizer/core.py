@@ -26,16 +26,32 @@ def with_codebook(params, codebook: jax.Array):
     return {**params, "codebook": {**params["codebook"], "embedding": codebook}}
 
 
-def forward(graphdef, params, raster: jax.Array):
+def forward(graphdef, params, raster: jax.Array, every_layer: bool = False, quantized: bool | jax.Array = True):
     """`MapVQVAE.__call__` as a pure function: raster f32[B, 256, 256] -> dict (see the model)."""
     model: MapVQVAE = nnx.merge(graphdef, params)
-    return model(raster)
+    return model(raster, every_layer, quantized)
 
 
 def encode_latents(graphdef, params, raster: jax.Array) -> jax.Array:
     """Continuous encoder outputs f32[B, M, D] of rasters f32[B, 256, 256]."""
     model: MapVQVAE = nnx.merge(graphdef, params)
     return model.encode_latents(raster)
+
+
+def _line_terms(points, logits, gt_points, gt_valid, w_l1: float, w_bce: float):
+    """Per-sample (l1 f32[N], bce f32[N], match i32[N, G]) for flat batches (shapes as in `line_loss`, N = B):
+    l1 is the sum over GT slots of the matched, labelled mean-point L1 divided by G; bce the mean over queries."""
+    m_pts, _, match = match_lines(points, logits, gt_points, gt_valid, w_bce, w_l1)
+    label = gt_valid.astype(jnp.float32)
+    g = gt_valid.shape[-1]
+    l1 = jnp.mean(jnp.sum(jnp.abs(m_pts - gt_points), -1), -1)  # [N, G]
+    l1 = jnp.sum(l1 * label * (match >= 0), -1) / g
+    q = logits.shape[-1]
+    # Per-query label: the label of the GT slot the query was matched to, 0 if unmatched.
+    onehot = jax.nn.one_hot(match, q, dtype=jnp.float32)  # [N, G, Q] (match -1 gives zeros)
+    q_label = jnp.einsum("bgq,bg->bq", onehot, label)
+    bce = jnp.mean(jax.nn.softplus(logits) - logits * q_label, -1)
+    return l1, bce, match
 
 
 def line_loss(points, logits, gt_points, gt_valid, w_l1: float = 2.0, w_bce: float = 5.0):
@@ -49,17 +65,29 @@ def line_loss(points, logits, gt_points, gt_valid, w_l1: float = 2.0, w_bce: flo
       matched pairs masked by the GT label and BCE covers every query (queries matched to padding or to
       nothing learn label 0); both are averaged over B x G (SLEDGE's normalisation).
     """
-    m_pts, _, match = match_lines(points, logits, gt_points, gt_valid, w_bce, w_l1)
-    label = gt_valid.astype(jnp.float32)
-    b, g = gt_valid.shape
-    l1 = jnp.mean(jnp.sum(jnp.abs(m_pts - gt_points), -1), -1)  # [B, G]
-    l1 = jnp.sum(l1 * label * (match >= 0)) / (b * g)
-    q = logits.shape[-1]
-    # Per-query label: the label of the GT slot the query was matched to, 0 if unmatched.
-    onehot = jax.nn.one_hot(match, q, dtype=jnp.float32)  # [B, G, Q] (match -1 gives zeros)
-    q_label = jnp.einsum("bgq,bg->bq", onehot, label)
-    bce = jnp.mean(jax.nn.softplus(logits) - logits * q_label)
+    l1, bce, match = _line_terms(points, logits, gt_points, gt_valid, w_l1, w_bce)
+    l1, bce = jnp.mean(l1), jnp.mean(bce)
     return w_l1 * l1 + w_bce * bce, dict(l1=l1, bce=bce, match=match)
+
+
+def deep_line_loss(points, logits, gt_points, gt_valid, w_l1: float = 2.0, w_bce: float = 5.0):
+    """`line_loss` of every decoder layer's output, each matched on its own, summed over layers (DETR's
+    auxiliary decoding losses). All L x B matchings go to the host in one call.
+
+    Args:
+      points: f32[L, B, Q, P, 2]; logits: f32[L, B, Q]; gt_points: f32[B, G, P, 2]; gt_valid: bool[B, G].
+
+    Returns:
+      (loss, dict(l1, bce, match i32[B, G])): l1, bce and match are those of the last layer (the output), so
+      they compare with `line_loss` of a model trained without auxiliary losses.
+    """
+    n_layers, b = logits.shape[:2]
+    flat = lambda x: x.reshape((n_layers * b,) + x.shape[2:])
+    tile = lambda x: flat(jnp.broadcast_to(x[None], (n_layers,) + x.shape))
+    l1, bce, match = _line_terms(flat(points), flat(logits), tile(gt_points), tile(gt_valid), w_l1, w_bce)
+    l1, bce = jnp.mean(l1.reshape(n_layers, b), -1), jnp.mean(bce.reshape(n_layers, b), -1)  # [L]
+    loss = jnp.sum(w_l1 * l1 + w_bce * bce)
+    return loss, dict(l1=l1[-1], bce=bce[-1], match=match.reshape(n_layers, b, -1)[-1])
 
 
 def code_stats(idx: jax.Array, num_codes: int):

@@ -210,19 +210,31 @@ class VectorDecoder(nnx.Module):
         self.points_head = nnx.Linear(d, cfg.num_points * 2, rngs=rngs)
         self.logit_head = nnx.Linear(d, 1, rngs=rngs)
 
-    def __call__(self, latents: jax.Array):
-        """latents f32[B, h*w, D] -> (points f32[B, Q, P, 2], logits f32[B, Q])."""
+    def _heads(self, x):
+        x = self.norm(x)
+        pts = jnp.tanh(self.points_head(x)) * self.max_coord
+        pts = pts.reshape(x.shape[:-1] + (self.num_points, 2))
+        return pts, self.logit_head(x)[..., 0]
+
+    def __call__(self, latents: jax.Array, every_layer: bool = False):
+        """latents f32[B, h*w, D] -> (points f32[B, Q, P, 2], logits f32[B, Q]).
+
+        With `every_layer`, the shared final norm and heads are applied after every decoder layer (DETR's
+        auxiliary decoding) and the outputs gain a leading layer axis: f32[L, B, Q, P, 2] and f32[L, B, Q],
+        the last entry being the ordinary output.
+        """
         b = latents.shape[0]
         memory = self.memory_in(latents)
         pos = sine_position_2d(self.grid, self.grid, memory.shape[-1])[None]
         x = jnp.broadcast_to(self.query_embed[...][None], (b,) + self.query_embed.shape)
         qpos = self.query_pos[...][None]
+        hidden = []
         for layer in self.layers:
             x = layer(x, qpos, memory, pos)
-        x = self.norm(x)
-        pts = jnp.tanh(self.points_head(x)) * self.max_coord
-        pts = pts.reshape(x.shape[:-1] + (self.num_points, 2))
-        return pts, self.logit_head(x)[..., 0]
+            hidden.append(x)
+        if every_layer:
+            return self._heads(jnp.stack(hidden))
+        return self._heads(x)
 
 
 class MapVQVAE(nnx.Module):
@@ -243,9 +255,15 @@ class MapVQVAE(nnx.Module):
                              "fix the strides")
         return z.reshape(z.shape[0], -1, z.shape[-1])
 
-    def __call__(self, raster: jax.Array):
-        """Full pass. Returns dict(points, logits, idx i32[B, M], vq_loss, z f32[B, M, D])."""
+    def __call__(self, raster: jax.Array, every_layer: bool = False, quantized: bool | jax.Array = True):
+        """Full pass. Returns dict(points, logits, idx i32[B, M], vq_loss, z f32[B, M, D]); with `every_layer`,
+        points and logits carry a leading decoder-layer axis (see `VectorDecoder`). `quantized` (a Python or
+        traced bool) False feeds the continuous latents to the decoder and zeroes the VQ loss (training's
+        continuous warm-up); `idx` are still the nearest codes."""
         z = self.encode_latents(raster)
         z_q, idx, vq_loss = quantize(self.codebook.embedding[...], z, self.commitment)
-        points, logits = self.decoder(z_q)
+        if not (isinstance(quantized, bool) and quantized):
+            z_q = jnp.where(quantized, z_q, z)
+            vq_loss = jnp.where(quantized, vq_loss, 0.0)
+        points, logits = self.decoder(z_q, every_layer)
         return dict(points=points, logits=logits, idx=idx, vq_loss=vq_loss, z=z)

@@ -3,10 +3,14 @@
 `train_and_evaluate(config, workdir)` is what `python train.py --config configs/map_tokenizer_*.py --workdir DIR`
 runs. Per step: a batch of random (sample, frame) pairs is rasterized around the frame's ego pose inside the
 jitted step, encoded, quantized, decoded to 50 lines, Hungarian-matched to the SLEDGE vector lanes of that
-frame, and trained with 2 L1 + 5 BCE + VQ loss. AdamW with the codebook at its own learning rate, linear
-warm-up then cosine decay, global-norm clipping. The codebook is initialised by k-means on encoder outputs
+frame, and trained with 2 L1 + 5 BCE + VQ loss (with `loss.every_layer`, the line loss is summed over the
+outputs of every decoder layer through the shared heads, each matched on its own: DETR's auxiliary
+decoding). AdamW with the codebook at its own learning rate, linear warm-up then cosine decay, global-norm
+clipping. The codebook is initialised by k-means on encoder outputs
 (at `train.kmeans_at_step`), and codes whose running usage falls below `restart_threshold / K` are re-seeded
-from recent encoder outputs every `restart_every` steps.
+from recent encoder outputs every `restart_every` steps. `train.init_from` starts from a trained tokenizer (its
+codebook kept); with `train.decoder_only` the encoder and codebook stay fixed, so the tokens do not change and
+models trained on them stay valid, while the decoder trains on.
 
 The workdir gets `config.json`, `metrics.jsonl` (one JSON object per log / evaluation) and orbax checkpoints in
 `checkpoints/` (training resumes from the latest one).
@@ -50,6 +54,10 @@ def build_model(config: ml_collections.ConfigDict, seed: int | None = None):
     return graphdef, nnx.to_pure_dict(state)
 
 
+# What `train.decoder_only` keeps fixed: everything that decides the tokens.
+FROZEN_WHEN_DECODER_ONLY = ("encoder", "codebook")
+
+
 def make_optimizer(train_cfg: ml_collections.ConfigDict, params) -> optax.GradientTransformation:
     """Clip, then AdamW with the codebook at `codebook_lr` and the rest at `lr`, both warm-up + cosine."""
 
@@ -58,12 +66,15 @@ def make_optimizer(train_cfg: ml_collections.ConfigDict, params) -> optax.Gradie
                                                   max(train_cfg.num_steps, train_cfg.warmup_steps + 1),
                                                   peak * train_cfg.end_lr_factor)
 
-    labels = {k: jax.tree.map(lambda _: "codebook" if k == "codebook" else "net", v) for k, v in params.items()}
+    frozen = FROZEN_WHEN_DECODER_ONLY if train_cfg.get("decoder_only", False) else ()
+    labels = {k: jax.tree.map(lambda _: "frozen" if k in frozen else "codebook" if k == "codebook" else "net", v)
+              for k, v in params.items()}
     return optax.chain(
         optax.clip_by_global_norm(train_cfg.grad_clip),
         optax.multi_transform({
             "net": optax.adamw(schedule(train_cfg.lr), weight_decay=train_cfg.weight_decay),
             "codebook": optax.adam(schedule(train_cfg.codebook_lr)),
+            "frozen": optax.set_to_zero(),
         }, labels))
 
 
@@ -74,12 +85,15 @@ def rasterize_batch(config, batch):
                      pixel_size=r.pixel_size, max_segment_length=r.max_segment_length)
 
 
-def loss_fn(graphdef, config, params, batch):
-    """(total loss, aux dict) for one batch; see the module docstring."""
+def loss_fn(graphdef, config, params, batch, quantized: bool | jax.Array = True):
+    """(total loss, aux dict) for one batch; see the module docstring. `quantized` False: continuous latents."""
     raster = rasterize_batch(config, batch)
-    out = core.forward(graphdef, params, raster)
-    lines, aux = core.line_loss(out["points"], out["logits"], batch["lanes"], batch["lanes_valid"],
-                                config.loss.w_l1, config.loss.w_bce)
+    if config.train.get("decoder_only", False):  # no gradient work for the frozen encoder and codebook
+        params = {k: jax.lax.stop_gradient(v) if k in FROZEN_WHEN_DECODER_ONLY else v for k, v in params.items()}
+    every_layer = bool(config.loss.get("every_layer", False))
+    out = core.forward(graphdef, params, raster, every_layer, quantized)
+    lines, aux = (core.deep_line_loss if every_layer else core.line_loss)(
+        out["points"], out["logits"], batch["lanes"], batch["lanes_valid"], config.loss.w_l1, config.loss.w_bce)
     total = lines + config.loss.vq_weight * out["vq_loss"]
     return total, dict(loss=total, l1=aux["l1"], bce=aux["bce"], vq=out["vq_loss"], idx=out["idx"], z=out["z"])
 
@@ -88,8 +102,12 @@ def make_train_step(graphdef, config, tx):
     num_codes = config.model.num_codes
     decay = config.train.usage_decay
 
+    # With continuous warm-up the decoder reads the encoder's continuous outputs until k-means has run.
+    warmup = bool(config.train.get("continuous_warmup", False))
+
     def train_step(state: TrainState, batch):
-        grad_fn = jax.value_and_grad(lambda p: loss_fn(graphdef, config, p, batch), has_aux=True)
+        quantized = state.kmeans_done if warmup else True
+        grad_fn = jax.value_and_grad(lambda p: loss_fn(graphdef, config, p, batch, quantized), has_aux=True)
         (_, aux), grads = grad_fn(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
@@ -176,10 +194,10 @@ def _to_tree(state: TrainState) -> dict:
                 kmeans_done=state.kmeans_done)
 
 
-def restore_or_init(config, workdir, graphdef, params, tx, mgr):
+def restore_or_init(config, workdir, graphdef, params, tx, mgr, kmeans_done: bool = False):
     num_codes = config.model.num_codes
     state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params),
-                       jnp.full((num_codes,), 1.0 / num_codes, jnp.float32), jnp.zeros((), bool))
+                       jnp.full((num_codes,), 1.0 / num_codes, jnp.float32), jnp.asarray(kmeans_done))
     latest = mgr.latest_step()
     if latest is None:
         return state, False
@@ -202,6 +220,21 @@ def restore_params(mgr: ocp.CheckpointManager, params_template, config, step: in
     return tree["params"]
 
 
+def initial_params(config: ml_collections.ConfigDict, path: str):
+    """Float32 params of the tokenizer at `path` (an export or a workdir) to start from (`train.init_from`);
+    its model and raster settings must equal `config`'s."""
+    from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
+
+    src = load_tokenizer(path)
+    for section in ("model", "raster"):
+        mine, theirs = json.loads(config[section].to_json()), json.loads(src.config[section].to_json())
+        if mine != theirs:
+            diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+            raise ValueError(f"train.init_from {path}: its {section} config differs in " + ", ".join(
+                f"{k} ({theirs.get(k)!r} there, {mine.get(k)!r} here)" for k in diff))
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
+
+
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[str, float]:
     """Trains the map tokenizer described by `config` in `workdir` (resuming from its latest checkpoint) and
     returns the last evaluation's metrics."""
@@ -213,9 +246,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     key = jax.random.key(config.seed)
 
     graphdef, params = build_model(config)
+    init_from = tcfg.get("init_from", "")
+    decoder_only = bool(tcfg.get("decoder_only", False))
+    if decoder_only and not init_from:
+        raise ValueError("train.decoder_only trains the decoder of an existing tokenizer: set train.init_from")
+    if init_from:
+        params = initial_params(config, init_from)
     tx = make_optimizer(tcfg, params)
     mgr = checkpoint_manager(workdir, tcfg.keep_checkpoints)
-    state, resumed = restore_or_init(config, workdir, graphdef, params, tx, mgr)
+    # A started tokenizer keeps its codebook: no k-means.
+    state, resumed = restore_or_init(config, workdir, graphdef, params, tx, mgr, kmeans_done=bool(init_from))
     start = int(state.step)
     if resumed:
         print(f"resumed from step {start}")
@@ -245,7 +285,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
         state, metrics, z = train_step(state, batch)
         window_n += tcfg.batch_size
         s1 = step + 1
-        if (tcfg.restart_every and s1 % tcfg.restart_every == 0 and bool(state.kmeans_done)
+        if (tcfg.restart_every and not decoder_only and s1 % tcfg.restart_every == 0 and bool(state.kmeans_done)
                 and s1 < tcfg.restart_until * tcfg.num_steps):
             cb, usage, n_dead = restart(jax.random.fold_in(key, 1000 + s1), core.codebook_of(state.params),
                                         state.usage, z, float(tcfg.restart_threshold))
