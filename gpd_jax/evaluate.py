@@ -657,6 +657,11 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
             f"({spec.num_future * spec.frame_period_s:g} s) and are skipped")
     split_dir = os.path.join(data_dir, split)
     maps = map_task_names(names)
+    # Stored tokens made by another tokenizer mean other codes: those scenarios are encoded on the fly instead.
+    foreign = np.zeros(len(src.counts), bool)
+    if tokenizer is not None:
+        from gpd_jax.data.store import foreign_map_token_shards
+        foreign[foreign_map_token_shards(data_dir, split, tokenizer.fingerprint())] = True
     bs = max(1, min(int(batch_size), n))
     num_batches = -(-n // bs)
     temperature = float(config.get("rollout", {}).get("temperature", 0.0))
@@ -684,7 +689,7 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
                 raise EvalError(f"cannot read split {split!r}: {e}") from None
             full, polylines, poly_valid = _records_to_scene(recs)
             scene = spec.view(full)
-            has = scene.map_valid.all(axis=-1)
+            has = scene.map_valid.all(axis=-1) & ~foreign[np.searchsorted(src.offsets, idx, side="right") - 1]
             if not has[:real].all():
                 if tokenizer is None:
                     raise EvalError(f"{split_dir} has no map tokens for some scenarios and the model has no map "
@@ -720,6 +725,8 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
     finally:
         bar.close()
     wall = time.perf_counter() - t0
+    if foreign.any():
+        log(f"map tokens: {foreign.sum()} of {foreign.size} shards hold tokens of another tokenizer; not used")
     if n_encoded and n_store:
         source = f"read from the store for {n_store} scenarios, encoded on the fly for {n_encoded}"
     elif n_encoded:

@@ -43,6 +43,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from gpd_jax.checkpoint import export_model, model_from_config, resolve_tokenizer_path
 from gpd_jax.data import loader as data_loader
+from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
 from gpd_jax.evaluate import EvalError, baseline_predictions, spec_from_config
 from gpd_jax.metrics import agents as agent_metrics_lib
@@ -90,6 +91,21 @@ def _check_store(config, data_dir: str, split: str) -> int:
         raise DataError(os.path.join(data_dir, split), f"{rec['map_tokens'].shape[-1]} map tokens per frame, "
                         f"config has {m.num_map_tokens}")
     return len(src)
+
+
+def _check_token_source(data_dir: str, split: str, tokenizer_dir: str) -> None:
+    """Refuses a store whose map tokens were made by another tokenizer than the model's (its codebook would
+    embed the wrong codes)."""
+    from gpd_jax.map_tokenizer import load_tokenizer
+
+    fp = load_tokenizer(tokenizer_dir).fingerprint()
+    bad = store.foreign_map_token_shards(data_dir, split, fp)
+    if bad:
+        j = store.shard_indices(data_dir, split)[bad[0]]
+        raise DataError(store.shard_dir(data_dir, split, j), f"the map tokens of {len(bad)} shard(s) of split "
+                        f"{split!r}, this one first, were made by tokenizer {store.map_tokens_source(data_dir, split, j)}"
+                        f", not by the model's ({tokenizer_dir}, {fp}); re-encode them: python -m "
+                        f"gpd_jax.map_tokenizer encode --checkpoint {tokenizer_dir} --data {data_dir}")
 
 
 # ----------------------------------------------------------------------------------------------- checkpoints
@@ -294,6 +310,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
                          f"{pcount} processes")
     if config.model.get("map_tokenizer"):
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
+        _check_token_source(data_dir, config.data.train_split, config.model.map_tokenizer)
 
     lead = pindex == 0
     os.makedirs(workdir, exist_ok=True)

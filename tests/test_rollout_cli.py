@@ -134,6 +134,27 @@ def test_render_writes_gif_and_png_per_task(run_ok):
         assert im.size[1] == 96 and im.size[0] > 3 * 96
 
 
+def test_tokens_of_another_tokenizer_are_encoded_again(run_ok, setup, tmp_path):
+    import shutil
+
+    from gpd_jax.data import store
+    d, data, model = setup
+    copy = str(tmp_path / "store")
+    shutil.copytree(data, copy)
+    tokens = np.asarray(store.Shard(store.shard_dir(copy, "test", 0)).map_tokens)
+    store.save_map_tokens(copy, "test", 0, tokens, tokenizer="0" * 16)  # recorded as another tokenizer's
+    assert store.foreign_map_token_shards(copy, "test", "0" * 16) == []
+    out = str(tmp_path / "out")
+    assert rollout.main(["--checkpoint", model, "--data", copy, "--out", out, "--scenarios", "3", "--batch", "2",
+                         "--no-progress"]) == 0
+    m = _strict_json(os.path.join(out, "metrics.json"))
+    assert m["map_tokens"] == {"from_store": 0, "encoded": 3}
+    # the tokens were this tokenizer's after all: same metrics as reading them from the store
+    ref = _strict_json(os.path.join(run_ok[1], "metrics.json"))
+    for lb, per in ref["tasks"]["traffic_simulation"].items():
+        assert m["tasks"]["traffic_simulation"][lb] == pytest.approx(per), lb
+
+
 def _bad_model(setup, name, edit):
     d, _, model = setup
     bad = d / name

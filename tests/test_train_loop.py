@@ -114,6 +114,26 @@ def test_map_tokens_encoded_at_a_coarser_stride_than_the_model_are_refused(tmp_p
         train_and_evaluate(_config(d), str(tmp_path / "w"), quiet=True)
 
 
+def test_map_tokens_of_another_tokenizer_are_refused(tmp_path):
+    from gpd_jax.data import store
+    from gpd_jax.data.errors import DataError
+    from gpd_jax.map_tokenizer import load_tokenizer
+    from gpd_jax.train_loop import train_and_evaluate
+
+    d = _store(str(tmp_path / "s"))
+    tok = os.path.join(ROOT, "checkpoints", "map_tokenizer")
+    fp = load_tokenizer(tok).fingerprint()
+    tokens = np.asarray(store.Shard(store.shard_dir(d, "train", 1)).map_tokens)
+    store.save_map_tokens(d, "train", 1, tokens, tokenizer=fp, frame_stride=10)
+    store.save_map_tokens(d, "train", 0, tokens, tokenizer="0" * 16, frame_stride=10)
+    assert store.foreign_map_token_shards(d, "train", fp) == [0]  # shards without a record are not listed
+    c = _config(d)
+    c.model.map_tokenizer, c.model.codebook_size = tok, 128
+    with pytest.raises(DataError, match="shard_00000.*made by tokenizer 0000000000000000, not by the model's"):
+        train_and_evaluate(c, str(tmp_path / "w"), quiet=True)
+    assert not os.path.exists(tmp_path / "w" / "checkpoints")
+
+
 def test_workdir_with_another_model_is_refused(store_dir, tmp_path):
     from gpd_jax.train_loop import train_and_evaluate
 

@@ -303,6 +303,18 @@ def map_tokens_source(data_dir: str, split: str, shard_index: int) -> str | None
     return None if rec is None else rec.get("tokenizer")
 
 
+def foreign_map_token_shards(data_dir: str, split: str, fingerprint: str) -> list[int]:
+    """Positions (in `list_shards` order) of the shards of a split whose map tokens were recorded as made by a
+    tokenizer other than `fingerprint` (`MapTokenizer.fingerprint`). Shards without tokens, or with tokens of
+    unknown origin (no record), are not listed."""
+    bad = []
+    for pos, j in enumerate(shard_indices(data_dir, split)):
+        src = map_tokens_source(data_dir, split, j)
+        if src is not None and src != fingerprint:
+            bad.append(pos)
+    return bad
+
+
 def shard_indices(data_dir: str, split: str) -> list[int]:
     """Indices j of the complete shards of a split (for `save_map_tokens`)."""
     return [int(os.path.basename(p)[len("shard_"):]) for p in list_shards(data_dir, split)]
