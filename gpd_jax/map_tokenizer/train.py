@@ -8,7 +8,8 @@ outputs of every decoder layer through the shared heads, each matched on its own
 decoding). AdamW with the codebook at its own learning rate, linear warm-up then cosine decay, global-norm
 clipping. The codebook is initialised by k-means on encoder outputs
 (at `train.kmeans_at_step`), and codes whose running usage falls below `restart_threshold / K` are re-seeded
-from recent encoder outputs every `restart_every` steps. `train.init_from` starts from a trained tokenizer (its
+from recent encoder outputs every `restart_every` steps. With `train.continuous_warmup` the decoder reads the
+unquantized encoder outputs until that k-means (no VQ loss), the codes after it. `train.init_from` starts from a trained tokenizer (its
 codebook kept); with `train.decoder_only` the encoder and codebook stay fixed, so the tokens do not change and
 models trained on them stay valid, while the decoder trains on.
 
