@@ -84,3 +84,14 @@ def split_config_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
     overrides = [a for a in argv if a.startswith("--config.")]
     rest = [a for a in argv if not a.startswith("--config.")]
     return overrides, rest
+
+
+def config_differences(mine: ml_collections.ConfigDict, theirs: ml_collections.ConfigDict,
+                       ignore: Sequence[str] = ()) -> str:
+    """The top-level fields in which two config sections differ, as "k (theirs there, mine here), ..." ('' when
+    they agree); fields in `ignore` are left out. Used to refuse starting a run from another model."""
+    import json
+
+    a, b = json.loads(mine.to_json()), json.loads(theirs.to_json())
+    diff = sorted(k for k in set(a) | set(b) if k not in ignore and a.get(k) != b.get(k))
+    return ", ".join(f"{k} ({b.get(k)!r} there, {a.get(k)!r} here)" for k in diff)

@@ -42,6 +42,7 @@ from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
 from gpd_jax.checkpoint import export_model, model_from_config, resolve_tokenizer_path
+from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
@@ -142,13 +143,9 @@ def initial_params(path: str, config):
     from gpd_jax.checkpoint import load_model
 
     src, model = load_model(path)
-    mine = json.loads(config.model.to_json())
-    theirs = json.loads(src.model.to_json())
-    diff = sorted(k for k in set(mine) | set(theirs)
-                  if k != "map_tokenizer" and mine.get(k) != theirs.get(k))
+    diff = config_differences(config.model, src.model, ignore=("map_tokenizer",))
     if diff:
-        raise ValueError(f"train.init_from {path}: its model config differs in " + ", ".join(
-            f"{k} ({theirs.get(k)!r} there, {mine.get(k)!r} here)" for k in diff))
+        raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
     return nnx.state(model, nnx.Param)
 
 

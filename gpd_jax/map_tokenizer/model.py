@@ -262,7 +262,7 @@ class MapVQVAE(nnx.Module):
         continuous warm-up); `idx` are still the nearest codes."""
         z = self.encode_latents(raster)
         z_q, idx, vq_loss = quantize(self.codebook.embedding[...], z, self.commitment)
-        if not (isinstance(quantized, bool) and quantized):
+        if quantized is not True:  # False, or a traced flag
             z_q = jnp.where(quantized, z_q, z)
             vq_loss = jnp.where(quantized, vq_loss, 0.0)
         points, logits = self.decoder(z_q, every_layer)

@@ -33,6 +33,7 @@ import orbax.checkpoint as ocp
 import tqdm
 from flax import nnx
 
+from gpd_jax.config import config_differences
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.data import frame_batches
 from gpd_jax.map_tokenizer.model import MapVQVAE
@@ -228,11 +229,9 @@ def initial_params(config: ml_collections.ConfigDict, path: str):
 
     src = load_tokenizer(path)
     for section in ("model", "raster"):
-        mine, theirs = json.loads(config[section].to_json()), json.loads(src.config[section].to_json())
-        if mine != theirs:
-            diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
-            raise ValueError(f"train.init_from {path}: its {section} config differs in " + ", ".join(
-                f"{k} ({theirs.get(k)!r} there, {mine.get(k)!r} here)" for k in diff))
+        diff = config_differences(config[section], src.config[section])
+        if diff:
+            raise ValueError(f"train.init_from {path}: its {section} config differs in {diff}")
     return jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
 
 
