@@ -12,7 +12,7 @@ over the current velocity rather than the last 1 s displacement: the validation 
 velocity at step 500 went from 1.57 / 1.37 / 1.27 (without) to 0.99 / 0.99 / 0.99.
 
     python -m gpd_jax.data build --source sumo --out data/sumo6k --scenarios 6000 --seed 11 --per-job 25
-    python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/gpd_sumo/map_tokenizer --data data/sumo6k --frame-stride 10
+    python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data data/sumo6k --frame-stride 10
     python train.py --config configs/gpd_sumo.py --workdir runs/gpd_sumo
 
 (240 networks, 25 scenes each; with 48 networks of 50 scenes the same model scored 0.03 worse at every horizon
@@ -44,9 +44,8 @@ def get_config():
     m.predict_delta = True
     m.velocity_residual = True
     m.velocity_inputs = True
-    # The tokenizer this model was trained with; it ships inside the model. checkpoints/map_tokenizer is a newer,
-    # better one: a model trained on it needs the store encoded with it.
-    m.map_tokenizer = "checkpoints/gpd_sumo/map_tokenizer"
+    # The shipped tokenizer; the store's map tokens must be its (`map_tokenizer encode`), training refuses others.
+    m.map_tokenizer = "checkpoints/map_tokenizer"
     t = c.train
     t.batch_size = 8
     t.steps = 4_000
