@@ -1,5 +1,8 @@
 """Stage 1 of the GPD that ships in checkpoints/gpd_sumo (stage 2: gpd_sumo_finetune.py): SUMO scenes at 1 Hz.
 
+(The shipped model took a longer route, through an earlier tokenizer's tokens; checkpoints/gpd_sumo/README.md
+has its exact commands.)
+
 Every 10th stored frame (1 s apart): 3 history frames (2 s, the current one included) + 8 future frames (8 s),
 the ego and its 16 nearest agents, 64 map tokens from the shipped map tokenizer, d 128, 4 layers, 4 heads.
 11 x 81 = 891 tokens per scene against the paper's 101 x 97 = 9,797: attention, which dominates a CPU
