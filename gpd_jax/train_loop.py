@@ -30,7 +30,7 @@ import math
 import os
 import signal
 import time
-from typing import Any
+from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -94,19 +94,21 @@ def _check_store(config, data_dir: str, split: str) -> int:
     return len(src)
 
 
-def _check_token_source(data_dir: str, split: str, tokenizer_dir: str) -> None:
-    """Refuses a store whose map tokens were made by another tokenizer than the model's (its codebook would
-    embed the wrong codes)."""
+def _check_token_source(data_dir: str, splits: Sequence[str], tokenizer_dir: str) -> None:
+    """Refuses a store whose map tokens in any of `splits` (training and validation) were made by another
+    tokenizer than the model's (its codebook would embed the wrong codes)."""
     from gpd_jax.map_tokenizer import load_tokenizer
 
     fp = load_tokenizer(tokenizer_dir).fingerprint()
-    bad = store.foreign_map_token_shards(data_dir, split, fp)
-    if bad:
-        j = store.shard_indices(data_dir, split)[bad[0]]
-        raise DataError(store.shard_dir(data_dir, split, j), f"the map tokens of {len(bad)} shard(s) of split "
-                        f"{split!r}, this one first, were made by tokenizer {store.map_tokens_source(data_dir, split, j)}"
-                        f", not by the model's ({tokenizer_dir}, {fp}); re-encode them: python -m "
-                        f"gpd_jax.map_tokenizer encode --checkpoint {tokenizer_dir} --data {data_dir}")
+    for split in dict.fromkeys(splits):
+        bad = store.foreign_map_token_shards(data_dir, split, fp)
+        if bad:
+            j = store.shard_indices(data_dir, split)[bad[0]]
+            raise DataError(store.shard_dir(data_dir, split, j), f"the map tokens of {len(bad)} shard(s) of split "
+                            f"{split!r}, this one first, were made by tokenizer "
+                            f"{store.map_tokens_source(data_dir, split, j)}, not by the model's ({tokenizer_dir}, "
+                            f"{fp}); re-encode them: python -m gpd_jax.map_tokenizer encode --checkpoint "
+                            f"{tokenizer_dir} --data {data_dir}")
 
 
 # ----------------------------------------------------------------------------------------------- checkpoints
@@ -307,7 +309,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
                          f"{pcount} processes")
     if config.model.get("map_tokenizer"):
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
-        _check_token_source(data_dir, config.data.train_split, config.model.map_tokenizer)
+        _check_token_source(data_dir, (config.data.train_split, config.data.val_split), config.model.map_tokenizer)
 
     lead = pindex == 0
     os.makedirs(workdir, exist_ok=True)

@@ -132,6 +132,11 @@ def test_map_tokens_of_another_tokenizer_are_refused(tmp_path):
     with pytest.raises(DataError, match="shard_00000.*made by tokenizer 0000000000000000, not by the model's"):
         train_and_evaluate(c, str(tmp_path / "w"), quiet=True)
     assert not os.path.exists(tmp_path / "w" / "checkpoints")
+    # validation reads the val split's tokens: checked too
+    store.save_map_tokens(d, "train", 0, tokens, tokenizer=fp, frame_stride=10)
+    store.save_map_tokens(d, "val", 0, tokens, tokenizer="0" * 16, frame_stride=10)
+    with pytest.raises(DataError, match="split 'val'.*made by tokenizer 0000000000000000"):
+        train_and_evaluate(c, str(tmp_path / "w"), quiet=True)
 
 
 def test_workdir_with_another_model_is_refused(store_dir, tmp_path):
