@@ -23,6 +23,11 @@ What `evaluate` does (the command line is `rollout.py` at the repository root):
    `constant_velocity_model_rate`, whose velocity is the difference of the last two *model* frames (the same
    information the model gets; identical to the former at stride 1). Log replay has zero ADE / FDE; its
    collision rate is the log's own, the floor a generator should not exceed.
+   Two map baselines where a task generates the map: `map_tokenizer_reconstruction` (the logged tokens
+   decoded: the ceiling of any generated map) and `map_persistence` (the current frame's ground-truth lanes
+   carried into each future frame with the logged ego pose: the map seen now, kept, never extended; the map
+   analogue of constant velocity). The paper's F1 aligns points by index along each matched line, so a lane cut
+   by an earlier window edge scores low even where it lies on the right road.
 
 **Scored agents**: those valid at the current frame (the last history frame), for the model and the baselines
 alike. Slots not valid at the current frame are neither scored nor obstacles (they are removed from the
@@ -55,7 +60,8 @@ metrics.json (written by rollout.py; NaN written as null)::
                              "map_chamfer", "map_chamfer_corrected", "map_chamfer_corrected_skipped"}}},
      "baselines": {"constant_velocity": {"3s": {ego_* and agent_* as above}},
                    "constant_velocity_model_rate": {...}, "log_replay": {...},
-                   "map_tokenizer_reconstruction": {"3s": {map_* as above}}},  # logged tokens decoded
+                   "map_tokenizer_reconstruction": {"3s": {map_* as above}},  # logged tokens decoded
+                   "map_persistence": {"3s": {map_* as above}}},  # current lanes carried forward
      "ratios": {"traffic_simulation_agent_ade_over_constant_velocity": {"3s": r, "5s": r, "8s": r},
                 "traffic_simulation_agent_ade_over_constant_velocity_model_rate": {...}},
      "ratio_targets": {...: {"3s": 0.8, "5s": 0.75, "8s": 0.7}},
@@ -91,6 +97,10 @@ HORIZONS_S = (3.0, 5.0, 8.0)
 BASELINE_NAMES = ("constant_velocity", "constant_velocity_model_rate", "log_replay")
 # The logged map tokens decoded and scored like a map task: the ceiling any generated map can reach.
 TOKENIZER_CEILING = "map_tokenizer_reconstruction"
+# The current frame's ground-truth lanes carried into each future frame with the logged ego pose, nothing added:
+# the map analogue of constant velocity (what a generator gets by keeping the map it sees and predicting nothing).
+MAP_PERSISTENCE = "map_persistence"
+MAP_BASELINES = (TOKENIZER_CEILING, MAP_PERSISTENCE)
 SCORED_AGENTS = "valid at the current frame"
 AGENT_METRICS = ("ade", "fde", "collision")
 MAP_METRICS = ("map_f1", "map_precision", "map_recall", "map_lateral")
@@ -280,7 +290,7 @@ def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight) -> dict[str,
 
 @functools.partial(jax.jit, static_argnames=("spec", "task_names"))
 def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: EvalSpec,
-                task_names: tuple[str, ...], map_pred=None, gt_lanes=None) -> dict[str, Any]:
+                task_names: tuple[str, ...], map_pred=None, gt_lanes=None, kept_lanes=None) -> dict[str, Any]:
     """Metric sums of one batch: every task and both baselines, both variants.
 
     Args:
@@ -293,6 +303,8 @@ def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: Ev
         one more slot after them (Km = #map tasks + 1) holds the logged tokens decoded, scored as the
         `map_tokenizer_reconstruction` baseline (the ceiling any generated map can reach).
       gt_lanes: (points f32[B, F, L, P, 2], valid bool[B, F, L]) ground-truth lanes of the same frames.
+      kept_lanes: optional, the same shapes: the current frame's lanes carried to those frames
+        (`persistence_future_lanes`), scored as the `map_persistence` baseline.
 
     Returns:
       {"tasks": {name: {"paper": sums, "corrected": sums[, "map": {key: f32[F]}]}},
@@ -316,6 +328,11 @@ def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: Ev
             out["tasks"][name]["map"] = {key: v[j] for key, v in ms.items()}
         if pts.shape[1] > len(maps):  # the logged tokens decoded: the map tokenizer's own reconstruction
             out["baselines"][TOKENIZER_CEILING] = {"map": {key: v[len(maps)] for key, v in ms.items()}}
+        if kept_lanes is not None:
+            kp, kv = kept_lanes
+            ms = map_sums(kp[:, None, :f], jnp.where(kv, 10.0, -10.0)[:, None, :f], gt_lanes[0][:, :f],
+                          gt_lanes[1][:, :f], weight)
+            out["baselines"][MAP_PERSISTENCE] = {"map": {key: v[0] for key, v in ms.items()}}
     w = jnp.asarray(weight, bool)
     out["counts"] = {"scenarios": jnp.sum(w).astype(jnp.float32),
                      "scored_agents": jnp.sum(scored[:, 1:]).astype(jnp.float32)}
@@ -379,10 +396,10 @@ def reduce_results(acc: dict[str, Any], spec: EvalSpec, task_names: Sequence[str
     for name in BASELINE_NAMES:
         red = {v: reduce_agent_metrics(acc["baselines"][name][v]) for v in VARIANTS}
         res["baselines"][name] = {label: _agent_entries(red, label, ("ego", "agent"), variant) for label in labels}
-    if TOKENIZER_CEILING in acc["baselines"]:
-        s = acc["baselines"][TOKENIZER_CEILING]["map"]
-        res["baselines"][TOKENIZER_CEILING] = {label: _map_entries(s, h, variant)
-                                               for label, h in zip(labels, spec.horizons)}
+    for name in MAP_BASELINES:
+        if name in acc["baselines"]:
+            s = acc["baselines"][name]["map"]
+            res["baselines"][name] = {label: _map_entries(s, h, variant) for label, h in zip(labels, spec.horizons)}
     res["ratios"] = {}
     if "traffic_simulation" in res["tasks"]:
         ts = res["tasks"]["traffic_simulation"]
@@ -444,9 +461,11 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
         for n in maps:
             rows2.append((_title(n) + ":", None))
             rows2 += [(f"  {lb}", tasks[n][lb]) for lb in labels]
-        if TOKENIZER_CEILING in base:
-            rows2.append(("logged tokens decoded (tokenizer ceiling):", None))
-            rows2 += [(f"  {lb}", base[TOKENIZER_CEILING][lb]) for lb in labels]
+        for name, title in ((TOKENIZER_CEILING, "logged tokens decoded (tokenizer ceiling):"),
+                            (MAP_PERSISTENCE, "current lanes carried forward (map persistence):")):
+            if name in base:
+                rows2.append((title, None))
+                rows2 += [(f"  {lb}", base[name][lb]) for lb in labels]
         out += [""] + table(f"Table 2 - map prediction ({variant} Chamfer in 'Ch')", rows2, cols2)
     for key, what in ((RATIO_KEY, "constant velocity (stored rate)"),
                       (RATIO_KEY_MODEL_RATE, "constant velocity (model rate)")):
@@ -613,6 +632,17 @@ def gt_future_lanes(polylines: np.ndarray, polyline_valid: np.ndarray, ego_pose_
     return np.stack([r[0] for r in res]), np.stack([r[1] for r in res])
 
 
+def persistence_future_lanes(polylines: np.ndarray, polyline_valid: np.ndarray, ego_pose_full: np.ndarray,
+                             spec: EvalSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The `map_persistence` baseline: the lanes visible at the current frame, in each of the frames of
+    `gt_future_lanes` (logged ego poses; `gpd_jax.data.lanes.vector_lanes_carried`). Same shapes."""
+    from gpd_jax.data.lanes import vector_lanes_carried
+
+    fr, cur = spec.future_stored_frames(), spec.full_history - 1
+    res = [vector_lanes_carried(p, v, q[cur], q[fr]) for p, v, q in zip(polylines, polyline_valid, ego_pose_full)]
+    return np.stack([r[0] for r in res]), np.stack([r[1] for r in res])
+
+
 @dataclasses.dataclass
 class RenderItem:
     """What `gpd_jax.render` needs for one scenario (model-rate arrays, every task)."""
@@ -700,7 +730,10 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
                                       map_valid=np.ones_like(scene.map_valid))
             n_store += int(has[:real].sum())
             n_encoded += int((~has[:real]).sum())
-            gt_lanes = gt_future_lanes(polylines, poly_valid, full.ego_pose, spec) if maps else None
+            gt_lanes = kept_lanes = None
+            if maps:
+                gt_lanes = gt_future_lanes(polylines, poly_valid, full.ego_pose, spec)
+                kept_lanes = persistence_future_lanes(polylines, poly_valid, full.ego_pose, spec)
             tb = time.perf_counter()
             t_data += tb - ta
             out = rollout_all(graphdef, state, jax.tree.map(jnp.asarray, scene), tasks, jax.random.fold_in(key, b),
@@ -715,7 +748,7 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
                 tokens = jnp.concatenate([out.map_tokens[:, mi, fut],
                                           jnp.asarray(scene.map_tokens)[:, None, fut]], axis=1)
                 map_pred = decode_map_tokens(tokenizer, tokenizer.params, tokens)
-            sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes)
+            sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes, kept_lanes)
             acc = add_sums(acc, sums)
             t_score += time.perf_counter() - tc
             for j in range(real):

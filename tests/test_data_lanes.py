@@ -69,3 +69,24 @@ def test_empty():
     p, v = _poly([np.zeros((0, 2))])
     l, ok = lanes.vector_lanes(p, v, np.zeros(3))
     assert not ok.any() and (l == 0).all()
+
+
+def test_carried_lanes_persist_but_never_extend():
+    x = np.linspace(-80, 80, 81)
+    ahead = np.stack([x, np.full_like(x, 2.0)], -1)  # a long lane along the ego's path
+    new = np.array([[40.0, -5.0], [60.0, -5.0]])  # only visible once the ego has moved 10 m or more
+    p, v = _poly([ahead, new], P=96)
+    poses = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    l, ok = lanes.vector_lanes_carried(p, v, poses[0], poses)
+    full, full_ok = lanes.vector_lanes_frames(p, v, poses)
+    # at the source pose: the ordinary lanes
+    assert ok[0].sum() == full_ok[0].sum() == 1
+    np.testing.assert_allclose(l[0], full[0], atol=1e-4)
+    # 10 m on: the lane seen at the start ends 22 m ahead (32 - 10) instead of 32; the new lane is absent
+    assert full_ok[2].sum() == 2 and ok[2].sum() == 1
+    np.testing.assert_allclose(l[1, 0, :, 1], 2.0, atol=1e-5)
+    np.testing.assert_allclose(l[1, 0, [0, -1], 0], [-32.0, 22.0], atol=1e-4)
+    np.testing.assert_allclose(l[2, 0, [0, -1], 0], [-32.0, 12.0], atol=1e-4)
+    # nothing visible at the source pose: nothing carried
+    l, ok = lanes.vector_lanes_carried(p, v, np.array([0.0, 500.0, 0.0]), poses)
+    assert not ok.any() and (l == 0).all()

@@ -8,8 +8,9 @@ import os
 import numpy as np
 import pytest
 
-from gpd_jax.evaluate import (EvalError, EvalSpec, add_sums, format_tables, generated, horizon_frames,
-                              reduce_results, score_batch, spec_from_config, to_json_compatible)
+from gpd_jax.evaluate import (EvalError, EvalSpec, add_sums, format_tables, generated, gt_future_lanes,
+                              horizon_frames, persistence_future_lanes, reduce_results, score_batch,
+                              spec_from_config, to_json_compatible)
 from gpd_jax.rollout import RolloutOutput
 from gpd_jax.scene import TYPE_ID, Scene
 
@@ -186,8 +187,13 @@ def test_map_metrics_of_laterally_shifted_lines():
     b = 2
     map_pred = (np.broadcast_to(pr, (b, 1, f) + pr.shape).copy(), np.broadcast_to(logits, (b, 1, f, 50)).copy())
     gt_lanes = (np.broadcast_to(gt, (b, f) + gt.shape).copy(), np.broadcast_to(gv, (b, f, 50)).copy())
+    # the persistence baseline scored with the same (unpermuted) shifted lines: the same values
+    kept = (np.broadcast_to(pr[np.argsort(perm)], gt_lanes[0].shape).copy(),
+            np.broadcast_to(pv[np.argsort(perm)], gt_lanes[1].shape).copy())
     res, _ = run([full_scene(), full_scene()], lambda s: predictions(s, k=2), tasks=tasks, map_pred=map_pred,
-                 gt_lanes=gt_lanes)
+                 gt_lanes=gt_lanes, kept_lanes=kept)
+    assert res["baselines"]["map_persistence"] == res["tasks"]["map_prediction"]
+    assert "current lanes carried forward (map persistence):" in format_tables(res)
     for lb in SPEC.labels:
         m = res["tasks"]["map_prediction"][lb]
         assert not any(k.startswith(("ego_", "agent_")) for k in m)
@@ -198,6 +204,22 @@ def test_map_metrics_of_laterally_shifted_lines():
         assert m["map_chamfer_corrected"] == pytest.approx(0.5, abs=1e-5)  # set-based, metres
         assert m["map_chamfer_corrected_skipped"] == 0
         assert not any(k.startswith("map_") for k in res["tasks"]["traffic_simulation"][lb])
+
+
+def test_persistence_lanes_are_the_current_window_seen_from_the_logged_future_poses():
+    full = full_scene()  # ego along y = 0 at 8 m/s, heading 0; current stored frame 4 (x = 8 m)
+    x = np.linspace(-100.0, 200.0, 301, dtype=np.float32)
+    poly = np.stack([x, np.full_like(x, 3.0)], -1)[None]  # one long lane 3 m left of the ego's path
+    pv = np.ones(poly.shape[:2], bool)
+    kp, kv = persistence_future_lanes(poly[None], pv[None], np.asarray(full.ego_pose)[None], SPEC)
+    gp, gv = gt_future_lanes(poly[None], pv[None], np.asarray(full.ego_pose)[None], SPEC)
+    assert kp.shape == gp.shape == (1, SPEC.max_horizon, 50, 20, 2) and kv.sum() == gv.sum() == SPEC.max_horizon
+    ego_x = np.asarray(full.ego_pose)[:, 0]
+    for j, fr in enumerate(SPEC.future_stored_frames()):
+        moved = ego_x[fr] - ego_x[CUR_FULL]
+        np.testing.assert_allclose(kp[0, j, 0, [0, -1], 0], [-32.0, 32.0 - moved], atol=1e-3)  # cut at the old edge
+        np.testing.assert_allclose(gp[0, j, 0, [0, -1], 0], [-32.0, 32.0], atol=1e-3)
+        np.testing.assert_allclose(kp[0, j, 0, :, 1], 3.0, atol=1e-4)
 
 
 def test_horizons_in_model_frames():

@@ -118,6 +118,38 @@ def vector_lanes_frames(polylines: np.ndarray, valid: np.ndarray, poses: np.ndar
     return out, out_valid
 
 
+def vector_lanes_carried(polylines: np.ndarray, valid: np.ndarray, from_pose: np.ndarray, poses: np.ndarray,
+                         step: float = STEP, half: float = HALF, **kw) -> tuple[np.ndarray, np.ndarray]:
+    """The lanes visible at `from_pose`, seen from each of `poses`: a map that persists but never extends.
+
+    The polylines are resampled at `step`, cut to the runs inside the window of `from_pose` (|x|, |y| <= half in
+    its ego frame), and those runs go through `vector_lanes_frames` at `poses` (cropped to each frame's window,
+    nearest 50, 20 points each). Lanes that enter a later frame's window from outside the first one are absent:
+    with the logged poses this is the map-persistence baseline of `gpd_jax.evaluate`, the map analogue of
+    constant velocity. At `poses == from_pose` the result equals `vector_lanes_frames` up to float rounding.
+
+    Args:
+      polylines f32[L, P, 2], valid bool[L, P] (scene frame); from_pose f32[3]; poses f32[T, 3].
+    Returns:
+      (f32[T, num_lines, num_points, 2], bool[T, num_lines]) as `vector_lanes_frames`.
+    """
+    pts, line = _resample_all(np.asarray(polylines), np.asarray(valid, bool), step)
+    inside = np.all(np.abs(to_frame(pts, np.asarray(from_pose, np.float64))) <= half, axis=-1)
+    # a new run wherever the line changes or the point enters the window; runs of points inside kept
+    start = inside & ~np.concatenate([[False], inside[:-1] & (line[1:] == line[:-1])])
+    run = np.cumsum(start) - 1
+    run, pts = run[inside], pts[inside]
+    if len(run) == 0:
+        return vector_lanes_frames(np.zeros((0, 2, 2), np.float32), np.zeros((0, 2), bool), poses, step=step,
+                                   half=half, **kw)
+    counts = np.bincount(run)
+    pos = np.arange(len(run)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[run]
+    runs = np.zeros((len(counts), counts.max(), 2), np.float64)
+    ok = np.zeros((len(counts), counts.max()), bool)
+    runs[run, pos], ok[run, pos] = pts, True
+    return vector_lanes_frames(runs, ok, poses, step=step, half=half, **kw)
+
+
 def vector_lanes(polylines: np.ndarray, valid: np.ndarray, pose: np.ndarray, **kw) -> tuple[np.ndarray, np.ndarray]:
     """One frame: polylines f32[L, P, 2], valid bool[L, P], pose f32[3] -> (f32[50, 20, 2], bool[50])."""
     lanes, ok = vector_lanes_frames(polylines, valid, np.asarray(pose)[None], **kw)
