@@ -26,8 +26,9 @@ What `evaluate` does (the command line is `rollout.py` at the repository root):
    Two map baselines where a task generates the map: `map_tokenizer_reconstruction` (the logged tokens
    decoded: the ceiling of any generated map) and `map_persistence` (the current frame's ground-truth lanes
    carried into each future frame with the logged ego pose: the map seen now, kept, never extended; the map
-   analogue of constant velocity). The paper's F1 aligns points by index along each matched line, so a lane cut
-   by an earlier window edge scores low even where it lies on the right road.
+   analogue of constant velocity; its F1 counts points exactly on the ground truth as hits, which the paper's
+   F1 does not). The paper's F1 aligns points by index along each matched line, so a lane cut by an earlier
+   window edge scores low even where it lies on the right road.
 
 **Scored agents**: those valid at the current frame (the last history frame), for the model and the baselines
 alike. Slots not valid at the current frame are neither scored nor obstacles (they are removed from the
@@ -268,12 +269,14 @@ def baseline_predictions(full: Scene, spec: EvalSpec) -> dict[str, tuple[jax.Arr
             "log_replay": log}
 
 
-def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight) -> dict[str, jax.Array]:
+def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight, count_exact_hits: bool = False
+             ) -> dict[str, jax.Array]:
     """Map-metric sums per (task, future step), padded scenarios weighted out.
 
     Args:
       pred_points: f32[B, K, F, Q, P, 2] decoded lines of K map-generating tasks at F future frames.
       pred_logits: f32[B, K, F, Q]; gt_points: f32[B, F, L, P, 2]; gt_valid: bool[B, F, L]; weight: bool[B].
+      count_exact_hits: as in `map_metric_sums` (False: the paper's F1, where a point exactly on the GT is a miss).
 
     Returns:
       {key: f32[K, F]} (`map_metric_sums` keys) summed over the real scenarios.
@@ -283,7 +286,8 @@ def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight) -> dict[str,
     gv = jnp.broadcast_to(gt_valid[:, None], (b, k) + gt_valid.shape[1:])
     flat = lambda x, n: x.reshape((b * k * f,) + x.shape[n:])
     # One "step" per (scenario, task, frame): per-frame sums come back, which are weighted and summed here.
-    s = map_metric_sums(flat(pred_points, 3), flat(pred_logits, 3), flat(gp, 3), flat(gv, 3), step_axis=0)
+    s = map_metric_sums(flat(pred_points, 3), flat(pred_logits, 3), flat(gp, 3), flat(gv, 3), step_axis=0,
+                        count_exact_hits=count_exact_hits)
     w = jnp.asarray(weight, jnp.float32)[:, None, None]
     return {key: jnp.sum(v.reshape(b, k, f) * w, axis=0) for key, v in s.items()}
 
@@ -330,8 +334,11 @@ def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: Ev
             out["baselines"][TOKENIZER_CEILING] = {"map": {key: v[len(maps)] for key, v in ms.items()}}
         if kept_lanes is not None:
             kp, kv = kept_lanes
+            # Its lines are cut from the same polylines as the ground truth, so a line inside both windows is
+            # bit-identical to it: the paper's F1 (which misses points at distance exactly 0) would score such a
+            # perfect line 0. Exact hits count here.
             ms = map_sums(kp[:, None, :f], jnp.where(kv, 10.0, -10.0)[:, None, :f], gt_lanes[0][:, :f],
-                          gt_lanes[1][:, :f], weight)
+                          gt_lanes[1][:, :f], weight, count_exact_hits=True)
             out["baselines"][MAP_PERSISTENCE] = {"map": {key: v[0] for key, v in ms.items()}}
     w = jnp.asarray(weight, bool)
     out["counts"] = {"scenarios": jnp.sum(w).astype(jnp.float32),

@@ -193,6 +193,11 @@ def test_map_metrics_of_laterally_shifted_lines():
     res, _ = run([full_scene(), full_scene()], lambda s: predictions(s, k=2), tasks=tasks, map_pred=map_pred,
                  gt_lanes=gt_lanes, kept_lanes=kept)
     assert res["baselines"]["map_persistence"] == res["tasks"]["map_prediction"]
+    # carried lines that coincide with the ground truth are hits (the paper's F1 would score them 0)
+    _, sums = run([full_scene(), full_scene()], lambda s: predictions(s, k=2), tasks=tasks, map_pred=map_pred,
+                  gt_lanes=gt_lanes, kept_lanes=gt_lanes)
+    m = reduce_results(add_sums(None, sums), SPEC, tasks)["baselines"]["map_persistence"]["3s"]
+    assert m["map_f1"] == pytest.approx(1.0) and m["map_chamfer_corrected"] == pytest.approx(0.0, abs=1e-6)
     assert "current lanes carried forward (map persistence):" in format_tables(res)
     for lb in SPEC.labels:
         m = res["tasks"]["map_prediction"][lb]
