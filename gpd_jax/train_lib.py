@@ -4,7 +4,8 @@ Inputs are frames [0, T-1), targets frames [1, T): every slot's output at frame 
 frame t+1. With `train.rollout_passes` = k > 0 the agent inputs of the future frames are the model's own
 predictions instead (k teacher-forced passes without gradient; exact for the first k future frames), the
 targets still the log's: training then sees the inputs a rollout sees and learns to recover from its own
-errors. Losses (weights from `config.loss`; official values 5, 5.73, 1, 1):
+errors. With `train.map_feedback` = f > 0 as well, the future map tokens of a fraction f of each batch's scenes
+are the model's own (argmax) too, as in the tasks that generate the map. Losses (weights from `config.loss`; official values 5, 5.73, 1, 1):
 
 * position: smooth-L1 (beta 1, metres), summed over x and y, averaged over valid target agents;
 * heading: smooth-L1 of the *wrapped* difference (radians), averaged over valid target agents;
@@ -52,48 +53,55 @@ def teacher_forced(model: GPD, xy, heading, valid, map_tokens, velocity=None) ->
     return model.predict(hidden, xy, heading, valid, prev_xy, prev_valid, velocity)
 
 
-def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int):
+def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int, feed_map=False):
     """The inputs a rollout would see, approximated by `passes` teacher-forced passes without gradient.
 
     Frames [num_history, T-1) of agents valid there and in the previous frame take the model's own prediction
-    from the previous frame (xy, heading and, for a `velocity_inputs` model, velocity); everything else (map
-    tokens, validity, history frames, agents that just appeared) stays the log's. The model is causal over
-    frames, so after k passes the first k future frames equal a free-running rollout exactly (validity and
-    map kept from the log) and later frames approximate it. With `passes` = 0 these are the log's inputs.
-    Returns (xy f32[T-1, A, 2], heading f32[T-1, A], velocity f32[T-1, A, 2] or None).
+    from the previous frame (xy, heading and, for a `velocity_inputs` model, velocity); with `feed_map`
+    (bool[], may be traced) so do the map tokens of those frames where the map is known (argmax of the previous
+    frame's map logits, as a rollout at temperature 0 feeds them back). Everything else (validity, history
+    frames, agents that just appeared, and the map without `feed_map`) stays the log's. The model is causal
+    over frames, so after k passes the first k future frames equal a free-running rollout exactly (validity
+    kept from the log) and later frames approximate it. With `passes` = 0 these are the log's inputs.
+    Returns (xy f32[T-1, A, 2], heading f32[T-1, A], velocity f32[T-1, A, 2] or None, map tokens i32[T-1, M]).
     """
     logged = (scene.xy[:-1], scene.heading[:-1],
-              None if model.input_velocity(scene.velocity) is None else scene.velocity[:-1])
+              None if model.input_velocity(scene.velocity) is None else scene.velocity[:-1], scene.map_tokens[:-1])
     if passes <= 0:
         return logged
-    valid, maps = scene.valid[:-1], scene.map_tokens[:-1]
+    valid = scene.valid[:-1]
     future = (jnp.arange(valid.shape[0]) >= num_history)[:, None]
     own = future & valid & previous_frames(logged[0], valid)[1]
+    map_known = scene.map_valid[:-1]
+    own_map = future & (map_known & jnp.concatenate([jnp.zeros_like(map_known[:1]), map_known[:-1]]))[:, None] \
+        & jnp.asarray(feed_map, bool)
     # The passes see frozen parameters: no tangents flow into the loop, which compiles once (not per pass).
     graphdef, state = nnx.split(model)
     frozen = nnx.merge(graphdef, jax.lax.stop_gradient(state))
 
-    def take(log, predicted):
+    def take(log, predicted, where=own):
         shifted = jnp.concatenate([log[:1], predicted[:-1]], 0)
-        return jnp.where(own.reshape(own.shape + (1,) * (log.ndim - own.ndim)), shifted, log)
+        return jnp.where(where.reshape(where.shape + (1,) * (log.ndim - where.ndim)), shifted, log)
 
     def one_pass(_, inputs):
-        xy, heading, vel = inputs
+        xy, heading, vel, maps = inputs
         pred = teacher_forced(frozen, xy, heading, valid, maps, vel)
         return (take(logged[0], pred.xy), take(logged[1], pred.heading),
-                None if vel is None else take(logged[2], pred.velocity))
+                None if vel is None else take(logged[2], pred.velocity),
+                take(logged[3], jnp.argmax(pred.map_logits, -1).astype(maps.dtype), own_map))
 
     return jax.lax.fori_loop(0, passes, one_pass, logged)
 
 
-def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0) -> dict[str, jax.Array]:
+def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0,
+               feed_map=False) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide).
 
     With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
-    predictions (`free_running_inputs`) while the targets stay the log's: the model learns to recover from its
-    own errors, as it must in a rollout."""
-    xy, heading, vel = free_running_inputs(model, scene, num_history, rollout_passes)
-    pred = teacher_forced(model, xy, heading, scene.valid[:-1], scene.map_tokens[:-1], vel)
+    predictions (`free_running_inputs`; with `feed_map` the map tokens too) while the targets stay the log's:
+    the model learns to recover from its own errors, as it must in a rollout."""
+    xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map)
+    pred = teacher_forced(model, xy, heading, scene.valid[:-1], maps, vel)
     tv = scene.valid[1:].astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(pred.xy - scene.xy[1:]), axis=-1)
     head = _smooth_l1(wrap_angle(pred.heading - scene.heading[1:]))
@@ -113,10 +121,15 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
     }
 
 
-def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0,
-               rollout_passes: int = 0) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Weighted total loss over a batch of scenes (leading dim B) and its parts (see `loss_terms`)."""
-    terms = jax.vmap(lambda s: loss_terms(model, s, num_history, rollout_passes))(scenes)
+def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout_passes: int = 0,
+               map_feedback: float = 0.0) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Weighted total loss over a batch of scenes (leading dim B) and its parts (see `loss_terms`).
+
+    With `rollout_passes` > 0 the first round(map_feedback * B) scenes of the batch (a random subset: batches
+    are shuffled) also take their future map tokens from the model (`free_running_inputs`)."""
+    b = scenes.xy.shape[0]
+    feed = jnp.arange(b) < round(float(map_feedback) * b)
+    terms = jax.vmap(lambda s, f: loss_terms(model, s, num_history, rollout_passes, f))(scenes, feed)
     terms = jax.tree.map(jnp.sum, terms)
     n_agents = jnp.maximum(terms["agent_count"], 1.0)
     n_map = jnp.maximum(terms["map_count"], 1.0)
@@ -187,9 +200,15 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
     weights = config.loss
     num_history = int(config.model.num_history)
     passes = int(config.train.get("rollout_passes", 0))
+    map_feedback = float(config.train.get("map_feedback", 0.0))
+    if not 0.0 <= map_feedback <= 1.0:
+        raise ValueError(f"train.map_feedback must be a fraction in [0, 1], got {map_feedback}")
+    if map_feedback > 0 and passes <= 0:
+        raise ValueError("train.map_feedback feeds back the map tokens of the rollout passes: set "
+                         "train.rollout_passes > 0")
 
     def loss_of(p, scenes):
-        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, num_history, passes)
+        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, num_history, passes, map_feedback)
 
     def train_step(state: TrainState, scenes: Scene):
         (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)

@@ -3,6 +3,7 @@
 import chex
 import jax
 import numpy as np
+import pytest
 from flax import nnx
 
 from gpd_jax.config import load_config
@@ -88,25 +89,35 @@ def test_free_running_inputs_are_the_models_own_rollout():
     cfg, model, scenes = _velocity_model()
     h, t = cfg.model.num_history, cfg.model.num_frames
     scene = jax.tree.map(lambda x: x[0], scenes)
-    # Reference: a frame-by-frame rollout (validity and map from the log), one frame replaced per pass.
-    xy, heading, vel = (np.array(a[:-1]) for a in (scene.xy, scene.heading, scene.velocity))
-    valid = np.asarray(scene.valid[:-1])
-    tracked = valid & np.concatenate([np.zeros_like(valid[:1]), valid[:-1]], 0)
-    for f in range(h, t - 1):
-        pred = teacher_forced(model, xy, heading, valid, scene.map_tokens[:-1], vel)
-        own = tracked[f]
-        xy[f][own], heading[f][own], vel[f][own] = (np.asarray(p)[f - 1][own]
-                                                    for p in (pred.xy, pred.heading, pred.velocity))
-    assert tracked[h:].sum() > 0 and np.abs(xy - np.asarray(scene.xy[:-1])).max() > 0.1
-    for passes in (2, t - 1 - h):
-        fx, fh, fv = (np.asarray(a) for a in free_running_inputs(model, scene, h, passes))
-        exact = slice(0, h + passes)  # the first `passes` future frames are exact after `passes` passes
-        np.testing.assert_allclose(fx[exact], xy[exact], atol=1e-4)
-        np.testing.assert_allclose(fh[exact], heading[exact], atol=1e-5)
-        np.testing.assert_allclose(fv[exact], vel[exact], atol=1e-4)
-    # history frames and agents not tracked into a frame keep the log's values
-    np.testing.assert_array_equal(fx[:h], np.asarray(scene.xy[:h]))
-    np.testing.assert_array_equal(fx[~tracked], np.asarray(scene.xy[:-1])[~tracked])
+    logged_maps = np.asarray(scene.map_tokens[:-1])
+    assert np.asarray(scene.map_valid).all()
+    for feed_map in (False, True):
+        # Reference: a frame-by-frame rollout (validity, and the map unless fed back, from the log), one frame
+        # replaced per pass.
+        xy, heading, vel = (np.array(a[:-1]) for a in (scene.xy, scene.heading, scene.velocity))
+        maps = logged_maps.copy()
+        valid = np.asarray(scene.valid[:-1])
+        tracked = valid & np.concatenate([np.zeros_like(valid[:1]), valid[:-1]], 0)
+        for f in range(h, t - 1):
+            pred = teacher_forced(model, xy, heading, valid, maps, vel)
+            own = tracked[f]
+            xy[f][own], heading[f][own], vel[f][own] = (np.asarray(p)[f - 1][own]
+                                                        for p in (pred.xy, pred.heading, pred.velocity))
+            if feed_map:
+                maps[f] = np.argmax(np.asarray(pred.map_logits)[f - 1], -1)
+        assert tracked[h:].sum() > 0 and np.abs(xy - np.asarray(scene.xy[:-1])).max() > 0.1
+        assert (maps[h:] != logged_maps[h:]).mean() > (0.5 if feed_map else -1)  # an untrained model's own map
+        for passes in (2, t - 1 - h):
+            fx, fh, fv, fm = (np.asarray(a) for a in free_running_inputs(model, scene, h, passes, feed_map))
+            exact = slice(0, h + passes)  # the first `passes` future frames are exact after `passes` passes
+            np.testing.assert_allclose(fx[exact], xy[exact], atol=1e-4)
+            np.testing.assert_allclose(fh[exact], heading[exact], atol=1e-5)
+            np.testing.assert_allclose(fv[exact], vel[exact], atol=1e-4)
+            np.testing.assert_array_equal(fm[exact], maps[exact])
+        # history frames and agents not tracked into a frame keep the log's values
+        np.testing.assert_array_equal(fx[:h], np.asarray(scene.xy[:h]))
+        np.testing.assert_array_equal(fm[:h], logged_maps[:h])
+        np.testing.assert_array_equal(fx[~tracked], np.asarray(scene.xy[:-1])[~tracked])
 
 
 def test_rollout_passes_train_on_own_predictions_against_the_log():
@@ -120,3 +131,19 @@ def test_rollout_passes_train_on_own_predictions_against_the_log():
     new, parts = fr.train_step(state, scenes)
     assert np.isfinite(float(parts["loss"])) and np.isfinite(float(parts["grad_norm"]))
     np.testing.assert_allclose(float(parts["loss"]), float(b["loss"]), rtol=1e-5)
+    # map feedback: own future map tokens for the first round(f * B) scenes only (B = 2 here: one fed)
+    cfg.train.map_feedback = 0.5
+    half, _ = make_trainer(model, cfg, donate=False)
+    cfg.train.map_feedback = 1.0
+    full, _ = make_trainer(model, cfg, donate=False)
+    assert scenes.xy.shape[0] == 2
+    acc = lambda tr, i: float(tr.eval_step(state.params, jax.tree.map(lambda x: x[i:i + 1], scenes))["map_accuracy"])
+    assert acc(full, 0) != acc(fr, 0)  # an untrained model's own map tokens as inputs change its predictions
+    c = half.eval_step(state.params, scenes)
+    np.testing.assert_allclose(float(c["map_accuracy"]) * 2, acc(full, 0) + acc(fr, 1), rtol=1e-5)
+    cfg.train.map_feedback = 1.5
+    with pytest.raises(ValueError, match="map_feedback must be a fraction"):
+        make_trainer(model, cfg, donate=False)
+    cfg.train.map_feedback, cfg.train.rollout_passes = 0.5, 0
+    with pytest.raises(ValueError, match="set train.rollout_passes > 0"):
+        make_trainer(model, cfg, donate=False)
