@@ -5,7 +5,8 @@ frame t+1. With `train.rollout_passes` = k > 0 the agent inputs of the future fr
 predictions instead (k teacher-forced passes without gradient; exact for the first k future frames), the
 targets still the log's: training then sees the inputs a rollout sees and learns to recover from its own
 errors. With `train.map_feedback` = f > 0 as well, the future map tokens of a fraction f of each batch's scenes
-are the model's own (argmax) too, as in the tasks that generate the map. Losses (weights from `config.loss`; official values 5, 5.73, 1, 1):
+are the model's own (argmax) too, as in the tasks that generate the map. Losses (weights from `config.loss`;
+official values 5, 5.73, 1, 1):
 
 * position: smooth-L1 (beta 1, metres), summed over x and y, averaged over valid target agents;
 * heading: smooth-L1 of the *wrapped* difference (radians), averaged over valid target agents;
