@@ -62,11 +62,18 @@ def vector_lanes_frames(polylines: np.ndarray, valid: np.ndarray, poses: np.ndar
     Returns:
       (lanes f32[T, num_lines, num_points, 2] in each frame's ego frame, lanes_valid bool[T, num_lines]).
     """
+    pts, line = _resample_all(np.asarray(polylines), np.asarray(valid, bool), step)
+    return _frame_lanes(pts, line, poses, num_lines, num_points, half, min_run)
+
+
+def _frame_lanes(pts: np.ndarray, line: np.ndarray, poses: np.ndarray, num_lines: int, num_points: int,
+                 half: float, min_run: int) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 3-6 for resampled points f64[R, 2] in the scene frame, `line` i64[R] the polyline of each (equal
+    ids on consecutive points = one line), at every pose f32[T, 3] -> as `vector_lanes_frames`."""
     poses = np.asarray(poses, np.float64)
     T = poses.shape[0]
     out = np.zeros((T, num_lines, num_points, 2), np.float32)
     out_valid = np.zeros((T, num_lines), bool)
-    pts, line = _resample_all(np.asarray(polylines), np.asarray(valid, bool), step)
     R = len(pts)
     if R == 0 or T == 0:
         return out, out_valid
@@ -119,12 +126,13 @@ def vector_lanes_frames(polylines: np.ndarray, valid: np.ndarray, poses: np.ndar
 
 
 def vector_lanes_carried(polylines: np.ndarray, valid: np.ndarray, from_pose: np.ndarray, poses: np.ndarray,
-                         step: float = STEP, half: float = HALF, **kw) -> tuple[np.ndarray, np.ndarray]:
+                         num_lines: int = NUM_LINES, num_points: int = NUM_POINTS, step: float = STEP,
+                         half: float = HALF, min_run: int = MIN_RUN) -> tuple[np.ndarray, np.ndarray]:
     """The lanes visible at `from_pose`, seen from each of `poses`: a map that persists but never extends.
 
     The polylines are resampled at `step`, cut to the runs inside the window of `from_pose` (|x|, |y| <= half in
-    its ego frame), and those runs go through `vector_lanes_frames` at `poses` (cropped to each frame's window,
-    nearest 50, 20 points each). Lanes that enter a later frame's window from outside the first one are absent:
+    its ego frame), and those runs go through the steps 3-6 of `vector_lanes_frames` at `poses` (cropped to each
+    frame's window, nearest 50, 20 points each). Lanes that enter a later frame's window from outside the first one are absent:
     with the logged poses this is the map-persistence baseline of `gpd_jax.evaluate`, the map analogue of
     constant velocity. At `poses == from_pose` the result equals `vector_lanes_frames` up to float rounding.
 
@@ -135,19 +143,10 @@ def vector_lanes_carried(polylines: np.ndarray, valid: np.ndarray, from_pose: np
     """
     pts, line = _resample_all(np.asarray(polylines), np.asarray(valid, bool), step)
     inside = np.all(np.abs(to_frame(pts, np.asarray(from_pose, np.float64))) <= half, axis=-1)
-    # a new run wherever the line changes or the point enters the window; runs of points inside kept
+    # a new line id wherever the line changes or the point enters the window; the points inside kept
     start = inside & ~np.concatenate([[False], inside[:-1] & (line[1:] == line[:-1])])
     run = np.cumsum(start) - 1
-    run, pts = run[inside], pts[inside]
-    if len(run) == 0:
-        return vector_lanes_frames(np.zeros((0, 2, 2), np.float32), np.zeros((0, 2), bool), poses, step=step,
-                                   half=half, **kw)
-    counts = np.bincount(run)
-    pos = np.arange(len(run)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[run]
-    runs = np.zeros((len(counts), counts.max(), 2), np.float64)
-    ok = np.zeros((len(counts), counts.max()), bool)
-    runs[run, pos], ok[run, pos] = pts, True
-    return vector_lanes_frames(runs, ok, poses, step=step, half=half, **kw)
+    return _frame_lanes(pts[inside], run[inside], poses, num_lines, num_points, half, min_run)
 
 
 def vector_lanes(polylines: np.ndarray, valid: np.ndarray, pose: np.ndarray, **kw) -> tuple[np.ndarray, np.ndarray]:
