@@ -269,3 +269,35 @@ def test_auction_matches_scipy_total_cost():
         r, c = linear_sum_assignment(cost[b])
         assert sorted(m[b]) == list(range(7))  # a permutation
         assert cost[b][m[b], np.arange(7)].sum() <= cost[b][r, c].sum() + 7 * 1e-3 + 1e-4
+
+
+def test_decoder_only_adds_identity_layers(tmp_path):
+    """`train.decoder_only` may deepen the decoder: added layers start as identities (same lines, same tokens)
+    and still get gradients; without decoder_only, or to remove layers, the source must match."""
+    from gpd_jax.map_tokenizer.tokenizer import MapTokenizer
+    from gpd_jax.map_tokenizer.train import build_model, initial_params, loss_fn
+    cfg = small_config()
+    _, params = build_model(cfg)
+    out = str(tmp_path / "src")
+    export_tokenizer(params, cfg, out, dtype=np.float32)
+    src = load_tokenizer(out)
+    deeper = small_config("--config.model.decoder.num_layers=3", f"--config.train.init_from={out}",
+                          "--config.train.decoder_only=True")
+    grown = initial_params(deeper, out)
+    assert sorted(grown["decoder"]["layers"]) == [0, 1, 2]
+    graphdef, _ = build_model(deeper)
+    tok = MapTokenizer(deeper, graphdef, grown)
+    assert tok.fingerprint() == src.fingerprint()
+    tokens = (jnp.arange(64) * 5 % 16)[None]
+    p0, l0 = src.decode(src.params, tokens)
+    p1, l1 = tok.decode(grown, tokens)
+    np.testing.assert_allclose(p1, p0, atol=1e-5)
+    np.testing.assert_allclose(l1, l0, atol=1e-5)
+    grads = jax.grad(lambda p: loss_fn(graphdef, deeper, p, synthetic_lanes(0, 2))[0])(grown)
+    assert float(jnp.abs(grads["decoder"]["layers"][2]["ff2"]["kernel"]).sum()) > 0
+    with pytest.raises(ValueError, match="only train.decoder_only may add layers"):
+        initial_params(small_config("--config.model.decoder.num_layers=3"), out)
+    with pytest.raises(ValueError, match="never remove"):
+        initial_params(small_config("--config.model.decoder.num_layers=0", "--config.train.decoder_only=True"), out)
+    with pytest.raises(ValueError, match="decoder: ffn_dim"):
+        initial_params(small_config("--config.model.decoder.ffn_dim=32", "--config.train.decoder_only=True"), out)

@@ -224,15 +224,49 @@ def restore_params(mgr: ocp.CheckpointManager, params_template, config, step: in
 
 def initial_params(config: ml_collections.ConfigDict, path: str):
     """Float32 params of the tokenizer at `path` (an export or a workdir) to start from (`train.init_from`);
-    its model and raster settings must equal `config`'s."""
+    its model and raster settings must equal `config`'s.
+
+    One exception, for `train.decoder_only`: `config` may ask for a deeper decoder than the source's
+    (`model.decoder.num_layers`). The source's layers are kept and each added layer starts as an exact identity
+    (its attention output and second FFN projections are zero, the rest freshly initialised), so training
+    starts from the source's reconstructions, with its tokens, and only gains capacity.
+    """
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
 
     src = load_tokenizer(path)
-    for section in ("model", "raster"):
-        diff = config_differences(config[section], src.config[section])
-        if diff:
-            raise ValueError(f"train.init_from {path}: its {section} config differs in {diff}")
-    return jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
+    if config_differences(config.raster, src.config.raster):
+        raise ValueError(f"train.init_from {path}: its raster config differs in "
+                         f"{config_differences(config.raster, src.config.raster)}")
+    extra = _added_decoder_layers(config, src.config, path)
+    params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
+    if not extra:
+        return params
+    _, fresh = build_model(config)
+    layers = dict(params["decoder"]["layers"])
+    n_src = len(layers)
+    for i in range(n_src, n_src + extra):
+        layer = fresh["decoder"]["layers"][i]
+        # Zero output projections: the residual branch adds nothing, so the layer is the identity at first.
+        for branch in ("self_attn", "cross_attn"):
+            layer[branch]["out"] = jax.tree.map(jnp.zeros_like, layer[branch]["out"])
+        layer["ff2"] = jax.tree.map(jnp.zeros_like, layer["ff2"])
+        layers[i] = layer
+    return {**params, "decoder": {**params["decoder"], "layers": layers}}
+
+
+def _added_decoder_layers(config, src_config, path: str) -> int:
+    """How many decoder layers `config` adds to the source tokenizer's (0, or more with `train.decoder_only`);
+    raises when the model configs differ in anything else."""
+    mine, theirs = config.model, src_config.model
+    diff = config_differences(mine, theirs, ignore=("decoder",))
+    dec_diff = config_differences(mine.decoder, theirs.decoder, ignore=("num_layers",))
+    extra = int(mine.decoder.num_layers) - int(theirs.decoder.num_layers)
+    if diff or dec_diff:
+        raise ValueError(f"train.init_from {path}: its model config differs in {diff or 'decoder: ' + dec_diff}")
+    if extra < 0 or (extra and not config.train.get("decoder_only", False)):
+        raise ValueError(f"train.init_from {path}: its decoder has {theirs.decoder.num_layers} layers, the config "
+                         f"{mine.decoder.num_layers}; only train.decoder_only may add layers (never remove them)")
+    return extra
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[str, float]:
