@@ -42,3 +42,17 @@ def test_shipped_model_is_the_sumo_configs():
             k: v for k, v in ship["model"].items() if k != "map_tokenizer"}, name
     ft = load_config(f"{ROOT}/configs/gpd_sumo_finetune.py").train
     assert ft.rollout_passes == 8 and ft.init_from and ship["train"]["rollout_passes"] == 8
+
+
+def test_shipped_tokenizer_is_the_decoder_config():
+    """checkpoints/map_tokenizer is configs/map_tokenizer_tiny.py's model with the decoder deepened by
+    configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's)."""
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/map_tokenizer/config.json"))
+    dec = load_config(f"{ROOT}/configs/map_tokenizer_tiny_decoder.py")
+    assert json.loads(dec.model.to_json()) == ship["model"]
+    assert dec.train.decoder_only and dec.train.init_from and ship["train"]["decoder_only"]
+    first = json.loads(load_config(f"{ROOT}/configs/map_tokenizer_tiny.py").model.to_json())
+    first["decoder"]["num_layers"] = dec.model.decoder.num_layers
+    assert first == ship["model"]
