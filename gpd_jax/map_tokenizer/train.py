@@ -222,26 +222,28 @@ def restore_params(mgr: ocp.CheckpointManager, params_template, config, step: in
     return tree["params"]
 
 
-def initial_params(config: ml_collections.ConfigDict, path: str):
+def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     """Float32 params of the tokenizer at `path` (an export or a workdir) to start from (`train.init_from`);
     its model and raster settings must equal `config`'s.
 
     One exception, for `train.decoder_only`: `config` may ask for a deeper decoder than the source's
     (`model.decoder.num_layers`). The source's layers are kept and each added layer starts as an exact identity
     (its attention output and second FFN projections are zero, the rest freshly initialised), so training
-    starts from the source's reconstructions, with its tokens, and only gains capacity.
+    starts from the source's reconstructions, with its tokens, and only gains capacity. `fresh`: freshly
+    initialised params of `config`'s model to take the added layers from (built here when not given).
     """
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
 
     src = load_tokenizer(path)
-    if config_differences(config.raster, src.config.raster):
-        raise ValueError(f"train.init_from {path}: its raster config differs in "
-                         f"{config_differences(config.raster, src.config.raster)}")
+    raster_diff = config_differences(config.raster, src.config.raster)
+    if raster_diff:
+        raise ValueError(f"train.init_from {path}: its raster config differs in {raster_diff}")
     extra = _added_decoder_layers(config, src.config, path)
     params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
     if not extra:
         return params
-    _, fresh = build_model(config)
+    if fresh is None:
+        _, fresh = build_model(config)
     layers = dict(params["decoder"]["layers"])
     n_src = len(layers)
     for i in range(n_src, n_src + extra):
@@ -285,7 +287,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     if decoder_only and not init_from:
         raise ValueError("train.decoder_only trains the decoder of an existing tokenizer: set train.init_from")
     if init_from:
-        params = initial_params(config, init_from)
+        params = initial_params(config, init_from, fresh=params)
     tx = make_optimizer(tcfg, params)
     mgr = checkpoint_manager(workdir, tcfg.keep_checkpoints)
     # A started tokenizer keeps its codebook: no k-means.
