@@ -22,7 +22,7 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
-from gpd_jax.fsutil import umask_mode
+from gpd_jax.fsutil import swap_in_directory, umask_mode
 from gpd_jax.model import GPD, build_model
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -107,7 +107,8 @@ def is_exported(path: str) -> bool:
 
 def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float32,
                  tokenizer_dir: str | None = None) -> str:
-    """Writes `config.json` + `params.npz` to `out_dir` atomically (a temporary directory renamed into place).
+    """Writes `config.json` + `params.npz` to `out_dir` atomically (a temporary directory renamed into place;
+    other files already in `out_dir`, such as a README or evaluation files, are kept).
 
     With `tokenizer_dir`, the map tokenizer is copied to `out_dir/map_tokenizer` and the config points there.
     """
@@ -127,14 +128,7 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
         np.savez(os.path.join(tmp, PARAMS_FILE), **flat)
         with open(os.path.join(tmp, CONFIG_FILE), "w") as f:
             f.write(config.to_json(indent=2))
-        if os.path.exists(out_dir):
-            old = out_dir + ".old"
-            shutil.rmtree(old, ignore_errors=True)
-            os.replace(out_dir, old)
-            os.replace(tmp, out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out_dir)
+        swap_in_directory(tmp, out_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -194,6 +194,11 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
 
     out = str(tmp_path / "export")
     export_tokenizer(tok.params, tok.config, out)
+    with open(os.path.join(out, "README.md"), "w") as f:  # exporting again replaces the model, keeps the rest
+        f.write("notes")
+    export_tokenizer(tok.params, tok.config, out)
+    assert sorted(os.listdir(out)) == ["README.md", "config.json", "params.npz"]
+    assert open(os.path.join(out, "README.md")).read() == "notes"
     tok2 = load_tokenizer(out)
     np.testing.assert_array_equal(tok2.encode(tok2.params, rasters), tokens)
     p2, l2 = tok2.decode(tok2.params, tokens)

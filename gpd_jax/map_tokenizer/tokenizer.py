@@ -15,6 +15,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import shutil
+import tempfile
 from typing import Any
 
 import jax
@@ -24,6 +26,7 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax.checkpoint import config_from_json, flatten_params, unflatten_params
+from gpd_jax.fsutil import swap_in_directory, umask_mode
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
 
@@ -84,17 +87,26 @@ class MapTokenizer:
 
 def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float16,
                      exact: tuple[str, ...] = ("encoder", "codebook")) -> None:
-    """Writes `config.json` and `params.npz` to `out_dir`.
+    """Writes `config.json` and `params.npz` to `out_dir` together (a temporary directory renamed into place;
+    other files already in `out_dir`, such as a README or evaluation files, are kept).
 
     Parameters under the top-level keys `exact` stay float32 (so that the exported encoder gives exactly the
     tokens of the trained one); the others (the decoder) are cast to `dtype` to keep the file small.
     """
-    os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, "config.json"), "w") as f:
-        f.write(config.to_json(indent=2))
-    flat = {k: v.astype(dtype) if v.dtype.kind == "f" and k.split("/")[0] not in exact else v
-            for k, v in flatten_params(params).items()}
-    np.savez_compressed(os.path.join(out_dir, "params.npz"), **flat)
+    out_dir = os.path.abspath(out_dir)
+    os.makedirs(os.path.dirname(out_dir), exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".export-", dir=os.path.dirname(out_dir))
+    umask_mode(tmp, directory=True)
+    try:
+        with open(os.path.join(tmp, "config.json"), "w") as f:
+            f.write(config.to_json(indent=2))
+        flat = {k: v.astype(dtype) if v.dtype.kind == "f" and k.split("/")[0] not in exact else v
+                for k, v in flatten_params(params).items()}
+        np.savez_compressed(os.path.join(tmp, "params.npz"), **flat)
+        swap_in_directory(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
