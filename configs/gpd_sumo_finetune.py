@@ -12,9 +12,7 @@ Measured (held-out networks, agent ADE / 10 Hz constant velocity at 3 / 5 / 8 s,
 0.715 / 0.746 / 0.813 before, 0.692 / 0.680 / 0.685 after; 1,000 more teacher-forced steps with the same
 schedule instead (`--config.train.rollout_passes=0`): 0.685 / 0.714 / 0.781. (On an earlier tokenizer's map
 tokens; the shipped model's stage 4 did the same, 500 steps, on the shipped tokenizer's: 0.60 / 0.60 / 0.62.
-Its stage 5 is this config with `--config.train.rollout_passes=2 --config.train.map_feedback=1.0
---config.train.steps=450`, which also feeds back the model's own map tokens: 0.57 / 0.58 / 0.62, and
-scene-generation map F1 +0.005 / +0.017 / +0.019 on the seed-7 networks.)
+Its stage 5, configs/gpd_sumo_map_feedback.py, then also feeds back the model's own map tokens.)
 """
 
 import os

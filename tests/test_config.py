@@ -36,12 +36,18 @@ def test_shipped_model_is_the_sumo_configs():
     import json
 
     ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo/config.json"))
-    for name in ("gpd_sumo", "gpd_sumo_finetune"):
+    for name in ("gpd_sumo", "gpd_sumo_finetune", "gpd_sumo_map_feedback"):
         m = json.loads(load_config(f"{ROOT}/configs/{name}.py").model.to_json())
         assert {k: v for k, v in m.items() if k != "map_tokenizer"} == {
             k: v for k, v in ship["model"].items() if k != "map_tokenizer"}, name
     ft = load_config(f"{ROOT}/configs/gpd_sumo_finetune.py").train
-    assert ft.rollout_passes == 8 and ft.init_from and ship["train"]["rollout_passes"] == 8
+    assert ft.rollout_passes == 8 and ft.init_from
+    # the shipped model's last stage was trained with configs/gpd_sumo_map_feedback.py's schedule
+    last = load_config(f"{ROOT}/configs/gpd_sumo_map_feedback.py").train.to_dict()
+    for k, v in last.items():
+        if k not in ("init_from",):
+            assert ship["train"][k] == v, k
+    assert last["init_from"] == "runs/gpd_sumo_ft/export" and last["map_feedback"] == 1.0
 
 
 def test_shipped_tokenizer_is_the_decoder_config():
