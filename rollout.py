@@ -56,6 +56,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", default="paper", choices=("paper", "corrected"),
                    help="metric variant of the main keys; the other is written with its name as a suffix")
     p.add_argument("--horizons", default="3,5,8", help="horizons in seconds (comma list)")
+    p.add_argument("--log-map", default="tokens", choices=("tokens", "lanes"),
+                   help="what tasks that take the map from the log but generate the ego (traffic simulation, "
+                        "motion planning) are fed: the logged map tokens, encoded around the logged ego (the "
+                        "paper's choice), or the log's lanes re-encoded around the generated ego every frame")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -146,6 +150,9 @@ def main(argv=None) -> int:
     try:
         if tok_path:
             tok_path = resolve_tokenizer_path(tok_path, ckpt)
+        if args.log_map == "lanes" and not tok_path:
+            raise EvalError(f"--log-map lanes re-encodes the log's lanes with the model's map tokenizer, and {ckpt} "
+                            "has none (config.model.map_tokenizer is empty)")
         preflight(config, data, args.split, task_names=task_names, num_scenarios=args.scenarios,
                   variant=args.variant, horizons_s=horizons, has_tokenizer=bool(tok_path))
     except FileNotFoundError as e:
@@ -174,7 +181,7 @@ def main(argv=None) -> int:
         results, items = evaluate(model, config, data, args.split, task_names=task_names,
                                   num_scenarios=args.scenarios, batch_size=args.batch, seed=args.seed,
                                   variant=args.variant, tokenizer=tok, horizons_s=horizons,
-                                  render_count=args.render, progress=not args.no_progress)
+                                  render_count=args.render, log_map=args.log_map, progress=not args.no_progress)
     except EvalError as e:
         return _fail(str(e))
     if args.render > len(items):

@@ -12,6 +12,9 @@ What `evaluate` does (the command line is `rollout.py` at the repository root):
    `python -m gpd_jax.map_tokenizer encode` does), so a freshly built split needs no encode step.
 3. Every task runs in one compiled `rollout_tasks` call per batch of scenarios (the last batch is padded with
    copies of its last scenario, weighted out of every sum, so the shapes and the compile stay the same).
+   `log_map="lanes"` re-encodes the logged map around the generated ego in tasks that take the map from the
+   log but generate the ego (traffic simulation, motion planning) inside that compiled rollout; the default,
+   "tokens", feeds the logged tokens (encoded around the logged ego), as the paper does.
 4. Metrics per task (`score_batch`, jitted): ego ADE / FDE / collision rate where the task generates the ego,
    agent ADE / FDE / collision rate where it generates the agents, map F1 / precision / recall / lateral /
    Chamfer where it generates the map. Map metrics decode the predicted tokens of the future frames with the
@@ -52,7 +55,7 @@ metrics.json (written by rollout.py; NaN written as null)::
      "frame_period_s": 0.5, "frame_stride", "stored_frame_period_s", "num_history", "num_future", "num_agents",
      "horizons": {"3s": 6, "5s": 10, "8s": 16},                  # label -> model frames
      "scored_agents": "valid at the current frame", "num_scored_agents": ...,
-     "task_generates": {task: ["ego", "agent", "map"]}, "map_tokens": {"from_store": n1, "encoded": n2},
+     "task_generates": {task: ["ego", "agent", "map"]}, "map_tokens": {"from_store": n1, "encoded": n2}, "log_map": "tokens"|"lanes",
      "temperature", "seed",
      "tasks": {task: {"3s": {"ego_ade", "ego_fde", "ego_collision",        # where the task generates the ego
                              "agent_ade", "agent_fde", "agent_collision",  # ... the agents
@@ -90,11 +93,12 @@ from flax import nnx
 from gpd_jax.baselines import constant_velocity
 from gpd_jax.metrics import (VARIANTS, agent_metric_sums, horizon_label, map_metric_sums, reduce_agent_metrics,
                              reduce_map_metrics)
-from gpd_jax.rollout import RolloutOutput, rollout_tasks
+from gpd_jax.rollout import LogLanes, RolloutOutput, rollout_tasks
 from gpd_jax.scene import Scene
 from gpd_jax.tasks import TASKS, make_tasks, resolve_task_names
 
 HORIZONS_S = (3.0, 5.0, 8.0)
+LOG_MAP_SOURCES = ("tokens", "lanes")  # what a task that takes the map from the log feeds (see `evaluate`)
 BASELINE_NAMES = ("constant_velocity", "constant_velocity_model_rate", "log_replay")
 # The logged map tokens decoded and scored like a map task: the ceiling any generated map can reach.
 TOKENIZER_CEILING = "map_tokenizer_reconstruction"
@@ -500,11 +504,16 @@ def to_json_compatible(x):
 
 
 # ------------------------------------------------------------------------------------------------ driver
-@functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "temperature"))
-def rollout_all(graphdef, state, scenes: Scene, tasks, key, num_history: int, temperature: float = 0.0
-                ) -> RolloutOutput:
-    """`rollout_tasks` of the model `nnx.merge(graphdef, state)`, jitted (one compile per shape)."""
-    return rollout_tasks(nnx.merge(graphdef, state), scenes, tasks, key, num_history, temperature)
+@functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "temperature", "tok"))
+def rollout_all(graphdef, state, scenes: Scene, tasks, key, num_history: int, temperature: float = 0.0,
+                tok=None, tok_params=None, lanes: LogLanes | None = None) -> RolloutOutput:
+    """`rollout_tasks` of the model `nnx.merge(graphdef, state)`, jitted (one compile per shape).
+
+    With a map tokenizer `tok` (its `tok_params`) and the scenes' `lanes` [S, ...], logged map tokens of tasks
+    that generate the ego are re-encoded around the generated ego (`gpd_jax.rollout`).
+    """
+    encoder = None if tok is None else tok.pose_encoder(tok_params)
+    return rollout_tasks(nnx.merge(graphdef, state), scenes, tasks, key, num_history, temperature, lanes, encoder)
 
 
 @functools.partial(jax.jit, static_argnames=("tok",))
@@ -516,16 +525,7 @@ def decode_map_tokens(tok, params, tokens):
 @functools.partial(jax.jit, static_argnames=("tok",))
 def encode_map_frames(tok, params, polylines, polyline_valid, poses):
     """Map tokens of every pose: polylines f32[B, L, P, 2], bool[B, L, P], poses f32[B, T, 3] -> i32[B, T, M]."""
-    from gpd_jax.map_tokenizer.raster import rasterize
-
-    r = tok.config.raster
-
-    def one(args):
-        pl, pv, ps = args
-        raster = rasterize(pl, pv, ps, size=r.size, pixel_size=r.pixel_size, max_segment_length=r.max_segment_length)
-        return tok.encode(params, raster)
-
-    return jax.lax.map(one, (polylines, polyline_valid, poses))
+    return jax.lax.map(lambda a: tok.encode_lanes(params, *a), (polylines, polyline_valid, poses))
 
 
 def check_compatible(spec: EvalSpec, config, sample: dict[str, np.ndarray], where: str, tok=None) -> None:
@@ -663,7 +663,8 @@ class RenderItem:
 def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: Sequence[str] = ("all",),
              num_scenarios: int | None = None, batch_size: int = 8, seed: int = 0, variant: str = "paper",
              tokenizer=None, horizons_s: Sequence[float] = HORIZONS_S, render_count: int = 0,
-             progress: bool = True, log: Callable[[str], None] = print) -> tuple[dict[str, Any], list[RenderItem]]:
+             log_map: str = "tokens", progress: bool = True, log: Callable[[str], None] = print
+             ) -> tuple[dict[str, Any], list[RenderItem]]:
     """Rolls out every task on the first `num_scenarios` scenarios of a split and scores them.
 
     Args:
@@ -678,6 +679,8 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
         tokens; None if the model has none.
       horizons_s: horizons in seconds (those longer than the model's future are skipped with a note).
       render_count: keep the arrays of the first this-many scenarios for `gpd_jax.render` (returned).
+      log_map: "tokens" (the logged map tokens) or "lanes" (the log's lanes encoded around a generated ego;
+        needs the tokenizer) for tasks that take the map from the log.
 
     Returns:
       (results dict as written to metrics.json, render items). Raises EvalError on bad input.
@@ -686,6 +689,11 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
 
     from gpd_jax.data.errors import DataError
 
+    if log_map not in LOG_MAP_SOURCES:
+        raise EvalError(f"log_map must be one of {LOG_MAP_SOURCES}, got {log_map!r}")
+    if log_map == "lanes" and tokenizer is None:
+        raise EvalError("log_map='lanes' re-encodes the log's lanes with the model's map tokenizer, and the model "
+                        "has none (config.model.map_tokenizer is empty)")
     prep = preflight(config, data_dir, split, task_names=task_names, num_scenarios=num_scenarios, variant=variant,
                      horizons_s=horizons_s, has_tokenizer=tokenizer is not None, tokenizer=tokenizer)
     spec, names, src, n = prep.spec, prep.task_names, prep.source, prep.num_scenarios
@@ -743,8 +751,11 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
                 kept_lanes = persistence_future_lanes(polylines, poly_valid, full.ego_pose, spec)
             tb = time.perf_counter()
             t_data += tb - ta
+            relane = {} if log_map == "tokens" else dict(
+                tok=tokenizer, tok_params=tokenizer.params,
+                lanes=LogLanes(jnp.asarray(polylines), jnp.asarray(poly_valid)))
             out = rollout_all(graphdef, state, jax.tree.map(jnp.asarray, scene), tasks, jax.random.fold_in(key, b),
-                              spec.num_history, temperature)
+                              spec.num_history, temperature, **relane)
             out = jax.block_until_ready(out)
             tc = time.perf_counter()
             t_roll += tc - tb
@@ -793,6 +804,7 @@ def evaluate(model, config, data_dir: str, split: str = "test", *, task_names: S
         "num_scored_agents": int(acc["counts"]["scored_agents"]),
         "task_generates": {t: list(generated(t)) for t in names},
         "map_tokens": {"from_store": n_store, "encoded": n_encoded},
+        "log_map": log_map,
         "temperature": temperature,
         "seed": seed,
         **res,

@@ -11,9 +11,18 @@ frame's offset and attends only to the filled part of the cache (chunked; see at
 Feedback: predicted positions and headings (and velocities, for a `velocity_inputs` model) are re-tokenized as
 regressed; valid = logit > 0; a map token is the argmax of its logits (temperature 0, the default) or sampled at
 a temperature with an explicit key.
+
+The log's map around a generated ego: the logged map tokens of frame t were encoded around the *logged* ego pose.
+In tasks that take the map from the log but generate the ego (traffic simulation, motion planning), a rollout
+may instead re-encode the log's lanes around the ego it generated (`LogLanes` + a `map_encoder`, e.g.
+`gpd_jax.map_tokenizer.MapTokenizer.pose_encoder`): rasterize and tokenize inside the compiled step, so the map
+stays where the log's roads are relative to the generated ego. Without them (the default, as the paper and the
+official code do) the logged tokens are used as they are.
 """
 
 from __future__ import annotations
+
+from typing import Callable
 
 import flax.struct
 import jax
@@ -40,6 +49,22 @@ class RolloutOutput:
     map_tokens: jax.Array
 
 
+@flax.struct.dataclass
+class LogLanes:
+    """The log's lane geometry of one scene (or a batch: leading dims `...`), to re-encode its map around a
+    generated ego pose.
+
+    polylines: f32[..., L, P, 2] lane points in the scene frame; valid: bool[..., L, P].
+    """
+
+    polylines: jax.Array
+    valid: jax.Array
+
+
+# (polylines f32[L, P, 2], valid bool[L, P], ego pose f32[3] in the scene frame) -> map tokens i32[M]
+MapEncoder = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+
+
 def _log_inputs(model: GPD, scene: Scene, task: Task):
     """The log's frames as model inputs: xy, heading, valid (hidden agents removed), map tokens, velocity
     (zeros for a model without velocity inputs)."""
@@ -49,11 +74,14 @@ def _log_inputs(model: GPD, scene: Scene, task: Task):
     return scene.xy, scene.heading, valid, scene.map_tokens, vel
 
 
-def _choose_frame(pred: Prediction, log_vel, scene: Scene, task: Task, t, key, temperature: float, num_map: int):
+def _choose_frame(pred: Prediction, log_vel, scene: Scene, task: Task, t, key, temperature: float, num_map: int,
+                  lanes: LogLanes | None = None, map_encoder: MapEncoder | None = None):
     """Frame t's inputs (xy, heading, valid, valid logit, map tokens, velocity): the log where the task says so,
     the prediction elsewhere.
 
-    `pred` holds the single-frame prediction made at frame t-1 (leading dim 1); `log_vel f32[T, A, 2]`.
+    `pred` holds the single-frame prediction made at frame t-1 (leading dim 1); `log_vel f32[T, A, 2]`. With
+    `lanes` and `map_encoder`, map tokens taken from the log while the ego is generated (and valid) are the log's
+    lanes encoded around the generated ego pose instead of the logged tokens.
     """
     logits = pred.map_logits[0]
     if temperature > 0:
@@ -67,13 +95,18 @@ def _choose_frame(pred: Prediction, log_vel, scene: Scene, task: Task, t, key, t
     heading_t = jnp.where(fl_agent, scene.heading[t], pred.heading[0])
     valid_t = jnp.where(fl_agent, scene.valid[t], pred.valid_logit[0] > 0) & ~task.hidden
     logit_t = jnp.where(fl_agent, 0.0, pred.valid_logit[0])
+    if map_encoder is not None:
+        pose = jnp.stack([xy_t[0, 0], xy_t[0, 1], heading_t[0]])
+        around_ego = map_encoder(lanes.polylines, lanes.valid, pose).astype(log_map.dtype)
+        map_t = jnp.where(fl_map & ~fl_agent[0] & valid_t[0], around_ego, map_t)
     pred_vel = jnp.zeros_like(log_vel[t]) if pred.velocity is None else pred.velocity[0]
     vel_t = jnp.where(fl_agent[:, None], log_vel[t], pred_vel)
     return xy_t, heading_t, valid_t, logit_t, map_t, vel_t
 
 
 def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
-            temperature: float = 0.0) -> RolloutOutput:
+            temperature: float = 0.0, lanes: LogLanes | None = None,
+            map_encoder: MapEncoder | None = None) -> RolloutOutput:
     """KV-cached rollout of one scenario under one task.
 
     Args:
@@ -83,9 +116,12 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
       key: PRNG key (used only when temperature > 0).
       num_history: H, the number of given frames (21 in the paper).
       temperature: 0 for greedy map tokens, > 0 to sample them.
+      lanes, map_encoder: the scene's logged lanes and a tokenizer's pose encoder, to re-encode the logged map
+        around a generated ego (see the module docstring); both or neither.
     """
     t_total, h = scene.num_frames, num_history
     num_map = scene.num_map_tokens
+    _check_map_encoder(lanes, map_encoder)
     xy, heading, valid, maps, vel = _log_inputs(model, scene, task)
     tokens = model.embed(xy[:h], heading[:h], valid[:h], maps[:h], jnp.arange(h), vel[:h])
     hidden, cache = forward_cached(model, tokens, model.init_cache(t_total), 0)
@@ -94,7 +130,7 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
 
     def step(carry, t):
         cache, pred, last_xy, last_valid = carry
-        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map)
+        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map, lanes, map_encoder)
         fxy, fh, fv, _, fm, fvel = frame
         tok = model.embed(fxy[None], fh[None], fv[None], fm[None], t[None], fvel[None])
         hid, cache = forward_cached(model, tok, cache, t)
@@ -103,9 +139,17 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
 
     carry = (cache, pred, xy[h - 1], valid[h - 1])
     (_, pred, _, _), frames = jax.lax.scan(step, carry, jnp.arange(h, t_total - 1))
-    last = _choose_frame(pred, vel, scene, task, jnp.asarray(t_total - 1), key, temperature, num_map)
+    last = _choose_frame(pred, vel, scene, task, jnp.asarray(t_total - 1), key, temperature, num_map, lanes,
+                         map_encoder)
     frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
     return _assemble(xy, heading, valid, maps, frames, h)
+
+
+def _check_map_encoder(lanes, map_encoder) -> None:
+    if (lanes is None) != (map_encoder is None):
+        raise ValueError("re-encoding the logged map around a generated ego needs both `lanes` (the log's lane "
+                         f"polylines) and `map_encoder`; got lanes={'None' if lanes is None else 'given'}, "
+                         f"map_encoder={map_encoder!r}")
 
 
 def _prev(xy, valid, t):
@@ -128,7 +172,8 @@ def _assemble(xy, heading, valid, maps, frames, h) -> RolloutOutput:
 
 
 def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
-                      temperature: float = 0.0) -> RolloutOutput:
+                      temperature: float = 0.0, lanes: LogLanes | None = None,
+                      map_encoder: MapEncoder | None = None) -> RolloutOutput:
     """The official method: for every future frame, a full forward over the whole buffer (no cache).
 
     The buffer holds all T frames; frames not yet generated still hold log values, which the scene-level
@@ -137,6 +182,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
     """
     t_total, h = scene.num_frames, num_history
     num_map = scene.num_map_tokens
+    _check_map_encoder(lanes, map_encoder)
     xy, heading, valid, maps, vel = _log_inputs(model, scene, task)
     logits0 = jnp.zeros(valid.shape, jnp.float32)
 
@@ -147,7 +193,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
         pred = model.predict(sl(hid), sl(bxy), sl(bh), sl(bv), *_prev(bxy, bv, prev), sl(bvel))
-        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map)
+        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map, lanes, map_encoder)
         buf = tuple(jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0)
                     for b, f in zip(buf, frame))
         return buf, None
@@ -158,14 +204,17 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
 
 
 def rollout_batch(model: GPD, scenes: Scene, tasks: Task, keys: jax.Array, num_history: int,
-                  temperature: float = 0.0) -> RolloutOutput:
-    """`rollout` vmapped over a leading batch dim shared by scenes, tasks and keys (mixed tasks allowed)."""
-    fn = lambda s, t, k: rollout(model, s, t, k, num_history, temperature)
-    return jax.vmap(fn)(scenes, tasks, keys)
+                  temperature: float = 0.0, lanes: LogLanes | None = None,
+                  map_encoder: MapEncoder | None = None) -> RolloutOutput:
+    """`rollout` vmapped over a leading batch dim shared by scenes, tasks, keys (and lanes; mixed tasks
+    allowed)."""
+    fn = lambda s, t, k, ln: rollout(model, s, t, k, num_history, temperature, ln, map_encoder)
+    return jax.vmap(fn)(scenes, tasks, keys, lanes)
 
 
 def rollout_tasks(model: GPD, scenes: Scene, tasks: Task, key: jax.Array, num_history: int,
-                  temperature: float = 0.0) -> RolloutOutput:
+                  temperature: float = 0.0, lanes: LogLanes | None = None,
+                  map_encoder: MapEncoder | None = None) -> RolloutOutput:
     """Every scenario under every task: scenes [S, ...], tasks [K, ...] -> outputs with leading dims [S, K].
 
     The S x K pairs are flattened into one vmapped batch (so the attention kernel's per-scenario batching
@@ -173,8 +222,8 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task, key: jax.Array, num_hi
     """
     s = scenes.xy.shape[0]
     k = tasks.from_log.shape[0]
-    flat_scenes = jax.tree.map(lambda x: jnp.repeat(x, k, axis=0), scenes)
+    flat_scenes, flat_lanes = jax.tree.map(lambda x: jnp.repeat(x, k, axis=0), (scenes, lanes))
     flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
     keys = jax.random.split(key, s * k)
-    out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature)
+    out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature, flat_lanes, map_encoder)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)

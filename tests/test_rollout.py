@@ -257,3 +257,57 @@ def test_velocity_inputs_without_velocities_is_a_clear_error(kinematic_setup):
     task = make_task("traffic_simulation", m.num_map_tokens, m.num_agents)
     with pytest.raises(ValueError, match="velocity"):
         rollout(model, scene, task, jax.random.key(0), m.num_history)
+
+
+def _pose_encoder(num_tokens: int, codebook: int):
+    """A stand-in map encoder whose tokens depend on the pose (to 0.1 m / 0.1 rad) and on the lanes."""
+    def enc(polylines, valid, pose):
+        code = jnp.floor(pose[0] * 10) * 7 + jnp.floor(pose[1] * 10) * 3 + jnp.floor(pose[2] * 10) * 5
+        code = code + jnp.floor(jnp.sum(jnp.where(valid[..., None], polylines, 0.0)))
+        return (code.astype(jnp.int32) + jnp.arange(num_tokens)) % codebook
+    return enc
+
+
+def test_logged_map_is_re_encoded_around_the_generated_ego(setup):
+    """With lanes + a pose encoder, tasks that take the map from the log but generate the ego get the log's
+    lanes encoded at the generated ego pose; every other slot is what the plain rollout gives; cached ==
+    recompute."""
+    from gpd_jax.rollout import LogLanes
+
+    graphdef, state, m, scenes = setup
+    h, s = m.num_history, scenes.xy.shape[0]
+    tasks = jax.tree.map(jnp.asarray, make_tasks(["all"], m.num_map_tokens, m.num_agents))
+    rng = np.random.default_rng(0)
+    lanes = LogLanes(jnp.asarray(rng.normal(0, 5, (s, 4, 6, 2)), jnp.float32), jnp.asarray(rng.random((s, 4, 6)) > 0.3))
+    enc = _pose_encoder(m.num_map_tokens, m.codebook_size)
+
+    @jax.jit
+    def run(state, scenes, tasks, lanes):
+        model = nnx.merge(graphdef, state)
+        key = jax.random.key(1)
+        plain = rollout_tasks(model, scenes, tasks, key, h)
+        relaned = rollout_tasks(model, scenes, tasks, key, h, lanes=lanes, map_encoder=enc)
+        rec = jax.vmap(lambda sc, ln: jax.vmap(lambda t: rollout_recompute(
+            model, sc, t, key, h, lanes=ln, map_encoder=enc))(tasks))(scenes, lanes)
+        return plain, relaned, rec
+
+    plain, relaned, rec = jax.tree.map(np.asarray, run(state, scenes, tasks, lanes))
+    np.testing.assert_array_equal(relaned.map_tokens, rec.map_tokens)
+    np.testing.assert_allclose(relaned.xy, rec.xy, atol=1e-4)
+    for i, name in enumerate(TASK_NAMES):
+        map_log, ego_log = TASKS[name][:2]
+        if not (map_log and not ego_log):  # untouched tasks: exactly the plain rollout
+            for a, b in zip(jax.tree.leaves(relaned), jax.tree.leaves(plain)):
+                np.testing.assert_array_equal(a[:, i], b[:, i], err_msg=name)
+            continue
+        np.testing.assert_array_equal(relaned.map_tokens[:, i, :h], plain.map_tokens[:, i, :h])  # history: log
+        for j in range(s):
+            for t in range(h, m.num_frames):
+                pose = jnp.stack([relaned.xy[j, i, t, 0, 0], relaned.xy[j, i, t, 0, 1], relaned.heading[j, i, t, 0]])
+                want = (np.asarray(enc(lanes.polylines[j], lanes.valid[j], pose)) if relaned.valid[j, i, t, 0]
+                        else np.asarray(scenes.map_tokens[j, t]))
+                np.testing.assert_array_equal(relaned.map_tokens[j, i, t], want, err_msg=f"{name} {j} {t}")
+        assert (relaned.map_tokens[:, i, h:] != np.asarray(scenes.map_tokens[:, h:])).any(), name
+    with pytest.raises(ValueError, match="needs both `lanes`"):
+        rollout(nnx.merge(graphdef, state), jax.tree.map(lambda x: x[0], scenes),
+                jax.tree.map(lambda x: x[0], tasks), jax.random.key(0), h, map_encoder=enc)

@@ -156,6 +156,20 @@ def test_tokens_of_another_tokenizer_are_encoded_again(run_ok, setup, tmp_path):
         assert m["tasks"]["traffic_simulation"][lb] == pytest.approx(per), lb
 
 
+def test_log_map_lanes_re_encodes_only_where_the_ego_is_generated_from_a_logged_map(run_ok, setup, tmp_path):
+    d, data, model = setup
+    out = str(tmp_path / "out")
+    assert rollout.main(["--checkpoint", model, "--data", data, "--out", out, "--scenarios", "3", "--batch", "2",
+                         "--no-progress", "--log-map", "lanes"]) == 0
+    m, ref = _strict_json(os.path.join(out, "metrics.json")), _strict_json(os.path.join(run_ok[1], "metrics.json"))
+    assert (m["log_map"], ref["log_map"]) == ("lanes", "tokens")
+    for name in TASK_NAMES:
+        if name in ("traffic_simulation", "motion_planning"):  # map from the log, ego generated: other inputs
+            assert m["tasks"][name]["3s"]["ego_ade"] != pytest.approx(ref["tasks"][name]["3s"]["ego_ade"]), name
+        else:  # the logged tokens (ego from the log) or no logged map: the same rollout
+            assert m["tasks"][name] == ref["tasks"][name], name
+
+
 def _bad_model(setup, name, edit):
     d, _, model = setup
     bad = d / name
@@ -165,6 +179,10 @@ def _bad_model(setup, name, edit):
     json.dump(cfg, open(bad / "config.json", "w"))
     os.symlink(os.path.join(model, "params.npz"), bad / "params.npz")
     return str(bad)
+
+
+def _no_tokenizer(cfg):
+    cfg["model"]["map_tokenizer"] = ""
 
 
 def _shape_mismatch(cfg):
@@ -181,14 +199,16 @@ def _shape_mismatch(cfg):
     ("shape mismatch", ["--checkpoint", "{bad}"], "model and data do not match"),
     ("bad override", ["--config.model.d_model=8"], "only --config.rollout"),
     ("bad variant", ["--variant", "best"], "invalid choice"),
+    ("log map without tokenizer", ["--checkpoint", "{notok}", "--log-map", "lanes"], "has none"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(setup, capsys, case, args, message):
     d, data, model = setup
     bad = _bad_model(setup, "bad_shapes", _shape_mismatch) if case == "shape mismatch" else ""
+    notok = _bad_model(setup, "no_tokenizer", _no_tokenizer) if case == "log map without tokenizer" else ""
     out = d / f"out_{case.replace(' ', '_')}"
     # later occurrences of an option win (argparse), so the case's arguments go after the good ones
     argv = ["--checkpoint", model, "--data", data, "--out", str(out), "--no-progress"]
-    argv += [a.format(d=d, bad=bad) for a in args]
+    argv += [a.format(d=d, bad=bad, notok=notok) for a in args]
     assert rollout.main(argv) == 2
     err = capsys.readouterr().err
     assert message in err, err

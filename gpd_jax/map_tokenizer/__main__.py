@@ -56,12 +56,10 @@ def cmd_encode(args) -> None:
 
     from gpd_jax.data.store import (MISSING_MAP_TOKEN, NUM_MAP_TOKENS, Shard, list_splits, map_tokens_record,
                                     save_map_tokens, shard_dir, shard_indices)
-    from gpd_jax.map_tokenizer.raster import rasterize
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
 
     tok = load_tokenizer(args.checkpoint)
     fingerprint = tok.fingerprint()
-    r = tok.config.raster
 
     stride = int(args.frame_stride)
     if stride < 1:
@@ -70,11 +68,7 @@ def cmd_encode(args) -> None:
         raise SystemExit(f"{args.checkpoint}: {tok.codebook.shape[0]} codes do not fit the store's uint8 map "
                          f"tokens (at most {MISSING_MAP_TOKEN})")
 
-    @jax.jit
-    def encode_sample(params, polylines, valid, poses):  # one sample, frames [F, 3] -> i32[F, 64]
-        raster = rasterize(polylines, valid, poses, size=r.size, pixel_size=r.pixel_size,
-                           max_segment_length=r.max_segment_length)
-        return tok.encode(params, raster)
+    encode_sample = jax.jit(tok.encode_lanes)  # one sample: frames [F, 3] -> i32[F, 64]
 
     splits = args.splits or list_splits(args.data)
     for split in splits:

@@ -29,6 +29,7 @@ from gpd_jax.checkpoint import config_from_json, flatten_params, unflatten_param
 from gpd_jax.fsutil import swap_in_directory, umask_mode
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
+from gpd_jax.map_tokenizer.raster import rasterize
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -69,6 +70,21 @@ class MapTokenizer:
         z = core.encode_latents(self.graphdef, params, r)
         idx = nearest_code(core.codebook_of(params), z)
         return idx.reshape(lead + (idx.shape[-1],))
+
+    def encode_lanes(self, params, polylines: jax.Array, valid: jax.Array, pose: jax.Array) -> jax.Array:
+        """Map tokens i32[..., 64] of lane polylines f32[..., L, P, 2] (bool[..., L, P] valid) seen from ego
+        poses f32[..., 3] in the polylines' frame: rasterize (with this tokenizer's raster settings) + `encode`,
+        exactly what `python -m gpd_jax.map_tokenizer encode` stores for a logged frame."""
+        r = self.config.raster
+        raster = rasterize(polylines, valid, pose, size=r.size, pixel_size=r.pixel_size,
+                           max_segment_length=r.max_segment_length)
+        return self.encode(params, raster)
+
+    def pose_encoder(self, params):
+        """`encode_lanes` with these parameters, as the `map_encoder` of `gpd_jax.rollout.rollout`: (polylines
+        f32[L, P, 2], valid bool[L, P], pose f32[3]) -> i32[64]. Pass traced parameters (an argument of the
+        jitted function) rather than constants, so they are not baked into the compiled rollout."""
+        return lambda polylines, valid, pose: self.encode_lanes(params, polylines, valid, pose)
 
     def decode(self, params, tokens: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Vector lanes of tokens i32[..., 64]: (points f32[..., 50, 20, 2] metres in the frame's ego frame,
