@@ -55,7 +55,8 @@ metrics.json (written by rollout.py; NaN written as null)::
      "frame_period_s": 0.5, "frame_stride", "stored_frame_period_s", "num_history", "num_future", "num_agents",
      "horizons": {"3s": 6, "5s": 10, "8s": 16},                  # label -> model frames
      "scored_agents": "valid at the current frame", "num_scored_agents": ...,
-     "task_generates": {task: ["ego", "agent", "map"]}, "map_tokens": {"from_store": n1, "encoded": n2}, "log_map": "tokens"|"lanes",
+     "task_generates": {task: ["ego", "agent", "map"]}, "map_tokens": {"from_store": n1, "encoded": n2},
+     "log_map": "tokens" | "lanes",
      "temperature", "seed",
      "tasks": {task: {"3s": {"ego_ade", "ego_fde", "ego_collision",        # where the task generates the ego
                              "agent_ade", "agent_fde", "agent_collision",  # ... the agents
