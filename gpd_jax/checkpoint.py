@@ -15,14 +15,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 
 import jax
 import ml_collections
 import numpy as np
 from flax import nnx
 
-from gpd_jax.fsutil import swap_in_directory, umask_mode
+from gpd_jax.fsutil import atomic_directory
 from gpd_jax.model import GPD, build_model
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -113,11 +112,7 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
     With `tokenizer_dir`, the map tokenizer is copied to `out_dir/map_tokenizer` and the config points there.
     """
     out_dir = os.path.abspath(out_dir)
-    parent = os.path.dirname(out_dir)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".export-", dir=parent)
-    umask_mode(tmp, directory=True)  # mkdtemp makes it private; an export is meant to be shared
-    try:
+    with atomic_directory(out_dir) as tmp:
         config = ml_collections.ConfigDict(config.to_dict())
         if tokenizer_dir:
             shutil.copytree(tokenizer_dir, os.path.join(tmp, "map_tokenizer"),
@@ -128,10 +123,6 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
         np.savez(os.path.join(tmp, PARAMS_FILE), **flat)
         with open(os.path.join(tmp, CONFIG_FILE), "w") as f:
             f.write(config.to_json(indent=2))
-        swap_in_directory(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

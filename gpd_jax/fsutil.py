@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import tempfile
+from collections.abc import Iterator
 
 
 def umask_mode(path: str, directory: bool = False) -> None:
@@ -13,6 +16,24 @@ def umask_mode(path: str, directory: bool = False) -> None:
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(path, (0o777 if directory else 0o666) & ~umask)
+
+
+@contextlib.contextmanager
+def atomic_directory(out_dir: str) -> Iterator[str]:
+    """Yields a fresh temporary directory beside `out_dir` to write an export into; on success it becomes
+    `out_dir` (`swap_in_directory`: files of an existing `out_dir` the export does not write are kept), on an
+    exception it is removed and `out_dir` is untouched."""
+    out_dir = os.path.abspath(out_dir)
+    parent = os.path.dirname(out_dir)
+    os.makedirs(parent, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".export-", dir=parent)
+    umask_mode(tmp, directory=True)  # mkdtemp makes it private; an export is meant to be shared
+    try:
+        yield tmp
+        swap_in_directory(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def swap_in_directory(tmp: str, out_dir: str) -> None:

@@ -34,3 +34,21 @@ def test_swap_in_directory_creates_a_missing_directory(tmp_path):
     _write(f"{tmp}/params.npz", "p")
     swap_in_directory(tmp, str(tmp_path / "new"))
     assert os.listdir(tmp_path / "new") == ["params.npz"] and not os.path.exists(tmp)
+
+
+def test_atomic_directory_leaves_the_old_export_alone_when_writing_fails(tmp_path):
+    import pytest
+
+    from gpd_jax.fsutil import atomic_directory
+
+    out = str(tmp_path / "model")
+    _write(f"{out}/params.npz", "old params")
+    with pytest.raises(RuntimeError):
+        with atomic_directory(out) as tmp:
+            _write(f"{tmp}/params.npz", "half written")
+            raise RuntimeError("disk full")
+    assert open(f"{out}/params.npz").read() == "old params"
+    assert sorted(os.listdir(tmp_path)) == ["model"]
+    with atomic_directory(out) as tmp:
+        _write(f"{tmp}/params.npz", "new params")
+    assert open(f"{out}/params.npz").read() == "new params"

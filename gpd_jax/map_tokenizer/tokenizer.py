@@ -15,8 +15,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
-import shutil
-import tempfile
 from typing import Any
 
 import jax
@@ -26,7 +24,7 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax.checkpoint import config_from_json, flatten_params, unflatten_params
-from gpd_jax.fsutil import swap_in_directory, umask_mode
+from gpd_jax.fsutil import atomic_directory
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
 from gpd_jax.map_tokenizer.raster import rasterize
@@ -109,20 +107,12 @@ def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dt
     Parameters under the top-level keys `exact` stay float32 (so that the exported encoder gives exactly the
     tokens of the trained one); the others (the decoder) are cast to `dtype` to keep the file small.
     """
-    out_dir = os.path.abspath(out_dir)
-    os.makedirs(os.path.dirname(out_dir), exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".export-", dir=os.path.dirname(out_dir))
-    umask_mode(tmp, directory=True)
-    try:
+    with atomic_directory(out_dir) as tmp:
         with open(os.path.join(tmp, "config.json"), "w") as f:
             f.write(config.to_json(indent=2))
         flat = {k: v.astype(dtype) if v.dtype.kind == "f" and k.split("/")[0] not in exact else v
                 for k, v in flatten_params(params).items()}
         np.savez_compressed(os.path.join(tmp, "params.npz"), **flat)
-        swap_in_directory(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
