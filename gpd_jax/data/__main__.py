@@ -2,6 +2,7 @@
 
   build --source sumo --out DIR --scenarios N --seed S [--net FILE.net.xml ...] [--workers W] [--split NAME]
   build --source nuplan --out DIR --db PATH_OR_DIR --maps DIR [--max-per-log K] [--split NAME]
+  build --source scenarionet --out DIR --db DATASET_DIR_OR_PKL [--max-per-log K] [--split NAME] [--workers W]
   inspect DIR [--json PATH] [--no-lanes]
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
 
@@ -21,7 +22,7 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     b = sub.add_parser("build", help="build a dataset of samples")
-    b.add_argument("--source", choices=("sumo", "nuplan"), default="sumo")
+    b.add_argument("--source", choices=("sumo", "nuplan", "scenarionet"), default="sumo")
     b.add_argument("--out", required=True)
     b.add_argument("--scenarios", type=int, default=1000, help="SUMO: number of scenarios")
     b.add_argument("--seed", type=int, default=0)
@@ -55,6 +56,11 @@ def main(argv=None) -> int:
             if args.source == "sumo":
                 man = build.build_sumo(args.out, args.scenarios, args.seed, args.net, args.workers, args.split,
                                        args.per_job)
+            elif args.source == "scenarionet":
+                if not args.db:
+                    p.error("--source scenarionet needs --db (a ScenarioNet dataset directory or .pkl files)")
+                man = build.build_scenarionet(args.out, args.db, args.seed, args.split, args.max_per_log,
+                                              workers=args.workers, per_job=args.per_job)
             else:
                 if not args.db or not args.maps:
                     p.error("--source nuplan needs --db and --maps")

@@ -343,3 +343,173 @@ def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: st
         results.append({"index": -1, "num_samples": 0, "requested": 0, "stats": {"logs_skipped_bad": len(errors)},
                         "rejections": [str(e) for e in errors]})
     return _finish(out_dir, settings, results, time.time() - t0)
+
+
+# ------------------------------------------------------------------------------------------ ScenarioNet
+@dataclasses.dataclass(frozen=True)
+class ScenarioNetJob:
+    """Scenario files of one split and one dataset ("waymo", "nuscenes", ...) that make one shard.
+
+    `paths` and `locations` (the split key of each file) are parallel tuples; `num_samples` is the number of
+    scenarios (what `run_jobs` counts on its progress bar)."""
+
+    index: int
+    split: str
+    dataset: str
+    paths: tuple[str, ...]
+    locations: tuple[str, ...]
+
+    @property
+    def num_samples(self) -> int:
+        return len(self.paths)
+
+
+def _scenarionet_index(out_dir: str, files, fingerprint: str) -> list[tuple[str, str]]:
+    """(location, dataset) of every scenario file: from `dataset_summary.pkl` where there is one, otherwise by
+    reading each file once (cached in `_jobs/scenario_index.json`, so a resumed build does not read them again)."""
+    from tqdm import tqdm
+
+    from gpd_jax.data import safe_pickle, scenarionet
+
+    if all(f.metadata is not None for f in files):
+        return [(scenarionet.scenario_location(f.metadata, scenarionet.file_stem(f.path)),
+                 scenarionet.scenario_dataset(f.metadata)) for f in files]
+    p = os.path.join(out_dir, "_jobs", "scenario_index.json")
+    if os.path.isfile(p):
+        with open(p) as fh:
+            cached = json.load(fh)
+        if cached.get("fingerprint") == fingerprint and len(cached.get("index", [])) == len(files):
+            return [tuple(x) for x in cached["index"]]
+    out = []
+    for f in tqdm(files, desc="scenarionet index", unit="scn"):
+        md = f.metadata
+        if md is None:
+            sc = safe_pickle.load(f.path)
+            md = sc.get("metadata") if isinstance(sc, dict) else None
+        out.append((scenarionet.scenario_location(md, scenarionet.file_stem(f.path)), scenarionet.scenario_dataset(md)))
+    store.atomic_write_json(p, {"fingerprint": fingerprint, "index": out})
+    return out
+
+
+def _plan_scenarionet_jobs(paths: list[str], index: list[tuple[str, str]], seed: int, split: str | None,
+                           per_job: int) -> list[ScenarioNetJob]:
+    """Splits by location (`assign_splits`), then chunks of `per_job` files of one split and one dataset, in
+    order of (split, dataset, location, path)."""
+    locs = [loc for loc, _ in index]
+    split_of = {loc: split for loc in locs} if split else assign_splits(locs, seed)
+    rows = sorted(((split_of[loc], ds, loc, p) for p, (loc, ds) in zip(paths, index)))
+    jobs: list[ScenarioNetJob] = []
+    a = 0
+    while a < len(rows):
+        sp, ds = rows[a][0], rows[a][1]
+        b = a
+        while b < len(rows) and b - a < per_job and rows[b][:2] == (sp, ds):
+            b += 1
+        chunk = rows[a:b]
+        jobs.append(ScenarioNetJob(len(jobs), sp, ds, tuple(r[3] for r in chunk), tuple(r[2] for r in chunk)))
+        a = b
+    return jobs
+
+
+def run_scenarionet_job(job: ScenarioNetJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
+                        max_per_log: int | None = None, seed: int = 0, skip_bad: bool = False) -> dict:
+    """Reads the job's scenario files (`gpd_jax.data.scenarionet.read_scenario`), cuts their windows and writes
+    one shard. Returns the job summary; a bad file (`DataError`) is skipped and counted with `skip_bad`,
+    otherwise the summary carries `error` = [path, reason] and no job marker is written (the job reruns)."""
+    from gpd_jax.data import scenarionet
+    from gpd_jax.data.errors import DataError
+
+    t0 = time.time()
+    stats: Counter = Counter()
+    ids, samples, locs, rejections = [], [], [], []
+    for path, loc in zip(job.paths, job.locations):
+        try:
+            raw = scenarionet.read_scenario(path, loc, stats)
+            pairs = list(preprocess.iter_samples(raw, sample_cfg, num=max_per_log, seed=seed, stats=stats))
+        except DataError as e:
+            if not skip_bad:
+                return {"index": job.index, "split": job.split, "num_samples": 0, "requested": len(job.paths),
+                        "stats": {}, "rejections": [], "error": [e.path, e.reason]}
+            stats["scenarios_skipped_bad"] += 1
+            rejections.append(str(e))
+            continue
+        stats["scenarios_read"] += 1
+        stats["scenarios_without_samples"] += not pairs
+        for sid, s in pairs:
+            ids.append(sid)
+            samples.append(s)
+            locs.append(raw.location)
+    if samples:
+        arrays = store.stack_samples(samples, preprocess.sample_spec(sample_cfg))
+        for sp in store.list_splits(out_dir):  # a shard of an interrupted earlier attempt
+            shutil.rmtree(store.shard_dir(out_dir, sp, job.index), ignore_errors=True)
+        store.write_shard(out_dir, job.split, job.index, arrays, ids, locs,
+                          extra={"source": "scenarionet", "dataset": job.dataset})
+    summary = {"index": job.index, "split": job.split, "dataset": job.dataset, "num_samples": len(samples),
+               "requested": len(job.paths), "wall_s": time.time() - t0, "stats": dict(stats),
+               "rejections": rejections}
+    store.atomic_write_json(_job_marker(out_dir, job.index), summary)
+    return summary
+
+
+class _ScenarioNetBound:
+    """Picklable ScenarioNet job runner bound to its settings."""
+
+    def __init__(self, out_dir, sample_cfg, max_per_log, seed, skip_bad):
+        self.args = (out_dir, sample_cfg, max_per_log, seed, skip_bad)
+
+    def __call__(self, job):
+        return run_scenarionet_job(job, *self.args)
+
+
+def build_scenarionet(out_dir: str, db: str, seed: int = 0, split: str | None = None,
+                      max_per_log: int | None = None, workers: int = 1, per_job: int = 50,
+                      skip_bad: bool = False, sample_cfg: preprocess.SampleConfig | None = None) -> dict:
+    """Builds (or resumes) a dataset from ScenarioNet scenarios (`gpd_jax.data.scenarionet`).
+
+    Args:
+      out_dir: the store to write.
+      db: a ScenarioNet dataset directory, a plain folder of scenario `.pkl` files, or one file.
+      seed: split assignment and window choice seed.
+      split: put everything into this split (default: splits by location, see `scenario_location`).
+      max_per_log: at most this many windows per scenario (default: every `window_stride` frames).
+      workers: processes; per_job: scenario files per job (one shard each, of one split and one dataset).
+      skip_bad: skip (and count) files that raise `DataError` instead of stopping with that error.
+    Raises `DataError` (naming the file) for a bad input file unless `skip_bad`, and `ValueError` when `out_dir`
+    holds a build with other settings or of another set of files.
+    """
+    import hashlib
+
+    from gpd_jax.data import scenarionet
+    from gpd_jax.data.errors import DataError
+
+    t0 = time.time()
+    sample_cfg = sample_cfg or preprocess.SampleConfig()
+    files = scenarionet.find_scenarios(db)
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f"{f.key}\0{os.path.getsize(f.path)}\n".encode())
+    os.makedirs(out_dir, exist_ok=True)
+    store.clean_temporaries(out_dir)
+    settings = {"source": "scenarionet", "db": os.path.abspath(db), "seed": seed, "split": split,
+                "max_per_log": max_per_log, "per_job": per_job, "skip_bad": skip_bad,
+                "num_files": len(files), "files_sha256": h.hexdigest(),
+                "sample_config": dataclasses.asdict(sample_cfg)}
+    _check_settings(out_dir, settings)
+    index = _scenarionet_index(out_dir, files, h.hexdigest())
+    jobs = _plan_scenarionet_jobs([f.path for f in files], index, seed, split, per_job)
+    bound = _ScenarioNetBound(out_dir, sample_cfg, max_per_log, seed, skip_bad)
+    results = run_jobs(jobs, bound, out_dir, workers, "scenarionet build")
+    failed = [r for r in results if r.get("error")]
+    if failed:
+        raise DataError(*failed[0]["error"])
+    stats: Counter = Counter()
+    for r in results:
+        stats.update(r.get("stats", {}))
+    short = stats.get("skip_log_too_short", 0)
+    if short:
+        log.warning("%d of %d scenarios are shorter than the %d frames (%.1f s at 10 Hz) a sample needs and gave "
+                    "no sample (Waymo's scenarios are 91 frames)", short, len(files), sample_cfg.num_frames,
+                    sample_cfg.num_frames / 10)
+    man = _finish(out_dir, settings, results, time.time() - t0)
+    return man

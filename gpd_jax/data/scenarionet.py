@@ -1,0 +1,420 @@
+"""ScenarioNet reader: scenario `.pkl` files (Waymo, nuScenes, nuPlan, Argoverse 2, ... converted by ScenarioNet)
+-> `RawLog`.
+
+Input (`find_scenarios`): a ScenarioNet dataset directory (`dataset_summary.pkl`, whose keys are the scenario
+file names and whose values are their metadata, plus the optional `dataset_mapping.pkl`, file name -> folder
+relative to the dataset directory, which may point into sub-directories or sibling datasets after a merge), a
+plain folder searched recursively for scenario `.pkl` files, or one scenario file. Every pickle - the summary and
+the mapping too - is read with `gpd_jax.data.safe_pickle`, which refuses any global other than plain containers
+and numpy arrays before it could run (pickles execute code on load).
+
+A scenario is the dict of MetaDrive's `ScenarioDescription` (`metadrive/scenario/scenario_description.py`):
+`tracks` (object id -> {`type`, `state`: per-frame arrays, `metadata`}), `map_features` (feature id ->
+{`type`, `polyline`, optional `polygon`, ...}), `dynamic_map_states` (traffic lights), `metadata` (`ts`,
+`sdc_id`, `dataset`, `scenario_id`, `coordinate`, and for some datasets `map`), `length`, `id`, `version`.
+
+What is read, and the conventions:
+
+* **Frames.** `metadata["ts"]` (seconds, one per frame; `length` frames) gives the frame period: the median
+  step. 10 Hz (a step within `PERIOD_TOLERANCE` of 0.1 s) is taken as is; an integer multiple of 10 Hz (20 Hz,
+  30 Hz, ...) is resampled to 10 Hz by keeping every k-th frame from frame 0 (no interpolation, so validity
+  stays exact); any other rate (2 Hz, 15 Hz, ...) is refused with a `DataError` that names the file and the
+  rate. A step that differs from the median by more than `PERIOD_TOLERANCE` (a dropped or repeated frame) is a
+  `DataError` too: the frame index must be the time. `RawLog.timestamps` are the kept `ts` from the first.
+* **Coordinates.** Positions are metres in the scenario's world frame; `state["position"]` is (T, 2) or (T, 3)
+  (z is dropped). Headings are radians counter-clockwise from +x. Both ScenarioNet coordinate tags ("waymo" and
+  "metadrive") are right-handed in current MetaDrive ("all coordinates is right-handed now"); files from
+  MetaDrive < 0.3 tagged "metadrive" had y mirrored. As a guard against a mirrored or mis-scaled heading, a
+  scenario whose ego heading disagrees with its direction of motion by more than 90 degrees in the median over
+  frames where it moves faster than 2 m/s is refused (`DataError`).
+* **Ego.** The track named by `metadata["sdc_id"]` (`RawLog.ego_index`), whatever its type. No `sdc_id`, or
+  one that names no track, is a `DataError`. Windows start every `SampleConfig.window_stride` frames; windows in
+  which the ego is not valid throughout are skipped and counted by `gpd_jax.data.preprocess`.
+* **Agents.** Tracks of type `VEHICLE` are kept. `gpd_jax.scene.AGENT_TYPES` has vehicle classes only (GPD-1
+  models vehicles), so `PEDESTRIAN`, `CYCLIST` and every other type (`OTHER`, traffic cones and barriers, ...)
+  are **dropped and counted** (`tracks_dropped_<type>` in the build statistics), as the nuPlan source drops
+  pedestrians and bicycles. Tracks never valid (after resampling) are dropped and counted too.
+  `agent_valid` is `state["valid"]`; positions and headings of invalid frames are NaN in the RawLog.
+* **Sizes and vehicle classes.** (length, width) per track is the median of `state["length"]` and
+  `state["width"]` over its valid frames (arrays of T or (T, 1)). A track without them, or with non-positive
+  values, gets `DEFAULT_SIZE` and is counted (`agent_size_defaulted`). ScenarioNet has one `VEHICLE` type, so
+  the class comes from the length as for nuPlan (`gpd_jax.data.nuplan.vehicle_type`: car < 6.5 m <= truck
+  < 10 m <= bus).
+* **Lanes.** The centrelines are the `polyline`s of the map features whose type is a vehicle lane:
+  `LANE_SURFACE_STREET`, `LANE_FREEWAY`, `LANE_SURFACE_UNSTRUCTURE`, `LANE_UNKNOWN` (`VEHICLE_LANE_TYPES`).
+  `LANE_BIKE_LANE` is not a vehicle lane and is left out (counted). Road lines (`ROAD_LINE_*`), road edges
+  (`ROAD_EDGE_*`), crosswalks, speed bumps, driveways and stop signs are counted by kind
+  (`map_<kind>` statistics) but not used; traffic-light states (`dynamic_map_states`) are not used.
+* **Location** (`scenario_location`, the key splits are made by): the first of `metadata["map"]`,
+  `["location"]`, `["city"]`, `["map_name"]` that is set (for nuScenes and nuPlan the map name, so the same road
+  network gets the same key as from the nuPlan source). Waymo scenarios name no map: each is its own location
+  (`<dataset>:<scenario_id>`), so splits by location cannot keep Waymo roads apart; build Waymo's own
+  training / validation / testing sets separately with `--split`.
+* `RawLog.name` is the file name without `.pkl`.
+
+Every problem with an input file raises `gpd_jax.data.errors.DataError` naming the file and the reason: an
+unreadable, truncated or corrupt pickle, a pickle naming a foreign class, a missing key (the path of the key is
+named), array lengths that disagree with `ts`, a missing sdc, an unsupported frame rate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections import Counter
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from gpd_jax.data import safe_pickle
+from gpd_jax.data.errors import DataError
+from gpd_jax.data.raw import RawLog
+from gpd_jax.scene import TYPE_ID
+
+SUMMARY_FILE = "dataset_summary.pkl"
+MAPPING_FILE = "dataset_mapping.pkl"
+
+TARGET_PERIOD = 0.1  # seconds (10 Hz)
+PERIOD_TOLERANCE = 0.2  # relative: a step may differ from the median by 20 %, the median from k * 0.1 s by 2 %
+RATE_TOLERANCE = 0.02
+
+VEHICLE_TYPE = "VEHICLE"
+VEHICLE_LANE_TYPES = ("LANE_SURFACE_STREET", "LANE_FREEWAY", "LANE_SURFACE_UNSTRUCTURE", "LANE_UNKNOWN")
+LOCATION_KEYS = ("map", "location", "city", "map_name")
+DEFAULT_SIZE = (4.6, 1.85)  # metres, a mid-size car, for tracks without length / width
+
+HEADING_CHECK_SPEED = 2.0  # m/s
+HEADING_CHECK_MIN_FRAMES = 10
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioFile:
+    """One scenario file of a dataset.
+
+    Attributes:
+      path: the file's path.
+      key: its name relative to the dataset (the summary key, or the path below a plain folder).
+      metadata: its `metadata` dict from `dataset_summary.pkl`, or None when there is no summary.
+    """
+
+    path: str
+    key: str
+    metadata: dict | None = None
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Finding scenario files
+# ---------------------------------------------------------------------------------------------------------
+
+
+def _is_scenario_name(name: str) -> bool:
+    return name.endswith(".pkl") and name not in (SUMMARY_FILE, MAPPING_FILE)
+
+
+def find_scenarios(db: str | os.PathLike) -> list[ScenarioFile]:
+    """The scenario files of a dataset directory, a plain folder, or a single `.pkl` file (sorted by key).
+
+    Raises `DataError` when `db` does not exist, holds no scenario file, or its summary lists a file that is
+    missing (or the summary / mapping cannot be read safely).
+    """
+    db = os.fspath(db)
+    if os.path.isfile(db):
+        if not db.endswith(".pkl") or os.path.basename(db) in (SUMMARY_FILE, MAPPING_FILE):
+            raise DataError(db, "not a scenario .pkl file (give the dataset directory for a summary file)")
+        return [ScenarioFile(db, os.path.basename(db))]
+    if not os.path.isdir(db):
+        raise DataError(db, "no such file or directory")
+    summary_path = os.path.join(db, SUMMARY_FILE)
+    if os.path.isfile(summary_path):
+        summary = safe_pickle.load(summary_path)
+        if not isinstance(summary, dict):
+            raise DataError(summary_path, f"expected a dict of file name -> metadata, got {type(summary).__name__}")
+        mapping_path = os.path.join(db, MAPPING_FILE)
+        mapping = safe_pickle.load(mapping_path) if os.path.isfile(mapping_path) else {}
+        if not isinstance(mapping, dict):
+            raise DataError(mapping_path, f"expected a dict of file name -> folder, got {type(mapping).__name__}")
+        out = []
+        for key in sorted(summary, key=str):
+            name = str(key)
+            sub = mapping.get(key, "") or ""
+            if not isinstance(sub, str):
+                raise DataError(mapping_path, f"entry {name!r}: folder is a {type(sub).__name__}, not a string")
+            path = os.path.normpath(os.path.join(db, sub, name))
+            if not os.path.isfile(path):
+                raise DataError(path, f"listed in {summary_path} but missing")
+            meta = summary[key] if isinstance(summary[key], dict) else None
+            out.append(ScenarioFile(path, os.path.join(sub, name) if sub else name, meta))
+        if not out:
+            raise DataError(summary_path, "the dataset summary lists no scenario")
+        return out
+    out = []
+    for root, dirs, files in os.walk(db):
+        dirs.sort()
+        for name in sorted(files):
+            if _is_scenario_name(name):
+                path = os.path.join(root, name)
+                out.append(ScenarioFile(path, os.path.relpath(path, db)))
+    if not out:
+        raise DataError(db, f"no scenario .pkl files (and no {SUMMARY_FILE})")
+    return sorted(out, key=lambda f: f.key)
+
+
+def scenario_location(metadata: dict | None, fallback: str) -> str:
+    """The split key of a scenario from its metadata (see the module docstring); `fallback` (normally the file
+    stem) stands in for a missing `scenario_id`."""
+    md = metadata if isinstance(metadata, dict) else {}
+    for k in LOCATION_KEYS:
+        v = md.get(k)
+        if isinstance(v, (str, bytes)) and str(v).strip():
+            return str(v).strip()
+    dataset = str(md.get("dataset") or "scenarionet")
+    sid = md.get("scenario_id") or md.get("id") or fallback
+    return f"{dataset}:{sid}"
+
+
+def scenario_dataset(metadata: dict | None) -> str:
+    """The `metadata["dataset"]` name ("waymo", "nuscenes", ...), or "unknown"."""
+    md = metadata if isinstance(metadata, dict) else {}
+    v = md.get("dataset")
+    return str(v) if v else "unknown"
+
+
+# ---------------------------------------------------------------------------------------------------------
+# One scenario -> RawLog
+# ---------------------------------------------------------------------------------------------------------
+
+
+def file_stem(path: str) -> str:
+    """The file name without `.pkl` (`RawLog.name`)."""
+    base = os.path.basename(path)
+    return base[:-4] if base.endswith(".pkl") else base
+
+
+def _need(d: Any, key: str, where: str, path: str) -> Any:
+    if not isinstance(d, dict):
+        raise DataError(path, f"{where} is a {type(d).__name__}, expected a dict")
+    if key not in d:
+        raise DataError(path, f"missing key {where}[{key!r}]")
+    return d[key]
+
+
+def frame_step(ts: np.ndarray, path: str) -> int:
+    """How many source frames make one 10 Hz frame (1 for 10 Hz, 2 for 20 Hz, ...) from timestamps f[T].
+
+    Raises `DataError` (naming `path` and the rate) for non-increasing or irregular timestamps and for rates that
+    are not an integer multiple of 10 Hz.
+    """
+    ts = np.asarray(ts, np.float64)
+    if ts.ndim != 1 or len(ts) < 2:
+        raise DataError(path, f"metadata['ts'] has shape {ts.shape}: need at least 2 timestamps")
+    if not np.isfinite(ts).all():
+        raise DataError(path, "metadata['ts'] has non-finite timestamps")
+    steps = np.diff(ts)
+    period = float(np.median(steps))
+    if not period > 0:
+        raise DataError(path, f"metadata['ts'] is not increasing (median step {period} s)")
+    bad = np.nonzero(np.abs(steps - period) > PERIOD_TOLERANCE * period)[0]
+    if len(bad):
+        i = int(bad[0])
+        raise DataError(path, f"irregular timestamps: step {steps[i]:.4f} s between frames {i} and {i + 1} "
+                              f"(period {period:.4f} s; {len(bad)} such steps): a dropped or repeated frame")
+    k = int(round(TARGET_PERIOD / period))
+    if k < 1 or abs(k * period - TARGET_PERIOD) > RATE_TOLERANCE * TARGET_PERIOD:
+        raise DataError(path, f"frame period {period:.4f} s ({1.0 / period:.2f} Hz) is not 10 Hz or an integer "
+                              "multiple of it; only those rates are read (higher multiples are resampled to 10 Hz "
+                              "by keeping every k-th frame)")
+    return k
+
+
+def _per_frame(arr, T: int, name: str, where: str, path: str, cols: tuple[int, ...] = (1,)) -> np.ndarray:
+    """State array -> f64[T] (cols (1,)) or f64[T, c] (c in cols), with a DataError naming the key otherwise."""
+    try:
+        a = np.asarray(arr, np.float64)
+    except (TypeError, ValueError) as e:
+        raise DataError(path, f"{where}[{name!r}] is not numeric: {e}") from None
+    if a.ndim == 2 and a.shape[1] == 1 and cols == (1,):
+        a = a[:, 0]
+    ok = (a.ndim == 1 and cols == (1,)) or (a.ndim == 2 and a.shape[1] in cols)
+    if not ok or a.shape[0] != T:
+        want = f"({T},)" if cols == (1,) else " or ".join(f"({T}, {c})" for c in cols)
+        raise DataError(path, f"{where}[{name!r}] has shape {a.shape}, expected {want} (one entry per frame "
+                              "of metadata['ts'])")
+    return a
+
+
+def _map_kind(t: str) -> str:
+    if t in VEHICLE_LANE_TYPES:
+        return "lane"
+    if t.startswith("LANE_"):
+        return "lane_other"  # LANE_BIKE_LANE
+    if t.startswith("ROAD_EDGE"):
+        return "road_edge"
+    if t.startswith("ROAD_LINE") or t == "UNKNOWN_LINE":
+        return "road_line"
+    return t.lower() if t in ("CROSSWALK", "SPEED_BUMP", "DRIVEWAY", "STOP_SIGN") else "other"
+
+
+def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
+                       stats: Counter | None = None) -> RawLog:
+    """A ScenarioNet scenario dict (read from `path`, named in errors) -> RawLog (conventions: module docstring).
+
+    Args:
+      scenario: the unpickled scenario.
+      path: its file (for error messages and `RawLog.name`).
+      location: the split key; by default `scenario_location(metadata, file stem)`.
+      stats: a Counter that receives track, map and resampling counts.
+    """
+    path = os.fspath(path)
+    stats = Counter() if stats is None else stats
+    if not isinstance(scenario, dict):
+        raise DataError(path, f"not a ScenarioNet scenario: the pickle holds a {type(scenario).__name__}, "
+                              "expected a dict")
+    tracks = _need(scenario, "tracks", "scenario", path)
+    map_features = _need(scenario, "map_features", "scenario", path)
+    md = _need(scenario, "metadata", "scenario", path)
+    ts = _need(md, "ts", "scenario['metadata']", path)
+    sdc = _need(md, "sdc_id", "scenario['metadata']", path)
+    if not isinstance(tracks, dict):
+        raise DataError(path, f"scenario['tracks'] is a {type(tracks).__name__}, expected a dict")
+    if not isinstance(map_features, dict):
+        raise DataError(path, f"scenario['map_features'] is a {type(map_features).__name__}, expected a dict")
+    try:
+        ts = np.asarray(ts, np.float64)
+    except (TypeError, ValueError) as e:
+        raise DataError(path, f"metadata['ts'] is not numeric: {e}") from None
+    k = frame_step(ts, path)
+    T = int(ts.shape[0])
+    length = scenario.get("length", T)
+    if not isinstance(length, (int, np.integer)) or int(length) != T:
+        raise DataError(path, f"scenario['length'] = {length!r} but metadata['ts'] has {T} entries")
+    if k > 1:
+        stats["scenarios_resampled_to_10hz"] += 1
+    keep = slice(0, T, k)
+    ids = {str(key): key for key in tracks}
+    if sdc is None or str(sdc) not in ids:
+        raise DataError(path, f"metadata['sdc_id'] = {sdc!r} names no track ({len(tracks)} tracks): no ego")
+    sdc = str(sdc)
+    names, xys, heads, valids, sizes, types = [], [], [], [], [], []
+    for sid in [sdc] + sorted((i for i in ids if i != sdc), key=_track_order):
+        tr = tracks[ids[sid]]
+        where = f"scenario['tracks'][{sid!r}]"
+        ttype = str(_need(tr, "type", where, path)).upper()
+        if sid != sdc and ttype != VEHICLE_TYPE:
+            stats[f"tracks_dropped_{ttype.lower()}"] += 1
+            continue
+        st = _need(tr, "state", where, path)
+        sw = where + "['state']"
+        pos = _per_frame(_need(st, "position", sw, path), T, "position", sw, path, cols=(2, 3))[:, :2]
+        hd = _per_frame(_need(st, "heading", sw, path), T, "heading", sw, path)
+        vd = np.asarray(_need(st, "valid", sw, path))
+        if vd.shape not in ((T,), (T, 1)):
+            raise DataError(path, f"{sw}['valid'] has shape {vd.shape}, expected ({T},)")
+        vd = vd.reshape(T).astype(bool)
+        pos, hd, vd = pos[keep], hd[keep], vd[keep]
+        if not vd.any():
+            if sid == sdc:
+                raise DataError(path, f"the ego track {sdc!r} (metadata['sdc_id']) is never valid")
+            stats["tracks_dropped_never_valid"] += 1
+            continue
+        size = None
+        if "length" in st and "width" in st:
+            ln = _per_frame(st["length"], T, "length", sw, path)[keep][vd]
+            wd = _per_frame(st["width"], T, "width", sw, path)[keep][vd]
+            ln, wd = ln[np.isfinite(ln)], wd[np.isfinite(wd)]
+            if len(ln) and len(wd) and np.median(ln) > 0 and np.median(wd) > 0:
+                size = (float(np.median(ln)), float(np.median(wd)))
+        if size is None:
+            size = DEFAULT_SIZE
+            stats["agent_size_defaulted"] += 1
+        names.append(sid)
+        xys.append(np.where(vd[:, None], pos, np.nan))
+        heads.append(np.where(vd, hd, np.nan))
+        valids.append(vd)
+        sizes.append(size)
+        types.append(ttype)
+    stats["tracks_vehicle"] += len(names) - 1
+    lanes = []
+    for fid in sorted(map_features, key=_track_order):
+        feat = map_features[fid]
+        ftype = str(_need(feat, "type", f"scenario['map_features'][{str(fid)!r}]", path)).upper()
+        kind = _map_kind(ftype)
+        stats[f"map_{kind}"] += 1
+        if kind != "lane":
+            continue
+        fw = f"scenario['map_features'][{str(fid)!r}]"
+        if "polygon" in feat:
+            stats["map_lane_with_polygon"] += 1
+        if "width" in feat:
+            stats["map_lane_with_width"] += 1
+        try:
+            pl = np.asarray(_need(feat, "polyline", fw, path), np.float64)
+        except (TypeError, ValueError) as e:
+            raise DataError(path, f"{fw}['polyline'] is not numeric: {e}") from None
+        if pl.ndim != 2 or pl.shape[1] not in (2, 3):
+            raise DataError(path, f"{fw}['polyline'] has shape {pl.shape}, expected (P, 2) or (P, 3)")
+        pl = pl[:, :2]
+        pl = pl[np.isfinite(pl).all(-1)]
+        if len(pl) < 2:
+            stats["lane_polylines_too_short"] += 1
+            continue
+        lanes.append(pl)
+    from gpd_jax.data.nuplan import vehicle_type
+
+    size_arr = np.asarray(sizes, np.float32).reshape(-1, 2)
+    atype = vehicle_type(size_arr[:, 0]).astype(np.int32)
+    atype[0] = TYPE_ID["ego"]
+    xy = np.stack(xys, 1)
+    heading = np.stack(heads, 1)
+    valid = np.stack(valids, 1)
+    _check_ego_heading(xy[:, 0], heading[:, 0], valid[:, 0], k * float(np.median(np.diff(ts))), path)
+    tk = ts[keep]
+    return RawLog(name=file_stem(path), location=location or scenario_location(md, file_stem(path)),
+                  timestamps=tk - tk[0], agent_ids=tuple(names), agent_xy=xy, agent_heading=heading,
+                  agent_valid=valid, agent_size=size_arr, agent_type=atype, lanes=tuple(lanes), ego_index=0)
+
+
+def _track_order(key) -> tuple:
+    s = str(key)
+    return (0, int(s), s) if s.isdigit() else (1, 0, s)
+
+
+def _check_ego_heading(xy: np.ndarray, heading: np.ndarray, valid: np.ndarray, dt: float, path: str) -> None:
+    """Refuses a scenario whose ego heading points away from its motion (mirrored frame, degrees, ...)."""
+    ok = valid[1:] & valid[:-1]
+    d = np.diff(xy, axis=0)
+    speed = np.linalg.norm(d, axis=-1) / dt
+    moving = ok & (speed > HEADING_CHECK_SPEED)
+    if moving.sum() < HEADING_CHECK_MIN_FRAMES:
+        return
+    direction = np.arctan2(d[moving, 1], d[moving, 0])
+    err = np.abs((heading[1:][moving] - direction + np.pi) % (2 * np.pi) - np.pi)
+    med = float(np.median(err))
+    if med > np.pi / 2:
+        raise DataError(path, f"the ego's heading disagrees with its direction of motion by {np.degrees(med):.0f} "
+                              "degrees (median over moving frames): headings are not radians counter-clockwise "
+                              "from +x in the positions' frame (a mirrored, left-handed frame?)")
+
+
+def read_scenario(path: str | os.PathLike, location: str | None = None, stats: Counter | None = None) -> RawLog:
+    """Reads one scenario file safely (`safe_pickle.load`) -> RawLog. Raises `DataError` naming the file."""
+    path = os.fspath(path)
+    return scenario_to_rawlog(safe_pickle.load(path), path, location, stats)
+
+
+def iter_scenarios(db: str | os.PathLike | Iterable[ScenarioFile], skip_bad: bool = False,
+                   errors: list | None = None, stats: Counter | None = None) -> Iterator[RawLog]:
+    """Yields a RawLog per scenario of `db` (see `find_scenarios`), in key order, reading one file at a time.
+
+    With `skip_bad`, a file that raises `DataError` is skipped and the error appended to `errors`; otherwise
+    the error propagates.
+    """
+    files = find_scenarios(db) if isinstance(db, (str, os.PathLike)) else list(db)
+    for f in files:
+        try:
+            loc = None if f.metadata is None else scenario_location(f.metadata, file_stem(f.path))
+            yield read_scenario(f.path, loc, stats)
+        except DataError as e:
+            if not skip_bad:
+                raise
+            if errors is not None:
+                errors.append(e)
