@@ -21,9 +21,9 @@ middle of three lanes 3.5 m apart. Special tracks (road coordinates: along, late
 
 * "ahead": a 4.5 x 1.9 m car 12 m ahead in the ego's lane, same speed;
 * "left": an 8 x 2.5 m truck 3.5 m to the left (lateral +3.5), 2 m ahead, same speed;
-* "bus": a 12 x 2.55 m bus 25 m ahead in the right lane (lateral -3.5); its length is 99 m in frames where it
-  is not valid (a size must come from valid frames only);
-* "late": a car 40 m ahead that appears only from frame 50;
+* "bus": a 12 x 2.55 m bus 25 m ahead in the right lane (lateral -3.5), valid from 0.5 s on; its length is
+  99 m in the frames where it is not valid (a size must come from valid frames only);
+* "late": a car 40 m ahead that appears only from 5 s on (frame 50 at 10 Hz);
 * a pedestrian, a cyclist and a traffic cone (dropped by the reader);
 * `extra_tracks` more cars spread over the lanes behind and ahead (for realistic sizes).
 
@@ -87,12 +87,11 @@ def make_scenario(num_frames: int = 121, hz: float = 10.0, speed: float = 10.0, 
     tracks = {}
     tracks["ahead"] = _track("VEHICLE", on_road(12.0, 0.0), hd, ones, 4.5, 1.9, "ahead")
     tracks["left"] = _track("VEHICLE", on_road(2.0, 3.5), hd, ones, 8.0, 2.5, "left")
-    bus_valid = ones.copy()
-    bus_valid[:5] = False
+    bus_valid = t >= 0.5 - 1e-9
     bus = _track("VEHICLE", on_road(25.0, -3.5), hd, bus_valid, 12.0, 2.55, "bus")
-    bus["state"]["length"][:5] = 99.0  # garbage where invalid: must not enter the size
+    bus["state"]["length"][~bus_valid] = 99.0  # garbage where invalid: must not enter the size
     tracks["bus"] = bus
-    late_valid = t * hz >= 50
+    late_valid = t >= 5.0 - 1e-9
     tracks["late"] = _track("VEHICLE", on_road(40.0, 0.0), hd, late_valid, 4.6, 1.8, "late")
     tracks[SDC] = _track("VEHICLE", on_road(0.0, 0.0), hd, ones, 4.8, 2.0, SDC, z=187.3)
     walker = road_to_world(5.0 + 1.2 * t, 6.0, theta, origin)

@@ -5,6 +5,12 @@ lanes_per_frame_mean / _min (SLEDGE vector lanes, `gpd_jax.data.lanes`), station
 agent-frames, ego included, under 0.5 m/s), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
 differences of consecutive valid frames at 10 Hz), log_collisions (scenarios in which two recorded
 oriented boxes overlap in some frame, separating-axis test), build_wall_s, plus a few extras.
+
+`per_source` repeats the agent figures (scenarios, agents per frame, speeds, ego median speed, stationary
+fraction, accelerations, logged overlaps, agent types) for each source, so that simulated (SUMO) and recorded
+(nuPlan, ScenarioNet) scenes in one store, or stores of different sources, can be compared. The source of a
+shard is its `meta.json` "source" ("sumo", "nuplan", "scenarionet"; the build's source for older shards),
+followed by "/<dataset>" where the shard names one (ScenarioNet: "scenarionet/waymo", "scenarionet/nuscenes").
 """
 
 from __future__ import annotations
@@ -19,12 +25,75 @@ from gpd_jax.scene import AGENT_TYPES
 DT = 0.1
 
 
+class _Figures:
+    """Accumulates the agent figures of a group of shards."""
+
+    def __init__(self):
+        self.agents, self.speeds, self.ego_speeds, self.accels = [], [], [], []
+        self.collisions, self.n = 0, 0
+        self.type_hist = np.zeros(len(AGENT_TYPES), np.int64)
+
+    def add(self, a: dict) -> None:
+        v = a["valid"]
+        self.agents.append(v[:, :, 1:].sum(-1).ravel())
+        xy = a["xy"].astype(np.float64)
+        ok1 = v[:, 1:] & v[:, :-1]
+        sp = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / DT
+        self.speeds.append(sp[ok1])
+        self.ego_speeds.append(sp[..., 0][ok1[..., 0]])
+        ok2 = ok1[:, 1:] & ok1[:, :-1]
+        self.accels.append((np.diff(sp, axis=1) / DT)[ok2])
+        for k in range(len(v)):
+            self.collisions += sample_has_overlap(xy[k], a["heading"][k], v[k], a["size"][k])
+            present = v[k].any(0)
+            self.type_hist += np.bincount(a["agent_type"][k][present].astype(np.int64), minlength=len(AGENT_TYPES))
+        self.n += len(v)
+
+    def summary(self) -> dict:
+        agents = np.concatenate(self.agents)
+        speeds = np.concatenate(self.speeds) if self.speeds else np.zeros(0)
+        ego = np.concatenate(self.ego_speeds) if self.ego_speeds else np.zeros(0)
+        accels = np.concatenate(self.accels) if self.accels else np.zeros(0)
+
+        def pct(x, q):
+            return float(np.percentile(x, q)) if len(x) else None
+
+        return {
+            "scenarios": int(self.n),
+            "agents_per_frame_mean": float(agents.mean()),
+            "agents_per_frame_max": int(agents.max()),
+            "agents_per_frame_min": int(agents.min()),
+            "stationary_fraction": float(np.mean(speeds < 0.5)) if len(speeds) else None,
+            "speed_mps_p5": pct(speeds, 5),
+            "speed_mps_p50": pct(speeds, 50),
+            "speed_mps_p95": pct(speeds, 95),
+            "ego_speed_mps_p50": pct(ego, 50),
+            "accel_mps2_p1": pct(accels, 1),
+            "accel_mps2_p99": pct(accels, 99),
+            "log_collisions": int(self.collisions),
+            "log_collision_fraction": float(self.collisions / self.n),
+            "agent_types": {AGENT_TYPES[i]: int(c) for i, c in enumerate(self.type_hist) if c},
+        }
+
+
+def shard_source(meta: dict, build_source: str | None = None) -> str:
+    """The `per_source` key of a shard: its "source" (or the build's), plus "/<dataset>" where it names one."""
+    src = str(meta.get("source") or build_source or "unknown")
+    ds = meta.get("dataset")
+    return f"{src}/{ds}" if ds else src
+
+
 def inspect(data_dir: str, with_lanes: bool = True) -> dict:
     """Computes the statistics of every split of a dataset (reads shards one by one: flat memory)."""
+    try:
+        man = store.read_manifest(data_dir)
+    except Exception:  # noqa: BLE001 - a dataset without manifest still has statistics
+        man = {}
+    build = man.get("build", {})
     n_per_split = {}
-    agents, speeds, accels, lane_counts = [], [], [], []
-    collisions, n = 0, 0
-    type_hist = np.zeros(len(AGENT_TYPES), np.int64)
+    lane_counts = []
+    total = _Figures()
+    per_source: dict[str, _Figures] = {}
     with_tokens = 0
     for split in store.list_splits(data_dir):
         count = 0
@@ -33,56 +102,29 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
             a = {k: np.asarray(v) for k, v in sh.arrays.items()}
             count += sh.num_samples
             with_tokens += sh.num_samples if sh.map_tokens is not None else 0
-            v = a["valid"]
-            agents.append(v[:, :, 1:].sum(-1).ravel())
-            xy = a["xy"].astype(np.float64)
-            ok1 = v[:, 1:] & v[:, :-1]
-            sp = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / DT
-            speeds.append(sp[ok1])
-            ok2 = ok1[:, 1:] & ok1[:, :-1]
-            accels.append((np.diff(sp, axis=1) / DT)[ok2])
-            for k in range(sh.num_samples):
-                sz = a["size"][k]
-                collisions += sample_has_overlap(xy[k], a["heading"][k], v[k], sz)
-                present = v[k].any(0)
-                type_hist += np.bincount(a["agent_type"][k][present].astype(np.int64), minlength=len(AGENT_TYPES))
-                if with_lanes:
+            total.add(a)
+            per_source.setdefault(shard_source(sh.meta, build.get("source")), _Figures()).add(a)
+            if with_lanes:
+                for k in range(sh.num_samples):
                     _, lv = lanes_lib.vector_lanes_frames(a["polylines"][k], a["polyline_valid"][k], a["ego_pose"][k])
                     lane_counts.append(lv.sum(-1))
-            n += sh.num_samples
         n_per_split[split] = count
-    if n == 0:
+    if total.n == 0:
         from gpd_jax.data.errors import DataError
         raise DataError(data_dir, "dataset has no samples")
-    agents = np.concatenate(agents)
-    speeds = np.concatenate(speeds) if speeds else np.zeros(0)
-    accels = np.concatenate(accels) if accels else np.zeros(0)
-    try:
-        man = store.read_manifest(data_dir)
-    except Exception:  # noqa: BLE001 - a dataset without manifest still has statistics
-        man = {}
-    build = man.get("build", {})
+    fig = total.summary()
     out = {
-        "scenarios": int(n),
+        "scenarios": fig["scenarios"],
         "scenarios_per_split": n_per_split,
-        "agents_per_frame_mean": float(agents.mean()),
-        "agents_per_frame_max": int(agents.max()),
-        "agents_per_frame_min": int(agents.min()),
-        "stationary_fraction": float(np.mean(speeds < 0.5)) if len(speeds) else None,
-        "speed_mps_p5": float(np.percentile(speeds, 5)),
-        "speed_mps_p50": float(np.percentile(speeds, 50)),
-        "speed_mps_p95": float(np.percentile(speeds, 95)),
-        "accel_mps2_p1": float(np.percentile(accels, 1)),
-        "accel_mps2_p99": float(np.percentile(accels, 99)),
-        "log_collisions": int(collisions),
-        "log_collision_fraction": float(collisions / n),
+        **{k: v for k, v in fig.items() if k not in ("scenarios", "agent_types")},
         "build_wall_s": build.get("build_wall_s"),
         "build_wall_s_all_invocations": build.get("build_wall_s_all_invocations"),
-        "agent_types": {AGENT_TYPES[i]: int(c) for i, c in enumerate(type_hist) if c},
+        "agent_types": fig["agent_types"],
         "samples_with_map_tokens": int(with_tokens),
         "locations_per_split": {s: len({l for sh in v["shards"] for l in sh["locations"]})
                                 for s, v in man.get("splits", {}).items()},
         "build_stats": build.get("stats"),
+        "per_source": {src: f.summary() for src, f in sorted(per_source.items())},
     }
     if with_lanes:
         lc = np.concatenate(lane_counts)
@@ -99,4 +141,11 @@ def format_summary(s: dict) -> str:
         v = s.get(k)
         lines.append(f"  {k:24s} {v:.3f}" if isinstance(v, float) else f"  {k:24s} {v}")
     lines.append(f"  agent types              {s['agent_types']}")
+    for src, f in s.get("per_source", {}).items():
+        lines.append(f"  [{src}] {f['scenarios']} scenarios")
+        for k in ("agents_per_frame_mean", "agents_per_frame_max", "stationary_fraction", "speed_mps_p50",
+                  "speed_mps_p95", "ego_speed_mps_p50", "accel_mps2_p1", "accel_mps2_p99", "log_collisions",
+                  "log_collision_fraction"):
+            v = f.get(k)
+            lines.append(f"    {k:22s} {v:.3f}" if isinstance(v, float) else f"    {k:22s} {v}")
     return "\n".join(lines)
