@@ -14,13 +14,17 @@ SMALL_SIM = sumo.SimConfig(warmup_s=60.0, record_s=30.0)
 
 def test_net_spec_varies_and_splits_by_network():
     specs = {(s.layout, s.lanes, s.junction) for s in map(sumo.random_net_spec, range(30))}
-    assert {l for l, _, _ in specs} == {"rand", "grid", "spider"} and {n for _, n, _ in specs} == {1, 2, 3}
+    assert {l for l, _, _ in specs} == {"random", "grid", "spider"} and {n for _, n, _ in specs} == {1, 2, 3}
     jobs = build.plan_sumo_jobs(1000, 0, None)
     assert len(jobs) == 20 and sum(j.num_samples for j in jobs) == 1000
     by_split = {}
     for j in jobs:
         by_split.setdefault(j.split, set()).add(j.location)
-    assert {k: len(v) for k, v in by_split.items()} == {"train": 16, "val": 2, "test": 2}
+        assert j.location.endswith("_" + j.layout)
+    # layouts take turns (7 + 7 + 6 networks); splits are stratified by layout: one val and one test network each
+    assert {k: len(v) for k, v in by_split.items()} == {"train": 14, "val": 3, "test": 3}
+    for sp in ("val", "test"):
+        assert sorted(j.layout for j in jobs if j.split == sp and j.num_samples) == ["grid", "random", "spider"]
     assert all(j.split == "val" for j in build.plan_sumo_jobs(100, 0, None, split="val"))
 
 

@@ -1,10 +1,12 @@
 """Command line: `python -m gpd_jax.data {build,inspect} ...`.
 
   build --source sumo --out DIR --scenarios N --seed S [--net FILE.net.xml ...] [--workers W] [--split NAME]
+        [--real-networks] [--keep-overlaps] [--allow-near-duplicates] [--against STORE ...]
   build --source nuplan --out DIR --db PATH_OR_DIR --maps DIR [--max-per-log K] [--split NAME]
   build --source scenarionet --out DIR --db DATASET_DIR_OR_PKL [--max-per-log K] [--split NAME] [--workers W]
   inspect DIR [--json PATH] [--no-lanes]
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
+  near-duplicates --eval STORE_OR_NET ... --reference STORE_OR_NET ... [--tol METRES]
 
 A stopped build started again with the same arguments resumes where it left off.
 """
@@ -17,6 +19,17 @@ import logging
 import sys
 
 
+def _count(text: str) -> int:
+    """argparse type of the counts (scenarios, workers, ...): an integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m gpd_jax.data", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -24,15 +37,30 @@ def main(argv=None) -> int:
     b = sub.add_parser("build", help="build a dataset of samples")
     b.add_argument("--source", choices=("sumo", "nuplan", "scenarionet"), default="sumo")
     b.add_argument("--out", required=True)
-    b.add_argument("--scenarios", type=int, default=1000, help="SUMO: number of scenarios")
+    b.add_argument("--scenarios", type=_count, default=1000, help="SUMO: number of scenarios")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--net", nargs="+", default=None, help="SUMO: use these networks instead of generating")
-    b.add_argument("--workers", type=int, default=2, help="SUMO: processes (one SUMO each)")
-    b.add_argument("--per-job", type=int, default=50, help="SUMO: scenarios per simulation run")
+    b.add_argument("--workers", type=_count, default=2, help="SUMO: processes (one SUMO each)")
+    b.add_argument("--per-job", type=_count, default=50, help="SUMO: scenarios per simulation run")
     b.add_argument("--split", default=None, help="put everything into this one split")
     b.add_argument("--db", help="nuPlan: a .db file or a directory of them")
     b.add_argument("--maps", help="nuPlan: maps root (nuplan-maps-v1.0.json)")
-    b.add_argument("--max-per-log", type=int, default=None, help="nuPlan: at most this many windows per log")
+    b.add_argument("--max-per-log", type=_count, default=None, help="nuPlan: at most this many windows per log")
+    b.add_argument("--real-networks", action="store_true",
+                   help="SUMO: build on the real (OSM-derived) networks shipped with SUMO, one location each "
+                        "(gpd_jax.data.sumo.real_networks); layout 'real'")
+    b.add_argument("--net-layout", default="given", help="SUMO: layout recorded for --net networks (e.g. real)")
+    b.add_argument("--keep-overlaps", action="store_true",
+                   help="SUMO: keep windows in which two recorded boxes overlap (the gate drops them by default)")
+    b.add_argument("--refuse-near-duplicates", action=argparse.BooleanOptionalAction, default=True,
+                   help="SUMO: stop (before simulating) when a val/test network nearly matches a train network "
+                        "(default); --no-refuse-near-duplicates / --allow-near-duplicates only record and warn")
+    b.add_argument("--allow-near-duplicates", dest="refuse_near_duplicates", action="store_false",
+                   help=argparse.SUPPRESS)
+    b.add_argument("--near-duplicate-tol", type=float, default=None,
+                   help="SUMO: metres of mean lane distance below which two networks are near-duplicates (2.5)")
+    b.add_argument("--against", nargs="+", default=(), metavar="STORE",
+                   help="SUMO: also check this build's networks against these stores' networks")
     i = sub.add_parser("inspect", help="summary statistics of a dataset")
     i.add_argument("dir")
     i.add_argument("--json", default=None, help="also write the statistics to this JSON file")
@@ -44,6 +72,13 @@ def main(argv=None) -> int:
     bl.add_argument("--batches", type=int, default=200)
     bl.add_argument("--threads", type=int, default=4)
     bl.add_argument("--with-lanes", action="store_true")
+    nd = sub.add_parser("near-duplicates", help="networks whose lane geometry nearly matches (exit 1 if any)")
+    nd.add_argument("--eval", nargs="+", required=True, metavar="STORE_OR_NET",
+                    help="SUMO stores (their networks outside --reference-splits) or network files")
+    nd.add_argument("--reference", nargs="+", required=True, metavar="STORE_OR_NET",
+                    help="SUMO stores (their networks of --reference-splits) or network files")
+    nd.add_argument("--reference-splits", nargs="+", default=["train"])
+    nd.add_argument("--tol", type=float, default=None, help="metres (default 2.5)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
@@ -53,9 +88,22 @@ def main(argv=None) -> int:
         if args.cmd == "build":
             from gpd_jax.data import build
 
+            if args.source != "sumo" and (args.real_networks or args.keep_overlaps or args.against):
+                p.error("--real-networks, --keep-overlaps and --against are for --source sumo")
             if args.source == "sumo":
-                man = build.build_sumo(args.out, args.scenarios, args.seed, args.net, args.workers, args.split,
-                                       args.per_job)
+                nets, layout = args.net, args.net_layout
+                if args.real_networks:
+                    from gpd_jax.data import sumo
+
+                    if args.net:
+                        p.error("--real-networks and --net exclude each other")
+                    nets, layout = sumo.real_networks(), "real"
+                    if not nets:
+                        raise DataError(sumo.sumo_home(), "no real networks found in this SUMO install")
+                man = build.build_sumo(args.out, args.scenarios, args.seed, nets, args.workers, args.split,
+                                       args.per_job, net_layout=layout, keep_overlaps=args.keep_overlaps,
+                                       refuse_near_duplicates=args.refuse_near_duplicates,
+                                       near_duplicate_tol=args.near_duplicate_tol, against=args.against)
             elif args.source == "scenarionet":
                 if not args.db:
                     p.error("--source scenarionet needs --db (a ScenarioNet dataset directory or .pkl files)")
@@ -68,6 +116,27 @@ def main(argv=None) -> int:
             print(json.dumps({"num_samples": man["num_samples"],
                               "splits": {k: v["num_samples"] for k, v in man["splits"].items()},
                               "build_wall_s": round(man["build"]["build_wall_s"], 1)}))
+        elif args.cmd == "near-duplicates":
+            import os
+
+            from gpd_jax.data import netgeom
+
+            def fps(items, in_ref):
+                out = []
+                for x in items:
+                    if os.path.isdir(x):
+                        idx = netgeom.read_network_index(x)
+                        want = [s for s in {r.get("split") for r in idx.values()}
+                                if (s in args.reference_splits) == in_ref]
+                        out += netgeom.store_fingerprints(x, want)
+                    else:
+                        out.append(netgeom.as_fingerprint(x))
+                return out
+
+            tol = netgeom.DEFAULT_TOL if args.tol is None else args.tol
+            pairs = netgeom.near_duplicates(fps(args.eval, False), fps(args.reference, True), tol)
+            print(json.dumps({"near_duplicates": pairs, "tol_m": tol}, indent=1))
+            return 1 if pairs else 0
         elif args.cmd == "bench-loader":
             from gpd_jax.data import loader
 

@@ -58,25 +58,66 @@ class SumoJob:
     num_samples: int
     location: str
     split: str
-    net_path: str | None = None  # None: generate from seed
+    net_path: str | None = None  # None: generated from seed (into DIR/_networks/<location>.net.xml.gz)
+    layout: str = ""  # "grid" | "spider" | "random" (generated), "real" (--real-networks) or "given" (--net)
+
+
+def check_count(name: str, value, allow_none: bool = False) -> None:
+    """Raises DataError unless `value` is an integer >= 1 (counts of scenarios, workers, ...)."""
+    from gpd_jax.data.errors import DataError
+
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise DataError(None, f"{name} must be an integer >= 1, got {value!r}")
+
+
+def _assign_by_layout(locs: list[str], layouts: list[str], seed: int) -> dict[str, str]:
+    """Splits by location, stratified by layout when every layout has >= 3 locations (so that val and test
+    hold every layout and figures can be reported per layout), otherwise over all locations at once."""
+    groups: dict[str, list[str]] = {}
+    for loc, lay in zip(locs, layouts):
+        groups.setdefault(lay, []).append(loc)
+    if len(groups) < 2 or min(len(set(g)) for g in groups.values()) < 3:
+        return assign_splits(locs, seed)
+    out = {}
+    for lay in sorted(groups):
+        out.update(assign_splits(groups[lay], seed))
+    return out
 
 
 def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_job: int = 50,
-                   split: str | None = None) -> list[SumoJob]:
+                   split: str | None = None, net_layout: str = "given") -> list[SumoJob]:
     """Jobs of a SUMO build: `ceil(num_scenarios / per_job)` runs, one network each when generating,
-    cycling over the given networks (with different demand seeds) otherwise."""
+    cycling over the given networks (with different demand seeds) otherwise; with fewer jobs than given
+    networks, one job per network (as long as there are scenarios for it), the scenarios spread evenly.
+
+    Generated networks take turns over the layouts grid / spider / random (in a seeded order), and their
+    location names end in the layout (`gen_<seed>_<jjjj>_<layout>`); given networks get `net_layout`.
+    """
+    from gpd_jax.data.sumo import LAYOUTS
+
+    check_count("num_scenarios", num_scenarios)
+    check_count("per_job", per_job)
     n_jobs = max(1, math.ceil(num_scenarios / per_job))
-    counts = [per_job] * n_jobs
-    counts[-1] = num_scenarios - per_job * (n_jobs - 1)
+    if nets and n_jobs < len(nets):
+        n_jobs = min(len(nets), num_scenarios)
+        counts = [num_scenarios // n_jobs + (i < num_scenarios % n_jobs) for i in range(n_jobs)]
+    else:
+        counts = [per_job] * n_jobs
+        counts[-1] = num_scenarios - per_job * (n_jobs - 1)
     if nets:
         locs = [_net_location(nets[i % len(nets)]) for i in range(n_jobs)]
+        layouts = [net_layout] * n_jobs
     else:
-        locs = [f"gen_{seed}_{i:04d}" for i in range(n_jobs)]
-    splits = {l: split for l in locs} if split else assign_splits(locs, seed)
+        turn = np.random.default_rng([seed, 5]).permutation(n_jobs)
+        layouts = [LAYOUTS[int(turn[i]) % len(LAYOUTS)] for i in range(n_jobs)]
+        locs = [f"gen_{seed}_{i:04d}_{layouts[i]}" for i in range(n_jobs)]
+    splits = {l: split for l in locs} if split else _assign_by_layout(locs, layouts, seed)
     ss = np.random.SeedSequence([seed, 1234])
     seeds = [int(s.generate_state(1)[0]) for s in ss.spawn(n_jobs)]
     return [SumoJob(i, seeds[i], counts[i], locs[i], splits[locs[i]],
-                    nets[i % len(nets)] if nets else None) for i in range(n_jobs)]
+                    nets[i % len(nets)] if nets else None, layouts[i]) for i in range(n_jobs)]
 
 
 def _net_location(path: str) -> str:
@@ -100,10 +141,118 @@ def _existing_shard(out_dir: str, index: int) -> str | None:
     return None
 
 
+# ------------------------------------------------------------------------------------------- networks
+def _generated_net_path(out_dir: str, location: str) -> str:
+    from gpd_jax.data.netgeom import networks_dir
+
+    return os.path.join(networks_dir(out_dir), f"{location}.net.xml.gz")
+
+
+def _prepare_network(args) -> tuple[str, dict]:
+    """(location, index record) of one job's network: generates it (generated layouts) and writes its
+    fingerprint, both beside the store in DIR/_networks; files already there are reused (resume)."""
+    out_dir, job = args
+    from gpd_jax.data import netgeom, sumo
+
+    d = netgeom.networks_dir(out_dir)
+    os.makedirs(d, exist_ok=True)
+    fp_path = os.path.join(d, f"{job.location}.fp.npz")
+    rec = {"layout": job.layout, "split": job.split, "fingerprint": os.path.basename(fp_path)}
+    if job.net_path is None:
+        spec = sumo.random_net_spec(job.seed, job.layout)
+        net = _generated_net_path(out_dir, job.location)
+        if not os.path.isfile(net):
+            tmp = os.path.join(d, f".tmp-{job.location}-{os.getpid()}.net.xml.gz")
+            try:
+                sumo.generate_network(spec, tmp)
+                os.replace(tmp, net)
+            finally:
+                if os.path.exists(tmp):
+                    os.remove(tmp)
+        rec.update(net=os.path.relpath(net, out_dir), spec=dataclasses.asdict(spec))
+    else:
+        net = job.net_path
+        rec.update(net=os.path.abspath(net), spec=None)
+    if os.path.isfile(fp_path):
+        fp = netgeom.load_fingerprint(fp_path)
+    else:
+        fp = netgeom.fingerprint_network(net, job.location)
+        netgeom.save_fingerprint(fp, fp_path)
+    rec["lane_km"] = round(fp.length / 1000.0, 3)
+    return job.location, rec
+
+
+def prepare_networks(jobs: list[SumoJob], out_dir: str, workers: int = 1) -> dict[str, dict]:
+    """Generates (or reuses) every job's network and fingerprint before any simulation, and writes
+    `DIR/_networks/index.json`: location -> {"layout", "split", "net", "spec", "fingerprint", "lane_km"}
+    (see `gpd_jax.data.netgeom.read_network_index`). Returns that index."""
+    from gpd_jax.data import netgeom
+
+    first = {}
+    for j in jobs:
+        first.setdefault(j.location, j)
+    todo = [(out_dir, j) for j in first.values()]
+    if workers > 1 and len(todo) > 4:
+        ctx = multiprocessing.get_context("spawn")
+        with cf.ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx, initializer=_worker_init) as ex:
+            recs = list(ex.map(_prepare_network, todo))
+    else:
+        recs = [_prepare_network(t) for t in todo]
+    index = dict(sorted(recs))
+    store.atomic_write_json(os.path.join(netgeom.networks_dir(out_dir), netgeom.NETWORKS_INDEX), index)
+    return index
+
+
+def check_near_duplicates(out_dir: str, index: dict[str, dict], against: list[str] | tuple = (),
+                          tol: float | None = None) -> tuple[list[dict], dict]:
+    """Near-duplicate networks (`gpd_jax.data.netgeom`): every val/test network of this build against every
+    train network of this build, and, for each store in `against`, this build's val/test networks against
+    its train networks and this build's train networks against its val/test networks.
+
+    Returns (pairs, summary): pairs `{"evaluated", "evaluated_split", "reference", "reference_split",
+    "reference_store", "distance_m"}`; summary `{"pairs_compared", "wall_s", "tol_m"}`.
+    """
+    from gpd_jax.data import netgeom
+
+    tol = netgeom.DEFAULT_TOL if tol is None else tol
+    t0 = time.time()
+    d = netgeom.networks_dir(out_dir)
+    mine = {loc: dataclasses.replace(netgeom.load_fingerprint(os.path.join(d, r["fingerprint"])), name=loc)
+            for loc, r in index.items()}
+    split_of = {loc: r["split"] for loc, r in index.items()}
+    rows, n = [], 0
+
+    def compare(ev, ref, ref_split, ref_store):
+        nonlocal n
+        for e in ev:
+            for r in ref:
+                n += 1
+                dist = netgeom.geometry_distance(e, r)
+                if dist < tol:
+                    rows.append({"evaluated": e.name, "evaluated_split": split_of[e.name], "reference": r.name,
+                                 "reference_split": ref_split[r.name], "reference_store": ref_store,
+                                 "distance_m": round(float(dist), 3)})
+
+    ev = [f for loc, f in mine.items() if split_of[loc] != "train"]
+    tr = [f for loc, f in mine.items() if split_of[loc] == "train"]
+    compare(ev, tr, split_of, None)
+    for other in against:
+        oidx = netgeom.read_network_index(other)
+        ofp = {f.name: f for f in netgeom.store_fingerprints(other)}
+        osplit = {loc: r.get("split") for loc, r in oidx.items()}
+        compare(ev, [f for k, f in ofp.items() if osplit[k] == "train"], osplit, os.path.abspath(other))
+        compare(tr, [f for k, f in ofp.items() if osplit[k] != "train"], osplit, os.path.abspath(other))
+    return sorted(rows, key=lambda r: r["distance_m"]), {"pairs_compared": n, "wall_s": round(time.time() - t0, 3),
+                                                         "tol_m": tol}
+
+
 def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
                  sim_cfg=None, max_tries: int = 4) -> dict:
-    """Runs one SUMO job (network, demand, simulation, samples, shard). Returns its summary."""
+    """Runs one SUMO job (demand, simulation, samples, shard) on its network (prepared by
+    `prepare_networks`). A rejected run is retried on the same network with another demand seed and 30 %
+    less demand, up to `max_tries` runs. Returns the job summary."""
     from gpd_jax.data import sumo
+    from gpd_jax.data.geometry import sample_has_overlap
 
     sim_cfg = sim_cfg or (sumo.REAL_NETWORK_SIM if job.net_path else sumo.SimConfig())
     t0 = time.time()
@@ -113,28 +262,34 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
     stats: Counter = Counter()
     rejections = []
     samples, ids = [], []
+    if job.net_path is None:
+        spec = sumo.random_net_spec(job.seed, job.layout or None)
+        net = _generated_net_path(out_dir, job.location)
+        if not os.path.isfile(net):  # run without prepare_networks (e.g. a direct call)
+            os.makedirs(os.path.dirname(net), exist_ok=True)
+            sumo.generate_network(spec, net)
+        # unsignalized networks saturate earlier
+        density = sim_cfg.insertion_density * (0.6 if spec.junction == "priority" else 1.0)
+    else:
+        spec, net, density = None, job.net_path, sim_cfg.insertion_density
     try:
-        density = sim_cfg.insertion_density
+        lanes = sumo.read_network_lanes(net)
         for attempt in range(max_tries):
             seed = job.seed + 7919 * attempt
-            if job.net_path is None:
-                spec = sumo.random_net_spec(seed if attempt >= 2 else job.seed)  # new network after 2 tries
-                if spec.junction == "priority":
-                    density_eff = density * 0.6  # unsignalized networks saturate earlier
-                else:
-                    density_eff = density
-                net = sumo.generate_network(spec, os.path.join(work, "net.net.xml"))
-            else:
-                spec, net, density_eff = None, job.net_path, density
-            cfg = dataclasses.replace(sim_cfg, insertion_density=density_eff)
+            cfg = dataclasses.replace(sim_cfg, insertion_density=density)
             try:
-                raw = sumo.simulate(net, f"{job.location}_s{seed}", job.location, seed, cfg, workdir=work)
+                raw = sumo.simulate(net, f"{job.location}_s{seed}", job.location, seed, cfg, workdir=work,
+                                    lanes=lanes)
             except sumo.SumoRunRejected as e:
                 rejections.append(str(e))
                 stats["sumo_runs_rejected"] += 1
                 density *= 0.7
                 continue
             for sid, s in preprocess.iter_samples(raw, sample_cfg, num=job.num_samples, seed=seed, stats=stats):
+                if not sample_cfg.reject_overlaps:  # gate off: count what it would have removed
+                    stats["overlap_gate_checked"] += 1
+                    stats["overlapping_windows_kept"] += sample_has_overlap(s["xy"], s["heading"], s["valid"],
+                                                                            s["size"])
                 ids.append(sid)
                 samples.append(s)
             if samples:
@@ -146,18 +301,15 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
             if existing:
                 shutil.rmtree(existing)
             store.write_shard(out_dir, job.split, job.index, arrays, ids, [job.location] * len(ids),
-                              extra={"source": "sumo", "job_seed": job.seed,
+                              extra={"source": "sumo", "job_seed": job.seed, "layout": job.layout,
                                      "net": job.net_path or dataclasses.asdict(spec)})
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    summary = {"index": job.index, "split": job.split, "location": job.location, "num_samples": len(samples),
-               "requested": job.num_samples, "wall_s": time.time() - t0, "stats": dict(stats),
-               "rejections": rejections}
+    summary = {"index": job.index, "split": job.split, "location": job.location, "layout": job.layout,
+               "num_samples": len(samples), "requested": job.num_samples, "wall_s": time.time() - t0,
+               "stats": dict(stats), "rejections": rejections}
     store.atomic_write_json(_job_marker(out_dir, job.index), summary)
     return summary
-
-
-def _worker_init():
     logging.basicConfig(level=logging.WARNING)
 
 
@@ -205,28 +357,67 @@ class _Bound:
         return run_sumo_job(job, self.out_dir, self.sample_cfg, self.sim_cfg)
 
 
+NETGEN_VERSION = 2  # 2: seed-drawn shapes + node perturbation, networks generated before the runs
+
+
 def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] | None = None,
                workers: int = 2, split: str | None = None, per_job: int = 50,
-               sample_cfg: preprocess.SampleConfig | None = None, sim_cfg=None) -> dict:
-    """Builds (or resumes) a SUMO dataset in `out_dir`. Returns the manifest."""
+               sample_cfg: preprocess.SampleConfig | None = None, sim_cfg=None, *, net_layout: str = "given",
+               keep_overlaps: bool = False, refuse_near_duplicates: bool = True,
+               near_duplicate_tol: float | None = None, against: list[str] | tuple = ()) -> dict:
+    """Builds (or resumes) a SUMO dataset in `out_dir`. Returns the manifest.
+
+    Args:
+      nets: networks to use instead of generating them (`sumo.real_networks()` for SUMO's real ones); each
+        is parsed before anything is written (a bad file raises DataError naming it).
+      net_layout: the layout recorded for the given networks ("real" for `sumo.real_networks()`).
+      keep_overlaps: turn off the gate that drops windows in which two recorded boxes overlap.
+      refuse_near_duplicates: raise DataError, before any simulation, when a val/test network's lane
+        geometry nearly matches a train network's (`check_near_duplicates`); otherwise only warn. Either
+        way the pairs go into the manifest (`build.near_duplicates`).
+      against: other stores whose networks are checked against this build's (see `check_near_duplicates`).
+    """
+    from gpd_jax.data import netgeom, sumo
+    from gpd_jax.data.errors import DataError
+
     t0 = time.time()
+    check_count("num_scenarios", num_scenarios)
+    check_count("per_job", per_job)
+    check_count("workers", workers)
     sample_cfg = sample_cfg or default_sumo_sample_config()
+    if keep_overlaps:
+        sample_cfg = dataclasses.replace(sample_cfg, reject_overlaps=False)
+    for n in nets or []:  # parse every given network now, not after SUMO fails on it
+        if not os.path.isfile(n):
+            raise DataError(n, "network file not found")
+        sumo.read_network_lanes(n, merge_chains=False)
+    for other in against:
+        netgeom.read_network_index(other)
     os.makedirs(out_dir, exist_ok=True)
     store.clean_temporaries(out_dir)
     shutil.rmtree(os.path.join(out_dir, "_work"), ignore_errors=True)
-    if nets:
-        for n in nets:
-            if not os.path.isfile(n):
-                from gpd_jax.data.errors import DataError
-                raise DataError(n, "network file not found")
     settings = {"source": "sumo", "num_scenarios": num_scenarios, "seed": seed,
                 "nets": [os.path.abspath(n) for n in nets] if nets else None, "split": split,
                 "per_job": per_job, "sample_config": dataclasses.asdict(sample_cfg),
-                "sim_config": dataclasses.asdict(sim_cfg) if sim_cfg else None}
+                "sim_config": dataclasses.asdict(sim_cfg) if sim_cfg else None,
+                "netgen_version": None if nets else NETGEN_VERSION, "net_layout": net_layout if nets else None}
     _check_settings(out_dir, settings)
-    jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split)
+    jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout)
+    index = prepare_networks(jobs, out_dir, workers)
+    dups, dup_summary = check_near_duplicates(out_dir, index, against, near_duplicate_tol)
+    if dups:
+        lines = "; ".join(f"{d['evaluated']} ({d['evaluated_split']}) ~ {d['reference']} ({d['reference_split']}"
+                          f"{', ' + d['reference_store'] if d['reference_store'] else ''}) {d['distance_m']} m"
+                          for d in dups[:10])
+        if refuse_near_duplicates:
+            raise DataError(out_dir, f"{len(dups)} evaluation network(s) nearly match training networks (mean lane "
+                                     f"distance < {dup_summary['tol_m']} m after rigid alignment): {lines}. Use other "
+                                     f"networks, or build with --allow-near-duplicates to record them and go on")
+        log.warning("%d evaluation network(s) nearly match training networks: %s", len(dups), lines)
     results = run_jobs(jobs, _Bound(out_dir, sample_cfg, sim_cfg), out_dir, workers, "sumo build")
-    return _finish(out_dir, settings, results, time.time() - t0)
+    extra = {"near_duplicates": dups, "near_duplicate_check": dup_summary,
+             "networks": {loc: {k: r[k] for k in ("layout", "split", "lane_km")} for loc, r in index.items()}}
+    return _finish(out_dir, settings, results, time.time() - t0, extra)
 
 
 def default_sumo_sample_config() -> preprocess.SampleConfig:
@@ -234,18 +425,40 @@ def default_sumo_sample_config() -> preprocess.SampleConfig:
 
 
 def _check_settings(out_dir: str, settings: dict) -> None:
+    """Records a build's settings in DIR/_jobs/settings.json, or checks them against those recorded there.
+
+    Call it only once the inputs are validated. Settings of a build that finished no job are replaced;
+    otherwise other settings raise DataError saying how to go on."""
+    from gpd_jax.data.errors import DataError
+
     p = os.path.join(out_dir, "_jobs", "settings.json")
     if os.path.isfile(p):
-        with open(p) as f:
-            old = json.load(f)
-        if old != json.loads(json.dumps(settings)):
-            raise ValueError(f"{out_dir} holds a build with other settings ({p}); use another --out "
-                             f"or delete it")
-    else:
-        store.atomic_write_json(p, settings)
+        try:
+            with open(p) as f:
+                old = json.load(f)
+        except ValueError:
+            old = None
+        finished = any(n.startswith("job_") and n.endswith(".json") for n in os.listdir(os.path.dirname(p)))
+        if old != json.loads(json.dumps(settings)) and finished:
+            diff = sorted(k for k in set(old or {}) | set(settings) if (old or {}).get(k) != settings.get(k))
+            raise DataError(out_dir, f"holds a build with other settings (differing: {', '.join(diff)}; see {p}). "
+                                     f"Run the same command as before to resume it, use another --out, or delete "
+                                     f"{out_dir} to start again")
+        if old == json.loads(json.dumps(settings)):
+            return
+    store.atomic_write_json(p, settings)
 
 
-def _finish(out_dir: str, settings: dict, results: list[dict], wall: float) -> dict:
+def overlap_gate_summary(stats: dict, reject_overlaps: bool) -> dict:
+    """How many candidate windows had two overlapping recorded boxes, and whether the gate removed them."""
+    checked = int(stats.get("overlap_gate_checked", 0))
+    removed = int(stats.get("skip_overlapping_boxes", 0))
+    overlapping = removed if reject_overlaps else int(stats.get("overlapping_windows_kept", 0))
+    return {"enabled": bool(reject_overlaps), "windows_checked": checked, "windows_with_overlaps": overlapping,
+            "windows_removed": removed, "share_with_overlaps": round(overlapping / checked, 4) if checked else None}
+
+
+def _finish(out_dir: str, settings: dict, results: list[dict], wall: float, extra_build: dict | None = None) -> dict:
     tp = os.path.join(out_dir, "_jobs", "build_time.json")
     prev = 0.0
     if os.path.isfile(tp):
@@ -255,15 +468,26 @@ def _finish(out_dir: str, settings: dict, results: list[dict], wall: float) -> d
     stats: Counter = Counter()
     for r in results:
         stats.update(r.get("stats", {}))
+    reject = settings["sample_config"].get("reject_overlaps", False)
+    layouts: dict = {}
+    for r in results:
+        if r.get("layout"):
+            e = layouts.setdefault(r["layout"], {"locations": set(), "samples": Counter()})
+            e["locations"].add(r["location"])
+            e["samples"][r["split"]] += r["num_samples"]
+    layouts = {k: {"locations": len(v["locations"]), "samples": dict(v["samples"])} for k, v in sorted(layouts.items())}
     extra = {"build": {**settings, "build_wall_s": wall, "build_wall_s_all_invocations": prev + wall,
                        "jobs": len(results), "jobs_without_samples": sum(r["num_samples"] == 0 for r in results),
-                       "stats": dict(stats),
+                       "stats": dict(stats), "overlap_gate": overlap_gate_summary(stats, reject),
+                       **({"layouts": layouts} if layouts else {}), **(extra_build or {}),
                        "rejections": [x for r in results for x in r.get("rejections", [])][:200]}}
     manifest = store.write_manifest(out_dir, extra, preprocess.sample_spec(
         preprocess.SampleConfig(**{k: v for k, v in settings["sample_config"].items()})))
     skipped = {k: v for k, v in stats.items() if k.startswith(("skip", "agent_frames", "lane_"))}
-    log.warning("built %d samples in %.1f s (%s); skips/clamps: %s", manifest["num_samples"], wall,
-                {k: v["num_samples"] for k, v in manifest["splits"].items()}, skipped)
+    gate = manifest["build"]["overlap_gate"]
+    log.warning("built %d samples in %.1f s (%s); skips/clamps: %s; windows with overlapping boxes: %s of %s (%s)",
+                manifest["num_samples"], wall, {k: v["num_samples"] for k, v in manifest["splits"].items()}, skipped,
+                gate["windows_with_overlaps"], gate["windows_checked"], "removed" if reject else "kept")
     return manifest
 
 
@@ -281,15 +505,21 @@ def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: st
     """Builds a dataset from nuPlan logs (`gpd_jax.data.nuplan.iter_logs`), one shard per log."""
     from gpd_jax.data import nuplan  # written separately; imported lazily
 
+    from gpd_jax.data.errors import DataError
+
     t0 = time.time()
     sample_cfg = sample_cfg or preprocess.SampleConfig()
+    check_count("max_per_log", max_per_log, allow_none=True)
+    # inputs first: a wrong --db or --maps must not leave settings behind that a corrected retry trips over
+    paths = nuplan.find_logs(db)
+    if not os.path.isdir(maps_root):
+        raise DataError(maps_root, "maps root not found (the folder holding nuplan-maps-v1.0.json)")
     os.makedirs(out_dir, exist_ok=True)
     store.clean_temporaries(out_dir)
     settings = {"source": "nuplan", "db": os.path.abspath(db), "maps": os.path.abspath(maps_root), "seed": seed,
                 "split": split, "max_per_log": max_per_log, "sample_config": dataclasses.asdict(sample_cfg)}
     _check_settings(out_dir, settings)
     # Splits by map: read only the log headers first, then stream the logs one at a time (flat memory).
-    paths = nuplan.find_logs(db)
     if split:
         split_of = {p: split for p in paths}
     else:
@@ -411,6 +641,19 @@ def _plan_scenarionet_jobs(paths: list[str], index: list[tuple[str, str]], seed:
     return jobs
 
 
+def _scenario_samples(raw, sample_cfg, max_per_log, seed, stats) -> list:
+    """The windows of a scenario where its ego is present throughout, then at most `max_per_log` of them drawn at
+    random (seeded). `preprocess.iter_samples(num=...)` draws among all starts before it knows which have the
+    ego, which can leave none from a scenario whose ego is absent in some windows."""
+    pairs = list(preprocess.iter_samples(raw, sample_cfg, seed=seed, stats=stats))
+    if max_per_log is not None and len(pairs) > max_per_log:
+        keep = np.sort(np.random.default_rng([seed, len(pairs)]).choice(len(pairs), max_per_log, replace=False))
+        stats["samples"] -= len(pairs) - max_per_log
+        stats["windows_over_max_per_log"] += len(pairs) - max_per_log
+        pairs = [pairs[i] for i in keep]
+    return pairs
+
+
 def run_scenarionet_job(job: ScenarioNetJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
                         max_per_log: int | None = None, seed: int = 0, skip_bad: bool = False) -> dict:
     """Reads the job's scenario files (`gpd_jax.data.scenarionet.read_scenario`), cuts their windows and writes
@@ -425,7 +668,7 @@ def run_scenarionet_job(job: ScenarioNetJob, out_dir: str, sample_cfg: preproces
     for path, loc in zip(job.paths, job.locations):
         try:
             raw = scenarionet.read_scenario(path, loc, stats)
-            pairs = list(preprocess.iter_samples(raw, sample_cfg, num=max_per_log, seed=seed, stats=stats))
+            pairs = _scenario_samples(raw, sample_cfg, max_per_log, seed, stats)
         except DataError as e:
             if not skip_bad:
                 return {"index": job.index, "split": job.split, "num_samples": 0, "requested": len(job.paths),

@@ -342,6 +342,8 @@ def iter_samples(log: RawLog, cfg: SampleConfig = SampleConfig(), num: int | Non
         s = make_sample(log, start, ego, cfg, lp, stats)
         if s is None:
             continue
+        if cfg.reject_overlaps:
+            stats["overlap_gate_checked"] += 1  # with skip_overlapping_boxes: the share the gate removes
         if cfg.reject_overlaps and sample_has_overlap(s["xy"], s["heading"], s["valid"], s["size"]):
             stats["skip_overlapping_boxes"] += 1
             stats["samples"] -= 1

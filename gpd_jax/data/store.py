@@ -6,12 +6,17 @@ Layout of a dataset directory `DIR`::
                                       (shards, sample counts), build settings and statistics
     DIR/<split>/shard_<jjjjj>/        one complete shard (split = train | val | test | any name)
         meta.json                     {"num_samples": n, "keys": {key: {"dtype", "shape", "nbytes"}},
-                                       "scenario_ids": [n strings], "locations": [n strings], ...}
+                                       "scenario_ids": [n strings], "locations": [n strings], ...};
+                                      SUMO shards add "layout" (grid | spider | random | real | given) of
+                                      their one network: `sample_layouts` lists it per sample
         <key>.npy                     one numpy array per sample key, leading dim n (see below)
         map_tokens.npy                optional, u8[n, T, 64]: written later by `save_map_tokens`; frames that
                                       were not encoded (`encode --frame-stride S`) hold MISSING_MAP_TOKEN
         map_tokens.json               optional: {"tokenizer", "shape", "frame_stride"} of map_tokens.npy
     DIR/_jobs/job_<jjjjj>.json        build bookkeeping (resume): one file per finished build job
+    DIR/_networks/                    SUMO builds: generated networks (<location>.net.xml.gz), lane-geometry
+                                      fingerprints (<location>.fp.npz) and index.json (location -> layout,
+                                      split, network file), see `gpd_jax.data.netgeom`
 
 Sample keys (paper configuration T=101, A=33, L=96, P=128; see `gpd_jax.data.preprocess`):
 
@@ -320,6 +325,22 @@ def shard_indices(data_dir: str, split: str) -> list[int]:
     return [int(os.path.basename(p)[len("shard_"):]) for p in list_shards(data_dir, split)]
 
 
+def sample_layouts(data_dir: str, split: str) -> list[str]:
+    """The network layout of every sample of a split, in loader order (shard by shard): "grid", "spider",
+    "random" (generated SUMO networks), "real" (SUMO's real networks), "given" (other --net files), or
+    "unknown" (other sources, or stores built before layouts were recorded). Read from each shard's
+    `meta.json` ("layout"), which SUMO builds write."""
+    out: list[str] = []
+    for p in list_shards(data_dir, split):
+        try:
+            with open(os.path.join(p, "meta.json")) as f:
+                meta = json.load(f)
+        except (OSError, json.JSONDecodeError) as e:
+            raise DataError(os.path.join(p, "meta.json"), f"unreadable shard metadata: {e}") from e
+        out += [meta.get("layout") or "unknown"] * int(meta["num_samples"])
+    return out
+
+
 def read_manifest(data_dir: str) -> dict:
     p = os.path.join(data_dir, MANIFEST)
     try:
@@ -343,7 +364,8 @@ def write_manifest(data_dir: str, extra: dict | None = None, spec=SAMPLE_SPEC) -
             except (OSError, json.JSONDecodeError):
                 continue
             shards.append({"index": int(os.path.basename(p)[6:]), "num_samples": meta["num_samples"],
-                           "locations": sorted(set(meta.get("locations", [])))})
+                           "locations": sorted(set(meta.get("locations", []))),
+                           **({"layout": meta["layout"]} if meta.get("layout") else {})})
         splits[split] = {"num_samples": sum(s["num_samples"] for s in shards), "num_shards": len(shards),
                          "shards": shards}
     manifest = {

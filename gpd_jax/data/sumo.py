@@ -74,63 +74,96 @@ class SumoRunRejected(RuntimeError):
     """A simulation whose traffic is not usable (teleports, gridlock, too few vehicles)."""
 
 
+LAYOUTS = ("grid", "spider", "random")  # generated layouts; networks given as files are "real" or "given"
+
+
 @dataclasses.dataclass(frozen=True)
 class NetSpec:
-    """How to generate one synthetic network (all drawn from a seed by `random_net_spec`)."""
+    """How to generate one synthetic network (all drawn from a seed by `random_net_spec`).
 
-    layout: str  # "rand" | "grid" | "spider"
+    netgenerate ignores `--seed` for grid and spider layouts, so two specs with equal sizes would give the same
+    network. Every spec therefore also carries seed-drawn shape parameters (junction counts per axis, street
+    lengths per axis, arm and circle counts) and `perturb`, the standard deviation (metres) of netgenerate's own
+    random node perturbation (`--perturb-x/-y`, a normal cut at 2 sigma, drawn from `--seed`), so that two
+    seeds never give the same roads (`gpd_jax.data.netgeom` checks it).
+    """
+
+    layout: str  # "grid" | "spider" | "random"
     lanes: int
     junction: str  # "traffic_light" | "priority" | "mixed" (priority + guessed traffic lights)
     speed: float
     seed: int
-    size: int  # iterations (rand), grid number, or spider arms
-    spacing: float  # grid length / spider radius / rand min distance
+    size: int  # junctions along x (grid), arms (spider), iterations (random)
+    spacing: float  # street length along x (grid), circle spacing (spider), min edge length (random)
+    size2: int = 0  # junctions along y (grid), circles (spider)
+    spacing2: float = 0.0  # street length along y (grid), max edge length (random)
+    perturb: float = 0.0  # sigma in metres of the random node perturbation
+    connectivity: float = 0.95  # random: probability that a road continues at a node
 
 
-def random_net_spec(seed: int) -> NetSpec:
+def random_net_spec(seed: int, layout: str | None = None) -> NetSpec:
+    """A network spec drawn from `seed` (the layout too, unless given: "grid", "spider" or "random")."""
     rng = np.random.default_rng([seed, 7])
-    layout = ["rand", "grid", "spider"][int(rng.integers(3))]
+    drawn = LAYOUTS[int(rng.integers(3))]
+    layout = drawn if layout is None else layout
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; expected one of {LAYOUTS}")
     lanes = int(rng.integers(1, 4))
     junction = ["traffic_light", "priority", "mixed"][int(rng.integers(3))]
     speed = float(rng.choice([11.11, 13.89, 16.67, 19.44]))
-    if layout == "rand":
-        size, spacing = int(rng.integers(30, 60)), float(rng.uniform(100, 160))
-    elif layout == "grid":
-        size, spacing = int(rng.integers(4, 6)), float(rng.uniform(150, 220))
-    else:
-        size, spacing = int(rng.integers(4, 7)), float(rng.uniform(100, 160))
-    return NetSpec(layout, lanes, junction, speed, int(seed) % (2**31), size, spacing)
+    seed31 = int(seed) % (2**31)
+    if layout == "random":
+        lo = float(rng.uniform(100, 160))
+        return NetSpec(layout, lanes, junction, speed, seed31, int(rng.integers(30, 60)), lo,
+                       spacing2=lo * float(rng.uniform(1.8, 2.6)), perturb=float(rng.uniform(0.03, 0.08)) * lo,
+                       connectivity=float(rng.uniform(0.8, 0.97)))
+    if layout == "grid":
+        lx, ly = float(rng.uniform(120, 220)), float(rng.uniform(120, 220))
+        return NetSpec(layout, lanes, junction, speed, seed31, int(rng.integers(3, 7)), lx,
+                       size2=int(rng.integers(3, 7)), spacing2=ly, perturb=float(rng.uniform(0.1, 0.15)) * min(lx, ly))
+    r = float(rng.uniform(90, 160))
+    return NetSpec(layout, lanes, junction, speed, seed31, int(rng.integers(3, 8)), r,
+                   size2=int(rng.integers(2, 5)), perturb=float(rng.uniform(0.1, 0.15)) * r)
 
 
 def generate_network(spec: NetSpec, out_path: str) -> str:
-    """Runs netgenerate for `spec`, writing `out_path` (.net.xml). Returns the path."""
-    args = [_bin("netgenerate"), f"--{spec.layout}", "--seed", str(spec.seed), "-o", out_path,
+    """Runs netgenerate for `spec`, writing `out_path` (.net.xml, or .net.xml.gz compressed). Returns the path."""
+    flag = {"random": "rand", "rand": "rand"}.get(spec.layout, spec.layout)
+    args = [_bin("netgenerate"), f"--{flag}", "--seed", str(spec.seed), "-o", out_path,
             "--no-turnarounds", "true", "--default.lanenumber", str(spec.lanes),
             "--default.speed", f"{spec.speed:.2f}", "--junctions.join", "false", "--no-warnings", "true",
             "--tls.default-type", "actuated"]
+    if spec.perturb > 0:
+        s = spec.perturb
+        args += ["--perturb-x", f"normc(0,{s:.2f},{-2 * s:.2f},{2 * s:.2f})",
+                 "--perturb-y", f"normc(0,{s:.2f},{-2 * s:.2f},{2 * s:.2f})"]
     if spec.junction == "traffic_light":
         args += ["--default-junction-type", "traffic_light"]
     elif spec.junction == "priority":
         args += ["--default-junction-type", "priority"]
     else:
         args += ["--default-junction-type", "priority", "--tls.guess", "true"]
-    if spec.layout == "rand":
+    if flag == "rand":
         args += ["--rand.iterations", str(spec.size), "--rand.min-distance", f"{spec.spacing:.1f}",
-                 "--rand.min-angle", "60",
-                 "--rand.max-distance", f"{spec.spacing * 2.2:.1f}", "--rand.random-lanenumber", "true"]
-    elif spec.layout == "grid":
-        args += ["--grid.number", str(spec.size), "--grid.length", f"{spec.spacing:.1f}",
-                 "--grid.attach-length", f"{spec.spacing:.1f}"]
+                 "--rand.min-angle", "60", "--rand.connectivity", f"{spec.connectivity:.3f}",
+                 "--rand.max-distance", f"{(spec.spacing2 or spec.spacing * 2.2):.1f}",
+                 "--rand.random-lanenumber", "true"]
+    elif flag == "grid":
+        ly = spec.spacing2 or spec.spacing
+        args += ["--grid.x-number", str(spec.size), "--grid.y-number", str(spec.size2 or spec.size),
+                 "--grid.x-length", f"{spec.spacing:.1f}", "--grid.y-length", f"{ly:.1f}",
+                 "--grid.x-attach-length", f"{spec.spacing:.1f}", "--grid.y-attach-length", f"{ly:.1f}"]
     else:
-        args += ["--spider.arm-number", str(spec.size), "--spider.circle-number", "3",
+        args += ["--spider.arm-number", str(spec.size), "--spider.circle-number", str(spec.size2 or 3),
                  "--spider.space-radius", f"{spec.spacing:.1f}", "--spider.omit-center", "true"]
-    _run(args, what=f"netgenerate {spec}")
+    env = dict(os.environ, SUMO_HOME=sumo_home())  # else netgenerate warns that it cannot validate XML
+    _run(args, what=f"netgenerate {spec}", env=env)
     return out_path
 
 
-def _run(args: list[str], what: str, timeout: float = 600) -> str:
+def _run(args: list[str], what: str, timeout: float = 600, env: dict | None = None) -> str:
     try:
-        p = subprocess.run(args, capture_output=True, text=True, timeout=timeout)
+        p = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired as e:
         raise SumoRunRejected(f"{what}: timed out after {timeout} s") from e
     if p.returncode != 0:
@@ -185,7 +218,7 @@ def read_network_lanes(net_path: str, merge_chains: bool = True) -> tuple[np.nda
                     b = el.get("via") or f"{el.get('to')}_{el.get('toLane')}"
                     links.append((a, b))
                     el.clear()
-    except ET.ParseError as e:
+    except (ET.ParseError, ValueError, OSError, EOFError) as e:  # bad XML, bad shape numbers, bad gzip
         raise DataError(net_path, f"not a readable SUMO network: {e}") from e
     if not shapes:
         raise DataError(net_path, "network has no lanes usable by passenger cars")
@@ -249,6 +282,64 @@ class SimConfig:
 # such teleports (whose tracks are dropped), and lower demand.
 REAL_NETWORK_SIM = SimConfig(insertion_density=150.0, tolerated_teleport_fraction=0.1,
                              extra_sumo_args=("--time-to-impatience", "30", "--ignore-junction-blocker", "20"))
+
+
+# ------------------------------------------------------------------------------------ shipped real networks
+# Real (OSM-derived) road networks in the eclipse-sumo wheel, relative to SUMO_HOME/tools/game. Each was built
+# with `build_sumo(..., nets=[net], per_job=10, split="test")` (REAL_NETWORK_SIM, default sample config) on
+# SUMO 1.28 and gave 9-10 samples (wall time of that one-job build on one core in brackets):
+REAL_NETWORKS = {
+    "fokr_bs_demo/fokr_bs.net.xml.gz": "Braunschweig, the DLR research intersection (2 s)",
+    "fkk_in/ingolstadt.net.xml.gz": "Ingolstadt, a crop of the city (2 s)",
+    "highway/highway.net.xml": "motorway near Bremen (3 s; 21 of 30 candidate windows overlap-gated)",
+    "bs3d/bs.net.xml": "Braunschweig centre, 1.6 x 2.1 km (9 s, one run rejected for gridlock)",
+    "A10KW/osm.net.xml": "A10 motorway area south-west of Berlin, 2.5 x 3.2 km (18 s, 2 runs rejected)",
+    "DRT/osm.net.xml": "Berlin district, 2.6 x 3.3 km (97 s, 3 runs rejected for jam teleports)",
+}
+# Also geo-referenced but no road network: game/racing/spreewaldring.net.xml, a race circuit whose lanes are
+# closed to passenger cars (randomTrips: "No valid edges"). Everything else shipped (grid6, square, cross,
+# corridor, kuehne, ramp, hiking, rail*, the sumolib RiLSA scenarios) is synthetic, with no projection.
+
+
+def _net_projection(path: str) -> str | None:
+    """The `projParameter` of a network's <location> element ("!" = not geo-referenced), None if absent."""
+    try:
+        with _open_xml(path) as f:
+            head = f.read(1 << 16).decode("utf-8", "replace")
+    except (OSError, EOFError):
+        return None
+    m = re.search(r'<location[^>]*projParameter="([^"]*)"', head)
+    return m.group(1) if m else None
+
+
+def real_networks(scan: bool = False, min_lane_km: float = 1.0) -> list[str]:
+    """Paths of the real (OSM-derived) road networks shipped with SUMO, sorted.
+
+    Default: the `REAL_NETWORKS` that exist in this install (all six were checked to simulate and give samples).
+    With `scan`: every `.net.xml[.gz]` under SUMO_HOME that is geo-referenced (a projection other than "!")
+    and has at least `min_lane_km` km of lanes open to passenger cars (this finds the same six in SUMO 1.28).
+    """
+    home = sumo_home()
+    if not scan:
+        paths = [os.path.join(home, "tools", "game", rel) for rel in REAL_NETWORKS]
+        return sorted(p for p in paths if os.path.isfile(p))
+    out = []
+    for root, _, files in os.walk(home):
+        for name in files:
+            if not name.endswith((".net.xml", ".net.xml.gz")):
+                continue
+            p = os.path.join(root, name)
+            proj = _net_projection(p)
+            if not proj or proj == "!":
+                continue
+            try:
+                lanes = read_network_lanes(p, merge_chains=False)
+            except DataError:
+                continue
+            km = sum(float(np.sum(np.linalg.norm(np.diff(ln, axis=0), axis=-1))) for ln in lanes) / 1000.0
+            if km >= min_lane_km:
+                out.append(p)
+    return sorted(out)
 
 
 def _vtypes_xml() -> str:
