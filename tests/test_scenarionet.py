@@ -136,7 +136,13 @@ def test_windows_every_stride_where_the_ego_is_present():
     ids = [sid for sid, _ in preprocess.iter_samples(raw, preprocess.SampleConfig(), stats=stats)]
     assert ids == [f"x/{s}/{fx.SDC}" for s in (0, 10, 20, 30)]
     assert stats["skip_ego_not_present"] == 3  # starts 40, 50, 60
-    # --max-per-log draws among the windows that have the ego (never fewer than there are)
+    # the build's window choice makes the same samples as preprocess.iter_samples ...
+    every = build._scenario_samples(raw, preprocess.SampleConfig(), None, 0, Counter())
+    assert [sid for sid, _ in every] == ids
+    for (_, a), (_, b) in zip(every, preprocess.iter_samples(raw, preprocess.SampleConfig())):
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key])
+    # ... and --max-per-log draws among the windows that have the ego (never fewer than there are)
     for n in (1, 2, 4, 9):
         stats = Counter()
         pairs = build._scenario_samples(raw, preprocess.SampleConfig(), n, 0, stats)

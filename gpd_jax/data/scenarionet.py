@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from collections import Counter
 from typing import Any, Iterable, Iterator
 
@@ -294,7 +295,8 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
     if sdc is None or str(sdc) not in ids:
         raise DataError(path, f"metadata['sdc_id'] = {sdc!r} names no track ({len(tracks)} tracks): no ego")
     sdc = str(sdc)
-    names, xys, heads, valids, sizes, types = [], [], [], [], [], []
+    names, xys, heads, valids, lengths, widths, types = [], [], [], [], [], [], []
+    nan_frames = np.full(len(range(0, T, k)), np.nan)
     for sid in [sdc] + sorted((i for i in ids if i != sdc), key=_track_order):
         tr = tracks[ids[sid]]
         where = f"scenario['tracks'][{sid!r}]"
@@ -316,23 +318,32 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
                 raise DataError(path, f"the ego track {sdc!r} (metadata['sdc_id']) is never valid")
             stats["tracks_dropped_never_valid"] += 1
             continue
-        size = None
         if "length" in st and "width" in st:
-            ln = _per_frame(st["length"], T, "length", sw, path)[keep][vd]
-            wd = _per_frame(st["width"], T, "width", sw, path)[keep][vd]
-            ln, wd = ln[np.isfinite(ln)], wd[np.isfinite(wd)]
-            if len(ln) and len(wd) and np.median(ln) > 0 and np.median(wd) > 0:
-                size = (float(np.median(ln)), float(np.median(wd)))
-        if size is None:
-            size = DEFAULT_SIZE
-            stats["agent_size_defaulted"] += 1
+            lengths.append(_per_frame(st["length"], T, "length", sw, path)[keep])
+            widths.append(_per_frame(st["width"], T, "width", sw, path)[keep])
+        else:
+            lengths.append(nan_frames)
+            widths.append(nan_frames)
         names.append(sid)
-        xys.append(np.where(vd[:, None], pos, np.nan))
-        heads.append(np.where(vd, hd, np.nan))
+        xys.append(pos)
+        heads.append(hd)
         valids.append(vd)
-        sizes.append(size)
         types.append(ttype)
     stats["tracks_vehicle"] += len(names) - 1
+    valid = np.stack(valids, 1)  # [F, N]
+    xy = np.stack(xys, 1)
+    xy[~valid] = np.nan
+    heading = np.stack(heads, 1)
+    heading[~valid] = np.nan
+    size_frames = np.stack([np.stack(lengths, 1), np.stack(widths, 1)], -1)  # [F, N, 2]
+    size_frames[~valid] = np.nan
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: tracks without sizes
+        size_arr = np.nanmedian(size_frames, axis=0)  # [N, 2] over valid frames
+    bad = ~(np.isfinite(size_arr) & (size_arr > 0)).all(-1)
+    size_arr[bad] = DEFAULT_SIZE
+    stats["agent_size_defaulted"] += int(bad.sum())
+    size_arr = size_arr.astype(np.float32)
     lanes = []
     for fid in sorted(map_features, key=_track_order):
         feat = map_features[fid]
@@ -360,12 +371,8 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
         lanes.append(pl)
     from gpd_jax.data.nuplan import vehicle_type
 
-    size_arr = np.asarray(sizes, np.float32).reshape(-1, 2)
     atype = vehicle_type(size_arr[:, 0]).astype(np.int32)
     atype[0] = TYPE_ID["ego"]
-    xy = np.stack(xys, 1)
-    heading = np.stack(heads, 1)
-    valid = np.stack(valids, 1)
     _check_ego_heading(xy[:, 0], heading[:, 0], valid[:, 0], k * float(np.median(np.diff(ts))), path)
     tk = ts[keep]
     return RawLog(name=file_stem(path), location=location or scenario_location(md, file_stem(path)),
