@@ -642,16 +642,38 @@ def _plan_scenarionet_jobs(paths: list[str], index: list[tuple[str, str]], seed:
 
 
 def _scenario_samples(raw, sample_cfg, max_per_log, seed, stats) -> list:
-    """The windows of a scenario where its ego is present throughout, then at most `max_per_log` of them drawn at
-    random (seeded). `preprocess.iter_samples(num=...)` draws among all starts before it knows which have the
-    ego, which can leave none from a scenario whose ego is absent in some windows."""
-    pairs = list(preprocess.iter_samples(raw, sample_cfg, seed=seed, stats=stats))
-    if max_per_log is not None and len(pairs) > max_per_log:
-        keep = np.sort(np.random.default_rng([seed, len(pairs)]).choice(len(pairs), max_per_log, replace=False))
-        stats["samples"] -= len(pairs) - max_per_log
-        stats["windows_over_max_per_log"] += len(pairs) - max_per_log
-        pairs = [pairs[i] for i in keep]
-    return pairs
+    """(scenario id, sample) pairs of a scenario (`raw.ego_index` set): the windows every `window_stride` frames
+    in which the ego is present throughout, then at most `max_per_log` of them drawn at random (seeded) before
+    any sample is made. (`preprocess.iter_samples(num=...)` draws among all starts before it knows which have
+    the ego, which can leave none from a scenario whose ego is absent in some windows, and making every window
+    first would cost `max_per_log`-fold.)"""
+    from gpd_jax.data.geometry import sample_has_overlap
+
+    preprocess.check_rawlog(raw)
+    T, F, ego = sample_cfg.num_frames, raw.num_frames, int(raw.ego_index)
+    if F < T:
+        stats["skip_log_too_short"] += 1
+        return []
+    cv = np.concatenate([[0], np.cumsum(raw.agent_valid[:, ego])])
+    starts = np.arange(0, F - T + 1, sample_cfg.window_stride)
+    present = (cv[starts + T] - cv[starts]) == T
+    stats["skip_ego_not_present"] += int((~present).sum())
+    starts = starts[present]
+    if max_per_log is not None and len(starts) > max_per_log:
+        stats["windows_over_max_per_log"] += len(starts) - max_per_log
+        starts = np.sort(np.random.default_rng([seed, len(starts)]).choice(starts, max_per_log, replace=False))
+    lp = preprocess.lane_points(raw.lanes, sample_cfg.lane_spacing)
+    out = []
+    for s in starts.tolist():
+        smp = preprocess.make_sample(raw, s, ego, sample_cfg, lp, stats)
+        if smp is None:
+            continue
+        if sample_cfg.reject_overlaps and sample_has_overlap(smp["xy"], smp["heading"], smp["valid"], smp["size"]):
+            stats["skip_overlapping_boxes"] += 1
+            stats["samples"] -= 1
+            continue
+        out.append((f"{raw.name}/{s}/{raw.agent_ids[ego]}", smp))
+    return out
 
 
 def run_scenarionet_job(job: ScenarioNetJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
