@@ -7,7 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from gpd_jax.data import build, loader, preprocess, sumo
+from gpd_jax.data import build, loader, preprocess, store, sumo
+from gpd_jax.data.__main__ import main
 
 SMALL_SIM = sumo.SimConfig(warmup_s=60.0, record_s=30.0)
 
@@ -32,6 +33,11 @@ def test_tiny_build_resume_and_load(tmp_path):
     out = str(tmp_path / "ds")
     man = build.build_sumo(out, 4, seed=3, workers=1, per_job=2, sim_cfg=SMALL_SIM)
     assert man["num_samples"] == 4 and man["build"]["build_wall_s"] > 0
+    gate = man["build"]["overlap_gate"]
+    assert gate["enabled"] and gate["windows_checked"] == 4 + gate["windows_removed"]
+    layouts = {sh["locations"][0]: sh["layout"] for v in man["splits"].values() for sh in v["shards"]}
+    assert all(loc.endswith("_" + lay) and lay in sumo.LAYOUTS for loc, lay in layouts.items())
+    assert sum(e["locations"] for e in man["build"]["layouts"].values()) == 2
     locs = {s: {l for sh in v["shards"] for l in sh["locations"]} for s, v in man["splits"].items()}
     assert sum(len(v) for v in locs.values()) == 2  # two networks, each in exactly one split
     scene = loader.load_split(out, next(iter(man["splits"])))
@@ -62,6 +68,26 @@ def test_real_network_build(tmp_path):
     man = build.build_sumo(out, 2, seed=0, nets=[net], workers=1, per_job=2, split="test", sim_cfg=cfg)
     assert man["num_samples"] == 2, man["build"]["rejections"]
     assert man["splits"]["test"]["shards"][0]["locations"] == ["fokr_bs_demo_fokr_bs"]
+
+
+def test_real_networks_listed_and_built_as_an_ungated_test_split(tmp_path):
+    nets = sumo.real_networks()
+    if len(nets) < 6:
+        pytest.skip("this SUMO install lacks some of the shipped real networks")
+    assert {os.path.basename(os.path.dirname(n)) for n in nets} == {"A10KW", "DRT", "bs3d", "fkk_in", "fokr_bs_demo",
+                                                                     "highway"}
+    assert sumo.real_networks(scan=True) == nets  # the scan of SUMO_HOME finds exactly these
+    out = str(tmp_path / "real")
+    assert main(["build", "--real-networks", "fokr_bs_demo", "--out", out, "--split", "test", "--scenarios", "3",
+                 "--per-job", "3", "--workers", "1", "--keep-overlaps"]) == 0
+    man = store.read_manifest(out)
+    b = man["build"]
+    assert b["layouts"] == {"real": {"locations": 1, "samples": {"test": man["num_samples"]}}}
+    assert b["net_layout"] == "real" and b["sample_config"]["reject_overlaps"] is False
+    gate = b["overlap_gate"]
+    assert not gate["enabled"] and gate["windows_removed"] == 0 and gate["windows_checked"] == man["num_samples"]
+    assert 0 <= gate["windows_with_overlaps"] <= gate["windows_checked"]
+    assert store.sample_layouts(out, "test") == ["real"] * man["num_samples"]
 
 
 def test_teleported_tracks_are_dropped():

@@ -46,9 +46,10 @@ def main(argv=None) -> int:
     b.add_argument("--db", help="nuPlan: a .db file or a directory of them")
     b.add_argument("--maps", help="nuPlan: maps root (nuplan-maps-v1.0.json)")
     b.add_argument("--max-per-log", type=_count, default=None, help="nuPlan: at most this many windows per log")
-    b.add_argument("--real-networks", action="store_true",
+    b.add_argument("--real-networks", nargs="*", default=None, metavar="NAME",
                    help="SUMO: build on the real (OSM-derived) networks shipped with SUMO, one location each "
-                        "(gpd_jax.data.sumo.real_networks); layout 'real'")
+                        "(gpd_jax.data.sumo.real_networks), or only those named (e.g. fokr_bs_demo DRT); "
+                        "layout 'real'")
     b.add_argument("--net-layout", default="given", help="SUMO: layout recorded for --net networks (e.g. real)")
     b.add_argument("--keep-overlaps", action="store_true",
                    help="SUMO: keep windows in which two recorded boxes overlap (the gate drops them by default)")
@@ -88,18 +89,16 @@ def main(argv=None) -> int:
         if args.cmd == "build":
             from gpd_jax.data import build
 
-            if args.source != "sumo" and (args.real_networks or args.keep_overlaps or args.against):
+            if args.source != "sumo" and (args.real_networks is not None or args.keep_overlaps or args.against):
                 p.error("--real-networks, --keep-overlaps and --against are for --source sumo")
             if args.source == "sumo":
                 nets, layout = args.net, args.net_layout
-                if args.real_networks:
+                if args.real_networks is not None:
                     from gpd_jax.data import sumo
 
                     if args.net:
                         p.error("--real-networks and --net exclude each other")
-                    nets, layout = sumo.real_networks(), "real"
-                    if not nets:
-                        raise DataError(sumo.sumo_home(), "no real networks found in this SUMO install")
+                    nets, layout = sumo.real_networks(names=args.real_networks or None), "real"
                 man = build.build_sumo(args.out, args.scenarios, args.seed, nets, args.workers, args.split,
                                        args.per_job, net_layout=layout, keep_overlaps=args.keep_overlaps,
                                        refuse_near_duplicates=args.refuse_near_duplicates,

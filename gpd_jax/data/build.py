@@ -310,6 +310,9 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
                "stats": dict(stats), "rejections": rejections}
     store.atomic_write_json(_job_marker(out_dir, job.index), summary)
     return summary
+
+
+def _worker_init():
     logging.basicConfig(level=logging.WARNING)
 
 

@@ -312,17 +312,29 @@ def _net_projection(path: str) -> str | None:
     return m.group(1) if m else None
 
 
-def real_networks(scan: bool = False, min_lane_km: float = 1.0) -> list[str]:
+def real_networks(scan: bool = False, min_lane_km: float = 1.0, names: list[str] | None = None) -> list[str]:
     """Paths of the real (OSM-derived) road networks shipped with SUMO, sorted.
 
-    Default: the `REAL_NETWORKS` that exist in this install (all six were checked to simulate and give samples).
-    With `scan`: every `.net.xml[.gz]` under SUMO_HOME that is geo-referenced (a projection other than "!")
-    and has at least `min_lane_km` km of lanes open to passenger cars (this finds the same six in SUMO 1.28).
+    Default: the `REAL_NETWORKS` that exist in this install (all six were checked to simulate and give samples);
+    `names` keeps those whose folder (e.g. "fokr_bs_demo", "DRT") or file name is listed (DataError for a name
+    that matches none). With `scan`: every `.net.xml[.gz]` under SUMO_HOME that is geo-referenced (a
+    projection other than "!") and has at least `min_lane_km` km of lanes open to passenger cars (this finds
+    the same six in SUMO 1.28).
     """
     home = sumo_home()
     if not scan:
-        paths = [os.path.join(home, "tools", "game", rel) for rel in REAL_NETWORKS]
-        return sorted(p for p in paths if os.path.isfile(p))
+        paths = sorted(p for p in (os.path.join(home, "tools", "game", rel) for rel in REAL_NETWORKS)
+                       if os.path.isfile(p))
+        if not paths:
+            raise DataError(home, "no real networks found in this SUMO install")
+        if names:
+            key = {p: {os.path.basename(os.path.dirname(p)), os.path.basename(p).split(".")[0]} for p in paths}
+            unknown = [n for n in names if not any(n in k for k in key.values())]
+            if unknown:
+                raise DataError(None, f"unknown real network(s) {unknown}; available: "
+                                      f"{sorted(os.path.basename(os.path.dirname(p)) for p in paths)}")
+            paths = [p for p in paths if key[p] & set(names)]
+        return paths
     out = []
     for root, _, files in os.walk(home):
         for name in files:
