@@ -4,6 +4,15 @@ A build is a list of *jobs*; each job is one SUMO run (or one nuPlan log) and wr
 finished leaves `DIR/_jobs/job_<j>.json`, so a stopped build started again with the same arguments skips
 it and resumes where it left off. Splits are made by location (road network / map): every job of a
 location goes to the same split, so no test scene shares a road with training.
+
+SUMO builds first make every job's network (`prepare_networks`: generated into `DIR/_networks`, or the given
+files) with a fingerprint of its lane geometry, and check that no val/test network nearly matches a train
+network (`check_near_duplicates`, `gpd_jax.data.netgeom`), before simulating anything. Each job's layout
+("grid", "spider", "random", "real", "given") is recorded in its shard's `meta.json` ("layout", per sample
+via `store.sample_layouts`), in the manifest's shard list and in `build.layouts`; generated locations are
+named `gen_<seed>_<jjjj>_<layout>`, and scenario ids start with the location. `build.overlap_gate` says
+how many candidate windows had two overlapping recorded boxes and whether the gate removed them.
+Settings are recorded in `DIR/_jobs/settings.json` only once the inputs are validated.
 """
 
 from __future__ import annotations
