@@ -5,7 +5,6 @@ files (missing sdc, missing keys, truncated, foreign classes - and that a hostil
 build (layouts, splits by map, resume, summary counts, CLI exit status) and evaluation on the built store.
 """
 
-import copy
 import json
 import os
 import pickle

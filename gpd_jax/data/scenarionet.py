@@ -22,14 +22,19 @@ What is read, and the conventions:
   rate. A step that differs from the median by more than `PERIOD_TOLERANCE` (a dropped or repeated frame) is a
   `DataError` too: the frame index must be the time. `RawLog.timestamps` are the kept `ts` from the first.
 * **Coordinates.** Positions are metres in the scenario's world frame; `state["position"]` is (T, 2) or (T, 3)
-  (z is dropped). Headings are radians counter-clockwise from +x. Both ScenarioNet coordinate tags ("waymo" and
-  "metadrive") are right-handed in current MetaDrive ("all coordinates is right-handed now"); files from
-  MetaDrive < 0.3 tagged "metadrive" had y mirrored. As a guard against a mirrored or mis-scaled heading, a
+  (z is dropped); converters may centre it on the ego's first pose (nuPlan), which is harmless since only
+  relative geometry is used. Headings are radians counter-clockwise from +x. The `metadata["coordinate"]` tags
+  ("waymo", "metadrive", nuPlan's "right-handed") are all right-handed in current MetaDrive ("all coordinates
+  is right-handed now"); files from MetaDrive < 0.3 tagged "metadrive" had y mirrored, so the tag is not
+  trusted. A frame mirrored as a whole (positions and headings alike) cannot be told from the data; headings
+  that do not belong to the positions' frame (one of them mirrored, degrees, another zero direction) can: a
   scenario whose ego heading disagrees with its direction of motion by more than 90 degrees in the median over
   frames where it moves faster than 2 m/s is refused (`DataError`).
 * **Ego.** The track named by `metadata["sdc_id"]` (`RawLog.ego_index`), whatever its type. No `sdc_id`, or
-  one that names no track, is a `DataError`. Windows start every `SampleConfig.window_stride` frames; windows in
-  which the ego is not valid throughout are skipped and counted by `gpd_jax.data.preprocess`.
+  one that names no track, is a `DataError`. The build (`gpd_jax.data.build.build_scenarionet`) cuts windows
+  every `SampleConfig.window_stride` frames in which the ego is valid throughout (others are counted as
+  `skip_ego_not_present`), keeps at most `--max-per-log` of them, and makes the samples with
+  `gpd_jax.data.preprocess.make_sample`.
 * **Agents.** Tracks of type `VEHICLE` are kept. `gpd_jax.scene.AGENT_TYPES` has vehicle classes only (GPD-1
   models vehicles), so `PEDESTRIAN`, `CYCLIST` and every other type (`OTHER`, traffic cones and barriers, ...)
   are **dropped and counted** (`tracks_dropped_<type>` in the build statistics), as the nuPlan source drops
