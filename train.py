@@ -4,7 +4,7 @@
     python train.py --config configs/gpd_tiny.py --workdir DIR [--config.a.b=value ...]             # stage 2
 
 The config's `stage` field picks the stage: "map_tokenizer" trains the map VQ-VAE
-(`gpd_jax.map_tokenizer.train`), "gpd" the scene transformer. Runs resume from the latest checkpoint in
+(`gpd_jax.training.map_tokenizer`), "gpd" the scene transformer. Runs resume from the latest checkpoint in
 DIR when one is there.
 """
 
@@ -34,13 +34,13 @@ def main(argv=None) -> int:
     config = load_config(args.config, overrides)
     stage = config.get("stage")
     if stage == "map_tokenizer":
-        from gpd_jax.map_tokenizer.train import train_and_evaluate
+        from gpd_jax.training.map_tokenizer import train_and_evaluate
 
         train_and_evaluate(config, args.workdir)
         return 0
     if stage == "gpd":
         from gpd_jax.data.errors import DataError
-        from gpd_jax.train_loop import train_and_evaluate as train_gpd
+        from gpd_jax.training.loop import train_and_evaluate as train_gpd
 
         try:
             train_gpd(config, args.workdir, stop_after=args.stop_after)

@@ -1,6 +1,47 @@
-"""gpd_jax: GPD-1 (Generative Pre-training for Driving) in JAX/Flax."""
+"""gpd_jax: GPD-1 (Generative Pre-training for Driving) in JAX/Flax.
 
+    import gpd_jax, jax
+    model = gpd_jax.load_model()                                     # the shipped model
+    scenes = gpd_jax.build_scenes("data/quick", num_scenarios=4)     # or gpd_jax.load_scenes(store_dir)
+    out = gpd_jax.rollout(model, scenes, ["traffic_simulation", "scene_generation"], jax.random.key(0))
+    results = gpd_jax.evaluate(model, scenes, tasks="traffic_simulation")
+    fn = gpd_jax.make_rollout_fn(model)                              # pure: fn(params, scenes, tasks, key)
+
+The layers, bottom to top (nothing imports upward; `tests/test_layers.py` enforces it): `scene`, `tasks`,
+`spec`, `config`, `fsutil`, `parallel`, `data/`, `metrics/` | `model/`, `map_tokenizer/` | `checkpoint` |
+`decoding` | `evaluation/` | `training/`, `api` | command lines (`bench`, `python -m gpd_jax.{data,map_tokenizer}`,
+`train.py`, `rollout.py`).
+"""
+
+from gpd_jax import metrics
+from gpd_jax.api import (Model, build_scenes, evaluate, load_model, load_scenes, make_rollout_fn, make_tasks,
+                         prepare, render, rollout)
+from gpd_jax.decoding import RolloutOutput
 from gpd_jax.scene import AGENT_TYPES, TYPE_ID, Scene, empty_scene, wrap_angle
+from gpd_jax.spec import EvalError, ModelSpec
+from gpd_jax.tasks import TASK_NAMES, Task
 
-__all__ = ["AGENT_TYPES", "TYPE_ID", "Scene", "empty_scene", "wrap_angle"]
+__all__ = [
+    "AGENT_TYPES",
+    "TASK_NAMES",
+    "TYPE_ID",
+    "EvalError",
+    "Model",
+    "ModelSpec",
+    "RolloutOutput",
+    "Scene",
+    "Task",
+    "build_scenes",
+    "empty_scene",
+    "evaluate",
+    "load_model",
+    "load_scenes",
+    "make_rollout_fn",
+    "make_tasks",
+    "metrics",
+    "prepare",
+    "render",
+    "rollout",
+    "wrap_angle",
+]
 __version__ = "0.1.0"

@@ -11,7 +11,7 @@ Measures, in one run (so ratios are meaningful on a noisy shared machine):
   synthetic scenes), with its compile time. A batch is sharded over the local devices (on a CPU, one XLA
   device per core; see gpd_jax/parallel.py), so batches use every core; batch 1 runs on one device. With
   `--decode-attention native xla` every batch size is measured with each attention kernel of the rollout
-  (the fused native CPU kernel of gpd_jax/native.py, which uses every core by itself, and the pure-XLA one);
+  (the fused native CPU kernel of gpd_jax/model/native.py, which uses every core by itself, and the pure-XLA one);
 * the recompute rollout (the official method: a full forward over the whole prefix for every future frame,
   same model and weights) at batch 1. Timing 80 forwards of up to 9.7k tokens takes many minutes on a CPU,
   so by default a forward is timed at K prefix lengths spread over [H, T-1], a quadratic in the prefix
@@ -40,10 +40,10 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax import parallel
-from gpd_jax.attention import KERNELS, use_native
+from gpd_jax.model.attention import KERNELS, use_native
 from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
-from gpd_jax.rollout import rollout_batch, rollout_recompute
+from gpd_jax.decoding import rollout_batch, rollout_recompute
 from gpd_jax.synthetic import synthetic_scenes
 from gpd_jax.tasks import TASK_NAMES, make_tasks
 
@@ -122,7 +122,7 @@ def bench_rollout(args, overrides) -> dict:
     runs = []
     flops = rollout_flops(m, t_total, h)
     bytes_per_scenario = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * 4
-    kernels = args.decode_attention or [m.get("decode_attention", "auto")]
+    kernels = args.decode_attention or [m.decode_attention]
     for kernel, batch in ((k, b) for k in kernels for b in args.batch):
         model.decode_attention = kernel  # a static attribute: part of the graph definition
         graphdef = nnx.graphdef(model)

@@ -1,7 +1,11 @@
-"""Trained GPD models on disk: exported (what ships) and training workdirs (orbax).
+"""GPD models on disk and in memory: build from a config, load (exported or a training workdir), export.
 
-    config, model = load_model("checkpoints/gpd_sumo")          # exported: config.json + params.npz
-    config, model = load_model("runs/gpd")                      # a train.py workdir: latest orbax step
+    model = load_model()                                  # the shipped model (checkpoints/gpd_sumo)
+    model = load_model("runs/gpd")                        # a train.py workdir: latest orbax step
+    model.module                                          # the NNX `GPD` (nnx.merge of the parts below)
+    model.graphdef, model.params, model.rest              # structure, trainable params, frozen state
+    model.spec                                            # its view of a stored scene (gpd_jax.spec)
+    model.tokenizer                                       # its map tokenizer (or None)
 
 An exported model is a directory with `config.json` (the full training config) and `params.npz` (the model's
 `nnx.Param` leaves keyed by their path, float32 or float16). The map tokenizer whose frozen codebook embeds
@@ -12,71 +16,69 @@ model and its tokenizer can travel together (`export_model(..., tokenizer_dir=..
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import os
 import shutil
+from typing import Any
 
-import jax
 import ml_collections
 import numpy as np
 from flax import nnx
 
-from gpd_jax.fsutil import atomic_directory
-from gpd_jax.model import GPD, build_model
+from gpd_jax.config import config_from_json
+from gpd_jax.fsutil import atomic_directory, flatten_params, load_params_npz, restore_params
+from gpd_jax.map_tokenizer import MapTokenizer, load_tokenizer
+from gpd_jax.model import GPD
+from gpd_jax.spec import EvalError, ModelSpec, model_frame_period_s, spec_from_config
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEFAULT_CHECKPOINT = os.path.join(REPO_ROOT, "checkpoints", "gpd_sumo")
 CONFIG_FILE = "config.json"
 PARAMS_FILE = "params.npz"
 
 
-def _path_key(path) -> str:
-    return "/".join(str(getattr(p, "key", getattr(p, "name", getattr(p, "idx", p)))) for p in path)
+@dataclasses.dataclass(frozen=True, eq=False)
+class Model:
+    """A GPD ready to roll out: the NNX structure and its state as pytrees, its config, spec and tokenizer.
+
+    graphdef: the module structure (static; `nnx.split`). params: the trainable `nnx.Param` state (a pytree:
+    what `gpd_jax.make_rollout_fn`'s function takes and what a gradient is taken with respect to). rest: the
+    other state (the frozen map codebook). spec: the model's view of a stored scene. tokenizer: the map
+    tokenizer named by its config (None if it has none). path: where it was loaded from (None if built).
+    """
+
+    config: ml_collections.ConfigDict
+    graphdef: Any
+    params: Any
+    rest: Any
+    spec: ModelSpec
+    tokenizer: MapTokenizer | None = None
+    path: str | None = None
+
+    @property
+    def module(self) -> GPD:
+        """The NNX module (a fresh merge: changing it does not change this Model)."""
+        return nnx.merge(self.graphdef, self.params, self.rest)
+
+    def replace(self, **changes) -> "Model":
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def from_module(cls, module: GPD, config, tokenizer: MapTokenizer | None = None, path: str | None = None
+                    ) -> "Model":
+        graphdef, params, rest = nnx.split(module, nnx.Param, ...)
+        return cls(config=config, graphdef=graphdef, params=params, rest=rest, spec=model_spec(config),
+                   tokenizer=tokenizer, path=path)
 
 
-def flatten_params(params) -> dict[str, np.ndarray]:
-    """{path: array} of a params pytree (the keys of `params.npz`, for GPD and map-tokenizer exports)."""
-    return {_path_key(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(params)}
-
-
-def unflatten_params(template, flat: dict[str, np.ndarray], where: str = "params"):
-    """Fills `template` (a params pytree; leaves may be abstract) from `flatten_params` output, checking names
-    and shapes and casting to the template's dtypes (float16 exports come back as float32)."""
-    missing, bad = [], []
-
-    def fill(path, x):
-        k = _path_key(path)
-        if k not in flat:
-            missing.append(k)
-            return x
-        v = np.asarray(flat[k])
-        if v.shape != x.shape:
-            bad.append(f"{k}: stored {v.shape}, model {x.shape}")
-            return x
-        return jax.numpy.asarray(v, x.dtype)
-
-    out = jax.tree_util.tree_map_with_path(fill, template)
-    extra = sorted(set(flat) - {_path_key(p) for p, _ in jax.tree_util.tree_leaves_with_path(template)})
-    if missing or bad or extra:
-        raise ValueError(f"{where} does not match the model of its config: missing {missing[:5]}, "
-                         f"wrong shapes {bad[:5]}, unexpected {extra[:5]}")
-    return out
-
-
-def config_from_json(path: str) -> ml_collections.ConfigDict:
+def model_spec(config) -> ModelSpec:
+    """The model's spec with the horizons of 3 / 5 / 8 s that fit its future (its whole future if none does)."""
     try:
-        with open(path) as f:
-            d = json.load(f)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: unreadable config ({e})") from e
-
-    def lists_to_tuples(x):
-        if isinstance(x, dict):
-            return {k: lists_to_tuples(v) for k, v in x.items()}
-        if isinstance(x, list):
-            return tuple(lists_to_tuples(v) for v in x)
-        return x
-
-    return ml_collections.ConfigDict(lists_to_tuples(d))
+        return spec_from_config(config)[0]
+    except EvalError:
+        t, h = int(config.model.num_frames), int(config.model.num_history)
+        spec, _ = spec_from_config(config, (float(t - h) * model_frame_period_s(config),))
+        return spec
 
 
 def resolve_tokenizer_path(path: str, checkpoint_dir: str | None = None) -> str:
@@ -86,18 +88,22 @@ def resolve_tokenizer_path(path: str, checkpoint_dir: str | None = None) -> str:
     bases = ([checkpoint_dir] if checkpoint_dir else []) + [REPO_ROOT, os.getcwd()]
     for base in bases:
         p = os.path.normpath(os.path.join(base, path))
-        if os.path.exists(os.path.join(p, "config.json")):
+        if os.path.exists(os.path.join(p, CONFIG_FILE)):
             return p
     raise FileNotFoundError(f"map tokenizer {path!r} not found next to {checkpoint_dir}, in {REPO_ROOT} "
                             f"or in {os.getcwd()}")
 
 
-def model_from_config(config: ml_collections.ConfigDict, checkpoint_dir: str | None = None, seed: int = 0) -> GPD:
-    """A freshly initialised model of `config`, its tokenizer path resolved relative to `checkpoint_dir`."""
-    config = ml_collections.ConfigDict(config.to_dict())
-    if config.model.get("map_tokenizer"):
-        config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer, checkpoint_dir)
-    return build_model(config, seed=seed)
+def build_model(config, seed: int | None = None, codebook: np.ndarray | None = None,
+                checkpoint_dir: str | None = None) -> GPD:
+    """A freshly initialised GPD of a full config. Map tokens are embedded with `codebook` when given, else with
+    the codebook of the map tokenizer `config.model.map_tokenizer` names (resolved relative to
+    `checkpoint_dir` first), else a learned one. The frame period is `data.frame_stride * data.frame_period_s`."""
+    m = config.model
+    if codebook is None and m.map_tokenizer:
+        codebook = np.asarray(load_tokenizer(resolve_tokenizer_path(m.map_tokenizer, checkpoint_dir)).codebook)
+    return GPD(m, nnx.Rngs(config.seed if seed is None else seed), codebook=codebook,
+               frame_period_s=model_frame_period_s(config))
 
 
 def is_exported(path: str) -> bool:
@@ -126,25 +132,26 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
     return out_dir
 
 
-def load_model(path: str, step: int | None = None) -> tuple[ml_collections.ConfigDict, GPD]:
-    """(config, model) of an exported model directory or a train.py workdir (latest step, or `step`)."""
-    path = os.path.abspath(path)
+def load_model(path: str | None = None, step: int | None = None) -> Model:
+    """The GPD of an exported model directory or a train.py workdir (latest step, or `step`); the shipped
+    model (`checkpoints/gpd_sumo`) when `path` is None. Raises FileNotFoundError / ValueError naming the file."""
+    path = os.path.abspath(DEFAULT_CHECKPOINT if path is None else path)
     cfg_path = os.path.join(path, CONFIG_FILE)
     if not os.path.exists(cfg_path):
         raise FileNotFoundError(f"{path}: no {CONFIG_FILE}; expected an exported GPD model or a train.py workdir")
     config = config_from_json(cfg_path)
-    if config.get("stage") != "gpd":
+    if config.get("stage") != "gpd" or "model" not in config:
         raise ValueError(f"{cfg_path}: stage is {config.get('stage')!r}, not a GPD model")
-    model = model_from_config(config, path)
-    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    tok_path = resolve_tokenizer_path(config.model.map_tokenizer, path)
+    tokenizer = load_tokenizer(tok_path) if tok_path else None
+    codebook = None if tokenizer is None else np.asarray(tokenizer.codebook)
+    graphdef, params, rest = nnx.split(build_model(config, codebook=codebook), nnx.Param, ...)
     if is_exported(path):
-        with np.load(os.path.join(path, PARAMS_FILE)) as z:
-            params = unflatten_params(params, dict(z), where=os.path.join(path, PARAMS_FILE))
+        params = load_params_npz(os.path.join(path, PARAMS_FILE), params)
     else:
-        from gpd_jax.train_loop import restore_params
-
-        params = restore_params(path, model, config, step)
-    return config, nnx.merge(graphdef, params, rest)
+        params = restore_params(path, params, step)
+    return Model(config=config, graphdef=graphdef, params=params, rest=rest, spec=model_spec(config),
+                 tokenizer=tokenizer, path=path)
 
 
 def main(argv=None) -> int:
@@ -164,19 +171,19 @@ def main(argv=None) -> int:
     e.add_argument("--float16", action="store_true", help="store parameters as float16 (half the size)")
     args = p.parse_args(argv)
     try:
-        config, model = load_model(args.workdir, args.step)
+        model = load_model(args.workdir, args.step)
     except (FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    params = nnx.state(model, nnx.Param)
+    config = model.config
     dtype = np.float16 if args.float16 else np.float32
     if args.tokenizer_ref is not None:
         config.model.map_tokenizer = args.tokenizer_ref
-        out = export_model(params, config, args.out, dtype=dtype)
+        out = export_model(model.params, config, args.out, dtype=dtype)
         resolve_tokenizer_path(args.tokenizer_ref, out)  # fails loudly if the reference does not resolve
     else:
-        tok = config.model.get("map_tokenizer") or None
-        out = export_model(params, config, args.out, dtype=dtype,
+        tok = config.model.map_tokenizer or None
+        out = export_model(model.params, config, args.out, dtype=dtype,
                            tokenizer_dir=resolve_tokenizer_path(tok, args.workdir) if tok else None)
     print(f"exported {args.workdir} -> {out}")
     return 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import json
 import os
 from collections.abc import Sequence
 
@@ -90,8 +91,25 @@ def config_differences(mine: ml_collections.ConfigDict, theirs: ml_collections.C
                        ignore: Sequence[str] = ()) -> str:
     """The top-level fields in which two config sections differ, as "k (theirs there, mine here), ..." ('' when
     they agree); fields in `ignore` are left out. Used to refuse starting a run from another model."""
-    import json
-
     a, b = json.loads(mine.to_json()), json.loads(theirs.to_json())
     diff = sorted(k for k in set(a) | set(b) if k not in ignore and a.get(k) != b.get(k))
     return ", ".join(f"{k} ({b.get(k)!r} there, {a.get(k)!r} here)" for k in diff)
+
+
+def config_from_json(path: str) -> ml_collections.ConfigDict:
+    """A config written with `config.to_json()` (exports, workdirs); JSON lists come back as tuples. Raises
+    ValueError naming the file when it cannot be read."""
+    try:
+        with open(path) as f:
+            d = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable config ({e})") from e
+
+    def lists_to_tuples(x):
+        if isinstance(x, dict):
+            return {k: lists_to_tuples(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return tuple(lists_to_tuples(v) for v in x)
+        return x
+
+    return ml_collections.ConfigDict(lists_to_tuples(d))

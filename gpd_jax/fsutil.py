@@ -1,12 +1,30 @@
-"""File-system helpers shared by the writers of data stores, exports and evaluation outputs."""
+"""Files on disk: atomic writes, umask modes, directory swaps, and parameter (de)serialisation.
+
+Every writer in gpd_jax (data stores, model and tokenizer exports, evaluation outputs, benchmark JSON, pictures,
+the native kernel's cache) writes to a temporary beside its target and renames it into place, so a reader sees
+the old file or the new one, never a half-written one, and an interrupted run loses nothing already written:
+
+    with atomic_path("out/metrics.json") as tmp: write(tmp)      # any writer that takes a path
+    with atomic_file("out/tables.txt") as f: f.write(text)       # a file object
+    atomic_write_json("out/metrics.json", obj)
+
+Parameters are stored as `.npz` archives keyed by their pytree path (`flatten_params` / `unflatten_params`),
+and training workdirs as orbax checkpoints whose parameters `restore_params` reads back without needing the
+optimizer that wrote them.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator
+from typing import Any
+
+import jax
+import numpy as np
 
 
 def umask_mode(path: str, directory: bool = False) -> None:
@@ -60,3 +78,109 @@ def swap_in_directory(tmp: str, out_dir: str) -> None:
     os.replace(out_dir, old)
     os.replace(tmp, out_dir)
     shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str, suffix: str = "") -> Iterator[str]:
+    """Yields a temporary path beside `path` to write to; on success it gets the umask's mode and is renamed to
+    `path`, on an exception it is removed and `path` is untouched. Parent directories are created."""
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=suffix or "-" + os.path.basename(path))
+    os.close(fd)
+    try:
+        yield tmp
+        umask_mode(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+@contextlib.contextmanager
+def atomic_file(path: str, mode: str = "w") -> Iterator[Any]:
+    """`atomic_path` as an open file object (`mode` "w" or "wb")."""
+    with atomic_path(path) as tmp, open(tmp, mode) as f:
+        yield f
+
+
+def atomic_write_text(path: str, text: str) -> None:
+    with atomic_file(path) as f:
+        f.write(text)
+
+
+def atomic_write_json(path: str, obj: Any, indent: int | None = 1, **kw) -> None:
+    with atomic_file(path) as f:
+        json.dump(obj, f, indent=indent, **kw)
+
+
+# ----------------------------------------------------------------------------------------------- parameters
+def _path_key(path) -> str:
+    return "/".join(str(getattr(p, "key", getattr(p, "name", getattr(p, "idx", p)))) for p in path)
+
+
+def flatten_params(params) -> dict[str, np.ndarray]:
+    """{path: array} of a params pytree (the keys of `params.npz`, for GPD and map-tokenizer exports)."""
+    return {_path_key(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(params)}
+
+
+def unflatten_params(template, flat: dict[str, np.ndarray], where: str = "params"):
+    """Fills `template` (a params pytree; leaves may be abstract) from `flatten_params` output, checking names
+    and shapes and casting to the template's dtypes (float16 exports come back as float32)."""
+    missing, bad = [], []
+
+    def fill(path, x):
+        k = _path_key(path)
+        if k not in flat:
+            missing.append(k)
+            return x
+        v = np.asarray(flat[k])
+        if v.shape != x.shape:
+            bad.append(f"{k}: stored {v.shape}, model {x.shape}")
+            return x
+        return jax.numpy.asarray(v, x.dtype)
+
+    out = jax.tree_util.tree_map_with_path(fill, template)
+    extra = sorted(set(flat) - {_path_key(p) for p, _ in jax.tree_util.tree_leaves_with_path(template)})
+    if missing or bad or extra:
+        raise ValueError(f"{where} does not match the model of its config: missing {missing[:5]}, "
+                         f"wrong shapes {bad[:5]}, unexpected {extra[:5]}")
+    return out
+
+
+def load_params_npz(path: str, template):
+    """The params of an exported `params.npz` in `template`'s structure and dtypes (see `unflatten_params`)."""
+    with np.load(path) as z:
+        return unflatten_params(template, dict(z), where=path)
+
+
+def save_params_npz(path: str, params, cast=lambda key, a: a, compressed: bool = False) -> None:
+    """Writes `flatten_params(params)` to `path` atomically; `cast(key, array)` may change each array's dtype."""
+    flat = {k: cast(k, v) for k, v in flatten_params(params).items()}
+    with atomic_file(path, "wb") as f:
+        (np.savez_compressed if compressed else np.savez)(f, **flat)
+
+
+def orbax_manager(workdir: str, keep: int = 2, create: bool = True):
+    """The orbax CheckpointManager of a training workdir (`WORKDIR/checkpoints`), both training stages."""
+    import orbax.checkpoint as ocp
+
+    return ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, "checkpoints")),
+                                 options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=create))
+
+
+def restore_params(workdir: str, template, step: int | None = None):
+    """The params of a training workdir's orbax checkpoint (latest step by default) in `template`'s structure.
+
+    Training checkpoints are trees `{"step", "params", "opt_state", ...}`; only `params` is read, so loading a
+    model needs no optimizer."""
+    import orbax.checkpoint as ocp
+
+    if not os.path.isdir(os.path.join(workdir, "checkpoints")):
+        raise FileNotFoundError(f"{workdir}: no orbax checkpoints (no checkpoints/ directory)")
+    mgr = orbax_manager(workdir, create=False)
+    step = mgr.latest_step() if step is None else step
+    if step is None:
+        raise FileNotFoundError(f"{workdir}: no orbax checkpoints")
+    tree = mgr.restore(step, args=ocp.args.StandardRestore())
+    return unflatten_params(template, flatten_params(tree["params"]), where=f"{workdir} step {step}")

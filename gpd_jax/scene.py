@@ -52,6 +52,10 @@ class Scene:
       velocity: optional f32[..., T, A, 2] instantaneous velocity (m/s, scene frame) of each agent, a finite
         backward difference at the stored frame rate (see `with_velocity`); zero where the agent was not
         valid in the previous frame, and at frame 0.
+      polylines: optional f32[..., L, P, 2] the log's lane centrelines in the scene frame (not per frame): what
+        a map tokenizer rasterizes around any ego pose (map tokens made on the fly, lanes re-encoded around a
+        generated ego, map metrics' ground truth).
+      polyline_valid: optional bool[..., L, P] which polyline points exist.
     """
 
     xy: jax.Array
@@ -65,6 +69,8 @@ class Scene:
     lanes: jax.Array | None = None
     lanes_valid: jax.Array | None = None
     velocity: jax.Array | None = None
+    polylines: jax.Array | None = None
+    polyline_valid: jax.Array | None = None
 
     # ---------------------------------------------------------------- shapes
     @property
@@ -169,6 +175,9 @@ def _scene_spec(scene: Scene) -> dict[str, tuple[tuple[Any, ...], Any]]:
         spec["lanes_valid"] = (("T", "L"), "b")
     if scene.velocity is not None:
         spec["velocity"] = (("T", "A", 2), "f")
+    if scene.polylines is not None or scene.polyline_valid is not None:
+        spec["polylines"] = (("Lp", "Pp", 2), "f")
+        spec["polyline_valid"] = (("Lp", "Pp"), "b")
     return spec
 
 

@@ -69,3 +69,21 @@ def resolve_task_names(names: Sequence[str] | str) -> tuple[str, ...]:
         if n not in TASKS:
             raise KeyError(f"unknown task {n!r}; known tasks: {', '.join(TASK_NAMES)}")
     return tuple(names)
+
+
+def generated(task: str) -> tuple[str, ...]:
+    """What a named task generates (and is scored on): a subset of ("ego", "agent", "map") in that order."""
+    map_log, ego_log, agents_log, hidden = TASKS[task]
+    out = []
+    if not ego_log:
+        out.append("ego")
+    if not (agents_log or hidden):
+        out.append("agent")
+    if not map_log:
+        out.append("map")
+    return tuple(out)
+
+
+def map_task_names(task_names: Sequence[str]) -> tuple[str, ...]:
+    """The tasks among `task_names` that generate the map, in order."""
+    return tuple(n for n in task_names if "map" in generated(n))

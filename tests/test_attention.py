@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from gpd_jax import native
-from gpd_jax.attention import attend_dynamic, attend_static, dense_block_causal, use_native
+from gpd_jax.model import native
+from gpd_jax.model.attention import attend_dynamic, attend_static, dense_block_causal, use_native
 from gpd_jax.model import GPD
-from gpd_jax.train_lib import batch_loss
+from gpd_jax.training.step import batch_loss
 
 
 def _qkv(s, h=3, dh=4, seed=0):

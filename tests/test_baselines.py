@@ -2,7 +2,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpd_jax.baselines import constant_velocity, log_replay
+from gpd_jax.evaluation.baselines import constant_velocity, log_replay
 from gpd_jax.metrics import agent_metrics
 from gpd_jax.scene import empty_scene
 

@@ -8,16 +8,17 @@ import os
 import numpy as np
 import pytest
 
-from gpd_jax.evaluate import (EvalError, EvalSpec, add_sums, format_tables, generated, gt_future_lanes,
-                              horizon_frames, persistence_future_lanes, reduce_results, score_batch,
-                              spec_from_config, to_json_compatible)
-from gpd_jax.rollout import RolloutOutput
+from gpd_jax.evaluation import add_sums, format_tables, reduce_results, score_batch, to_json_compatible
+from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
+from gpd_jax.spec import EvalError, ModelSpec, horizon_frames, spec_from_config
+from gpd_jax.tasks import generated
+from gpd_jax.decoding import RolloutOutput
 from gpd_jax.scene import TYPE_ID, Scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # model: 9 frames (3 history + 6 future) at stride 2 of a 0.25 s store -> 0.5 s frames; horizons 1, 2, 3 s
-SPEC = EvalSpec(num_frames=9, num_history=3, num_agents=4, num_map_tokens=64, frame_stride=2,
+SPEC = ModelSpec(num_frames=9, num_history=3, num_agents=4, num_map_tokens=64, frame_stride=2,
                 stored_period_s=0.25, horizons=(2, 4, 6))
 TASKS3 = ("traffic_simulation", "closed_loop", "motion_planning")
 T_FULL, A_FULL = 17, 5  # the stored scene: 17 frames, one slot more than the model takes

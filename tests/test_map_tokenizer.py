@@ -42,7 +42,7 @@ def test_quantize_straight_through():
 
 
 def test_gradient_reaches_encoder():
-    from gpd_jax.map_tokenizer.train import build_model, loss_fn
+    from gpd_jax.training.map_tokenizer import build_model, loss_fn
     cfg = small_config()
     graphdef, params = build_model(cfg)
     batch = synthetic_lanes(0, 2)
@@ -90,7 +90,7 @@ def test_line_loss_zero_for_perfect_prediction():
 
 
 def test_every_layer_loss_sums_each_layers_matched_loss():
-    from gpd_jax.map_tokenizer.train import build_model
+    from gpd_jax.training.map_tokenizer import build_model
     from flax import nnx
     b = synthetic_lanes(4, 2)
     gt, valid = jnp.asarray(b["lanes"]), jnp.asarray(b["lanes_valid"])
@@ -114,14 +114,17 @@ def test_every_layer_loss_sums_each_layers_matched_loss():
     p_all, l_all = dec(z, every_layer=True)
     p_out, l_out = dec(z)
     chex.assert_shape(p_all, (2, 2, 50, 20, 2))
-    np.testing.assert_allclose(p_all[-1], p_out, atol=1e-5)
-    np.testing.assert_allclose(l_all[-1], l_out, atol=1e-5)
+    # the two paths may fuse differently: float rounding relative to each array's magnitude (points reach
+    # +-32 m, so an absolute 1e-5 fails on some CPUs)
+    for got, want in ((p_all[-1], p_out), (l_all[-1], l_out)):
+        scale = max(1.0, float(jnp.abs(want).max()))
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * scale)
     assert float(jnp.abs(p_all[0] - p_all[1]).max()) > 0
 
 
 def test_continuous_warmup_bypasses_the_quantizer():
     from flax import nnx
-    from gpd_jax.map_tokenizer.train import build_model, loss_fn
+    from gpd_jax.training.map_tokenizer import build_model, loss_fn
     cfg = small_config()
     graphdef, params = build_model(cfg)
     raster = jnp.asarray(np.random.default_rng(0).random((2, 256, 256)) < 0.05, jnp.float32)
@@ -146,7 +149,7 @@ def test_sine_position_code():
 
 def test_training_steps_lower_the_loss():
     import optax
-    from gpd_jax.map_tokenizer.train import TrainState, build_model, make_optimizer, make_train_step
+    from gpd_jax.training.map_tokenizer import TrainState, build_model, make_optimizer, make_train_step
     cfg = small_config("--config.train.num_steps=30")
     graphdef, params = build_model(cfg)
     tx = make_optimizer(cfg.train, params)
@@ -165,7 +168,7 @@ def test_training_steps_lower_the_loss():
 
 
 def test_train_checkpoint_resume_and_encode_decode(tmp_path):
-    from gpd_jax.map_tokenizer.train import train_and_evaluate
+    from gpd_jax.training.map_tokenizer import train_and_evaluate
     wd = str(tmp_path / "wd")
     cfg = small_config("--config.train.num_steps=2", "--config.train.checkpoint_every=2",
                        "--config.train.eval_every=2", "--config.train.restart_every=1")
@@ -280,7 +283,7 @@ def test_decoder_only_adds_identity_layers(tmp_path):
     """`train.decoder_only` may deepen the decoder: added layers start as identities (same lines, same tokens)
     and still get gradients; without decoder_only, or to remove layers, the source must match."""
     from gpd_jax.map_tokenizer.tokenizer import MapTokenizer
-    from gpd_jax.map_tokenizer.train import build_model, initial_params, loss_fn
+    from gpd_jax.training.map_tokenizer import build_model, initial_params, loss_fn
     cfg = small_config()
     _, params = build_model(cfg)
     out = str(tmp_path / "src")

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gpd_jax.evaluate import RenderItem
-from gpd_jax.render import box_polygons, lanes_to_scene, render_items, render_rollout
+from gpd_jax.evaluation import RenderItem
+from gpd_jax.evaluation.render import box_polygons, lanes_to_scene, render_items, render_rollout
 from gpd_jax.tasks import TASK_NAMES
 
 

@@ -8,7 +8,7 @@ import pytest
 from flax import nnx
 
 from gpd_jax.model import forward
-from gpd_jax.rollout import rollout, rollout_batch, rollout_recompute, rollout_tasks
+from gpd_jax.decoding import rollout, rollout_batch, rollout_recompute, rollout_tasks
 from gpd_jax.tasks import TASK_NAMES, TASKS, make_task, make_tasks
 
 
@@ -101,7 +101,7 @@ def test_one_trace_for_mixed_task_batches(setup):
 
 def test_xla_and_native_decode_attention_give_the_same_rollout(setup):
     """The rollout's two attention kernels (cached == recompute above runs the default, native on a CPU)."""
-    from gpd_jax.attention import use_native
+    from gpd_jax.model.attention import use_native
 
     graphdef, state, m, scenes = setup
     if not use_native("auto"):
@@ -272,7 +272,7 @@ def test_logged_map_is_re_encoded_around_the_generated_ego(setup):
     """With lanes + a pose encoder, tasks that take the map from the log but generate the ego get the log's
     lanes encoded at the generated ego pose; every other slot is what the plain rollout gives; cached ==
     recompute."""
-    from gpd_jax.rollout import LogLanes
+    from gpd_jax.decoding import LogLanes
 
     graphdef, state, m, scenes = setup
     h, s = m.num_history, scenes.xy.shape[0]

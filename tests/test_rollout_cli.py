@@ -45,9 +45,9 @@ def tiny_config():
 def setup(tmp_path_factory):
     from flax import nnx
 
-    from gpd_jax.checkpoint import export_model, model_from_config
+    from gpd_jax.checkpoint import build_model, export_model
     from gpd_jax.data import store
-    from gpd_jax.evaluate import encode_map_frames
+    from gpd_jax.evaluation.maps import encode_map_frames
     from gpd_jax.map_tokenizer import load_tokenizer
 
     d = tmp_path_factory.mktemp("cli")
@@ -61,7 +61,7 @@ def setup(tmp_path_factory):
                                           np.asarray(a["polyline_valid"]), np.asarray(a["ego_pose"])))
     store.save_map_tokens(data, "test", 0, tokens)
     config = tiny_config()
-    _, params, _ = nnx.split(model_from_config(config), nnx.Param, ...)
+    _, params, _ = nnx.split(build_model(config), nnx.Param, ...)
     model = export_model(params, config, str(d / "model"))
     return d, data, model
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gpd_jax.config import load_config
-from gpd_jax.tokenizer import AgentTokenizer, LevelSpec, dequantize, quantize, sinusoid_table
+from gpd_jax.model.agent_tokenizer import AgentTokenizer, LevelSpec, dequantize, quantize, sinusoid_table
 
 from conftest import ROOT
 

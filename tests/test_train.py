@@ -9,7 +9,7 @@ from flax import nnx
 from gpd_jax.config import load_config
 from gpd_jax.model import GPD
 from gpd_jax.synthetic import synthetic_scenes
-from gpd_jax.train_lib import make_trainer
+from gpd_jax.training.step import make_trainer
 
 from conftest import ROOT
 
@@ -36,7 +36,7 @@ def test_loss_falls_by_half_and_step_compiles_once():
 def test_codebook_embedding_is_frozen_and_used():
     cfg = load_config(f"{ROOT}/configs/gpd_tiny.py")
     m = cfg.model
-    from gpd_jax.model import build_model
+    from gpd_jax.checkpoint import build_model
 
     codebook = np.random.default_rng(0).normal(size=(m.codebook_size, 12)).astype(np.float32)
     model = build_model(cfg, codebook=codebook)
@@ -84,7 +84,7 @@ def _velocity_model():
 
 
 def test_free_running_inputs_are_the_models_own_rollout():
-    from gpd_jax.train_lib import free_running_inputs, teacher_forced
+    from gpd_jax.training.step import free_running_inputs, teacher_forced
 
     cfg, model, scenes = _velocity_model()
     h, t = cfg.model.num_history, cfg.model.num_frames

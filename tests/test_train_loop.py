@@ -60,12 +60,11 @@ def store_dir(tmp_path_factory):
 def _params(workdir):
     from gpd_jax.checkpoint import load_model
 
-    _, model = load_model(workdir)
-    return nnx.state(model, nnx.Param)
+    return load_model(workdir).params
 
 
 def test_resume_after_stop_equals_uninterrupted_run(store_dir, tmp_path):
-    from gpd_jax.train_loop import train_and_evaluate
+    from gpd_jax.training.loop import train_and_evaluate
 
     full = str(tmp_path / "full")
     out = train_and_evaluate(_config(store_dir), full, quiet=True)
@@ -91,7 +90,7 @@ def test_resume_after_stop_equals_uninterrupted_run(store_dir, tmp_path):
 
 def test_store_without_map_tokens_is_refused(tmp_path):
     from gpd_jax.data.errors import DataError
-    from gpd_jax.train_loop import train_and_evaluate
+    from gpd_jax.training.loop import train_and_evaluate
 
     d = str(tmp_path / "raw")
     write_small_store(d, n_shards=1, per_shard=4)
@@ -103,7 +102,7 @@ def test_store_without_map_tokens_is_refused(tmp_path):
 def test_map_tokens_encoded_at_a_coarser_stride_than_the_model_are_refused(tmp_path):
     from gpd_jax.data import store
     from gpd_jax.data.errors import DataError
-    from gpd_jax.train_loop import train_and_evaluate
+    from gpd_jax.training.loop import train_and_evaluate
 
     d = str(tmp_path / "strided")
     write_small_store(d, n_shards=1, per_shard=4)
@@ -118,7 +117,7 @@ def test_map_tokens_of_another_tokenizer_are_refused(tmp_path):
     from gpd_jax.data import store
     from gpd_jax.data.errors import DataError
     from gpd_jax.map_tokenizer import load_tokenizer
-    from gpd_jax.train_loop import train_and_evaluate
+    from gpd_jax.training.loop import train_and_evaluate
 
     d = _store(str(tmp_path / "s"))
     tok = os.path.join(ROOT, "checkpoints", "map_tokenizer")
@@ -140,7 +139,7 @@ def test_map_tokens_of_another_tokenizer_are_refused(tmp_path):
 
 
 def test_workdir_with_another_model_is_refused(store_dir, tmp_path):
-    from gpd_jax.train_loop import train_and_evaluate
+    from gpd_jax.training.loop import train_and_evaluate
 
     w = str(tmp_path / "w")
     train_and_evaluate(_config(store_dir, steps=1, eval_every=0), w, quiet=True)
@@ -155,11 +154,11 @@ _DP_SCRIPT = textwrap.dedent("""
     import jax, numpy as np
     sys.path.insert(0, {tests!r})
     from test_train_loop import _config
-    from gpd_jax.model import build_model
+    from gpd_jax.checkpoint import build_model
     from gpd_jax.parallel import data_mesh
     from gpd_jax.synthetic import synthetic_scenes
-    from gpd_jax.train_lib import batch_loss, make_trainer
-    from gpd_jax.train_loop import _global_batch
+    from gpd_jax.training.step import batch_loss, make_trainer
+    from gpd_jax.training.loop import _global_batch
     from jax.sharding import NamedSharding, PartitionSpec
     assert len(jax.devices()) == 4, jax.devices()
     c = _config("unused")
@@ -199,7 +198,7 @@ def test_four_device_data_parallel_step_equals_single_device(tmp_path):
 
 
 def test_learning_curves_from_metrics_log(tmp_path):
-    from gpd_jax.curves import main
+    from gpd_jax.training.curves import main
 
     recs = [{"step": s, "split": "train", "loss": 10.0 / s, "position": 1.0 / s} for s in range(1, 6)]
     recs += [{"step": 5, "split": "val", "loss": 2.0, "rollout_agent_ade_3s_vs_cv": 1.2}]
@@ -212,8 +211,8 @@ def test_learning_curves_from_metrics_log(tmp_path):
 
 def test_init_from_starts_a_new_run_from_a_models_parameters(store_dir, tmp_path):
     from gpd_jax.checkpoint import export_model
-    from gpd_jax.model import build_model
-    from gpd_jax.train_loop import train_and_evaluate
+    from gpd_jax.checkpoint import build_model
+    from gpd_jax.training.loop import train_and_evaluate
 
     c = _config(store_dir, eval_every=0)
     src = str(tmp_path / "src")

@@ -129,7 +129,8 @@ def to_scene(batch: dict[str, np.ndarray]) -> Scene:
     return Scene(xy=batch["xy"], heading=batch["heading"], valid=batch["valid"], size=batch["size"],
                  agent_type=batch["agent_type"].astype(np.int32), map_tokens=batch["map_tokens"],
                  map_valid=batch["map_valid"], ego_pose=batch["ego_pose"], lanes=batch.get("lanes"),
-                 lanes_valid=batch.get("lanes_valid"))
+                 lanes_valid=batch.get("lanes_valid"), polylines=batch.get("polylines"),
+                 polyline_valid=batch.get("polyline_valid"))
 
 
 def _split_output(with_polylines: bool):

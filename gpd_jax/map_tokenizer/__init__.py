@@ -5,17 +5,12 @@ Public API:
   load_tokenizer(checkpoint_dir) -> MapTokenizer                  (tokenizer.py)
     .codebook f32[K, D], .encode(params, rasters) -> i32[..., 64],
     .decode(params, tokens) -> (f32[..., 50, 20, 2], f32[..., 50])
-  train_and_evaluate(config, workdir)                             (train.py, stage 1)
+  evaluate(graphdef, params, config, batches) -> metrics          (evaluation.py)
+Stage-1 training is `gpd_jax.training.map_tokenizer` (`python train.py --config configs/map_tokenizer_tiny.py`).
 CLI: python -m gpd_jax.map_tokenizer {evaluate,encode} ...        (__main__.py)
 """
 
 from gpd_jax.map_tokenizer.raster import rasterize
 from gpd_jax.map_tokenizer.tokenizer import MapTokenizer, export_tokenizer, load_tokenizer
 
-__all__ = ["MapTokenizer", "export_tokenizer", "load_tokenizer", "rasterize", "train_and_evaluate"]
-
-
-def train_and_evaluate(config, workdir):
-    """Stage-1 training (imported lazily: it pulls in orbax and the data store)."""
-    from gpd_jax.map_tokenizer.train import train_and_evaluate as _run
-    return _run(config, workdir)
+__all__ = ["MapTokenizer", "export_tokenizer", "load_tokenizer", "rasterize"]

@@ -34,7 +34,7 @@ def cmd_evaluate(args) -> dict:
 
     from gpd_jax.map_tokenizer.store import frame_batches
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
-    from gpd_jax.map_tokenizer.train import evaluate, make_eval_step
+    from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step
 
     tok = load_tokenizer(args.checkpoint)
     batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,

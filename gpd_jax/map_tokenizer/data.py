@@ -70,4 +70,4 @@ def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: b
     from gpd_jax.map_tokenizer import store  # the data-store adapter (needs gpd_jax.data)
     return _prefetch(store.frame_batches(config.data.dir, split, batch_size, seed=seed, shuffle=shuffle,
                                          repeat=repeat, max_batches=max_batches, all_frames=all_frames),
-                     size=max(2, int(config.data.get("num_workers", 1)) + 1))
+                     size=max(2, int(config.data.num_workers) + 1))

@@ -86,7 +86,7 @@ class Encoder(nnx.Module):
     def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs):
         block = {"basic": BasicBlock, "bottleneck": BottleneckBlock}[cfg.block]
         g = cfg.norm_groups
-        self.patch = int(cfg.get("stem_patch", 1))
+        self.patch = int(cfg.stem_patch)
         self.stem = ConvNorm(self.patch ** 2, cfg.width, cfg.stem_kernel, cfg.stem_stride, g, rngs)
         self.stem_pool = bool(cfg.stem_pool)
         blocks = []

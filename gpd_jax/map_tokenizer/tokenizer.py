@@ -23,8 +23,8 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
-from gpd_jax.checkpoint import config_from_json, flatten_params, unflatten_params
-from gpd_jax.fsutil import atomic_directory
+from gpd_jax.config import config_from_json
+from gpd_jax.fsutil import atomic_directory, flatten_params, restore_params, unflatten_params
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
 from gpd_jax.map_tokenizer.raster import rasterize
@@ -79,7 +79,7 @@ class MapTokenizer:
         return self.encode(params, raster)
 
     def pose_encoder(self, params):
-        """`encode_lanes` with these parameters, as the `map_encoder` of `gpd_jax.rollout.rollout`: (polylines
+        """`encode_lanes` with these parameters, as the `map_encoder` of `gpd_jax.decoding.rollout`: (polylines
         f32[L, P, 2], valid bool[L, P], pose f32[3]) -> i32[64]. Pass traced parameters (an argument of the
         jitted function) rather than constants, so they are not baked into the compiled rollout."""
         return lambda polylines, valid, pose: self.encode_lanes(params, polylines, valid, pose)
@@ -129,12 +129,10 @@ def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
         with np.load(npz) as f:
             params = unflatten_params(nnx.to_pure_dict(state), dict(f))
     else:
-        model = MapVQVAE(config.model, nnx.Rngs(0))
+        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0)))
         graphdef, state = nnx.split(model, nnx.Param)
-        template = nnx.to_pure_dict(state)
-        from gpd_jax.map_tokenizer.train import checkpoint_manager, restore_params
-        mgr = checkpoint_manager(checkpoint_dir)
-        if mgr.latest_step() is None:
-            raise FileNotFoundError(f"{checkpoint_dir} has neither params.npz nor orbax checkpoints")
-        params = restore_params(mgr, template, config)
+        try:
+            params = restore_params(checkpoint_dir, nnx.to_pure_dict(state))
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{checkpoint_dir} has neither params.npz nor orbax checkpoints") from None
     return MapTokenizer(config=config, graphdef=graphdef, params=params)

@@ -13,7 +13,7 @@ recurrence). Two drivers share the chunk step:
 * `attend_dynamic`: a `lax.fori_loop` over the chunks that are filled so far (a traced trip count), used by
   the KV-cached rollout so a step never touches empty cache slots beyond the last partial chunk.
 
-On a CPU the KV-cached rollout can instead call a fused native kernel (`gpd_jax.native`, an XLA FFI custom
+On a CPU the KV-cached rollout can instead call a fused native kernel (`gpd_jax.model.native`, an XLA FFI custom
 call with the same semantics) that keeps score tiles in cache and uses every core: `kernel="native"`, or
 `"auto"` (the default) to use it whenever it builds and the computation runs on a CPU.
 """
@@ -25,7 +25,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from gpd_jax import native
+from gpd_jax.model import native
 
 _NEG = -1e30
 
@@ -161,7 +161,7 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
     megabyte at paper size) stays in the CPU caches, where the memory-bound softmax runs several times
     faster per element than on a [B, H, Sq, chunk] block. The linear layers around it still see the batch.
 
-    `kernel`: "xla" (the above), "native" (the fused CPU kernel of `gpd_jax.native`, float32 only; same
+    `kernel`: "xla" (the above), "native" (the fused CPU kernel of `gpd_jax.model.native`, float32 only; same
     results within float rounding) or "auto" (native when it is available, the default backend is a CPU and
     q, k, v are float32).
     """

@@ -22,13 +22,15 @@ official code do) the logged tokens are used as they are.
 
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import flax.struct
 import jax
 import jax.numpy as jnp
+from flax import nnx
 
-from gpd_jax.model import GPD, Prediction, forward, forward_cached
+from gpd_jax.model import GPD, KVCache, Prediction, forward, forward_cached
 from gpd_jax.scene import Scene
 from gpd_jax.tasks import Task
 
@@ -65,43 +67,84 @@ class LogLanes:
 MapEncoder = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
 
-def _log_inputs(model: GPD, scene: Scene, task: Task):
-    """The log's frames as model inputs: xy, heading, valid (hidden agents removed), map tokens, velocity
-    (zeros for a model without velocity inputs)."""
+@flax.struct.dataclass
+class Frame:
+    """One frame's model inputs (or a stack of them: leading dims `...`).
+
+    xy: f32[..., A, 2], heading: f32[..., A], valid: bool[..., A], valid_logit: f32[..., A] (the model's logit
+    where generated, 0 where taken from the log), map_tokens: i32[..., M], velocity: f32[..., A, 2] (zeros for a
+    model without velocity inputs).
+    """
+
+    xy: jax.Array
+    heading: jax.Array
+    valid: jax.Array
+    valid_logit: jax.Array
+    map_tokens: jax.Array
+    velocity: jax.Array
+
+
+@flax.struct.dataclass
+class Given:
+    """What a rollout of one scenario is given: the log's frames as model inputs (`Frame` with a leading T:
+    hidden agents removed, velocities zero for a model without velocity inputs), the task, and optionally the
+    log's lanes to re-encode the map around a generated ego."""
+
+    log: Frame
+    task: Task
+    lanes: LogLanes | None = None
+
+
+@flax.struct.dataclass
+class DecodeState:
+    """The carry of the cached rollout's scan: the KV cache, the prediction made at the previous frame (leading
+    dim 1), and the previous frame's xy f32[A, 2] and valid bool[A] (what displacement heads are relative to)."""
+
+    cache: KVCache
+    pred: Prediction
+    last_xy: jax.Array
+    last_valid: jax.Array
+
+
+def given_inputs(model: GPD, scene: Scene, task: Task, lanes: LogLanes | None = None) -> Given:
+    """The log of `scene` as model inputs under `task` (hidden agents removed)."""
     valid = scene.valid & ~task.hidden[None, :]
     vel = model.input_velocity(scene.velocity)  # raises if the model needs velocities and the scene has none
     vel = jnp.zeros_like(scene.xy) if vel is None else vel
-    return scene.xy, scene.heading, valid, scene.map_tokens, vel
+    log = Frame(xy=scene.xy, heading=scene.heading, valid=valid, valid_logit=jnp.zeros(valid.shape, jnp.float32),
+                map_tokens=scene.map_tokens, velocity=vel)
+    return Given(log=log, task=task, lanes=lanes)
 
 
-def _choose_frame(pred: Prediction, log_vel, scene: Scene, task: Task, t, key, temperature: float, num_map: int,
-                  lanes: LogLanes | None = None, map_encoder: MapEncoder | None = None):
-    """Frame t's inputs (xy, heading, valid, valid logit, map tokens, velocity): the log where the task says so,
-    the prediction elsewhere.
+def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
+                  map_encoder: MapEncoder | None = None) -> Frame:
+    """Frame t's inputs: the log where the task says so, the prediction elsewhere.
 
-    `pred` holds the single-frame prediction made at frame t-1 (leading dim 1); `log_vel f32[T, A, 2]`. With
-    `lanes` and `map_encoder`, map tokens taken from the log while the ego is generated (and valid) are the log's
-    lanes encoded around the generated ego pose instead of the logged tokens.
+    `pred` holds the single-frame prediction made at frame t-1 (leading dim 1). With `given.lanes` and
+    `map_encoder`, map tokens taken from the log while the ego is generated (and valid) are the log's lanes
+    encoded around the generated ego pose instead of the logged tokens.
     """
+    log, task = given.log, given.task
+    num_map = log.map_tokens.shape[-1]
     logits = pred.map_logits[0]
     if temperature > 0:
         sampled = jax.random.categorical(jax.random.fold_in(key, t), logits / temperature, axis=-1)
     else:
         sampled = jnp.argmax(logits, axis=-1)
-    log_map = scene.map_tokens[t]
+    log_map = log.map_tokens[t]
     fl_map, fl_agent = task.from_log[:num_map], task.from_log[num_map:]
     map_t = jnp.where(fl_map, log_map, sampled.astype(log_map.dtype))
-    xy_t = jnp.where(fl_agent[:, None], scene.xy[t], pred.xy[0])
-    heading_t = jnp.where(fl_agent, scene.heading[t], pred.heading[0])
-    valid_t = jnp.where(fl_agent, scene.valid[t], pred.valid_logit[0] > 0) & ~task.hidden
+    xy_t = jnp.where(fl_agent[:, None], log.xy[t], pred.xy[0])
+    heading_t = jnp.where(fl_agent, log.heading[t], pred.heading[0])
+    valid_t = jnp.where(fl_agent, log.valid[t], pred.valid_logit[0] > 0) & ~task.hidden
     logit_t = jnp.where(fl_agent, 0.0, pred.valid_logit[0])
     if map_encoder is not None:
         pose = jnp.stack([xy_t[0, 0], xy_t[0, 1], heading_t[0]])
-        around_ego = map_encoder(lanes.polylines, lanes.valid, pose).astype(log_map.dtype)
+        around_ego = map_encoder(given.lanes.polylines, given.lanes.valid, pose).astype(log_map.dtype)
         map_t = jnp.where(fl_map & ~fl_agent[0] & valid_t[0], around_ego, map_t)
-    pred_vel = jnp.zeros_like(log_vel[t]) if pred.velocity is None else pred.velocity[0]
-    vel_t = jnp.where(fl_agent[:, None], log_vel[t], pred_vel)
-    return xy_t, heading_t, valid_t, logit_t, map_t, vel_t
+    pred_vel = jnp.zeros_like(log.velocity[t]) if pred.velocity is None else pred.velocity[0]
+    vel_t = jnp.where(fl_agent[:, None], log.velocity[t], pred_vel)
+    return Frame(xy=xy_t, heading=heading_t, valid=valid_t, valid_logit=logit_t, map_tokens=map_t, velocity=vel_t)
 
 
 def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
@@ -111,7 +154,7 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
 
     Args:
       model: the GPD transformer.
-      scene: a single (unbatched) scene with T frames; frames [0, num_history) are given.
+      scene: a single (unbatched) scene with T frames at the model's rate; frames [0, num_history) are given.
       task: a single task (from_log bool[M + A], hidden bool[A]).
       key: PRNG key (used only when temperature > 0).
       num_history: H, the number of given frames (21 in the paper).
@@ -120,29 +163,28 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
         around a generated ego (see the module docstring); both or neither.
     """
     t_total, h = scene.num_frames, num_history
-    num_map = scene.num_map_tokens
     _check_map_encoder(lanes, map_encoder)
-    xy, heading, valid, maps, vel = _log_inputs(model, scene, task)
-    tokens = model.embed(xy[:h], heading[:h], valid[:h], maps[:h], jnp.arange(h), vel[:h])
+    given = given_inputs(model, scene, task, lanes)
+    log = given.log
+    tokens = model.embed(log.xy[:h], log.heading[:h], log.valid[:h], log.map_tokens[:h], jnp.arange(h),
+                         log.velocity[:h])
     hidden, cache = forward_cached(model, tokens, model.init_cache(t_total), 0)
-    pred = model.predict(hidden[-1:], xy[h - 1:h], heading[h - 1:h], valid[h - 1:h], *_prev(xy, valid, h - 1),
-                         vel[h - 1:h])
+    pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
+                         *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h])
 
-    def step(carry, t):
-        cache, pred, last_xy, last_valid = carry
-        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map, lanes, map_encoder)
-        fxy, fh, fv, _, fm, fvel = frame
-        tok = model.embed(fxy[None], fh[None], fv[None], fm[None], t[None], fvel[None])
-        hid, cache = forward_cached(model, tok, cache, t)
-        pred = model.predict(hid, fxy[None], fh[None], fv[None], last_xy[None], last_valid[None], fvel[None])
-        return (cache, pred, fxy, fv), frame
+    def step(state: DecodeState, t):
+        f = _choose_frame(state.pred, given, t, key, temperature, map_encoder)
+        tok = model.embed(f.xy[None], f.heading[None], f.valid[None], f.map_tokens[None], t[None], f.velocity[None])
+        hid, cache = forward_cached(model, tok, state.cache, t)
+        pred = model.predict(hid, f.xy[None], f.heading[None], f.valid[None], state.last_xy[None],
+                             state.last_valid[None], f.velocity[None])
+        return DecodeState(cache=cache, pred=pred, last_xy=f.xy, last_valid=f.valid), f
 
-    carry = (cache, pred, xy[h - 1], valid[h - 1])
-    (_, pred, _, _), frames = jax.lax.scan(step, carry, jnp.arange(h, t_total - 1))
-    last = _choose_frame(pred, vel, scene, task, jnp.asarray(t_total - 1), key, temperature, num_map, lanes,
-                         map_encoder)
+    init = DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1])
+    final, frames = jax.lax.scan(step, init, jnp.arange(h, t_total - 1))
+    last = _choose_frame(final.pred, given, jnp.asarray(t_total - 1), key, temperature, map_encoder)
     frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
-    return _assemble(xy, heading, valid, maps, frames, h)
+    return _assemble(log, frames, h)
 
 
 def _check_map_encoder(lanes, map_encoder) -> None:
@@ -160,15 +202,12 @@ def _prev(xy, valid, t):
     return pxy, pv
 
 
-def _assemble(xy, heading, valid, maps, frames, h) -> RolloutOutput:
-    fxy, fh, fv, fl, fm, _ = frames
-    return RolloutOutput(
-        xy=jnp.concatenate([xy[:h], fxy], 0),
-        heading=jnp.concatenate([heading[:h], fh], 0),
-        valid=jnp.concatenate([valid[:h], fv], 0),
-        valid_logit=jnp.concatenate([jnp.zeros(valid[:h].shape, fl.dtype), fl], 0),
-        map_tokens=jnp.concatenate([maps[:h], fm.astype(maps.dtype)], 0),
-    )
+def _assemble(log: Frame, frames: Frame, h: int) -> RolloutOutput:
+    """The log's history frames [0, h) followed by the generated `frames`."""
+    cat = lambda given, gen: jnp.concatenate([given[:h], gen.astype(given.dtype)], 0)
+    return RolloutOutput(xy=cat(log.xy, frames.xy), heading=cat(log.heading, frames.heading),
+                         valid=cat(log.valid, frames.valid), valid_logit=cat(log.valid_logit, frames.valid_logit),
+                         map_tokens=cat(log.map_tokens, frames.map_tokens))
 
 
 def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
@@ -181,26 +220,24 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
     Same arguments and outputs as `rollout`.
     """
     t_total, h = scene.num_frames, num_history
-    num_map = scene.num_map_tokens
     _check_map_encoder(lanes, map_encoder)
-    xy, heading, valid, maps, vel = _log_inputs(model, scene, task)
-    logits0 = jnp.zeros(valid.shape, jnp.float32)
+    given = given_inputs(model, scene, task, lanes)
 
-    def step(buf, t):
-        bxy, bh, bv, bl, bm, bvel = buf
-        tokens = model.embed(bxy, bh, bv, bm, jnp.arange(t_total), bvel)
+    def step(buf: Frame, t):
+        tokens = model.embed(buf.xy, buf.heading, buf.valid, buf.map_tokens, jnp.arange(t_total), buf.velocity)
         hid = forward(model, tokens)
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
-        pred = model.predict(sl(hid), sl(bxy), sl(bh), sl(bv), *_prev(bxy, bv, prev), sl(bvel))
-        frame = _choose_frame(pred, vel, scene, task, t, key, temperature, num_map, lanes, map_encoder)
-        buf = tuple(jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0)
-                    for b, f in zip(buf, frame))
+        pred = model.predict(sl(hid), sl(buf.xy), sl(buf.heading), sl(buf.valid), *_prev(buf.xy, buf.valid, prev),
+                             sl(buf.velocity))
+        frame = _choose_frame(pred, given, t, key, temperature, map_encoder)
+        buf = jax.tree.map(lambda b, f: jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0),
+                           buf, frame)
         return buf, None
 
-    buf, _ = jax.lax.scan(step, (xy, heading, valid, logits0, maps, vel), jnp.arange(h, t_total))
-    bxy, bh, bv, bl, bm, _ = buf
-    return RolloutOutput(xy=bxy, heading=bh, valid=bv, valid_logit=bl, map_tokens=bm)
+    buf, _ = jax.lax.scan(step, given.log, jnp.arange(h, t_total))
+    return RolloutOutput(xy=buf.xy, heading=buf.heading, valid=buf.valid, valid_logit=buf.valid_logit,
+                         map_tokens=buf.map_tokens)
 
 
 def rollout_batch(model: GPD, scenes: Scene, tasks: Task, keys: jax.Array, num_history: int,
@@ -227,3 +264,19 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task, key: jax.Array, num_hi
     keys = jax.random.split(key, s * k)
     out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature, flat_lanes, map_encoder)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "temperature", "tok"))
+def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task, key, num_history: int, temperature: float = 0.0,
+                tok=None, tok_params=None, lanes: LogLanes | None = None) -> RolloutOutput:
+    """`rollout_tasks` of the model `nnx.merge(graphdef, params, rest)`, jitted: the one compiled rollout entry
+    of evaluation, training's validation, the benchmark and `gpd_jax.rollout` (one compile per shape and static
+    setting).
+
+    scenes [S, ...] at the model's rate, tasks [K, ...] -> outputs [S, K, ...]. With a map tokenizer `tok` (its
+    `tok_params`) and the scenes' `lanes` [S, ...], logged map tokens of tasks that generate the ego are
+    re-encoded around the generated ego.
+    """
+    encoder = None if tok is None else tok.pose_encoder(tok_params)
+    return rollout_tasks(nnx.merge(graphdef, params, rest), scenes, tasks, key, num_history, temperature, lanes,
+                         encoder)

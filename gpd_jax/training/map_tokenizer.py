@@ -19,7 +19,6 @@ The workdir gets `config.json`, `metrics.jsonl` (one JSON object per log / evalu
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from typing import Any, Iterator, NamedTuple
@@ -27,18 +26,17 @@ from typing import Any, Iterator, NamedTuple
 import jax
 import jax.numpy as jnp
 import ml_collections
-import numpy as np
 import optax
-import orbax.checkpoint as ocp
 import tqdm
 from flax import nnx
 
 from gpd_jax.config import config_differences
-from gpd_jax.map_tokenizer import core
+from gpd_jax.fsutil import atomic_write_text
+from gpd_jax.map_tokenizer import core, load_tokenizer
 from gpd_jax.map_tokenizer.data import frame_batches
+from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step, rasterize_batch
 from gpd_jax.map_tokenizer.model import MapVQVAE
-from gpd_jax.map_tokenizer.raster import rasterize
-from gpd_jax.metrics.map import LENGTH_EDGES_M, length_labels, map_metric_sums, reduce_map_metrics
+from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state, save_state
 
 
 class TrainState(NamedTuple):
@@ -68,7 +66,7 @@ def make_optimizer(train_cfg: ml_collections.ConfigDict, params) -> optax.Gradie
                                                   max(train_cfg.num_steps, train_cfg.warmup_steps + 1),
                                                   peak * train_cfg.end_lr_factor)
 
-    frozen = FROZEN_WHEN_DECODER_ONLY if train_cfg.get("decoder_only", False) else ()
+    frozen = FROZEN_WHEN_DECODER_ONLY if train_cfg.decoder_only else ()
     labels = {k: jax.tree.map(lambda _: "frozen" if k in frozen else "codebook" if k == "codebook" else "net", v)
               for k, v in params.items()}
     return optax.chain(
@@ -80,19 +78,12 @@ def make_optimizer(train_cfg: ml_collections.ConfigDict, params) -> optax.Gradie
         }, labels))
 
 
-def rasterize_batch(config, batch):
-    """f32[B, 256, 256] rasters of a batch dict (polylines, polyline_valid, pose)."""
-    r = config.raster
-    return rasterize(batch["polylines"], batch["polyline_valid"], batch["pose"], size=r.size,
-                     pixel_size=r.pixel_size, max_segment_length=r.max_segment_length)
-
-
 def loss_fn(graphdef, config, params, batch, quantized: bool | jax.Array = True):
     """(total loss, aux dict) for one batch; see the module docstring. `quantized` False: continuous latents."""
     raster = rasterize_batch(config, batch)
-    if config.train.get("decoder_only", False):  # no gradient work for the frozen encoder and codebook
+    if config.train.decoder_only:  # no gradient work for the frozen encoder and codebook
         params = {k: jax.lax.stop_gradient(v) if k in FROZEN_WHEN_DECODER_ONLY else v for k, v in params.items()}
-    every_layer = bool(config.loss.get("every_layer", False))
+    every_layer = bool(config.loss.every_layer)
     out = core.forward(graphdef, params, raster, every_layer, quantized)
     lines, aux = (core.deep_line_loss if every_layer else core.line_loss)(
         out["points"], out["logits"], batch["lanes"], batch["lanes_valid"], config.loss.w_l1, config.loss.w_bce)
@@ -105,7 +96,7 @@ def make_train_step(graphdef, config, tx):
     decay = config.train.usage_decay
 
     # With continuous warm-up the decoder reads the encoder's continuous outputs until k-means has run.
-    warmup = bool(config.train.get("continuous_warmup", False))
+    warmup = bool(config.train.continuous_warmup)
 
     def train_step(state: TrainState, batch):
         quantized = state.kmeans_done if warmup else True
@@ -123,49 +114,6 @@ def make_train_step(graphdef, config, tx):
     return train_step
 
 
-def make_eval_step(graphdef):
-    def eval_step(params, raster, lanes, lanes_valid):
-        out = core.forward(graphdef, params, raster)
-        sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M)
-        return sums, out["idx"]
-
-    return eval_step
-
-
-def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, float]:
-    """Map metrics (paper-faithful F1 @1.5 m, lateral, Chamfer; corrected Chamfer) plus codebook usage and
-    perplexity of the tokens, over an iterable of batch dicts."""
-    eval_step = eval_step or jax.jit(make_eval_step(graphdef))
-    raster_fn = jax.jit(lambda b: rasterize_batch(config, b))
-    total = None
-    counts = np.zeros((config.model.num_codes,), np.float64)
-    frames = 0
-    for batch in batches:
-        sums, idx = eval_step(params, raster_fn(batch), batch["lanes"], batch["lanes_valid"])
-        sums = jax.device_get(sums)
-        total = sums if total is None else {k: total[k] + sums[k] for k in total}
-        counts += np.bincount(np.asarray(idx).reshape(-1), minlength=counts.size)
-        frames += int(np.shape(batch["lanes_valid"])[0])
-    if total is None:
-        raise ValueError("evaluation got no batches")
-    lanes_points = int(np.shape(batch["lanes"])[-2])
-    m = reduce_map_metrics(total)
-    p = counts / max(counts.sum(), 1.0)
-    nz = p[p > 0]
-    return {
-        "f1": m["map_f1"], "precision": m["map_precision"], "recall": m["map_recall"],
-        "lateral": m["map_lateral"], "chamfer": m["map_chamfer"],
-        "chamfer_corrected": m["map_chamfer_corrected"],
-        "chamfer_corrected_skipped": m["map_chamfer_corrected_skipped"],
-        "codebook_usage": float(np.mean(counts > 0)), "perplexity": float(np.exp(-np.sum(nz * np.log(nz)))),
-        "frames": frames,
-        # diagnostic: the per-point recall for GT lines of each length, and how many GT lines each group has
-        "recall_by_gt_length": dict(zip(length_labels(), m["map_recall_by_length"])),
-        "gt_lines_by_length": dict(zip(length_labels(), (int(round(x / lanes_points)) for x in
-                                                         m["map_gt_points_by_length"]))),
-    }
-
-
 def kmeans_init(graphdef, params, config, key, batches: Iterator[dict]):
     """Params with the codebook replaced by k-means centres of encoder outputs of `kmeans_rasters` rasters."""
     enc = jax.jit(lambda p, b: core.encode_latents(graphdef, p, rasterize_batch(config, b)))
@@ -180,17 +128,6 @@ def kmeans_init(graphdef, params, config, key, batches: Iterator[dict]):
     return core.with_codebook(params, centres)
 
 
-def _write_metrics(path: str, record: dict) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps({k: (float(v) if isinstance(v, (np.floating, np.integer, jax.Array)) else v)
-                            for k, v in record.items()}) + "\n")
-
-
-def checkpoint_manager(workdir: str, keep: int = 2) -> ocp.CheckpointManager:
-    return ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, "checkpoints")),
-                                 options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
-
-
 def _to_tree(state: TrainState) -> dict:
     return dict(step=state.step, params=state.params, opt_state=state.opt_state, usage=state.usage,
                 kmeans_done=state.kmeans_done)
@@ -200,26 +137,9 @@ def restore_or_init(config, workdir, graphdef, params, tx, mgr, kmeans_done: boo
     num_codes = config.model.num_codes
     state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params),
                        jnp.full((num_codes,), 1.0 / num_codes, jnp.float32), jnp.asarray(kmeans_done))
-    latest = mgr.latest_step()
-    if latest is None:
+    if mgr.latest_step() is None:
         return state, False
-    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _to_tree(state))
-    tree = mgr.restore(latest, args=ocp.args.StandardRestore(abstract))
-    # Restore into the structure of `state` (opt_state holds namedtuples that the checkpoint stores as dicts).
-    leaves = jax.tree.leaves(tree)
-    restored = jax.tree.unflatten(jax.tree.structure(_to_tree(state)), leaves)
-    return TrainState(**restored), True
-
-
-def restore_params(mgr: ocp.CheckpointManager, params_template, config, step: int | None = None):
-    """The params of a training checkpoint (latest step by default)."""
-    tx = make_optimizer(config.train, params_template)
-    num_codes = config.model.num_codes
-    state = TrainState(jnp.zeros((), jnp.int32), params_template, tx.init(params_template),
-                       jnp.zeros((num_codes,), jnp.float32), jnp.zeros((), bool))
-    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _to_tree(state))
-    tree = mgr.restore(mgr.latest_step() if step is None else step, args=ocp.args.StandardRestore(abstract))
-    return tree["params"]
+    return TrainState(**restore_state(mgr, _to_tree(state))), True
 
 
 def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
@@ -232,8 +152,6 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     starts from the source's reconstructions, with its tokens, and only gains capacity. `fresh`: freshly
     initialised params of `config`'s model to take the added layers from (built here when not given).
     """
-    from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
-
     src = load_tokenizer(path)
     raster_diff = config_differences(config.raster, src.config.raster)
     if raster_diff:
@@ -265,7 +183,7 @@ def _added_decoder_layers(config, src_config, path: str) -> int:
     extra = int(mine.decoder.num_layers) - int(theirs.decoder.num_layers)
     if diff or dec_diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff or 'decoder: ' + dec_diff}")
-    if extra < 0 or (extra and not config.train.get("decoder_only", False)):
+    if extra < 0 or (extra and not config.train.decoder_only):
         raise ValueError(f"train.init_from {path}: its decoder has {theirs.decoder.num_layers} layers, the config "
                          f"{mine.decoder.num_layers}; only train.decoder_only may add layers (never remove them)")
     return extra
@@ -275,15 +193,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     """Trains the map tokenizer described by `config` in `workdir` (resuming from its latest checkpoint) and
     returns the last evaluation's metrics."""
     os.makedirs(workdir, exist_ok=True)
-    with open(os.path.join(workdir, "config.json"), "w") as f:
-        f.write(config.to_json(indent=2))
-    metrics_path = os.path.join(workdir, "metrics.jsonl")
+    atomic_write_text(os.path.join(workdir, "config.json"), config.to_json(indent=2))
+    log = MetricsLog(workdir, tensorboard=False)
     tcfg = config.train
     key = jax.random.key(config.seed)
 
     graphdef, params = build_model(config)
-    init_from = tcfg.get("init_from", "")
-    decoder_only = bool(tcfg.get("decoder_only", False))
+    init_from = tcfg.init_from
+    decoder_only = bool(tcfg.decoder_only)
     if decoder_only and not init_from:
         raise ValueError("train.decoder_only trains the decoder of an existing tokenizer: set train.init_from")
     if init_from:
@@ -316,7 +233,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
             p = kmeans_init(graphdef, state.params, config, jax.random.fold_in(key, 1), train_iter)
             state = state._replace(params=p, kmeans_done=jnp.ones((), bool),
                                    usage=jnp.full_like(state.usage, 1.0 / config.model.num_codes))
-            _write_metrics(metrics_path, dict(step=step, event="kmeans_init"))
+            log.record(dict(step=step, event="kmeans_init"))
         batch = next(train_iter)
         state, metrics, z = train_step(state, batch)
         window_n += tcfg.batch_size
@@ -327,7 +244,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
                                         state.usage, z, float(tcfg.restart_threshold))
             state = state._replace(params=core.with_codebook(state.params, cb), usage=usage)
             if int(n_dead):
-                _write_metrics(metrics_path, dict(step=s1, event="dead_code_restart", codes=int(n_dead)))
+                log.record(dict(step=s1, event="dead_code_restart", codes=int(n_dead)))
         if s1 % tcfg.log_every == 0 or s1 == tcfg.num_steps:
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}
             dt = time.perf_counter() - window_t
@@ -335,13 +252,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
             m["usage_ema_codes"] = float(jnp.sum(state.usage > 0.03 / config.model.num_codes))
             window_t, window_n = time.perf_counter(), 0
             bar.set_postfix(loss=f"{m['loss']:.3f}", l1=f"{m['l1']:.2f}", sps=f"{m['samples_per_s']:.1f}")
-            _write_metrics(metrics_path, dict(step=s1, split="train", **m))
+            log.record(dict(step=s1, split="train", **m))
         if s1 % tcfg.eval_every == 0 or s1 == tcfg.num_steps:
             last_eval = evaluate(graphdef, state.params, config, eval_batches(), eval_step)
-            _write_metrics(metrics_path, dict(step=s1, split=config.data.eval_split, **last_eval))
+            log.record(dict(step=s1, split=config.data.eval_split, **last_eval))
             bar.write(f"step {s1} eval: " + ", ".join(f"{k}={v:.4g}" for k, v in last_eval.items()
                                                        if isinstance(v, (int, float))))
         if s1 % tcfg.checkpoint_every == 0 or s1 == tcfg.num_steps:
-            mgr.save(s1, args=ocp.args.StandardSave(_to_tree(state)))
+            save_state(mgr, s1, _to_tree(state))
     mgr.wait_until_finished()
     return last_eval

@@ -22,6 +22,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from gpd_jax.evaluation.maps import decode_map_tokens
+from gpd_jax.tasks import generated
+
 EGO, AGENT = "#d62728", "#1f77b4"
 EGO_GIVEN, AGENT_GIVEN = "#f0a8a8", "#a9c4de"
 LANE, LANE_LOG = "#555555", "#c8c8c8"
@@ -174,12 +177,11 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
 
 def render_items(items, task_names: Sequence[str], out_dir: str, *, num_history: int, frame_period_s: float,
                  tokenizer=None, size_px: int = 320, panels: int = 4, progress: bool = False) -> list[str]:
-    """Renders every task of every `gpd_jax.evaluate.RenderItem` into `out_dir` as
+    """Renders every task of every `gpd_jax.evaluation.RenderItem` into `out_dir` as
     `<scenario index>_<task>.gif` / `.png`. Lanes are decoded with `tokenizer` (none drawn without one).
 
     Returns the written paths.
     """
-    from gpd_jax.evaluate import decode_map_tokens, generated
 
     paths: list[str] = []
     for it in items:

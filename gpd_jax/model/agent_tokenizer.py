@@ -88,7 +88,7 @@ class AgentTokenizer:
         hd = LevelSpec(offset=180.0, scales=tuple(float(s) for s in cfg.heading_levels_deg),
                        code_dim=int(cfg.heading_code_dim), unit=180.0 / math.pi)
         vel = None
-        if cfg.get("velocity_inputs", False):
+        if cfg.velocity_inputs:
             vel = LevelSpec(offset=float(cfg.velocity_range), scales=tuple(float(s) for s in cfg.velocity_levels),
                             code_dim=int(cfg.velocity_code_dim))
         return cls(x=xy, y=xy, heading=hd, velocity=vel)

@@ -1,7 +1,7 @@
 """Native CPU kernels: built on first use with the system C++ compiler and registered as XLA FFI targets.
 
 The only kernel is the fused block-causal attention of the KV-cached rollout
-(`gpd_jax/kernels/block_causal_attention.cc`, semantics of `attention.attend_dynamic`). XLA:CPU cannot fuse a
+(`gpd_jax/model/kernels/block_causal_attention.cc`, semantics of `attention.attend_dynamic`). XLA:CPU cannot fuse a
 dot with a softmax, so the pure-XLA decode step is memory-bound and single-threaded; the kernel keeps score
 tiles in cache and uses the intra-op thread pool (see `python -m gpd_jax.bench rollout --decode-attention native xla`).
 

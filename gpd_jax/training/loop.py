@@ -3,7 +3,7 @@
 * Data: `gpd_jax.data.loader.make_loader` (grain; seeded shuffle, a new permutation per epoch), every batch cut
   to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. Map tokens must
   have been encoded into the store (`python -m gpd_jax.map_tokenizer encode --data DIR`).
-* Step: teacher forcing (`gpd_jax.train_lib`): AdamW, linear warm-up then cosine decay, global-norm clipping;
+* Step: teacher forcing (`gpd_jax.training.step`): AdamW, linear warm-up then cosine decay, global-norm clipping;
   with `train.rollout_passes` > 0 the future frames' agent inputs are the model's own predictions.
   `train.init_from` (an exported model or a workdir) starts a new run from its parameters (fine-tuning).
 * Parallelism: the batch is split over every device of every process (a 1-D `data` mesh, `jax.sharding`);
@@ -26,9 +26,7 @@
 from __future__ import annotations
 
 import json
-import math
 import os
-import signal
 import time
 from typing import Any, Sequence
 
@@ -41,30 +39,23 @@ import tqdm
 from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from gpd_jax.checkpoint import export_model, model_from_config, resolve_tokenizer_path
+from gpd_jax.checkpoint import build_model, export_model, load_model, model_spec, resolve_tokenizer_path
 from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
-from gpd_jax.evaluate import EvalError, baseline_predictions, spec_from_config
-from gpd_jax.metrics import agents as agent_metrics_lib
+from gpd_jax.fsutil import atomic_write_text
+from gpd_jax.map_tokenizer import load_tokenizer
 from gpd_jax.model import count_params
 from gpd_jax.parallel import data_mesh
-from gpd_jax.rollout import rollout_batch
 from gpd_jax.scene import Scene
-from gpd_jax.tasks import make_task
-from gpd_jax.train_lib import TrainState, make_trainer
+from gpd_jax.spec import ModelSpec, spec_from_config
+from gpd_jax.training.common import MetricsLog, StopOnSigterm, checkpoint_manager, restore_state, save_state
+from gpd_jax.training.step import TrainState, make_trainer
+from gpd_jax.training.validation import Validator
 
 
 # ----------------------------------------------------------------------------------------------- data
-def model_view(scene: Scene, config) -> Scene:
-    """The model's frames and slots of a stored scene (see `Scene.subsample`), with stored-rate velocities for a
-    `velocity_inputs` model."""
-    m, d = config.model, config.data
-    period = float(d.get("frame_period_s", 0.1)) if m.get("velocity_inputs", False) else None
-    return scene.subsample(int(d.frame_stride), int(m.num_frames), int(m.num_agents), velocity_period_s=period)
-
-
 def resolve_data_dir(path: str) -> str:
     if not path:
         raise DataError("config.data.dir", "no data directory configured (set --config.data.dir=DIR)")
@@ -97,8 +88,6 @@ def _check_store(config, data_dir: str, split: str) -> int:
 def _check_token_source(data_dir: str, splits: Sequence[str], tokenizer_dir: str) -> None:
     """Refuses a store whose map tokens in any of `splits` (training and validation) were made by another
     tokenizer than the model's (its codebook would embed the wrong codes)."""
-    from gpd_jax.map_tokenizer import load_tokenizer
-
     fp = load_tokenizer(tokenizer_dir).fingerprint()
     for split in dict.fromkeys(splits):
         bad = store.foreign_map_token_shards(data_dir, split, fp)
@@ -111,177 +100,20 @@ def _check_token_source(data_dir: str, splits: Sequence[str], tokenizer_dir: str
                             f"{tokenizer_dir} --data {data_dir}")
 
 
-# ----------------------------------------------------------------------------------------------- checkpoints
-def checkpoint_manager(workdir: str, keep: int = 2) -> ocp.CheckpointManager:
-    return ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, "checkpoints")),
-                                 options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
-
-
-def _tree(state: TrainState) -> dict:
-    return {"step": state.step, "params": state.params, "opt_state": state.opt_state}
-
-
-def _restore(mgr: ocp.CheckpointManager, template: TrainState, step: int) -> TrainState:
-    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _tree(template))
-    tree = mgr.restore(step, args=ocp.args.StandardRestore(abstract))
-    # Back into the template's structure (optax states are namedtuples; the checkpoint stores dicts).
-    restored = jax.tree.unflatten(jax.tree.structure(_tree(template)), jax.tree.leaves(tree))
-    return TrainState(**restored)
-
-
-def restore_params(workdir: str, model, config, step: int | None = None):
-    """The params of a training workdir's checkpoint (latest by default), in `model`'s params structure."""
-    mgr = checkpoint_manager(workdir)
-    step = mgr.latest_step() if step is None else step
-    if step is None:
-        raise FileNotFoundError(f"{workdir}: no checkpoints")
-    _, state = make_trainer(model, config, donate=False)
-    return _restore(mgr, state, step).params
-
-
 def initial_params(path: str, config):
     """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its
     model config must equal `config.model` (the map tokenizer's path aside)."""
-    from gpd_jax.checkpoint import load_model
-
-    src, model = load_model(path)
-    diff = config_differences(config.model, src.model, ignore=("map_tokenizer",))
+    src = load_model(path)
+    diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-    return nnx.state(model, nnx.Param)
-
-
-# ----------------------------------------------------------------------------------------------- logging
-class MetricsLog:
-    """Appends JSON records to WORKDIR/metrics.jsonl and, when tensorboardX is installed, scalars to
-    WORKDIR/tensorboard."""
-
-    def __init__(self, workdir: str, enabled: bool = True):
-        self.path = os.path.join(workdir, "metrics.jsonl")
-        self.enabled = enabled
-        self.tb = None
-        if enabled:
-            try:
-                from tensorboardX import SummaryWriter
-
-                self.tb = SummaryWriter(os.path.join(workdir, "tensorboard"))
-            except ImportError:
-                pass
-
-    def write(self, step: int, split: str, values: dict[str, Any]) -> None:
-        if not self.enabled:
-            return
-        rec = {"step": int(step), "split": split, "time": time.time()}
-        for k, v in values.items():
-            v = float(v) if isinstance(v, (int, float, np.number, jax.Array)) else v
-            rec[k] = None if isinstance(v, float) and not math.isfinite(v) else v
-        with open(self.path, "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        if self.tb is not None:
-            for k, v in rec.items():
-                if isinstance(v, float):
-                    self.tb.add_scalar(f"{split}/{k}", v, step)
-            self.tb.flush()
-
-
-# ----------------------------------------------------------------------------------------------- evaluation
-class Validator:
-    """Validation loss over fixed batches and traffic-simulation rollouts scored against constant velocity."""
-
-    def __init__(self, config, data_dir: str, trainer):
-        tc, m = config.train, config.model
-        self.config, self.trainer = config, trainer
-        split = config.data.val_split
-        n_val = len(data_loader.SplitSource(data_dir, split))
-        bs = int(tc.batch_size)
-        n_batches = min(int(tc.eval_batches), n_val // bs)
-        self.loss_batches = []
-        if n_batches:
-            it = data_loader.make_loader(data_dir, split, bs, seed=12345, num_epochs=1, num_threads=2, prefetch=0)
-            for _ in range(n_batches):
-                self.loss_batches.append(model_view(next(it), config))
-            it.close()
-        n_roll = min(int(tc.eval_rollout_scenarios), n_val)
-        try:
-            self.spec, _ = spec_from_config(config)
-        except EvalError as e:
-            print(f"validation rollouts off: {e}")
-            n_roll = 0
-        self.scenes = data_loader.load_split(data_dir, split, indices=range(n_roll)) if n_roll else None
-        if self.scenes is not None:
-            self.view = model_view(self.scenes, config)
-            # Constant velocity from the stored frame rate, as rollout.py scores it; fixed, so scored once here.
-            cv_xy, cv_heading, _ = baseline_predictions(self.scenes, self.spec)["constant_velocity"]
-            self.cv_scores = self._score(cv_xy, cv_heading)
-            task = make_task("traffic_simulation", int(m.num_map_tokens), int(m.num_agents))
-            tasks = jax.tree.map(lambda x: jnp.broadcast_to(x, (n_roll,) + x.shape), task)
-            graphdef, rest = trainer.graphdef, trainer.rest
-            temp, h = float(config.rollout.temperature), self.spec.num_history
-
-            @jax.jit
-            def roll(params, scenes, keys):
-                model = nnx.merge(graphdef, params, rest)
-                return rollout_batch(model, scenes, tasks, keys, h, temp)
-
-            self._roll = roll
-
-    def _score(self, xy, heading) -> dict[str, float]:
-        v, spec = self.view, self.spec
-        sums = agent_metrics_lib.agent_metric_sums(
-            xy, heading, v.xy, v.valid, v.size, num_history=spec.num_history, eval_mask=v.valid[:, spec.current],
-            horizons=spec.horizons, variant="corrected", dt=spec.frame_period_s)
-        red = agent_metrics_lib.reduce_agent_metrics(sums)
-        return {f"{k}_{hl}": val for hl, d in red.items() for k, val in d.items()
-                if k in ("agent_ade", "agent_fde", "ego_ade", "agent_collision")}
-
-    def __call__(self, params, step: int) -> dict[str, float]:
-        out: dict[str, float] = {}
-        if self.loss_batches:
-            acc: dict[str, float] = {}
-            for b in self.loss_batches:
-                parts = jax.device_get(self.trainer.eval_step(params, b))
-                for k, v in parts.items():
-                    acc[k] = acc.get(k, 0.0) + float(v) / len(self.loss_batches)
-            out.update(acc)
-        if self.scenes is not None:
-            keys = jax.random.split(jax.random.key(step), self.view.xy.shape[0])
-            pred = self._roll(params, self.view, keys)
-            model, cv = self._score(pred.xy, pred.heading), self.cv_scores
-            for k, v in model.items():
-                out[f"rollout_{k}"] = v
-                out[f"cv_{k}"] = cv[k]
-                if k.startswith("agent_ade") and cv[k] > 0:
-                    out[f"rollout_{k}_vs_cv"] = v / cv[k]
-        return out
+    return src.params
 
 
 # ----------------------------------------------------------------------------------------------- training
 def _global_batch(local: Scene, mesh) -> Scene:
     sharding = NamedSharding(mesh, PartitionSpec("data"))
     return jax.tree.map(lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), local)
-
-
-class _Stop:
-    """Turns SIGTERM into a clean stop (checkpoint, then exit) like Ctrl-C."""
-
-    def __init__(self):
-        self.requested = False
-        self._old = None
-
-    def __enter__(self):
-        try:
-            self._old = signal.signal(signal.SIGTERM, self._handler)
-        except ValueError:  # not the main thread
-            self._old = None
-        return self
-
-    def _handler(self, signum, frame):
-        self.requested = True
-
-    def __exit__(self, *exc):
-        if self._old is not None:
-            signal.signal(signal.SIGTERM, self._old)
-        return False
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_after: int | None = None,
@@ -307,7 +139,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if bs % mesh.devices.size or bs % pcount:
         raise ValueError(f"train.batch_size {bs} must be divisible by the {mesh.devices.size} devices and "
                          f"{pcount} processes")
-    if config.model.get("map_tokenizer"):
+    if config.model.map_tokenizer:
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
         _check_token_source(data_dir, (config.data.train_split, config.data.val_split), config.model.map_tokenizer)
 
@@ -321,18 +153,15 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
             if old.get("model") != json.loads(config.to_json()).get("model"):
                 raise ValueError(f"{cfg_path}: the workdir holds a run with a different model config; "
                                  "use a new --workdir")
-        tmp = cfg_path + ".tmp"
-        with open(tmp, "w") as f:
-            f.write(config.to_json(indent=2))
-        os.replace(tmp, cfg_path)
+        atomic_write_text(cfg_path, config.to_json(indent=2))
 
-    model = model_from_config(config)
+    spec = model_spec(config)
+    model = build_model(config)
     trainer, state = make_trainer(model, config)
     mgr = checkpoint_manager(workdir, int(tc.keep_checkpoints))
-    latest = mgr.latest_step()
-    if latest is not None:
-        state = _restore(mgr, state, latest)
-    elif tc.get("init_from"):
+    if mgr.latest_step() is not None:
+        state = TrainState(**restore_state(mgr, state._asdict()))
+    elif tc.init_from:
         state = trainer.init_state(initial_params(str(tc.init_from), config))
     start = int(state.step)
     replicated = NamedSharding(mesh, PartitionSpec())
@@ -345,7 +174,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
 
     it = data_loader.make_loader(data_dir, config.data.train_split, bs // pcount, seed=int(config.seed),
                                  process_index=pindex, process_count=pcount, start_step=start,
-                                 num_threads=int(tc.get("loader_threads", 4)))
+                                 num_threads=int(tc.loader_threads))
     validator = Validator(config, data_dir, trainer) if int(tc.eval_every) > 0 else None
 
     total = int(tc.steps)
@@ -356,10 +185,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
                     desc="gpd")
     step = start
     window_t, window_n = time.perf_counter(), 0
-    with _Stop() as stop:
+    with StopOnSigterm() as stop:
         try:
             while step < end and not stop.requested:
-                view = model_view(next(it), config)
+                view = spec.view(next(it))
                 if not np.all(view.map_valid):
                     raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step {step + 1} "
                                     "has model frames without map tokens; encode every shard: python -m "
@@ -386,19 +215,19 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
                         bar.write(f"step {step} val: " + ", ".join(f"{k}={last_eval[k]:.4g}" for k in keys))
                     window_t, window_n = time.perf_counter(), 0
                 if step % int(tc.checkpoint_every) == 0 or step == total:
-                    mgr.save(step, args=ocp.args.StandardSave(_tree(state)))
+                    save_state(mgr, step, state._asdict())
         except KeyboardInterrupt:
             stop.requested = True
         finally:
             bar.close()
             it.close()
             if mgr.latest_step() != step:
-                mgr.save(step, args=ocp.args.StandardSave(_tree(state)), force=True)
+                save_state(mgr, step, state._asdict(), force=True)
             mgr.wait_until_finished()
     exported = None
     if step == total and lead:
         exported = export_model(jax.device_get(state.params), config, os.path.join(workdir, "export"),
-                                tokenizer_dir=config.model.get("map_tokenizer") or None)
+                                tokenizer_dir=config.model.map_tokenizer or None)
     if stop.requested and lead:
         print(f"stopped at step {step}; run the same command again to resume")
     return {"step": step, "train": last_train, "eval": last_eval, "export": exported}

@@ -30,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
+from gpd_jax.model.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
-from gpd_jax.tokenizer import AgentTokenizer, sinusoid_table
+from gpd_jax.model.agent_tokenizer import AgentTokenizer, sinusoid_table
 
 
 class Frozen(nnx.Variable):
@@ -131,14 +131,14 @@ class GPD(nnx.Module):
         self.tokens_per_frame = self.num_map + self.num_agents
         self.chunk_len = int(cfg.attn_chunk_frames) * self.tokens_per_frame
         self.predict_delta = bool(cfg.predict_delta)
-        self.dense_attention = cfg.get("train_attention", "flash") == "dense"
-        self.decode_attention = str(cfg.get("decode_attention", "auto"))
+        self.dense_attention = cfg.train_attention == "dense"
+        self.decode_attention = str(cfg.decode_attention)
         if self.decode_attention not in KERNELS:
             raise ValueError(f"model.decode_attention {self.decode_attention!r}: expected one of {KERNELS}")
-        self.velocity_residual = bool(cfg.get("velocity_residual", False))
+        self.velocity_residual = bool(cfg.velocity_residual)
         if self.velocity_residual and not self.predict_delta:
             raise ValueError("model.velocity_residual needs model.predict_delta")
-        self.velocity_inputs = bool(cfg.get("velocity_inputs", False))
+        self.velocity_inputs = bool(cfg.velocity_inputs)
         self.frame_period_s = float(frame_period_s)
         self.tokenizer = AgentTokenizer.from_config(cfg)
         grid = int(round(math.sqrt(self.num_map)))
@@ -307,22 +307,3 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
 
 def count_params(model: nnx.Module) -> int:
     return sum(int(np.prod(x.shape)) for x in jax.tree.leaves(nnx.state(model, nnx.Param)))
-
-
-def build_model(config, seed: int | None = None, codebook: np.ndarray | None = None) -> GPD:
-    """The GPD model of a full config. Map tokens are embedded with the codebook of the map tokenizer
-    checkpoint named by `config.model.map_tokenizer` when set (or with `codebook` when given). The frame period
-    is `data.frame_stride * data.frame_period_s`."""
-    m = config.model
-    if codebook is None and m.get("map_tokenizer"):
-        from gpd_jax.map_tokenizer import load_tokenizer
-
-        codebook = np.asarray(load_tokenizer(m.map_tokenizer).codebook)
-    return GPD(m, nnx.Rngs(config.seed if seed is None else seed), codebook=codebook,
-               frame_period_s=model_frame_period_s(config))
-
-
-def model_frame_period_s(config) -> float:
-    """Seconds between the model's frames: `data.frame_stride * data.frame_period_s` (defaults 1 and 0.1)."""
-    d = config.get("data") or {}
-    return int(d.get("frame_stride", 1)) * float(d.get("frame_period_s", 0.1))

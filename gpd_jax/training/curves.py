@@ -1,4 +1,4 @@
-"""Learning curves of a train.py run: `python -m gpd_jax.curves WORKDIR OUT.png`.
+"""Learning curves of a train.py run: `python -m gpd_jax.training.curves WORKDIR OUT.png`.
 
 Reads `WORKDIR/metrics.jsonl` and draws the training losses (per part) and, from the periodic validation, the
 validation loss and the `traffic_simulation` rollout agent ADE relative to constant velocity at each horizon.
@@ -63,7 +63,7 @@ def plot_curves(records: list[dict], out_png: str, title: str = "") -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gpd_jax.curves", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m gpd_jax.training.curves", description=__doc__.split("\n\n")[0])
     p.add_argument("workdir")
     p.add_argument("out", help="PNG path")
     p.add_argument("--title", default="")

@@ -1,0 +1,203 @@
+"""The evaluation driver: batches of a split through the one compiled rollout, scored in the same run against
+the baselines (the metrics.json layout is in `gpd_jax.evaluation`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from gpd_jax.checkpoint import Model
+from gpd_jax.data.errors import DataError
+from gpd_jax.data.loader import to_scene
+from gpd_jax.data.store import foreign_map_token_shards
+from gpd_jax.decoding import LogLanes, RolloutOutput, rollout_jit
+from gpd_jax.evaluation.keys import LOG_MAP_SOURCES, RATIO_TARGETS, SCORED_AGENTS
+from gpd_jax.evaluation.maps import (decode_map_tokens, encode_map_frames, gt_future_lanes,
+                                     persistence_future_lanes)
+from gpd_jax.evaluation.preflight import preflight
+from gpd_jax.evaluation.reduce import other_variant, reduce_results
+from gpd_jax.evaluation.scoring import add_sums, score_batch
+from gpd_jax.scene import Scene
+from gpd_jax.spec import HORIZONS_S, EvalError
+from gpd_jax.tasks import generated, make_tasks, map_task_names
+
+
+@dataclasses.dataclass
+class RenderItem:
+    """What `gpd_jax.render` needs for one scenario (model-rate arrays, every task)."""
+
+    index: int
+    scenario_id: str
+    pred: dict[str, np.ndarray]  # xy [K, T, A, 2], heading [K, T, A], valid [K, T, A], map_tokens [K, T, M]
+    log: dict[str, np.ndarray]  # xy [T, A, 2], heading, valid, size [A, 2], agent_type, map_tokens [T, M], ego_pose
+
+
+def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names: Sequence[str] | str = ("all",),
+             num_scenarios: int | None = None, batch_size: int = 8, seed: int = 0, variant: str = "paper",
+             horizons_s: Sequence[float] = HORIZONS_S, render_count: int = 0, log_map: str = "tokens",
+             temperature: float | None = None, progress: bool = True, log: Callable[[str], None] = print
+             ) -> tuple[dict[str, Any], list[RenderItem]]:
+    """Rolls out every task on the first `num_scenarios` scenarios of a split (or of given scenes) and scores
+    them.
+
+    Args:
+      model: a loaded GPD (`gpd_jax.load_model`): its config, spec and map tokenizer are used.
+      data: a data store directory (read `split` in store order, deterministic), or stored-rate scenes
+        `Scene [n, ...]` (`gpd_jax.load_scenes`; with `polylines` for map tasks and on-the-fly map tokens).
+      task_names: task keys of `gpd_jax.tasks`, a comma list, or ["all"].
+      num_scenarios: how many scenarios (None: all).
+      batch_size: scenarios per compiled rollout call (each runs every task).
+      seed: PRNG seed of the rollout keys (used when the rollout temperature is > 0).
+      variant: which metric variant fills the main keys ("paper" or "corrected").
+      horizons_s: horizons in seconds (those longer than the model's future are skipped with a note).
+      render_count: keep the arrays of the first this-many scenarios for `gpd_jax.render` (returned).
+      log_map: "tokens" (the logged map tokens) or "lanes" (the log's lanes encoded around a generated ego;
+        needs the tokenizer) for tasks that take the map from the log.
+      temperature: map-token sampling temperature (default: the model config's `rollout.temperature`).
+
+    Returns:
+      (results dict as written to metrics.json, render items). Raises EvalError on bad input.
+    """
+    config, tokenizer = model.config, model.tokenizer
+    if log_map not in LOG_MAP_SOURCES:
+        raise EvalError(f"log_map must be one of {LOG_MAP_SOURCES}, got {log_map!r}")
+    if log_map == "lanes" and tokenizer is None:
+        raise EvalError("log_map='lanes' re-encodes the log's lanes with the model's map tokenizer, and the model "
+                        "has none (config.model.map_tokenizer is empty)")
+    prep = preflight(config, data, split, task_names=task_names, num_scenarios=num_scenarios, variant=variant,
+                     horizons_s=horizons_s, has_tokenizer=tokenizer is not None, tokenizer=tokenizer)
+    spec, names, src, n = prep.spec, prep.task_names, prep.source, prep.num_scenarios
+    if prep.skipped_horizons:
+        log(f"note: horizons {', '.join(f'{s:g} s' for s in prep.skipped_horizons)} exceed the model's future "
+            f"({spec.num_future * spec.frame_period_s:g} s) and are skipped")
+    maps = map_task_names(names)
+    # Stored tokens made by another tokenizer mean other codes: those scenarios are encoded on the fly instead.
+    foreign = np.zeros(len(src.counts), bool)
+    if tokenizer is not None and isinstance(data, str):
+        foreign[foreign_map_token_shards(data, split, tokenizer.fingerprint())] = True
+    bs = max(1, min(int(batch_size), n))
+    num_batches = -(-n // bs)
+    temperature = float(config.rollout.temperature if temperature is None else temperature)
+    tasks = jax.tree.map(jnp.asarray, make_tasks(names, spec.num_map_tokens, spec.num_agents))
+    key = jax.random.key(seed)
+    tok_args = {} if tokenizer is None else dict(tok=tokenizer, tok_params=tokenizer.params)
+
+    acc = None
+    render_items: list[RenderItem] = []
+    n_store = n_encoded = 0
+    t_roll = t_score = t_data = 0.0
+    t0 = time.perf_counter()
+    bar = tqdm(total=n, desc=f"rollout {len(names)} tasks", unit="scenario", disable=not progress)
+    try:
+        for b in range(num_batches):
+            ta = time.perf_counter()
+            idx = list(range(b * bs, min((b + 1) * bs, n)))
+            real = len(idx)
+            idx += [idx[-1]] * (bs - real)  # pad: same shapes, same compile
+            weight = np.arange(bs) < real
+            try:
+                recs = [src[i] for i in idx]
+            except DataError as e:
+                raise EvalError(f"cannot read split {split!r}: {e}") from None
+            full = to_scene({k: np.stack([r[k] for r in recs]) for k in recs[0]})
+            polylines, poly_valid = full.polylines, full.polyline_valid
+            scene = spec.view(full).replace(polylines=None, polyline_valid=None)
+            has = scene.map_valid.all(axis=-1) & ~foreign[np.searchsorted(src.offsets, idx, side="right") - 1]
+            if not has[:real].all():
+                if tokenizer is None:
+                    raise EvalError(f"{prep.where} has no map tokens for some scenarios and the model has no map "
+                                    "tokenizer to encode them")
+                enc = np.asarray(encode_map_frames(tokenizer, tokenizer.params, polylines, poly_valid,
+                                                   scene.ego_pose))
+                scene = scene.replace(map_tokens=np.where(has[:, None, None], scene.map_tokens, enc).astype(np.int32),
+                                      map_valid=np.ones_like(scene.map_valid))
+            n_store += int(has[:real].sum())
+            n_encoded += int((~has[:real]).sum())
+            gt_lanes = kept_lanes = None
+            if maps:
+                gt_lanes = gt_future_lanes(polylines, poly_valid, full.ego_pose, spec)
+                kept_lanes = persistence_future_lanes(polylines, poly_valid, full.ego_pose, spec)
+            tb = time.perf_counter()
+            t_data += tb - ta
+            relane = {} if log_map == "tokens" else dict(
+                **tok_args, lanes=LogLanes(jnp.asarray(polylines), jnp.asarray(poly_valid)))
+            out = rollout_jit(model.graphdef, model.params, model.rest, jax.tree.map(jnp.asarray, scene), tasks,
+                              jax.random.fold_in(key, b), spec.num_history, temperature, **relane)
+            out = jax.block_until_ready(out)
+            tc = time.perf_counter()
+            t_roll += tc - tb
+            map_pred = None
+            if maps:
+                mi = np.array([names.index(m_) for m_ in maps])
+                fut = slice(spec.num_history, spec.num_history + spec.max_horizon)
+                tokens = jnp.concatenate([out.map_tokens[:, mi, fut],
+                                          jnp.asarray(scene.map_tokens)[:, None, fut]], axis=1)
+                map_pred = decode_map_tokens(tokenizer, tokenizer.params, tokens)
+            sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes, kept_lanes)
+            acc = add_sums(acc, sums)
+            t_score += time.perf_counter() - tc
+            for j in range(real):
+                if idx[j] < render_count:
+                    render_items.append(_render_item(idx[j], prep.scenario_ids, out, scene, j))
+            bar.update(real)
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    if foreign.any():
+        log(f"map tokens: {foreign.sum()} of {foreign.size} shards hold tokens of another tokenizer; not used")
+    if n_encoded and n_store:
+        source = f"read from the store for {n_store} scenarios, encoded on the fly for {n_encoded}"
+    elif n_encoded:
+        source = f"encoded on the fly with the model's map tokenizer (the store has none) for {n_encoded} scenarios"
+    else:
+        source = f"read from the store for {n_store} scenarios"
+    log(f"map tokens: {source}")
+
+    res = reduce_results(acc, spec, names, variant)
+    results = {
+        "variant": variant,
+        "other_variant_suffix": f"_{other_variant(variant)}",
+        "scenarios": n,
+        "split": split,
+        "data": os.path.abspath(data) if isinstance(data, str) else "in-memory scenes",
+        "frame_period_s": round(spec.frame_period_s, 9),
+        "frame_stride": spec.frame_stride,
+        "stored_frame_period_s": spec.stored_period_s,
+        "num_history": spec.num_history,
+        "num_future": spec.num_future,
+        "num_agents": spec.num_agents,
+        "horizons": {lb: h for lb, h in zip(spec.labels, spec.horizons)},
+        "scored_agents": SCORED_AGENTS,
+        "num_scored_agents": int(acc["counts"]["scored_agents"]),
+        "task_generates": {t: list(generated(t)) for t in names},
+        "map_tokens": {"from_store": n_store, "encoded": n_encoded},
+        "log_map": log_map,
+        "temperature": temperature,
+        "seed": seed,
+        **res,
+        "ratio_targets": {k: RATIO_TARGETS for k in res["ratios"]},
+        "timing_s": {"total": round(wall, 2), "rollout": round(t_roll, 2), "scoring": round(t_score, 2),
+                     "data": round(t_data, 2), "batches": num_batches, "batch_size": bs},
+    }
+    return results, render_items
+
+
+def _agents_only(full: Scene) -> Scene:
+    """The full-rate scene without the fields the baselines do not use (smaller jit arguments)."""
+    return jax.tree.map(jnp.asarray, full.replace(map_tokens=full.map_tokens[..., :1], lanes=None, lanes_valid=None,
+                                                  polylines=None, polyline_valid=None))
+
+
+def _render_item(i: int, ids: Sequence[str], out: RolloutOutput, scene: Scene, j: int) -> RenderItem:
+    pred = {k: np.asarray(getattr(out, k)[j]) for k in ("xy", "heading", "valid", "map_tokens")}
+    log = {k: np.asarray(getattr(scene, k)[j]) for k in ("xy", "heading", "valid", "size", "agent_type",
+                                                         "map_tokens", "ego_pose")}
+    return RenderItem(index=i, scenario_id=ids[i] if i < len(ids) else "", pred=pred, log=log)

@@ -1,0 +1,18 @@
+"""Names of what `gpd_jax.evaluate` reports: baselines, metric groups, ratio keys and their targets (the keys of
+`metrics.json`)."""
+
+LOG_MAP_SOURCES = ("tokens", "lanes")  # what a task that takes the map from the log feeds (see `evaluate`)
+BASELINE_NAMES = ("constant_velocity", "constant_velocity_model_rate", "log_replay")
+# The logged map tokens decoded and scored like a map task: the ceiling any generated map can reach.
+TOKENIZER_CEILING = "map_tokenizer_reconstruction"
+# The current frame's ground-truth lanes carried into each future frame with the logged ego pose, nothing added:
+# the map analogue of constant velocity (what a generator gets by keeping the map it sees and predicting nothing).
+MAP_PERSISTENCE = "map_persistence"
+MAP_BASELINES = (TOKENIZER_CEILING, MAP_PERSISTENCE)
+SCORED_AGENTS = "valid at the current frame"
+AGENT_METRICS = ("ade", "fde", "collision")
+MAP_METRICS = ("map_f1", "map_precision", "map_recall", "map_lateral")
+# The paper-table targets of the traffic-simulation agent ADE relative to constant velocity.
+RATIO_TARGETS = {"3s": 0.8, "5s": 0.75, "8s": 0.7}
+RATIO_KEY = "traffic_simulation_agent_ade_over_constant_velocity"
+RATIO_KEY_MODEL_RATE = "traffic_simulation_agent_ade_over_constant_velocity_model_rate"

@@ -1,0 +1,86 @@
+"""Accumulated sums -> the metrics of `metrics.json` (per task, baseline and horizon; both variants; ratios)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, MAP_BASELINES, MAP_METRICS, RATIO_KEY,
+                                     RATIO_KEY_MODEL_RATE)
+from gpd_jax.metrics import VARIANTS, reduce_agent_metrics, reduce_map_metrics
+from gpd_jax.spec import EvalError, ModelSpec
+from gpd_jax.tasks import generated
+
+
+# ------------------------------------------------------------------------------------------------ reduce
+def other_variant(variant: str) -> str:
+    """The metric variant that is not `variant`."""
+    return VARIANTS[1 - VARIANTS.index(variant)]
+
+
+def _agent_entries(red: dict[str, dict[str, dict[str, float]]], label: str, groups: Sequence[str],
+                   variant: str) -> dict[str, float]:
+    other = other_variant(variant)
+    d = {}
+    for g in groups:
+        for n in AGENT_METRICS:
+            d[f"{g}_{n}"] = red[variant][label][f"{g}_{n}"]
+    for g in groups:
+        for n in AGENT_METRICS:
+            d[f"{g}_{n}_{other}"] = red[other][label][f"{g}_{n}"]
+    return d
+
+
+def _map_entries(sums: dict[str, np.ndarray], h: int, variant: str) -> dict[str, float]:
+    r = reduce_map_metrics({k: v[:h] for k, v in sums.items()})
+    d = {k: r[k] for k in MAP_METRICS}
+    cham = {"paper": r["map_chamfer"], "corrected": r["map_chamfer_corrected"]}
+    d["map_chamfer"] = cham[variant]
+    d[f"map_chamfer_{other_variant(variant)}"] = cham[other_variant(variant)]
+    d["map_chamfer_corrected_skipped"] = r["map_chamfer_corrected_skipped"]
+    return d
+
+
+def reduce_results(acc: dict[str, Any], spec: ModelSpec, task_names: Sequence[str], variant: str = "paper"
+                   ) -> dict[str, Any]:
+    """Accumulated sums -> {"tasks": {task: {label: metrics}}, "baselines": {...}, "ratios": {...}}.
+
+    Metrics a task does not generate are omitted; NaN where nothing was scored.
+    """
+    if variant not in VARIANTS:
+        raise EvalError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    labels = spec.labels
+    res: dict[str, Any] = {"tasks": {}, "baselines": {}}
+    for name in task_names:
+        s = acc["tasks"][name]
+        red = {v: reduce_agent_metrics(s[v]) for v in VARIANTS}
+        groups = [g for g in ("ego", "agent") if g in generated(name)]
+        res["tasks"][name] = {}
+        for label, h in zip(labels, spec.horizons):
+            d = _agent_entries(red, label, groups, variant)
+            if "map" in generated(name) and "map" in s:
+                d.update(_map_entries(s["map"], h, variant))
+            res["tasks"][name][label] = d
+    for name in BASELINE_NAMES:
+        red = {v: reduce_agent_metrics(acc["baselines"][name][v]) for v in VARIANTS}
+        res["baselines"][name] = {label: _agent_entries(red, label, ("ego", "agent"), variant) for label in labels}
+    for name in MAP_BASELINES:
+        if name in acc["baselines"]:
+            s = acc["baselines"][name]["map"]
+            res["baselines"][name] = {label: _map_entries(s, h, variant) for label, h in zip(labels, spec.horizons)}
+    res["ratios"] = {}
+    if "traffic_simulation" in res["tasks"]:
+        ts = res["tasks"]["traffic_simulation"]
+        for key, base in ((RATIO_KEY, "constant_velocity"), (RATIO_KEY_MODEL_RATE, "constant_velocity_model_rate")):
+            cv = res["baselines"][base]
+            res["ratios"][key] = {label: _ratio(ts[label]["agent_ade"], cv[label]["agent_ade"]) for label in labels}
+    return res
+
+
+def _ratio(a: float, b: float) -> float:
+    if not (math.isfinite(a) and math.isfinite(b)) or b == 0:
+        return float("nan")
+    return a / b

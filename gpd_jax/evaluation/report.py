@@ -1,0 +1,91 @@
+"""Plain-text tables shaped like the paper's (Table 1: trajectories and map; Table 2: map prediction) and strict
+JSON of the results."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from gpd_jax.evaluation.keys import (BASELINE_NAMES, MAP_PERSISTENCE, RATIO_KEY, RATIO_KEY_MODEL_RATE, RATIO_TARGETS,
+                                     TOKENIZER_CEILING)
+from gpd_jax.evaluation.reduce import other_variant
+from gpd_jax.tasks import generated
+
+
+# ------------------------------------------------------------------------------------------------ tables
+def _fmt(v) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
+
+
+def _title(name: str) -> str:
+    return name.replace("_", " ")
+
+
+def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
+    """Plain-text tables shaped like the paper's Table 1 (trajectories + map, tasks and baselines) and Table 2
+    (map prediction), plus the traffic-simulation / constant-velocity ADE ratio line."""
+    cols1 = [("ego ADE", "ego_ade"), ("ego FDE", "ego_fde"), ("ego Col%", "ego_collision"),
+             ("ag ADE", "agent_ade"), ("ag FDE", "agent_fde"), ("ag Col%", "agent_collision"),
+             ("map F1", "map_f1"), ("map Lat", "map_lateral"), ("map Ch", "map_chamfer")]
+    cols2 = [("F1", "map_f1"), ("Prec", "map_precision"), ("Rec", "map_recall"), ("Lat", "map_lateral"),
+             ("Ch", "map_chamfer"), ({"paper": "Ch paper", "corrected": "Ch corr"}[other_variant(variant)], f"map_chamfer_{other_variant(variant)}")]
+
+    def table(title, rows: list[tuple[str, dict]], cols) -> list[str]:
+        w0 = max([8] + [len(r) for r, _ in rows]) + 2
+        head = "".join(f"{c:>9}" for c, _ in cols)
+        lines = [title, f"{'':<{w0}}{head}", "-" * (w0 + len(head))]
+        for r, d in rows:
+            lines.append(f"{r:<{w0}}" + "".join(f"{_fmt(d.get(k)) if d is not None else '':>9}" for _, k in cols))
+        return lines
+
+    tasks, base = results["tasks"], results["baselines"]
+    traj = [n for n in tasks if any(g in generated(n) for g in ("ego", "agent"))]
+    maps = [n for n in tasks if generated(n) == ("map",)]
+    labels = list(base[BASELINE_NAMES[0]].keys())
+    rows1: list[tuple[str, Any]] = []
+    for n in traj:
+        rows1.append((_title(n) + ":", None))
+        rows1 += [(f"  {lb}", tasks[n][lb]) for lb in labels]
+    for n in BASELINE_NAMES:
+        rows1.append((_title(n) + " (baseline):", None))
+        rows1 += [(f"  {lb}", base[n][lb]) for lb in labels]
+    out = table(f"Table 1 - trajectories and map ({variant} metrics; ADE/FDE m, collisions %, Ch m^2 paper / m "
+                f"corrected)", rows1, cols1)
+    if maps:
+        rows2: list[tuple[str, Any]] = []
+        for n in maps:
+            rows2.append((_title(n) + ":", None))
+            rows2 += [(f"  {lb}", tasks[n][lb]) for lb in labels]
+        for name, title in ((TOKENIZER_CEILING, "logged tokens decoded (tokenizer ceiling):"),
+                            (MAP_PERSISTENCE, "current lanes carried forward (map persistence):")):
+            if name in base:
+                rows2.append((title, None))
+                rows2 += [(f"  {lb}", base[name][lb]) for lb in labels]
+        out += [""] + table(f"Table 2 - map prediction ({variant} Chamfer in 'Ch')", rows2, cols2)
+    for key, what in ((RATIO_KEY, "constant velocity (stored rate)"),
+                      (RATIO_KEY_MODEL_RATE, "constant velocity (model rate)")):
+        ratio = results.get("ratios", {}).get(key)
+        if ratio:
+            parts = [f"{lb} {_fmt(v)} (target <= {RATIO_TARGETS.get(lb, float('nan')):g})" for lb, v in ratio.items()]
+            out += [f"traffic simulation agent ADE / {what} agent ADE: " + ", ".join(parts)]
+    return "\n".join(out)
+
+
+def to_json_compatible(x):
+    """NaN / inf -> None, numpy scalars -> Python numbers, tuples -> lists (for strict JSON)."""
+    if isinstance(x, dict):
+        return {str(k): to_json_compatible(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [to_json_compatible(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        x = float(x)
+        return x if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x

@@ -1,0 +1,77 @@
+"""Validation during stage-2 training: the loss over fixed batches and `traffic_simulation` rollouts of the first
+validation scenes, scored (agent ADE / FDE at 3 / 5 / 8 s, agents valid at the current frame) against constant
+velocity computed at the stored frame rate, as `gpd_jax.evaluate` scores it."""
+
+from __future__ import annotations
+
+import jax
+
+from gpd_jax.checkpoint import model_spec
+from gpd_jax.data import loader as data_loader
+from gpd_jax.decoding import rollout_jit
+from gpd_jax.evaluation.scoring import baseline_predictions
+from gpd_jax.metrics import agents as agent_metrics_lib
+from gpd_jax.spec import EvalError, spec_from_config
+from gpd_jax.tasks import make_tasks
+
+
+class Validator:
+    """Validation loss over fixed batches and traffic-simulation rollouts scored against constant velocity."""
+
+    def __init__(self, config, data_dir: str, trainer):
+        tc, m = config.train, config.model
+        self.config, self.trainer = config, trainer
+        view_spec = model_spec(config)
+        split = config.data.val_split
+        n_val = len(data_loader.SplitSource(data_dir, split))
+        bs = int(tc.batch_size)
+        n_batches = min(int(tc.eval_batches), n_val // bs)
+        self.loss_batches = []
+        if n_batches:
+            it = data_loader.make_loader(data_dir, split, bs, seed=12345, num_epochs=1, num_threads=2, prefetch=0)
+            for _ in range(n_batches):
+                self.loss_batches.append(view_spec.view(next(it)))
+            it.close()
+        n_roll = min(int(tc.eval_rollout_scenarios), n_val)
+        try:
+            self.spec, _ = spec_from_config(config)
+        except EvalError as e:
+            print(f"validation rollouts off: {e}")
+            n_roll = 0
+        self.scenes = data_loader.load_split(data_dir, split, indices=range(n_roll)) if n_roll else None
+        if self.scenes is not None:
+            self.view = view_spec.view(self.scenes)
+            # Constant velocity from the stored frame rate, as rollout.py scores it; fixed, so scored once here.
+            cv_xy, cv_heading, _ = baseline_predictions(self.scenes, self.spec)["constant_velocity"]
+            self.cv_scores = self._score(cv_xy, cv_heading)
+            self.tasks = make_tasks(["traffic_simulation"], int(m.num_map_tokens), int(m.num_agents))
+
+    def _score(self, xy, heading) -> dict[str, float]:
+        v, spec = self.view, self.spec
+        sums = agent_metrics_lib.agent_metric_sums(
+            xy, heading, v.xy, v.valid, v.size, num_history=spec.num_history, eval_mask=v.valid[:, spec.current],
+            horizons=spec.horizons, variant="corrected", dt=spec.frame_period_s)
+        red = agent_metrics_lib.reduce_agent_metrics(sums)
+        return {f"{k}_{hl}": val for hl, d in red.items() for k, val in d.items()
+                if k in ("agent_ade", "agent_fde", "ego_ade", "agent_collision")}
+
+    def __call__(self, params, step: int) -> dict[str, float]:
+        out: dict[str, float] = {}
+        if self.loss_batches:
+            acc: dict[str, float] = {}
+            for b in self.loss_batches:
+                parts = jax.device_get(self.trainer.eval_step(params, b))
+                for k, v in parts.items():
+                    acc[k] = acc.get(k, 0.0) + float(v) / len(self.loss_batches)
+            out.update(acc)
+        if self.scenes is not None:
+            pred = rollout_jit(self.trainer.graphdef, params, self.trainer.rest, self.view, self.tasks,
+                               jax.random.key(step), self.spec.num_history, float(self.config.rollout.temperature))
+            pred = jax.tree.map(lambda x: x[:, 0], pred)  # the one task
+            model, cv = self._score(pred.xy, pred.heading), self.cv_scores
+            for k, v in model.items():
+                out[f"rollout_{k}"] = v
+                out[f"cv_{k}"] = cv[k]
+                if k.startswith("agent_ade") and cv[k] > 0:
+                    out[f"rollout_{k}_vs_cv"] = v / cv[k]
+        return out

@@ -1,0 +1,129 @@
+"""The public API (`import gpd_jax`): the shipped model on a small store, shapes, one compile, agreement with the
+store-driven evaluation, a gradient through the pure rollout function, and the examples as users run them."""
+
+import os
+import subprocess
+import sys
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import gpd_jax
+from data_fixtures import write_small_store
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TASKS = ["traffic_simulation", "scene_generation"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("api_store"))
+    write_small_store(path, n_shards=2, per_shard=2, split="test")
+    return path
+
+
+@pytest.fixture(scope="module")
+def model():
+    return gpd_jax.load_model()
+
+
+@pytest.fixture(scope="module")
+def scenes(store):
+    return gpd_jax.load_scenes(store, "test")
+
+
+def test_public_names_are_curated():
+    assert set(gpd_jax.__all__) >= {"load_model", "load_scenes", "build_scenes", "rollout", "make_rollout_fn",
+                                    "evaluate", "metrics", "render", "Model", "Scene", "Task", "prepare"}
+    for name in gpd_jax.__all__:
+        assert hasattr(gpd_jax, name), name
+
+
+def test_a_dozen_lines_roll_out_and_score_four_scenes(model, scenes):
+    assert scenes.xy.shape[0] == 4 and scenes.polylines is not None
+    out = gpd_jax.rollout(model, scenes, TASKS, jax.random.key(0))
+    s = model.spec
+    chex.assert_shape(out.xy, (4, 2, s.num_frames, s.num_agents, 2))
+    chex.assert_shape(out.map_tokens, (4, 2, s.num_frames, s.num_map_tokens))
+    results = gpd_jax.evaluate(model, scenes, tasks=TASKS)
+    ade = results["tasks"]["traffic_simulation"]["3s"]["agent_ade"]
+    assert np.isfinite(ade) and ade >= 0
+    assert results["scenarios"] == 4 and set(results["tasks"]) == set(TASKS)
+
+
+def test_in_memory_scenes_score_as_the_store_does(model, scenes, store):
+    from_scenes = gpd_jax.evaluate(model, scenes, tasks=TASKS)
+    from_store = gpd_jax.evaluate(model, store, tasks=TASKS)
+    assert from_scenes["tasks"] == from_store["tasks"]
+    assert from_scenes["baselines"] == from_store["baselines"]
+
+
+def test_one_scene_one_task_drop_their_axes_and_match_the_batch(model, scenes):
+    batch = gpd_jax.rollout(model, scenes, TASKS, jax.random.key(0))
+    one = gpd_jax.rollout(model, jax.tree.map(lambda x: x[2], scenes), "scene_generation", jax.random.key(0))
+    chex.assert_shape(one.xy, batch.xy.shape[2:])
+    np.testing.assert_allclose(one.xy, batch.xy[2, 1], rtol=1e-4, atol=1e-4 * float(jnp.abs(batch.xy).max()))
+    np.testing.assert_array_equal(one.map_tokens, batch.map_tokens[2, 1])
+
+
+def test_rollout_compiles_once_per_shape(model, scenes):
+    from gpd_jax.decoding import rollout_jit
+
+    gpd_jax.rollout(model, scenes, TASKS, jax.random.key(1))
+    before = rollout_jit._cache_size()
+    gpd_jax.rollout(model, scenes, TASKS[::-1], jax.random.key(2))  # other tasks, same shapes
+    other = model.replace(params=jax.tree.map(lambda p: p * 1.01, model.params))  # other parameters
+    gpd_jax.rollout(other, scenes, TASKS, jax.random.key(3))
+    assert rollout_jit._cache_size() == before
+
+
+def test_make_rollout_fn_is_pure_jittable_and_traced_once(model, scenes):
+    view = gpd_jax.prepare(model, scenes)
+    tasks = gpd_jax.make_tasks(model, TASKS)
+    fn = jax.jit(chex.assert_max_traces(gpd_jax.make_rollout_fn(model), n=1))
+    a = fn(model.params, view, tasks, jax.random.key(0))
+    b = fn(jax.tree.map(lambda p: p + 0.0, model.params), view, tasks, jax.random.key(5))
+    ref = gpd_jax.rollout(model, scenes, TASKS, jax.random.key(0))
+    np.testing.assert_array_equal(a.map_tokens, b.map_tokens)  # greedy: the key does not matter
+    np.testing.assert_allclose(a.xy, ref.xy, rtol=1e-4, atol=1e-4 * float(jnp.abs(ref.xy).max()))
+
+
+def test_grad_of_a_rollout_wrt_parameters_is_finite(model, scenes):
+    view = gpd_jax.prepare(model, jax.tree.map(lambda x: x[:1], scenes))
+    tasks = gpd_jax.make_tasks(model, "traffic_simulation")
+    fn = gpd_jax.make_rollout_fn(model, method="recompute")
+    h = model.spec.num_history
+
+    def final_spread(params):
+        out = fn(params, view, tasks, jax.random.key(0))
+        return jnp.sum(jnp.where(view.valid[0, h - 1, :, None], out.xy[0, 0, -1] - view.xy[0, h - 1], 0.0) ** 2)
+
+    loss, grads = jax.value_and_grad(final_spread)(model.params)
+    leaves = jax.tree.leaves(grads)
+    assert np.isfinite(float(loss))
+    assert all(np.all(np.isfinite(g)) for g in leaves)
+    assert sum(float(jnp.sum(jnp.abs(g))) for g in leaves) > 0
+
+
+def test_make_rollout_fn_names_a_bad_method(model):
+    with pytest.raises(ValueError, match="method"):
+        gpd_jax.make_rollout_fn(model, method="fast")
+
+
+@pytest.mark.parametrize("example", ["quickstart.py", "functional.py"])
+def test_examples_run(example, store, tmp_path):
+    args = [sys.executable, os.path.join(ROOT, "examples", example), "--data", store]
+    if example == "quickstart.py":
+        args += ["--scenes", "2", "--out", str(tmp_path / "pictures")]
+    else:
+        args += ["--shifts=-1,1"]
+    res = subprocess.run(args, cwd=str(tmp_path), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    if example == "quickstart.py":
+        assert "traffic_simulation 3s" in res.stdout.replace("  ", " ")
+        assert any(f.endswith(".gif") for f in os.listdir(tmp_path / "pictures"))
+    else:
+        assert "gradient norm" in res.stdout
