@@ -65,7 +65,7 @@ def get_config() -> ml_collections.ConfigDict:
     t.checkpoint_every = 500
     t.keep_checkpoints = 2
     t.loader_threads = 4
-    t.rollout_passes = 0        # >0: future frames' agent inputs are the model's own predictions (train_lib)
+    t.rollout_passes = 0        # >0: future frames' agent inputs are the model's own predictions (training/step.py)
     t.map_feedback = 0.0        # with rollout_passes: fraction of each batch whose future map tokens are own too
     t.init_from = ""            # exported model or workdir whose parameters start a new run (fine-tuning)
 
