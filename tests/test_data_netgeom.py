@@ -34,11 +34,11 @@ def test_generated_networks_differ_between_seeds_in_every_layout(tmp_path):
 
 
 def test_same_spec_without_perturbation_is_a_near_duplicate(tmp_path):
-    """What the seed-drawn shapes and the perturbation prevent: netgenerate ignores --seed for grids."""
+    """What the seed-drawn shapes, jitter and perturbation prevent: netgenerate ignores --seed for grids."""
     base = sumo.random_net_spec(3, "grid")
     fps = []
     for seed in (3, 4):
-        spec = sumo.NetSpec(**{**base.__dict__, "seed": seed, "perturb": 0.0})
+        spec = sumo.NetSpec(**{**base.__dict__, "seed": seed, "perturb": 0.0, "jitter": 0.0})
         fps.append(netgeom.fingerprint_network(sumo.generate_network(spec, str(tmp_path / f"g{seed}.net.xml"))))
     assert netgeom.geometry_distance(*fps) < 0.1
     assert len(netgeom.near_duplicates(fps[:1], fps[1:])) == 1

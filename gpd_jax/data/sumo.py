@@ -85,9 +85,16 @@ class NetSpec:
 
     netgenerate ignores `--seed` for grid and spider layouts, so two specs with equal sizes would give the same
     network. Every spec therefore also carries seed-drawn shape parameters (junction counts per axis, street
-    lengths per axis, arm and circle counts) and `perturb`, the standard deviation (metres) of netgenerate's own
-    random node perturbation (`--perturb-x/-y`, a normal cut at 2 sigma, drawn from `--seed`), so that two
-    seeds never give the same roads (`gpd_jax.data.netgeom` checks it).
+    lengths per axis, arm and circle counts), `jitter` and `perturb`, so that two seeds never give the same roads
+    (`gpd_jax.data.netgeom` checks it; node noise alone is not enough: two spiders with the same arm and circle
+    counts and 10-20 m of node noise measured only ~4 m apart):
+
+    * grid / spider: netgenerate's regular network is rewritten before netconvert builds it: every column and
+      row gap of a grid (every ring gap and arm angle of a spider) is scaled by its own factor in
+      [1 - jitter, 1 + jitter], then every node gets normal noise of `perturb` metres cut at 2 sigma, all drawn
+      from `seed`;
+    * random: netgenerate's own node perturbation (`--perturb-x/-y`, sigma `perturb`, cut at 2 sigma) on top
+      of its seeded random network.
     """
 
     layout: str  # "grid" | "spider" | "random"
@@ -100,6 +107,7 @@ class NetSpec:
     size2: int = 0  # junctions along y (grid), circles (spider)
     spacing2: float = 0.0  # street length along y (grid), max edge length (random)
     perturb: float = 0.0  # sigma in metres of the random node perturbation
+    jitter: float = 0.0  # grid / spider: relative spread of the gaps between rows / columns / rings and arms
     connectivity: float = 0.95  # random: probability that a road continues at a node
 
 
@@ -122,20 +130,28 @@ def random_net_spec(seed: int, layout: str | None = None) -> NetSpec:
     if layout == "grid":
         lx, ly = float(rng.uniform(120, 220)), float(rng.uniform(120, 220))
         return NetSpec(layout, lanes, junction, speed, seed31, int(rng.integers(3, 7)), lx,
-                       size2=int(rng.integers(3, 7)), spacing2=ly, perturb=float(rng.uniform(0.1, 0.15)) * min(lx, ly))
+                       size2=int(rng.integers(3, 7)), spacing2=ly, perturb=float(rng.uniform(0.05, 0.08)) * min(lx, ly),
+                       jitter=float(rng.uniform(0.25, 0.4)))
     r = float(rng.uniform(90, 160))
-    return NetSpec(layout, lanes, junction, speed, seed31, int(rng.integers(3, 8)), r,
-                   size2=int(rng.integers(2, 5)), perturb=float(rng.uniform(0.1, 0.15)) * r)
+    # 4-7 arms, 3-4 rings: smaller spiders (two rings of a pentagon) leave too little to vary
+    return NetSpec(layout, lanes, junction, speed, seed31, int(rng.integers(4, 8)), r,
+                   size2=int(rng.integers(3, 5)), perturb=float(rng.uniform(0.05, 0.08)) * r,
+                   jitter=float(rng.uniform(0.3, 0.45)))
 
 
 def generate_network(spec: NetSpec, out_path: str) -> str:
     """Runs netgenerate for `spec`, writing `out_path` (.net.xml, or .net.xml.gz compressed). Returns the path."""
     flag = {"random": "rand", "rand": "rand"}.get(spec.layout, spec.layout)
-    args = [_bin("netgenerate"), f"--{flag}", "--seed", str(spec.seed), "-o", out_path,
-            "--no-turnarounds", "true", "--default.lanenumber", str(spec.lanes),
-            "--default.speed", f"{spec.speed:.2f}", "--junctions.join", "false", "--no-warnings", "true",
-            "--tls.default-type", "actuated"]
-    if spec.perturb > 0:
+    rewrite = flag in ("grid", "spider") and (spec.jitter > 0 or spec.perturb > 0)
+    common = ["--no-turnarounds", "true", "--junctions.join", "false", "--no-warnings", "true",
+              "--tls.default-type", "actuated"]
+    plain = tempfile.mkdtemp(prefix="gpd_net_", dir=os.path.dirname(os.path.abspath(out_path))) if rewrite else None
+    args = [_bin("netgenerate"), f"--{flag}", "--seed", str(spec.seed), "-o",
+            os.path.join(plain, "regular.net.xml") if rewrite else out_path,
+            "--default.lanenumber", str(spec.lanes), "--default.speed", f"{spec.speed:.2f}", *common]
+    if rewrite:
+        args += ["--plain-output-prefix", os.path.join(plain, "p")]
+    if spec.perturb > 0 and not rewrite:
         s = spec.perturb
         args += ["--perturb-x", f"normc(0,{s:.2f},{-2 * s:.2f},{2 * s:.2f})",
                  "--perturb-y", f"normc(0,{s:.2f},{-2 * s:.2f},{2 * s:.2f})"]
@@ -159,8 +175,61 @@ def generate_network(spec: NetSpec, out_path: str) -> str:
         args += ["--spider.arm-number", str(spec.size), "--spider.circle-number", str(spec.size2 or 3),
                  "--spider.space-radius", f"{spec.spacing:.1f}", "--spider.omit-center", "true"]
     env = dict(os.environ, SUMO_HOME=sumo_home())  # else netgenerate warns that it cannot validate XML
-    _run(args, what=f"netgenerate {spec}", env=env)
+    try:
+        _run(args, what=f"netgenerate {spec}", env=env)
+        if rewrite:
+            nod = os.path.join(plain, "p.nod.xml")
+            with open(nod) as f:
+                text = f.read()
+            with open(nod, "w") as f:
+                f.write(_jitter_nodes(text, spec))
+            _run([_bin("netconvert"), "--node-files", nod, "--edge-files", os.path.join(plain, "p.edg.xml"),
+                  "-o", out_path, *common] + (["--tls.guess", "true"] if spec.junction == "mixed" else []),
+                 what=f"netconvert {spec}", env=env)
+    finally:
+        if plain:
+            import shutil
+            shutil.rmtree(plain, ignore_errors=True)
     return out_path
+
+
+_NODE_XY = re.compile(r'(<node [^>]*?\bx=")([-\d.]+)("[^>]*?\by=")([-\d.]+)(")')
+
+
+def _jitter_nodes(nod_text: str, spec: NetSpec) -> str:
+    """netgenerate's plain nodes of a regular grid / spider with the gaps and angles of `spec` made irregular
+    (see `NetSpec`); deterministic in `spec.seed`."""
+    rng = np.random.default_rng([spec.seed, 13])
+    m = list(_NODE_XY.finditer(nod_text))
+    xy = np.array([[float(a.group(2)), float(a.group(4))] for a in m])
+    if len(xy) == 0:
+        raise RuntimeError(f"netgenerate wrote no nodes for {spec}")
+    j = spec.jitter
+
+    def remap(v):  # sorted distinct coordinates -> the same count with gaps scaled by [1 - j, 1 + j]
+        u = np.unique(np.round(v, 2))
+        gaps = np.diff(u) * rng.uniform(1 - j, 1 + j, len(u) - 1)
+        new = u[0] + np.concatenate([[0.0], np.cumsum(gaps)])
+        return new[np.searchsorted(u, np.round(v, 2))]
+
+    if spec.layout == "grid":
+        new = np.stack([remap(xy[:, 0]), remap(xy[:, 1])], -1)
+    else:
+        c = xy.mean(0)
+        d = xy - c
+        r, th = np.hypot(d[:, 0], d[:, 1]), np.arctan2(d[:, 1], d[:, 0])
+        step = 2 * np.pi / spec.size
+        arm = np.rint(th / step).astype(np.int64) % spec.size
+        ang = np.arange(spec.size) * step + rng.uniform(-j, j, spec.size) * step / 2 + rng.uniform(0, 2 * np.pi)
+        r_new = remap(np.concatenate([[0.0], r]))[1:]  # ring gaps, from the centre
+        new = c + np.stack([r_new * np.cos(ang[arm]), r_new * np.sin(ang[arm])], -1)
+    if spec.perturb > 0:
+        new = new + np.clip(rng.normal(0.0, spec.perturb, new.shape), -2 * spec.perturb, 2 * spec.perturb)
+    out, k = [], 0
+    for a, (x, y) in zip(m, new):
+        out += [nod_text[k:a.start()], f"{a.group(1)}{x:.2f}{a.group(3)}{y:.2f}{a.group(5)}"]
+        k = a.end()
+    return "".join(out) + nod_text[k:]
 
 
 def _run(args: list[str], what: str, timeout: float = 600, env: dict | None = None) -> str:
