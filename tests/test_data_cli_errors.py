@@ -48,8 +48,9 @@ def test_nuplan_wrong_db_leaves_no_settings_and_retry_works(tmp_path, capsys):
 
 def test_settings_of_a_build_without_finished_jobs_are_replaced(tmp_path):
     out = str(tmp_path / "o")
-    build._check_settings(out, {"source": "sumo", "seed": 0})
-    build._check_settings(out, {"source": "sumo", "seed": 1})  # nothing finished: replaced, no error
+    assert build._check_settings(out, {"source": "sumo", "seed": 0}) is False  # recorded
+    assert build._check_settings(out, {"source": "sumo", "seed": 1}) is True  # nothing finished: replaced
+    assert build._check_settings(out, {"source": "sumo", "seed": 1}) is False  # the same: resumed
     build.store.atomic_write_json(build._job_marker(out, 0), {"index": 0})
     with pytest.raises(DataError, match="differing: seed"):
         build._check_settings(out, {"source": "sumo", "seed": 2})

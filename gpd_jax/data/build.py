@@ -413,7 +413,8 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                 "per_job": per_job, "sample_config": dataclasses.asdict(sample_cfg),
                 "sim_config": dataclasses.asdict(sim_cfg) if sim_cfg else None,
                 "netgen_version": None if nets else NETGEN_VERSION, "net_layout": net_layout if nets else None}
-    _check_settings(out_dir, settings)
+    if _check_settings(out_dir, settings):  # an abandoned start with other settings: its networks go too
+        shutil.rmtree(netgeom.networks_dir(out_dir), ignore_errors=True)
     jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout)
     index = prepare_networks(jobs, out_dir, workers)
     dups, dup_summary = check_near_duplicates(out_dir, index, against, near_duplicate_tol)
@@ -436,11 +437,11 @@ def default_sumo_sample_config() -> preprocess.SampleConfig:
     return preprocess.SampleConfig(min_neighbours=6, min_ego_travel=30.0, reject_overlaps=True)
 
 
-def _check_settings(out_dir: str, settings: dict) -> None:
+def _check_settings(out_dir: str, settings: dict) -> bool:
     """Records a build's settings in DIR/_jobs/settings.json, or checks them against those recorded there.
 
     Call it only once the inputs are validated. Settings of a build that finished no job are replaced;
-    otherwise other settings raise DataError saying how to go on."""
+    otherwise other settings raise DataError saying how to go on. Returns True when settings were replaced."""
     from gpd_jax.data.errors import DataError
 
     p = os.path.join(out_dir, "_jobs", "settings.json")
@@ -457,8 +458,11 @@ def _check_settings(out_dir: str, settings: dict) -> None:
                                      f"Run the same command as before to resume it, use another --out, or delete "
                                      f"{out_dir} to start again")
         if old == json.loads(json.dumps(settings)):
-            return
+            return False
+        store.atomic_write_json(p, settings)
+        return True
     store.atomic_write_json(p, settings)
+    return False
 
 
 def overlap_gate_summary(stats: dict, reject_overlaps: bool) -> dict:
