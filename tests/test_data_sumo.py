@@ -88,6 +88,10 @@ def test_real_networks_listed_and_built_as_an_ungated_test_split(tmp_path):
     assert not gate["enabled"] and gate["windows_removed"] == 0 and gate["windows_checked"] == man["num_samples"]
     assert 0 <= gate["windows_with_overlaps"] <= gate["windows_checked"]
     assert store.sample_layouts(out, "test") == ["real"] * man["num_samples"]
+    from gpd_jax.data import inspection
+
+    s = inspection.inspect(out, with_lanes=False)
+    assert s["samples_per_layout"] == {"real": {"test": man["num_samples"]}} and s["overlap_gate"] == gate
 
 
 def test_teleported_tracks_are_dropped():

@@ -94,6 +94,7 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
     lane_counts = []
     total = _Figures()
     per_source: dict[str, _Figures] = {}
+    per_layout: dict[str, dict[str, int]] = {}  # SUMO shards: network layout -> split -> samples
     with_tokens = 0
     for split in store.list_splits(data_dir):
         count = 0
@@ -104,6 +105,9 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
             with_tokens += sh.num_samples if sh.map_tokens is not None else 0
             total.add(a)
             per_source.setdefault(shard_source(sh.meta, build.get("source")), _Figures()).add(a)
+            if sh.meta.get("layout"):
+                row = per_layout.setdefault(sh.meta["layout"], {})
+                row[split] = row.get(split, 0) + sh.num_samples
             if with_lanes:
                 for k in range(sh.num_samples):
                     _, lv = lanes_lib.vector_lanes_frames(a["polylines"][k], a["polyline_valid"][k], a["ego_pose"][k])
@@ -125,6 +129,9 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
                                 for s, v in man.get("splits", {}).items()},
         "build_stats": build.get("stats"),
         "per_source": {src: f.summary() for src, f in sorted(per_source.items())},
+        "samples_per_layout": dict(sorted(per_layout.items())),
+        "overlap_gate": build.get("overlap_gate"),
+        "near_duplicates": build.get("near_duplicates"),
     }
     if with_lanes:
         lc = np.concatenate(lane_counts)
@@ -141,6 +148,14 @@ def format_summary(s: dict) -> str:
         v = s.get(k)
         lines.append(f"  {k:24s} {v:.3f}" if isinstance(v, float) else f"  {k:24s} {v}")
     lines.append(f"  agent types              {s['agent_types']}")
+    if s.get("samples_per_layout"):
+        lines.append(f"  samples per layout       {s['samples_per_layout']}")
+    if s.get("overlap_gate"):
+        g = s["overlap_gate"]
+        lines.append(f"  windows with overlaps    {g['windows_with_overlaps']} of {g['windows_checked']} "
+                     f"({'removed' if g['enabled'] else 'kept'})")
+    if s.get("near_duplicates") is not None:
+        lines.append(f"  near-duplicate networks  {len(s['near_duplicates'])}")
     for src, f in s.get("per_source", {}).items():
         lines.append(f"  [{src}] {f['scenarios']} scenarios")
         for k in ("agents_per_frame_mean", "agents_per_frame_max", "stationary_fraction", "speed_mps_p50",
