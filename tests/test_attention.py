@@ -73,7 +73,7 @@ def test_native_kernel_equals_xla_at_model_sizes(dh):
 def test_native_kernel_falls_back_when_it_cannot_build(monkeypatch):
     """A failed build warns and leaves "auto" on the XLA path (same results); "native" is then an error, as
     is an unknown kernel name; GPD_JAX_NATIVE=0 disables the kernel."""
-    def broken_build():
+    def broken_build(*args, **kwargs):
         raise RuntimeError("no C++ compiler found")
 
     monkeypatch.setattr(native, "build", broken_build)

@@ -3,11 +3,16 @@
 // Why: in the KV-cached rollout, attention of one frame's queries against the filled cache is almost all of
 // the work, and XLA:CPU cannot fuse a dot with a softmax: it writes every score block to memory, reads it
 // back for the max, again for the exponentials, and runs those elementwise passes on one thread. This kernel
-// transposes each 128-key block once into L1, keeps one query's 128 scores and its output accumulator in
-// vector registers, uses an online softmax, and spreads (scenario, head) work items over XLA's intra-op
-// thread pool.
+// transposes each block of kKeyBlock keys once into L1, computes a [kQueryTile x block] score tile in vector
+// registers, runs an online softmax on it in L1 and accumulates the output tile in registers; (scenario, head,
+// query range) work items are spread over XLA's intra-op thread pool.
 //
-// Semantics (identical to gpd_jax.attention.attend_dynamic): query i of a scenario sees key positions
+// Vectors are the target's native width (W floats: 16 with AVX-512, 8 with AVX2, 4 with SSE or NEON), chosen
+// at compile time. An earlier version used 16-float vectors everywhere: on AVX2 GCC splits such vectors for
+// arithmetic but lowers their compares and selects lane by lane into scalar code, which made the kernel ten
+// times slower than XLA there. Register tiles are sized so the accumulators fit in 16 vector registers.
+//
+// Semantics (identical to gpd_jax.model.attention.attend_dynamic): query i of a scenario sees key positions
 // p < min((q_frame[i] + 1) * tokens_per_frame, num_chunks * chunk_len, S), i.e. its own and earlier frames,
 // within the filled chunks. Queries are pre-scaled by 1/sqrt(Dh).
 //
@@ -16,8 +21,8 @@
 //   -> out f32[B, H, Sq, Dh].
 // Attributes: tokens_per_frame (i64), chunk_len (i64).
 //
-// Built on first use by gpd_jax/native.py with the system C++ compiler (-O3 -march=native); if that fails the
-// pure-XLA path is used instead.
+// Built on first use by gpd_jax/model/native.py with the system C++ compiler (-O3 -march=$GPD_JAX_NATIVE_MARCH,
+// default native); if that fails the pure-XLA path is used instead. GpdAttentionVectorWidth() reports W.
 
 #include <algorithm>
 #include <atomic>
@@ -35,50 +40,70 @@ namespace ffi = xla::ffi;
 
 namespace {
 
-constexpr int kKeyBlock = 128;  // keys per block: the transposed [Dh, 128] key tile stays in L1
+#if defined(__AVX512F__)
+constexpr int W = 16;
+#elif defined(__AVX2__)
+constexpr int W = 8;
+#else
+constexpr int W = 4;  // SSE2 (every x86-64) or NEON: 128-bit vectors
+#endif
 
-// Sixteen floats (one AVX-512 register, two AVX2 or four SSE registers: GCC/Clang vector extensions, so the
-// same source builds for any x86-64 or ARM target).
-typedef float v16 __attribute__((vector_size(64)));
-typedef int32_t i16v __attribute__((vector_size(64)));
-typedef float v16u __attribute__((vector_size(64), aligned(4)));  // unaligned loads and stores
-constexpr int kLanes = 16;
-constexpr int kGroups = kKeyBlock / kLanes;
+typedef float vf __attribute__((vector_size(W * 4)));
+typedef int32_t vi __attribute__((vector_size(W * 4)));
+typedef float vfu __attribute__((vector_size(W * 4), aligned(4)));  // unaligned loads and stores
 
-inline float hsum(v16 x) {
+constexpr int kKeyBlock = 64;   // keys per block: the transposed [Dh, 64] key tile stays in L1
+#ifndef GPD_QUERY_TILE
+#define GPD_QUERY_TILE 4
+#endif
+constexpr int kQueryTile = GPD_QUERY_TILE;  // queries per register tile
+constexpr int kKeyVecs = kKeyBlock / W;
+constexpr int kSub = 2;         // key vectors per score sub-tile: kQueryTile * kSub accumulators
+
+// Keeps a loaded vector in a register: without it the compiler folds the load into every FMA that uses it,
+// which doubles the loads of the inner loops and makes them load-bound.
+#if defined(__x86_64__) || defined(__i386__)
+#define GPD_IN_REG(x) __asm__("" : "+x"(x))
+#elif defined(__aarch64__)
+#define GPD_IN_REG(x) __asm__("" : "+w"(x))
+#else
+#define GPD_IN_REG(x) (void)0
+#endif
+
+inline float hsum(vf x) {
   float s = 0.0f;
-  for (int i = 0; i < kLanes; ++i) s += x[i];
+  for (int i = 0; i < W; ++i) s += x[i];
   return s;
 }
 
-inline float hmax(v16 x) {
+inline float hmax(vf x) {
   float m = x[0];
-  for (int i = 1; i < kLanes; ++i) m = x[i] > m ? x[i] : m;
+  for (int i = 1; i < W; ++i) m = std::max(m, x[i]);
   return m;
 }
 
-// exp(x) for x <= 0 (scores minus their running max), lane-wise: 2^(x log2 e) with the fraction in
-// [-0.5, 0.5] and a degree-7 Taylor polynomial (relative error < 1e-7); x < -87 (and -inf) gives exactly 0.
-inline v16 exp_nonpositive(v16 x) {
-  const v16 lo = x < -87.0f ? v16{} - 87.0f : x;  // also maps -inf
-  const v16 t = lo * 1.4426950408889634f;
-  const i16v n = __builtin_convertvector(t + (t < 0.0f ? v16{} - 0.5f : v16{} + 0.5f), i16v);  // round
-  const v16 y = (t - __builtin_convertvector(n, v16)) * 0.6931471805599453f;
-  v16 p = v16{} + 1.0f / 5040.0f;
-  p = p * y + 1.0f / 720.0f;
-  p = p * y + 1.0f / 120.0f;
-  p = p * y + 1.0f / 24.0f;
-  p = p * y + 1.0f / 6.0f;
-  p = p * y + 0.5f;
-  p = p * y + 1.0f;
-  p = p * y + 1.0f;
-  const i16v bits = (n + 127) << 23;
-  v16 scale;
+inline vf splat(float x) { return vf{} + x; }
+
+// 2^t for t <= 0, lane-wise: 2^round(t) (exponent bits) times a degree-5 polynomial for 2^f, f in [-0.5, 0.5]
+// (coefficients fitted for relative error; measured max relative error 2.4e-7). t is clamped at -126, so
+// -inf and anything below gives about 1e-38, never a denormal or garbage; callers zero masked lanes.
+inline vf exp2_nonpositive(vf t) {
+  t = t > -126.0f ? t : splat(-126.0f);
+  const vi n = __builtin_convertvector(t - 0.5f, vi);  // round to nearest: t <= 0 and conversion truncates
+  const vf f = t - __builtin_convertvector(n, vf);
+  vf p = splat(1.327647129073739e-3f);
+  p = p * f + 9.675540961325169e-3f;
+  p = p * f + 5.550713092088699e-2f;
+  p = p * f + 2.4022120237350464e-1f;
+  p = p * f + 6.931469440460205e-1f;
+  p = p * f + 1.0000001192092896f;
+  const vi bits = (n + 127) << 23;
+  vf scale;
   __builtin_memcpy(&scale, &bits, sizeof(scale));
-  return x < -87.0f ? v16{} : p * scale;
+  return p * scale;
 }
 
-inline float exp_nonpositive(float x) { return exp_nonpositive(v16{} + x)[0]; }
+inline float exp2_nonpositive(float t) { return exp2_nonpositive(splat(t))[0]; }
 
 struct Problem {
   const float* q;
@@ -88,13 +113,14 @@ struct Problem {
   const int32_t* num_chunks;
   float* out;
   int64_t heads, sq, s, dh, tokens_per_frame, chunk_len;
+  int64_t query_parts;  // each (scenario, head) item's queries are split into this many work units
 };
 
-// Per-query limits: query i sees keys [0, limit[i]). Returns the largest.
-int64_t Limits(const Problem& pb, int64_t b, std::vector<int64_t>& limit) {
+// Per-query limits: query i sees keys [0, limit[i]). Returns the largest over [i0, i1).
+int64_t Limits(const Problem& pb, int64_t b, int64_t i0, int64_t i1, std::vector<int64_t>& limit) {
   const int64_t filled = std::min<int64_t>(static_cast<int64_t>(pb.num_chunks[b]) * pb.chunk_len, pb.s);
   int64_t max_limit = 0;
-  for (int64_t i = 0; i < pb.sq; ++i) {
+  for (int64_t i = i0; i < i1; ++i) {
     const int64_t f = pb.q_frame[b * pb.sq + i];
     limit[i] = std::max<int64_t>(0, std::min<int64_t>((f + 1) * pb.tokens_per_frame, filled));
     max_limit = std::max(max_limit, limit[i]);
@@ -102,13 +128,16 @@ int64_t Limits(const Problem& pb, int64_t b, std::vector<int64_t>& limit) {
   return max_limit;
 }
 
-// One work item: every query of scenario b, head h (item = b * heads + h). Keys are visited in blocks of
-// kKeyBlock, transposed once per block and shared by all queries; each query keeps an online softmax
-// (running max m, sum l, unnormalized output acc). DH (a multiple of 16) is fixed at compile time so scores
-// and accumulators live in vector registers.
+// Queries [i0, i1) of one (scenario, head) item. Keys are visited in blocks of kKeyBlock, transposed once
+// per block and shared by all these queries; each query keeps an online softmax (running max m, sum l,
+// unnormalized output acc). DH (a multiple of 16, so of W) is fixed at compile time so tiles live in
+// registers.
 template <int DH>
-void RunItem(const Problem& pb, int64_t item) {
-  constexpr int NV = DH / kLanes;
+void RunItem(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
+  constexpr int NV = DH / W;                   // vectors per head row
+  constexpr int CV = NV >= 2 ? 2 : 1;          // output vectors per query in one PV pass
+  constexpr int JU = kQueryTile * CV >= 8 ? 1 : 2;  // independent accumulator sets to hide FMA latency
+  constexpr float kLog2e = 1.4426950408889634f;
   const int64_t b = item / pb.heads;
   const float* __restrict q = pb.q + item * pb.sq * DH;
   const float* __restrict k = pb.k + item * pb.s * DH;
@@ -116,81 +145,170 @@ void RunItem(const Problem& pb, int64_t item) {
   float* __restrict out = pb.out + item * pb.sq * DH;
 
   std::vector<int64_t> limit(pb.sq);
-  const int64_t max_limit = Limits(pb, b, limit);
-  std::vector<v16> kt(static_cast<size_t>(DH) * kGroups);  // [DH][kGroups] transposed key block
-  std::vector<v16> acc(static_cast<size_t>(pb.sq) * NV, v16{});
-  std::vector<float> m(pb.sq, -INFINITY), l(pb.sq, 0.0f);
-  alignas(64) float p[kKeyBlock];
-  v16 lane;
-  for (int i = 0; i < kLanes; ++i) lane[i] = static_cast<float>(i);
+  const int64_t max_limit = Limits(pb, b, i0, i1, limit);
+  const int64_t nq = i1 - i0;
+  const int64_t ntiles = (nq + kQueryTile - 1) / kQueryTile;
+  std::vector<vf> kt(static_cast<size_t>(DH) * kKeyVecs);   // [DH][kKeyBlock] transposed key block
+  std::vector<vf> acc(static_cast<size_t>(ntiles) * kQueryTile * NV, vf{});
+  // queries times log2(e), tile-padded with zeros: scores come out in base 2, so the softmax needs 2^x only
+  std::vector<float> qs(static_cast<size_t>(ntiles) * kQueryTile * DH, 0.0f);
+  for (int64_t i = 0; i < nq * DH; ++i) qs[i] = q[i0 * DH + i] * kLog2e;
+  std::vector<float> m(ntiles * kQueryTile, -INFINITY), l(ntiles * kQueryTile, 0.0f);
+  std::vector<int64_t> lim(ntiles * kQueryTile, 0);
+  for (int64_t i = 0; i < nq; ++i) lim[i] = limit[i0 + i];
+  alignas(64) float p[kQueryTile][kKeyBlock];
+  vf lane;
+  for (int i = 0; i < W; ++i) lane[i] = static_cast<float>(i);
 
   for (int64_t start = 0; start < max_limit; start += kKeyBlock) {
     const int64_t nk = std::min<int64_t>(kKeyBlock, max_limit - start);
     float* ktf = reinterpret_cast<float*>(kt.data());
-    for (int64_t j = 0; j < kKeyBlock; ++j)
-      for (int d = 0; d < DH; ++d) ktf[d * kKeyBlock + j] = j < nk ? k[(start + j) * DH + d] : 0.0f;
+    const float* kb = k + start * DH;
+    for (int64_t j = 0; j < nk; ++j)
+      for (int d = 0; d < DH; ++d) ktf[d * kKeyBlock + j] = kb[j * DH + d];
+    for (int64_t j = nk; j < kKeyBlock; ++j)
+      for (int d = 0; d < DH; ++d) ktf[d * kKeyBlock + j] = 0.0f;
     const float* __restrict vb = v + start * DH;
 
-    for (int64_t i = 0; i < pb.sq; ++i) {
-      const int64_t n = std::min<int64_t>(nk, limit[i] - start);
-      if (n <= 0) continue;
-      const int groups = static_cast<int>((n + kLanes - 1) / kLanes);
-      const float* __restrict qi = q + i * DH;
-      v16 sc[kGroups];
-      for (int g = 0; g < kGroups; ++g) sc[g] = v16{};
-      for (int d = 0; d < DH; ++d) {
-        const float qd = qi[d];
-        const v16* row = kt.data() + d * kGroups;
-        for (int g = 0; g < groups; ++g) sc[g] += qd * row[g];
+    for (int64_t tile = 0; tile < ntiles; ++tile) {
+      const int64_t base = tile * kQueryTile;
+      int64_t n[kQueryTile], nmax = 0;
+      for (int t = 0; t < kQueryTile; ++t) {
+        n[t] = std::min<int64_t>(nk, lim[base + t] - start);
+        nmax = std::max(nmax, n[t]);
       }
-      v16 vmax = v16{} - INFINITY;
-      for (int g = 0; g < groups; ++g) {
-        sc[g] = lane + static_cast<float>(g * kLanes) < static_cast<float>(n) ? sc[g] : v16{} - INFINITY;
-        vmax = sc[g] > vmax ? sc[g] : vmax;
-      }
-      const float m_new = std::max(m[i], hmax(vmax));
-      const float corr = exp_nonpositive(m[i] - m_new);  // m = -inf on the first block: 0
-      v16 vsum = v16{};
-      for (int g = 0; g < groups; ++g) {
-        const v16 e = exp_nonpositive(sc[g] - m_new);
-        vsum += e;
-        *reinterpret_cast<v16*>(p + g * kLanes) = e;
-      }
-      l[i] = l[i] * corr + hsum(vsum);
-      m[i] = m_new;
-      // acc += p @ V over the block, four independent accumulators per output vector to hide FMA latency.
-      for (int c = 0; c < NV; ++c) {
-        v16 a0 = acc[i * NV + c] * corr, a1 = v16{}, a2 = v16{}, a3 = v16{};
-        const float* vc = vb + c * kLanes;
-        int64_t j = 0;
-        for (; j + 4 <= n; j += 4) {
-          a0 += p[j] * *reinterpret_cast<const v16u*>(vc + j * DH);
-          a1 += p[j + 1] * *reinterpret_cast<const v16u*>(vc + (j + 1) * DH);
-          a2 += p[j + 2] * *reinterpret_cast<const v16u*>(vc + (j + 2) * DH);
-          a3 += p[j + 3] * *reinterpret_cast<const v16u*>(vc + (j + 3) * DH);
+      if (nmax <= 0) continue;
+      const float* __restrict qt = qs.data() + base * DH;
+
+      // scores: sub-tiles of kQueryTile queries x (kSub * W) keys held in registers; keys a query cannot see
+      // get -inf; each query's block max is kept in a register
+      const int nsub = static_cast<int>((nmax + kSub * W - 1) / (kSub * W));
+      vf vmax[kQueryTile];
+      for (int t = 0; t < kQueryTile; ++t) vmax[t] = splat(-INFINITY);
+      for (int st = 0; st < nsub; ++st) {
+        const float* qp = qt;
+        __asm__("" : "+r"(qp));  // reload the query scalars in every sub-tile rather than keep 64 broadcasts
+        vf a[kQueryTile][kSub];
+        for (int t = 0; t < kQueryTile; ++t)
+          for (int u = 0; u < kSub; ++u) a[t][u] = vf{};
+#pragma GCC unroll 16
+        for (int d = 0; d < DH; ++d) {
+          const vf* row = kt.data() + d * kKeyVecs + st * kSub;
+          vf kv[kSub];
+          for (int u = 0; u < kSub; ++u) {
+            kv[u] = row[u];
+            GPD_IN_REG(kv[u]);
+          }
+          for (int t = 0; t < kQueryTile; ++t) {
+            const vf qd = splat(qp[t * DH + d]);
+            for (int u = 0; u < kSub; ++u) a[t][u] += qd * kv[u];
+          }
         }
-        for (; j < n; ++j) a0 += p[j] * *reinterpret_cast<const v16u*>(vc + j * DH);
-        acc[i * NV + c] = (a0 + a1) + (a2 + a3);
+        const int64_t end = (st + 1) * kSub * W;
+        for (int t = 0; t < kQueryTile; ++t) {
+          if (n[t] < end) {  // partly visible sub-tile (the block's end, a frame boundary, tile padding)
+            for (int u = 0; u < kSub; ++u) {
+              const float first = static_cast<float>((st * kSub + u) * W);
+              a[t][u] = lane + first < static_cast<float>(n[t]) ? a[t][u] : splat(-INFINITY);
+            }
+          }
+          for (int u = 0; u < kSub; ++u) {
+            vmax[t] = a[t][u] > vmax[t] ? a[t][u] : vmax[t];
+            *reinterpret_cast<vf*>(&p[t][(st * kSub + u) * W]) = a[t][u];
+          }
+        }
+      }
+
+      // online softmax per query (base 2); p becomes 2^(score - max), exactly 0 for keys the query cannot see
+      const int groups = nsub * kSub;
+      float corr[kQueryTile];
+      for (int t = 0; t < kQueryTile; ++t) {
+        vf* pt = reinterpret_cast<vf*>(p[t]);
+        if (n[t] <= 0) {  // this query sees no key of the block (or is tile padding)
+          for (int g = 0; g < groups; ++g) pt[g] = vf{};
+          corr[t] = 1.0f;
+          continue;
+        }
+        const int full = static_cast<int>(n[t] / W);  // groups the query sees entirely
+        const float m_old = m[base + t];
+        const float m_new = std::max(m_old, hmax(vmax[t]));
+        corr[t] = exp2_nonpositive(m_old - m_new);  // m = -inf on the first block: about 1e-38 times acc = 0
+        const vf mv = splat(m_new);
+        vf s0 = vf{}, s1 = vf{};
+        int g = 0;
+        for (; g + 2 <= full; g += 2) {
+          const vf e0 = exp2_nonpositive(pt[g] - mv), e1 = exp2_nonpositive(pt[g + 1] - mv);
+          pt[g] = e0;
+          pt[g + 1] = e1;
+          s0 += e0;
+          s1 += e1;
+        }
+        for (; g < groups; ++g) {
+          vf e = exp2_nonpositive(pt[g] - mv);
+          if (g >= full) e = lane + static_cast<float>(g * W) < static_cast<float>(n[t]) ? e : vf{};
+          pt[g] = e;
+          s0 += e;
+        }
+        l[base + t] = l[base + t] * corr[t] + hsum(s0 + s1);
+        m[base + t] = m_new;
+      }
+
+      // acc = acc * corr + p @ V over the block, CV output vectors per query at a time, in registers
+      for (int c0 = 0; c0 < NV; c0 += CV) {
+        vf o[JU][kQueryTile][CV];
+        for (int t = 0; t < kQueryTile; ++t)
+          for (int c = 0; c < CV; ++c) {
+            o[0][t][c] = acc[(base + t) * NV + c0 + c] * corr[t];
+            for (int u = 1; u < JU; ++u) o[u][t][c] = vf{};
+          }
+        const float* __restrict vc = vb + c0 * W;
+        int64_t j = 0;
+        for (; j + JU <= nmax; j += JU) {
+          for (int u = 0; u < JU; ++u) {
+            vf vr[CV];
+            for (int c = 0; c < CV; ++c) {
+              vr[c] = *reinterpret_cast<const vfu*>(vc + (j + u) * DH + c * W);
+              GPD_IN_REG(vr[c]);
+            }
+            for (int t = 0; t < kQueryTile; ++t) {
+              const vf pj = splat(p[t][j + u]);
+              for (int c = 0; c < CV; ++c) o[u][t][c] += pj * vr[c];
+            }
+          }
+        }
+        for (; j < nmax; ++j) {
+          vf vr[CV];
+          for (int c = 0; c < CV; ++c) vr[c] = *reinterpret_cast<const vfu*>(vc + j * DH + c * W);
+          for (int t = 0; t < kQueryTile; ++t)
+            for (int c = 0; c < CV; ++c) o[0][t][c] += p[t][j] * vr[c];
+        }
+        for (int t = 0; t < kQueryTile; ++t)
+          for (int c = 0; c < CV; ++c) {
+            vf sum = o[0][t][c];
+            for (int u = 1; u < JU; ++u) sum += o[u][t][c];
+            acc[(base + t) * NV + c0 + c] = sum;
+          }
       }
     }
   }
-  for (int64_t i = 0; i < pb.sq; ++i) {
+  for (int64_t i = 0; i < nq; ++i) {
     const float inv = l[i] > 0.0f ? 1.0f / l[i] : 0.0f;  // a query that sees no key gets zeros
-    for (int c = 0; c < NV; ++c) *reinterpret_cast<v16u*>(out + (i * NV + c) * kLanes) = acc[i * NV + c] * inv;
+    for (int c = 0; c < NV; ++c)
+      *reinterpret_cast<vfu*>(out + (i0 + i) * DH + c * W) = acc[i * NV + c] * inv;
   }
 }
 
 // Any head size: the same algorithm in plain loops.
-void RunItemGeneric(const Problem& pb, int64_t item) {
+void RunItemGeneric(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
   const int64_t dh = pb.dh, b = item / pb.heads;
   const float* q = pb.q + item * pb.sq * dh;
   const float* k = pb.k + item * pb.s * dh;
   const float* v = pb.v + item * pb.s * dh;
   float* out = pb.out + item * pb.sq * dh;
   std::vector<int64_t> limit(pb.sq);
-  Limits(pb, b, limit);
+  Limits(pb, b, i0, i1, limit);
   std::vector<float> sc;
-  for (int64_t i = 0; i < pb.sq; ++i) {
+  for (int64_t i = i0; i < i1; ++i) {
     const int64_t n = limit[i];
     sc.assign(n, 0.0f);
     float mx = -INFINITY;
@@ -209,14 +327,19 @@ void RunItemGeneric(const Problem& pb, int64_t item) {
   }
 }
 
-void RunItemDispatch(const Problem& pb, int64_t item) {
+// Work unit u: item u / query_parts (scenario * heads + head), query range u % query_parts.
+void RunUnit(const Problem& pb, int64_t unit) {
+  const int64_t item = unit / pb.query_parts, part = unit % pb.query_parts;
+  const int64_t per = (pb.sq + pb.query_parts - 1) / pb.query_parts;
+  const int64_t i0 = std::min(pb.sq, part * per), i1 = std::min(pb.sq, i0 + per);
+  if (i0 >= i1) return;
   switch (pb.dh) {
-    case 16: return RunItem<16>(pb, item);
-    case 32: return RunItem<32>(pb, item);
-    case 48: return RunItem<48>(pb, item);
-    case 64: return RunItem<64>(pb, item);
-    case 128: return RunItem<128>(pb, item);
-    default: return RunItemGeneric(pb, item);
+    case 16: return RunItem<16>(pb, item, i0, i1);
+    case 32: return RunItem<32>(pb, item, i0, i1);
+    case 48: return RunItem<48>(pb, item, i0, i1);
+    case 64: return RunItem<64>(pb, item, i0, i1);
+    case 128: return RunItem<128>(pb, item, i0, i1);
+    default: return RunItemGeneric(pb, item, i0, i1);
   }
 }
 
@@ -234,7 +357,7 @@ struct Shared {
   void Work() {
     int64_t finished = 0;
     for (int64_t i = next.fetch_add(1); i < total; i = next.fetch_add(1)) {
-      RunItemDispatch(pb, i);
+      RunUnit(pb, i);
       ++finished;
     }
     if (finished && done.fetch_add(finished) + finished == total) {
@@ -269,11 +392,17 @@ ffi::Error Attention(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> q, ffi::Buffer<
   auto shared = std::make_shared<Shared>();
   shared->pb = Problem{q.typed_data(), k.typed_data(), v.typed_data(), q_frame.typed_data(),
                        num_chunks.typed_data(), out->typed_data(), heads, sq, s, dh, tokens_per_frame,
-                       chunk_len};
-  shared->total = batch * heads;
-  if (shared->total == 0) return ffi::Error::Success();
+                       chunk_len, 1};
+  const int64_t items = batch * heads;
+  if (items == 0 || sq == 0) return ffi::Error::Success();
+  // At least four units per thread when there are few (scenario, head) items (batch 1), so that no thread
+  // idles at the end; but no part smaller than 16 queries (each part transposes the key blocks again).
+  const int64_t threads = std::max<int64_t>(1, pool.num_threads());
+  const int64_t want = (4 * threads + items - 1) / items;
+  shared->pb.query_parts = std::max<int64_t>(1, std::min<int64_t>(want, sq / 16));
+  shared->total = items * shared->pb.query_parts;
 
-  const int64_t helpers = std::min<int64_t>(pool.num_threads(), shared->total) - 1;
+  const int64_t helpers = std::min<int64_t>(threads, shared->total) - 1;
   for (int64_t t = 0; t < helpers; ++t) pool.Schedule([shared] { shared->Work(); });
   shared->Work();
   std::unique_lock<std::mutex> lock(shared->mu);
@@ -282,6 +411,9 @@ ffi::Error Attention(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> q, ffi::Buffer<
 }
 
 }  // namespace
+
+// The float vector width the kernel was compiled for (16: AVX-512, 8: AVX2, 4: SSE or NEON).
+extern "C" int GpdAttentionVectorWidth() { return W; }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(GpdBlockCausalAttention, Attention,
                               ffi::Ffi::Bind()
