@@ -34,8 +34,12 @@ ignores --seed for them) 0.0 m, two grids whose nodes are perturbed with sigma =
 with a different number of lanes is also caught (its centrelines are within a lane width), on purpose: it
 is the same road.
 
-Cost: a fingerprint takes ~0.1-0.3 s for a generated network (dominated by reading the XML); a comparison
-that passes the screen ~20-60 ms, one that fails it microseconds. Limits: a network that is a *crop* of
+With the generator of `gpd_jax.data.sumo.NetSpec`, the closest same-layout pair among 48 generated networks
+(16 per layout) measured 11 m apart, and seeds 7 and 11 share no near-duplicate (tests/test_data_netgeom.py).
+
+Cost (2-core machine, shared): a fingerprint ~0.05-0.1 s for a generated network and ~1 s for SUMO's largest
+real one (reading the XML dominates); a comparison that passes the screens ~0.1 s, one that fails them
+microseconds. A 1000-scenario build (20 networks) checks its pairs in well under a second. Limits: a network that is a *crop* of
 another is not found (the centring and the symmetric distance compare whole networks), nor a mirrored copy.
 """
 
