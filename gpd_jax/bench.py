@@ -1,8 +1,8 @@
 """Benchmarks that print figures (never timed tests).
 
     python -m gpd_jax.bench rollout --config configs/gpd_paper.py --batch 1 16 --json PATH
-        [--future-frames F] [--recompute-points K] [--repeats R] [--decode-attention native xla]
-        [--config.model.x=y ...]
+        [--future-frames F] [--recompute-points K] [--repeats R] [--decode-attention auto native xla]
+        [--native-march native x86-64-v3] [--config.model.x=y ...]
 
 Measures, in one run (so ratios are meaningful on a noisy shared machine):
 
@@ -12,6 +12,10 @@ Measures, in one run (so ratios are meaningful on a noisy shared machine):
   device per core; see gpd_jax/parallel.py), so batches use every core; batch 1 runs on one device. With
   `--decode-attention native xla` every batch size is measured with each attention kernel of the rollout
   (the fused native CPU kernel of gpd_jax/model/native.py, which uses every core by itself, and the pure-XLA one);
+* `machine`: CPU model, instruction-set level (avx512/avx2/...), cores, JAX version and backend, so figures
+  from different machines are never compared by accident; per run the native kernel's build target
+  (`native_march`, `--native-march` to compare several in one run) and vector width, and for `auto` what it
+  chose at each shape and why (`auto_choices`: timings of both paths, measured or read from the cache).
 * the recompute rollout (the official method: a full forward over the whole prefix for every future frame,
   same model and weights) at batch 1. Timing 80 forwards of up to 9.7k tokens takes many minutes on a CPU,
   so by default a forward is timed at K prefix lengths spread over [H, T-1], a quadratic in the prefix
@@ -40,6 +44,7 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax import parallel
+from gpd_jax.model import attention, native
 from gpd_jax.model.attention import KERNELS, use_native
 from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
@@ -110,6 +115,8 @@ def bench_rollout(args, overrides) -> dict:
     if t_total > m.num_frames:
         raise SystemExit(f"--future-frames {future}: history {h} + future exceeds num_frames {m.num_frames}")
     _log(f"devices: {jax.devices()}")
+    machine = native.machine_info()
+    _log("machine: " + ", ".join(f"{k} {v}" for k, v in machine.items()))
     mm = matmul_gflops(args.matmul_size)
     _log(f"matmul: {mm:.1f} GFLOP/s")
     model = GPD(m, nnx.Rngs(cfg.seed))
@@ -123,7 +130,12 @@ def bench_rollout(args, overrides) -> dict:
     flops = rollout_flops(m, t_total, h)
     bytes_per_scenario = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * 4
     kernels = args.decode_attention or [m.decode_attention]
-    for kernel, batch in ((k, b) for k in kernels for b in args.batch):
+    marches = args.native_march or [native.march()]
+    # a native build per target: native runs (and auto) are measured with each
+    variants = [(k, t) for k in kernels for t in (marches if k != "xla" else [None])]
+    for (kernel, target), batch in ((v, b) for v in variants for b in args.batch):
+        if target is not None:
+            os.environ["GPD_JAX_NATIVE_MARCH"] = target  # read while tracing
         model.decode_attention = kernel  # a static attribute: part of the graph definition
         graphdef = nnx.graphdef(model)
         scenes = synthetic_scenes(batch, batch, t_total, h, m.num_agents, m.num_map_tokens, m.codebook_size)
@@ -134,10 +146,16 @@ def bench_rollout(args, overrides) -> dict:
         scenes, tasks, keys = parallel.shard_batch((scenes, tasks, keys), mesh)
         state_b = parallel.replicate(state, mesh)
         cached_jit = jax.jit(parallel.data_parallel(functools.partial(cached, graphdef), mesh))
+        logged = len(attention._choice_log)
         t0 = time.perf_counter()
         compiled = cached_jit.lower(state_b, scenes, tasks, keys).compile()
         compile_s = time.perf_counter() - t0
-        _log(f"batch {batch}, {kernel} attention: compiled in {compile_s:.1f} s ({ndev} device(s))")
+        choices = attention._choice_log[logged:]
+        label = _label(kernel, choices)
+        build = native.build_info() if "native" in label else None
+        _log(f"batch {batch}, {label} attention: compiled in {compile_s:.1f} s ({ndev} device(s))")
+        for c in {json.dumps(_public(c), sort_keys=True): c for c in choices}.values():
+            _log(f"  auto chose {c['choice']} ({c['source']}): {c['why']}")
         run = lambda: jax.block_until_ready(compiled(state_b, scenes, tasks, keys))
         run()
         t = _time(run, args.repeats)
@@ -145,12 +163,15 @@ def bench_rollout(args, overrides) -> dict:
         _log(f"batch {batch}: cached {per:.3f} s per scenario")
         runs.append({
             "config": config_name, "batch": batch, "future_frames": future, "devices": ndev,
-            "decode_attention": "native" if use_native(kernel) else "xla",
+            "decode_attention": label, "native_march": build["target"] if build else None,
+            "native_vector_width": build["vector_width"] if build else None,
+            "auto_choices": [_public(c) for c in {json.dumps(_public(c), sort_keys=True): c
+                                                  for c in choices}.values()],
             "cached_s_per_scenario": per, "recompute_s_per_scenario": None, "speedup": None,
             "compile_s": compile_s, "achieved_gflops": flops * batch / t / 1e9,
             "kv_cache_bytes": bytes_per_scenario * batch,
         })
-    out = {"matmul_gflops": mm, "rollout_gflop_per_scenario": flops / 1e9, "runs": runs}
+    out = {"machine": machine, "matmul_gflops": mm, "rollout_gflop_per_scenario": flops / 1e9, "runs": runs}
     if 1 in args.batch:
         rec, method = bench_recompute(model, m, cfg, t_total, h, args)
         for r in runs:
@@ -161,6 +182,21 @@ def bench_rollout(args, overrides) -> dict:
     for r in runs:
         r["achieved_over_matmul"] = r["achieved_gflops"] / mm
     return out
+
+
+def _public(choice: dict) -> dict:
+    return {k: choice.get(k) for k in ("choice", "source", "why", "times_ms", "path")}
+
+
+def _label(kernel: str, choices: list) -> str:
+    """What ran: "xla", "native[-march]" or "auto->native[...]" (auto's choices at this run's shapes)."""
+    if kernel == "auto":
+        picked = sorted({c["choice"] for c in choices}) or ["xla"]
+        inner = "+".join(_label(p, []) for p in picked)
+        return f"auto->{inner}"
+    if kernel == "native" or (kernel != "xla" and use_native(kernel)):
+        return f"native[{native.march()}]"
+    return "xla"
 
 
 def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, str]:
@@ -201,6 +237,9 @@ def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, s
 
 
 def _print_table(out: dict) -> None:
+    mc = out.get("machine", {})
+    print(f"machine: {mc.get('cpu')} ({mc.get('isa')}, {mc.get('usable_cores')} cores), jax {mc.get('jax')}, "
+          f"backend {mc.get('backend')}")
     print(f"matmul fp32: {out['matmul_gflops']:.1f} GFLOP/s; cached rollout: "
           f"{out['rollout_gflop_per_scenario']:.1f} GFLOP per scenario")
     head = ("config", "attention", "batch", "future", "cached s/scn", "recompute s/scn", "speedup", "compile s",
@@ -218,6 +257,9 @@ def _print_table(out: dict) -> None:
         for r in runs[1:]:
             print(f"{kernel}: batch {r['batch']} throughput per scenario = "
                   f"{runs[0]['cached_s_per_scenario'] / r['cached_s_per_scenario']:.2f}x batch {runs[0]['batch']}")
+    for r in out["runs"]:
+        for c in r.get("auto_choices") or []:
+            print(f"batch {r['batch']} {r['decode_attention']}: auto chose {c['choice']} ({c['source']}): {c['why']}")
     if "recompute_method" in out:
         print(f"recompute: {out['recompute_method']}")
 
@@ -240,6 +282,9 @@ def main(argv=None) -> None:
     r.add_argument("--decode-attention", nargs="+", choices=KERNELS, default=None,
                    help="attention kernel(s) of the cached rollout, each measured at every batch size "
                         "(default: the config's model.decode_attention)")
+    r.add_argument("--native-march", nargs="+", default=None,
+                   help="build target(s) of the native kernel (gcc -march), each measured with native and auto "
+                        "(default: $GPD_JAX_NATIVE_MARCH or native); e.g. native x86-64-v3")
     r.add_argument("--json", default=None, help="write the results here")
     args = p.parse_args(rest)
     parallel.use_host_cores()

@@ -172,3 +172,167 @@ def test_model_dense_training_attention_equals_flash(tiny_model, tiny_scenes):
     finally:
         tiny_model.dense_attention = False
     np.testing.assert_allclose(np.asarray(dense), np.asarray(flash), atol=1e-4, rtol=1e-4)
+
+
+def _decode_case(b=2, h=2, dh=16, n=37, frames=12, chunk=74, seed=3):
+    rng = np.random.default_rng(seed)
+    s = n * frames
+    q, k, v = (jnp.asarray(rng.normal(size=(b, h, size, dh)) * 2, jnp.float32) for size in (n, s, s))
+    qf = jnp.full((n,), 7, jnp.int32)
+    chunks = jnp.array([(8 * n) // chunk + 1] * b)
+    return q, k, v, qf, chunks, n, chunk
+
+
+def _close(got, want, rtol=1e-5):
+    """Float comparison relative to the magnitude of the reference (portable across CPUs and builds)."""
+    scale = max(1.0, float(jnp.abs(want).max()))
+    np.testing.assert_allclose(got, want, rtol=rtol, atol=rtol * scale)
+
+
+@pytest.fixture
+def fresh_auto(monkeypatch, tmp_path):
+    """An empty choice cache (on disk and in this process) and a counter of measurements."""
+    from gpd_jax.model import attention
+
+    monkeypatch.setenv("GPD_JAX_CACHE", str(tmp_path))
+    monkeypatch.delenv(attention.FORCE_ENV, raising=False)
+    monkeypatch.setattr(attention, "_choices", {})
+    monkeypatch.setattr(attention, "_choice_log", [])
+    calls = []
+    real = attention._measure
+
+    def counted(*args, **kwargs):
+        calls.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(attention, "_measure", counted)
+    return attention, calls, tmp_path
+
+
+def test_auto_measures_once_caches_on_disk_and_matches_xla(fresh_auto, monkeypatch):
+    """"auto" times both paths once per shape and batch bucket at trace time (inside jit and vmap), writes
+    the choice beside the kernel, reads it back in a new process (simulated by clearing the memo) without
+    measuring, and gives the XLA path's results whichever it picked."""
+    attention, calls, cache = fresh_auto
+    _kernel("native")
+    q, k, v, qf, chunks, n, c = _decode_case()
+    att = lambda kernel: jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, kernel)))(
+        q, k, v, chunks)
+    got = att("auto")
+    _close(got, att("xla"))
+    assert len(calls) == 1
+    (rec,) = attention.auto_choices()
+    assert rec["source"] == "measured" and rec["choice"] in ("native", "xla")
+    assert set(rec["times_ms"]) == {"native", "xla"} and rec["choice"] == min(rec["times_ms"], key=rec["times_ms"].get)
+    files = list((cache / "decode-attention").glob("*.json"))
+    assert len(files) == 1 and not list((cache / "decode-attention").glob("*.tmp*"))
+    key = rec["key"]
+    assert key["batch_bucket"] == 2 and key["heads"] == 2 and key["queries"] == n and key["jax"] == jax.__version__
+    # same shape again (retraced): no new measurement in this process
+    jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q, k, v, chunks)
+    assert len(calls) == 1
+    # a "new process": the choice comes from disk
+    monkeypatch.setattr(attention, "_choices", {})
+    monkeypatch.setattr(attention, "_choice_log", [])
+    att("auto")
+    assert len(calls) == 1 and attention.auto_choices()[0]["source"] == "cached"
+    # another batch bucket is measured on its own
+    q4, k4, v4, _, chunks4, _, _ = _decode_case(b=4)
+    jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q4, k4, v4, chunks4)
+    assert len(calls) == 2 and calls[-1][0] == 4
+
+
+@pytest.mark.parametrize("forced", ["xla", "native"])
+def test_auto_forced_by_environment(fresh_auto, monkeypatch, forced):
+    attention, calls, _ = fresh_auto
+    if forced == "native":
+        _kernel("native")
+    monkeypatch.setenv(attention.FORCE_ENV, forced)
+    q, k, v, qf, chunks, n, c = _decode_case()
+    got = jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q, k, v, chunks)
+    ref = jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "xla")))(q, k, v, chunks)
+    _close(got, ref)
+    assert not calls
+    assert attention.auto_choices()[-1]["choice"] == forced and attention.auto_choices()[-1]["source"] == "forced"
+    assert attention.use_native("auto") == (forced == "native")
+    monkeypatch.setenv(attention.FORCE_ENV, "fastest")
+    with pytest.raises(ValueError, match="expected native, xla or auto"):
+        attention.use_native("auto")
+
+
+def test_auto_without_compiler_uses_xla(tmp_path):
+    """In a fresh process whose CXX names a missing compiler (and an empty kernel cache), "auto" warns, runs
+    the XLA path without measuring and says why."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import warnings, json
+import jax, jax.numpy as jnp
+from gpd_jax.model import attention
+q = jnp.ones((1, 2, 4, 16)); k = jnp.ones((1, 2, 8, 16))
+with warnings.catch_warnings(record=True) as w:
+    warnings.simplefilter("always")
+    out = jax.vmap(lambda q, k: attention.attend_dynamic(q, k, k, jnp.zeros(4, jnp.int32), 1, 4, 8, "auto"))(q, k)
+print(json.dumps({"choices": attention.auto_choices(), "warned": any("unavailable" in str(x.message) for x in w),
+                  "ok": bool(jnp.allclose(out, 1.0))}))
+"""
+    env = dict(os.environ, CXX=str(tmp_path / "no-such-compiler"), GPD_JAX_CACHE=str(tmp_path / "cache"))
+    env.pop("GPD_JAX_DECODE_ATTENTION", None)
+    env.pop("GPD_JAX_NATIVE", None)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    import json
+
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["ok"] and out["warned"]
+    assert [c["choice"] for c in out["choices"]] == ["xla"]
+    assert out["choices"][0]["why"] == "the native kernel did not build"
+
+
+def test_native_kernel_built_for_avx2_target_equals_xla():
+    """The kernel compiled for -march=x86-64-v3 (AVX2, 8-float vectors), run beside the XLA path, for a
+    prefill of several frames and a decode step, where the CPU can run AVX2 code. A CI job may force this
+    target for every test with GPD_JAX_NATIVE_MARCH=x86-64-v3."""
+    import platform
+
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("x86-64 only")
+    _kernel("native")
+    if not native.runnable("x86-64-v3"):
+        pytest.skip("this CPU cannot run AVX2 code")
+    assert native.available("x86-64-v3")
+    assert native.load("x86-64-v3")["vector_width"] == 8
+    n, chunk, frames, h, dh = 37, 74, 12, 3, 16
+    s = n * frames
+    rng = np.random.default_rng(5)
+    q, k, v = (jnp.asarray(rng.normal(size=(3, h, s, dh)) * 2, jnp.float32) for _ in range(3))
+    frame = jnp.arange(s) // n
+    for fill, count in [(0, 5), (9, 1)]:
+        rows = slice(fill * n, (fill + count) * n)
+        qf = frame[rows]
+        chunks = jnp.array([(fill + count) * n // chunk + 1, 6, 7])
+        scale = dh**-0.5
+        avx2 = jax.jit(jax.vmap(lambda q, k, v, m: native.block_causal_attention(
+            q * scale, k, v, qf, m, n, chunk, target="x86-64-v3")))(q[:, :, rows], k, v, chunks)
+        xla = jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, chunk, "xla")))(
+            q[:, :, rows], k, v, chunks)
+        _close(avx2, xla)
+
+
+def test_build_target_is_part_of_the_cache_key_and_unrunnable_targets_are_refused(monkeypatch):
+    if not (shutil.which("c++") or shutil.which("g++")):
+        pytest.skip("no C++ compiler")
+    assert native.build_key("x86-64-v3") != native.build_key("x86-64")
+    monkeypatch.setenv("GPD_JAX_NATIVE_MARCH", "x86-64-v3")
+    assert native.march() == "x86-64-v3" and native.build_key() == native.build_key("x86-64-v3")
+    assert native.runnable("x86-64")
+    if "avx512f" not in native.cpu_flags():
+        assert not native.runnable("x86-64-v4")
+        monkeypatch.setattr(native, "_state", {})
+        with pytest.warns(UserWarning, match="cannot run code built for -march=x86-64-v4"):
+            assert not native.available("x86-64-v4")
+    info = native.machine_info()
+    assert info["isa"] in ("avx512", "avx2", "avx", "sse", "neon") or info["isa"] == info["machine"]
+    assert info["jax"] == jax.__version__
