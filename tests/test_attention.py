@@ -336,3 +336,22 @@ def test_build_target_is_part_of_the_cache_key_and_unrunnable_targets_are_refuse
     info = native.machine_info()
     assert info["isa"] in ("avx512", "avx2", "avx", "sse", "neon") or info["isa"] == info["machine"]
     assert info["jax"] == jax.__version__
+
+
+def test_auto_inside_a_vmapped_scan_chooses_at_the_real_batch(fresh_auto):
+    """The rollout's decode step runs in a `lax.scan` under `vmap`: its body is traced unbatched, so the
+    choice at the real batch is made by the batching rule (a batch-1 choice is made for the unbatched trace)."""
+    attention, calls, _ = fresh_auto
+    _kernel("native")
+    q, k, v, qf, chunks, n, c = _decode_case(b=3)
+
+    def steps(q, k, v, m):
+        def body(acc, _):
+            return acc + attend_dynamic(q, k, v, qf, m, n, c, "auto"), None
+        return jax.lax.scan(body, jnp.zeros_like(q), None, length=2)[0]
+
+    got = jax.jit(jax.vmap(steps))(q, k, v, chunks)
+    ref = jax.jit(jax.vmap(lambda q, k, v, m: 2 * attend_dynamic(q, k, v, qf, m, n, c, "xla")))(q, k, v, chunks)
+    _close(got, ref)
+    assert 3 in [args[0] for args in calls]
+    assert any(r["key"]["batch_bucket"] == 4 for r in attention.auto_choices())

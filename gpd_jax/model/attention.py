@@ -411,13 +411,45 @@ def _batch_size(x) -> int:
 
 
 def _auto(q, k, v, q_frame, num_chunks, n: int, c: int):
-    """attend_dynamic's "auto" path: decides while tracing, where shapes and the vmap batch are known."""
+    """attend_dynamic's "auto" path: decides while tracing, where shapes and the vmap batch are known.
+
+    Directly under `vmap` the batch is read from the tracers. Inside a `lax.scan` body (the rollout's decode
+    step) the body is traced unbatched and batched afterwards, so the batch is only known to a batching rule:
+    there a `custom_vmap` decides again at the real batch (the unbatched trace also makes a batch-1 choice,
+    which is what runs when nothing batches it)."""
     h, sq, dh = q.shape[-3:]
     batch = max(_batch_size(q), _batch_size(k))
-    kind = choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices())["choice"]
-    if kind == "native":
-        return native.block_causal_attention(q, k, v, q_frame, num_chunks, n, c)
-    return _dynamic_kernel(n, c)(q, k, v, q_frame, num_chunks)
+    if batch > 1:
+        return _run(choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices())["choice"], n, c, None,
+                    q, k, v, q_frame, num_chunks)
+    return _auto_kernel(n, c)(q, k, v, q_frame, num_chunks)
+
+
+def _run(kind, n, c, in_axes, q, k, v, q_frame, num_chunks):
+    one = (lambda q, k, v, f, m: native.block_causal_attention(q, k, v, f, m, n, c)) if kind == "native" \
+        else _dynamic_kernel(n, c)
+    if in_axes is None:
+        return one(q, k, v, q_frame, num_chunks)
+    return jax.vmap(one, in_axes=in_axes)(q, k, v, q_frame, num_chunks)
+
+
+@functools.lru_cache(maxsize=None)
+def _auto_kernel(n: int, c: int):
+    def decide(batch, q, k):
+        h, sq, dh = q.shape[-3:]
+        return choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices())["choice"]
+
+    def one(q, k, v, q_frame, num_chunks):
+        return _run(decide(1, q, k), n, c, None, q, k, v, q_frame, num_chunks)
+
+    kernel = jax.custom_batching.custom_vmap(one)
+
+    @kernel.def_vmap
+    def _batched(axis_size, in_batched, q, k, v, q_frame, num_chunks):
+        in_axes = tuple(0 if b else None for b in in_batched)
+        return _run(decide(axis_size, q, k), n, c, in_axes, q, k, v, q_frame, num_chunks), True
+
+    return kernel
 
 
 def _attend_one(q, q_frame, num_chunks, n, c, kv_slice):
