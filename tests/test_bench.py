@@ -1,0 +1,37 @@
+"""The benchmark's JSON says where its figures come from (machine, kernel build, auto's choices)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+
+def test_bench_records_machine_build_and_auto_choice(tmp_path):
+    out = tmp_path / "bench.json"
+    env = dict(os.environ, GPD_JAX_CACHE=str(tmp_path / "cache"))
+    env.pop("GPD_JAX_DECODE_ATTENTION", None)
+    cmd = [sys.executable, "-m", "gpd_jax.bench", "rollout", "--config", "configs/gpd_tiny.py", "--batch", "1", "2",
+           "--future-frames", "2", "--recompute-points", "2", "--repeats", "1", "--matmul-size", "256",
+           "--decode-attention", "auto", "xla", "--json", str(out)]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert res.returncode == 0, res.stderr[-3000:]
+    rec = json.loads(out.read_text())
+    machine = rec["machine"]
+    for field in ("cpu", "isa", "cpu_count", "usable_cores", "jax", "backend"):
+        assert machine[field] not in (None, ""), field
+    assert "machine:" in res.stdout and machine["isa"] in res.stdout
+    auto = [r for r in rec["runs"] if r["decode_attention"].startswith("auto->")]
+    xla = [r for r in rec["runs"] if r["decode_attention"] == "xla"]
+    assert len(auto) == 2 and len(xla) == 2
+    for r in auto:
+        assert r["auto_choices"], r
+        for c in r["auto_choices"]:
+            assert c["choice"] in ("native", "xla") and c["why"]
+        if "native" in r["decode_attention"]:
+            assert r["native_march"] and r["native_vector_width"] in (4, 8, 16)
+    assert "auto chose" in res.stdout
+    if any(c["source"] == "measured" for r in auto for c in r["auto_choices"]):
+        assert list((tmp_path / "cache" / "decode-attention").glob("*.json"))
