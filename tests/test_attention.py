@@ -39,13 +39,13 @@ def test_chunked_equals_dense(kernel):
     q, k, v = _qkv(s)
     frame = jnp.arange(s) // n
     ref = dense_block_causal(q, k, v, frame, frame)
-    np.testing.assert_allclose(attend_static(q, k, v, n, chunk), ref, atol=1e-5)
-    np.testing.assert_allclose(attend_dynamic(q, k, v, frame, 3, n, chunk, kernel), ref, atol=1e-5)
+    _close(attend_static(q, k, v, n, chunk), ref)
+    _close(attend_dynamic(q, k, v, frame, 3, n, chunk, kernel), ref)
     # the last frame's queries against a cache filled up to that frame only (garbage beyond)
     k_garbage = k.at[:, s - n:].set(1e3)
     last = slice(s - 2 * n, s - n)
     got = attend_dynamic(q[:, last], k_garbage, v, frame[last], 3, n, chunk, kernel)
-    np.testing.assert_allclose(got, ref[:, last], atol=1e-5)
+    _close(got, ref[:, last])
 
 
 @pytest.mark.parametrize("dh", [16, 32, 12])
@@ -66,8 +66,8 @@ def test_native_kernel_equals_xla_at_model_sizes(dh):
         att = lambda kernel: jax.jit(jax.vmap(lambda q, k, v, c: attend_dynamic(q, k, v, qf, c, n, chunk, kernel)))(
             q[:, :, rows], k, v, chunks)
         nat, xla = att("native"), att("xla")
-        np.testing.assert_allclose(nat, xla, atol=2e-5, rtol=1e-5)
-        np.testing.assert_allclose(nat[0], dense_block_causal(q[0, :, rows], k[0], v[0], qf, frame), atol=2e-5)
+        _close(nat, xla)
+        _close(nat[0], dense_block_causal(q[0, :, rows], k[0], v[0], qf, frame))
 
 
 def test_native_kernel_falls_back_when_it_cannot_build(monkeypatch):
@@ -152,9 +152,9 @@ def test_vmapped_dynamic_attention_equals_per_scenario(kernel):
         ref = dense_block_causal(q[i], k[i], v[i], frame, frame)
         # rows whose visible keys all lie inside the processed chunks are exact
         rows = frame < (int(counts[i]) * chunk) // n
-        np.testing.assert_allclose(got[i][:, rows], ref[:, rows], atol=1e-5)
+        _close(got[i][:, rows], ref[:, rows])
     shared = jax.vmap(lambda q: attend_dynamic(q, k[0], v[0], frame, 3, n, chunk, kernel))(q)
-    np.testing.assert_allclose(shared[1], dense_block_causal(q[1], k[0], v[0], frame, frame), atol=1e-5)
+    _close(shared[1], dense_block_causal(q[1], k[0], v[0], frame, frame))
 
 
 def test_model_dense_training_attention_equals_flash(tiny_model, tiny_scenes):
