@@ -46,6 +46,7 @@ from flax import nnx
 from gpd_jax import parallel
 from gpd_jax.model import attention, native
 from gpd_jax.model.attention import KERNELS, use_native
+from gpd_jax.fsutil import atomic_write_json
 from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
 from gpd_jax.decoding import rollout_batch, rollout_recompute
@@ -291,10 +292,7 @@ def main(argv=None) -> None:
     out = bench_rollout(args, overrides)
     _print_table(out)
     if args.json:
-        tmp = args.json + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump(out, f, indent=2)
-        os.replace(tmp, args.json)
+        atomic_write_json(args.json, out, indent=2)
         print(f"wrote {args.json}")
 
 

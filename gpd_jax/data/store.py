@@ -48,6 +48,7 @@ import numpy as np
 
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.preprocess import SAMPLE_SPEC
+from gpd_jax import fsutil
 from gpd_jax.fsutil import umask_mode
 
 FORMAT_VERSION = 1
@@ -68,32 +69,12 @@ def shard_dir(data_dir: str, split: str, index: int) -> str:
 
 
 def atomic_write_json(path: str, obj: Any) -> None:
-    d = os.path.dirname(path) or "."
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".json")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=1)
-        umask_mode(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    fsutil.atomic_write_json(path, obj, indent=1)
 
 
 def atomic_save_npy(path: str, arr: np.ndarray) -> None:
-    d = os.path.dirname(path) or "."
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".npy")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, arr)
-        umask_mode(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    with fsutil.atomic_file(path, "wb") as f:
+        np.save(f, arr)
 
 
 def stack_samples(samples: list[dict[str, np.ndarray]], spec=SAMPLE_SPEC) -> dict[str, np.ndarray]:

@@ -11,6 +11,8 @@ import json
 import os
 import sys
 
+from gpd_jax.fsutil import atomic_file
+
 
 def read_metrics(workdir: str) -> list[dict]:
     path = os.path.join(workdir, "metrics.jsonl")
@@ -55,10 +57,9 @@ def plot_curves(records: list[dict], out_png: str, title: str = "") -> str:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    tmp = out_png + ".tmp.png"
-    fig.savefig(tmp, dpi=90)
+    with atomic_file(out_png, "wb") as f:
+        fig.savefig(f, dpi=90, format="png")
     plt.close(fig)
-    os.replace(tmp, out_png)
     return out_png
 
 
