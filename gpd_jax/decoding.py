@@ -166,25 +166,40 @@ def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: i
     _check_map_encoder(lanes, map_encoder)
     given = given_inputs(model, scene, task, lanes)
     log = given.log
-    tokens = model.embed(log.xy[:h], log.heading[:h], log.valid[:h], log.map_tokens[:h], jnp.arange(h),
-                         log.velocity[:h])
-    hidden, cache = forward_cached(model, tokens, model.init_cache(t_total), 0)
-    pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
-                         *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h])
 
     def step(state: DecodeState, t):
         f = _choose_frame(state.pred, given, t, key, temperature, map_encoder)
-        tok = model.embed(f.xy[None], f.heading[None], f.valid[None], f.map_tokens[None], t[None], f.velocity[None])
-        hid, cache = forward_cached(model, tok, state.cache, t)
-        pred = model.predict(hid, f.xy[None], f.heading[None], f.valid[None], state.last_xy[None],
-                             state.last_valid[None], f.velocity[None])
-        return DecodeState(cache=cache, pred=pred, last_xy=f.xy, last_valid=f.valid), f
+        return advance(model, state, f, t), f
 
-    init = DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1])
-    final, frames = jax.lax.scan(step, init, jnp.arange(h, t_total - 1))
+    final, frames = jax.lax.scan(step, prefill(model, log, h, t_total), jnp.arange(h, t_total - 1))
     last = _choose_frame(final.pred, given, jnp.asarray(t_total - 1), key, temperature, map_encoder)
     frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
     return _assemble(log, frames, h)
+
+
+def prefill(model: GPD, log: Frame, num_history: int, num_frames: int) -> DecodeState:
+    """Pushes the history frames `log[:num_history]` (a `Frame` with a leading T >= num_history) through the
+    transformer in one call into a fresh KV cache for `num_frames` frames; the returned state holds the
+    prediction of frame `num_history`. The first half of every cached rollout (and of `gpd_jax.sim.reset`)."""
+    h = num_history
+    tokens = model.embed(log.xy[:h], log.heading[:h], log.valid[:h], log.map_tokens[:h], jnp.arange(h),
+                         log.velocity[:h])
+    hidden, cache = forward_cached(model, tokens, model.init_cache(num_frames), 0)
+    pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
+                         *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h])
+    return DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1])
+
+
+def advance(model: GPD, state: DecodeState, frame: Frame, t) -> DecodeState:
+    """Appends frame t (`frame`, unbatched: what the scene holds at t, however chosen) to the KV cache and
+    predicts frame t + 1. `t` may be traced. One step of every cached rollout (and of `gpd_jax.sim.step`)."""
+    f = frame
+    tok = model.embed(f.xy[None], f.heading[None], f.valid[None], f.map_tokens[None], jnp.asarray(t)[None],
+                      f.velocity[None])
+    hid, cache = forward_cached(model, tok, state.cache, t)
+    pred = model.predict(hid, f.xy[None], f.heading[None], f.valid[None], state.last_xy[None],
+                         state.last_valid[None], f.velocity[None])
+    return DecodeState(cache=cache, pred=pred, last_xy=f.xy, last_valid=f.valid)
 
 
 def _check_map_encoder(lanes, map_encoder) -> None:
