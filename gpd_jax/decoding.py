@@ -98,12 +98,15 @@ class Given:
 @flax.struct.dataclass
 class DecodeState:
     """The carry of the cached rollout's scan: the KV cache, the prediction made at the previous frame (leading
-    dim 1), and the previous frame's xy f32[A, 2] and valid bool[A] (what displacement heads are relative to)."""
+    dim 1), the previous frame's xy f32[A, 2] and valid bool[A] (what displacement heads are relative to), and
+    its output tokens hidden f32[N, d] (map slots first, then ego, then agents: what a head on the ego token,
+    such as a fine-tuned planner, reads)."""
 
     cache: KVCache
     pred: Prediction
     last_xy: jax.Array
     last_valid: jax.Array
+    hidden: jax.Array
 
 
 def given_inputs(model: GPD, scene: Scene, task: Task, lanes: LogLanes | None = None) -> Given:
@@ -187,7 +190,8 @@ def prefill(model: GPD, log: Frame, num_history: int, num_frames: int) -> Decode
     hidden, cache = forward_cached(model, tokens, model.init_cache(num_frames), 0)
     pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
                          *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h])
-    return DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1])
+    return DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1],
+                       hidden=hidden[-1])
 
 
 def advance(model: GPD, state: DecodeState, frame: Frame, t) -> DecodeState:
@@ -199,7 +203,7 @@ def advance(model: GPD, state: DecodeState, frame: Frame, t) -> DecodeState:
     hid, cache = forward_cached(model, tok, state.cache, t)
     pred = model.predict(hid, f.xy[None], f.heading[None], f.valid[None], state.last_xy[None],
                          state.last_valid[None], f.velocity[None])
-    return DecodeState(cache=cache, pred=pred, last_xy=f.xy, last_valid=f.valid)
+    return DecodeState(cache=cache, pred=pred, last_xy=f.xy, last_valid=f.valid, hidden=hid[0])
 
 
 def _check_map_encoder(lanes, map_encoder) -> None:
