@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from gpd_jax.evaluation import add_sums, format_tables, reduce_results, score_batch, to_json_compatible
+from gpd_jax.evaluation.keys import AGENT_METRICS
 from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
 from gpd_jax.spec import EvalError, ModelSpec, horizon_frames, spec_from_config
 from gpd_jax.tasks import generated
@@ -89,9 +90,9 @@ def test_known_offset_gives_known_ade_fde_and_baselines():
                 assert ts[lb][f"{g}_fde{suffix}"] == pytest.approx(1.0, abs=1e-5)
                 assert ts[lb][f"{g}_collision{suffix}"] == 0.0
     # only what a task generates is reported
-    assert set(res["tasks"]["closed_loop"]["3s"]) == {f"agent_{n}{s}" for n in ("ade", "fde", "collision")
+    assert set(res["tasks"]["closed_loop"]["3s"]) == {f"agent_{n}{s}" for n in AGENT_METRICS
                                                       for s in ("", "_corrected")}
-    assert set(res["tasks"]["motion_planning"]["3s"]) == {f"ego_{n}{s}" for n in ("ade", "fde", "collision")
+    assert set(res["tasks"]["motion_planning"]["3s"]) == {f"ego_{n}{s}" for n in AGENT_METRICS
                                                           for s in ("", "_corrected")}
     # scored slots: ego + agents 1, 2 (agent 3 is not valid at the current frame), in both scenarios
     assert float(sums["counts"]["scored_agents"]) == 4 and float(sums["counts"]["scenarios"]) == 2
@@ -127,8 +128,9 @@ def test_overlapping_boxes_collide_and_separate_boxes_do_not():
     for lb in SPEC.labels:
         for suffix in ("", "_corrected"):
             # agents 1 and 2 overlap at every future frame: both collide, every step
-            assert res["tasks"]["closed_loop"][lb][f"agent_collision{suffix}"] == pytest.approx(100.0)
-            assert res["baselines"]["log_replay"][lb][f"agent_collision{suffix}"] == pytest.approx(100.0)
+            for k in ("agent_collision", "agent_collision_frames"):
+                assert res["tasks"]["closed_loop"][lb][f"{k}{suffix}"] == pytest.approx(100.0)
+                assert res["baselines"]["log_replay"][lb][f"{k}{suffix}"] == pytest.approx(100.0)
             assert res["tasks"]["traffic_simulation"][lb][f"ego_collision{suffix}"] == 0.0
             assert res0["tasks"]["closed_loop"][lb][f"agent_collision{suffix}"] == 0.0
             assert res0["baselines"]["log_replay"][lb][f"agent_collision{suffix}"] == 0.0
@@ -158,8 +160,8 @@ def test_variant_switch_swaps_main_and_suffixed_keys():
     res_c = reduce_results(add_sums(None, sums), SPEC, TASKS3, "corrected")
     for lb in SPEC.labels:
         p, c = res_p["tasks"]["closed_loop"][lb], res_c["tasks"]["closed_loop"][lb]
-        assert set(c) == {f"agent_{n}{s}" for n in ("ade", "fde", "collision") for s in ("", "_paper")}
-        for n in ("ade", "fde", "collision"):
+        assert set(c) == {f"agent_{n}{s}" for n in AGENT_METRICS for s in ("", "_paper")}
+        for n in AGENT_METRICS:
             assert c[f"agent_{n}"] == p[f"agent_{n}_corrected"] and c[f"agent_{n}_paper"] == p[f"agent_{n}"]
     with pytest.raises(EvalError, match="variant"):
         reduce_results(add_sums(None, sums), SPEC, TASKS3, "best")

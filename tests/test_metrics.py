@@ -39,7 +39,8 @@ def test_constant_offset_paper_and_corrected():
     p = agent_metrics(pred, head, gt, valid, size, variant="paper", **kw)
     c = agent_metrics(pred, head, gt, valid, size, variant="corrected", **kw)
     assert set(p) == {"0.2s", "0.4s"}
-    assert set(p["0.2s"]) == {"ego_ade", "ego_fde", "ego_collision", "agent_ade", "agent_fde", "agent_collision"}
+    assert set(p["0.2s"]) == {f"{g}_{n}" for g in ("ego", "agent")
+                              for n in ("ade", "fde", "collision", "collision_frames")}
     # ego: always valid, error 1 everywhere
     for r in (p, c):
         for h in r:
@@ -110,21 +111,36 @@ def test_collision_rates_paper_and_corrected():
     pred = gt.copy()
     # at future frame 1 agent 1 (valid) is put on top of the ego: both collide in that frame
     pred[1, 1] = pred[1, 0] + np.array([1.0, 0.0])
-    r = agent_metrics(pred, head, gt, valid, size, horizons=(2, 4), variant="paper")
-    # ego: 1 colliding step / (2 steps * 1 scenario) = 50 %; agents: 1 / (2 * 3) = 16.7 %
-    assert r["0.2s"]["ego_collision"] == pytest.approx(50.0)
-    assert r["0.2s"]["agent_collision"] == pytest.approx(100 / 6)
-    assert r["0.4s"]["ego_collision"] == pytest.approx(25.0)
-    assert r["0.4s"]["agent_collision"] == pytest.approx(100 / 12)
+    r = agent_metrics(pred, head, gt, valid, size, horizons=(1, 2, 4), variant="paper")
+    # the paper's rate: agents with >= 1 collision / N_exist (ego: 1 per scenario; agents: 3 valid in the future)
+    assert r["0.1s"]["ego_collision"] == 0.0 and r["0.1s"]["agent_collision"] == 0.0
+    for h in ("0.2s", "0.4s"):  # the share does not shrink as the horizon grows
+        assert r[h]["ego_collision"] == pytest.approx(100.0)
+        assert r[h]["agent_collision"] == pytest.approx(100 / 3)
+    # the official per-frame rate: 1 colliding step / (2 steps * 1 scenario) = 50 %; agents: 1 / (2 * 3)
+    assert r["0.2s"]["ego_collision_frames"] == pytest.approx(50.0)
+    assert r["0.2s"]["agent_collision_frames"] == pytest.approx(100 / 6)
+    assert r["0.4s"]["ego_collision_frames"] == pytest.approx(25.0)
+    assert r["0.4s"]["agent_collision_frames"] == pytest.approx(100 / 12)
     c = agent_metrics(pred, head, gt, valid, size, horizons=(2, 4), variant="corrected")
-    # corrected @4: agents have 4 + 2 + 2 = 8 present (agent, t) pairs, one colliding
-    assert c["0.4s"]["ego_collision"] == pytest.approx(25.0)
-    assert c["0.4s"]["agent_collision"] == pytest.approx(100 / 8)
+    # corrected @2: agents present in the first 2 frames are 1 and 2 (agent 3 appears at frame 2): 1 of 2 collides
+    assert c["0.2s"]["agent_collision"] == pytest.approx(50.0)
+    # corrected @4: all three agents present; one collides. Per frame: 4 + 2 + 2 = 8 present pairs, one colliding
+    assert c["0.4s"]["ego_collision"] == pytest.approx(100.0)
+    assert c["0.4s"]["agent_collision"] == pytest.approx(100 / 3)
+    assert c["0.4s"]["ego_collision_frames"] == pytest.approx(25.0)
+    assert c["0.4s"]["agent_collision_frames"] == pytest.approx(100 / 8)
+    # a second colliding frame of the same agent raises the per-frame rate, not the share of agents
+    pred[2, 1] = pred[2, 0] + np.array([1.0, 0.0])
+    r2 = agent_metrics(pred, head, gt, valid, size, horizons=(4,), variant="paper")
+    assert r2["0.4s"]["agent_collision"] == pytest.approx(100 / 3)
+    assert r2["0.4s"]["agent_collision_frames"] == pytest.approx(200 / 12)
     # an invalid agent is no obstacle in either variant
     valid2 = valid.copy()
-    valid2[1, 1] = False
+    valid2[1:3, 1] = False
     for v in ("paper", "corrected"):
-        assert agent_metrics(pred, head, gt, valid2, size, horizons=(4,), variant=v)["0.4s"]["ego_collision"] == 0
+        for k in ("ego_collision", "ego_collision_frames"):
+            assert agent_metrics(pred, head, gt, valid2, size, horizons=(4,), variant=v)["0.4s"][k] == 0
 
 
 def test_paper_box_vs_own_box():

@@ -63,8 +63,8 @@ metrics.json (written by rollout.py; NaN written as null)::
      "task_generates": {task: ["ego", "agent", "map"]}, "map_tokens": {"from_store": n1, "encoded": n2},
      "log_map": "tokens" | "lanes",
      "temperature", "seed",
-     "tasks": {task: {"3s": {"ego_ade", "ego_fde", "ego_collision",        # where the task generates the ego
-                             "agent_ade", "agent_fde", "agent_collision",  # ... the agents
+     "tasks": {task: {"3s": {"ego_ade", "ego_fde", "ego_collision", "ego_collision_frames",  # if it makes the ego
+                             "agent_ade", "agent_fde", "agent_collision", "agent_collision_frames",  # the agents
                              "<same>_corrected",                           # the other variant
                              "map_f1", "map_precision", "map_recall", "map_lateral",
                              "map_chamfer", "map_chamfer_corrected", "map_chamfer_corrected_skipped"}}},
@@ -77,7 +77,8 @@ metrics.json (written by rollout.py; NaN written as null)::
      "ratio_targets": {...: {"3s": 0.8, "5s": 0.75, "8s": 0.7}},
      "timing_s": {...}, "render": {...}}                           # render: only with --render
 
-ADE / FDE in metres, collision rates in percent, map lateral distance in metres, map Chamfer in m^2 (paper) or
+ADE / FDE in metres, collision rates in percent (`*_collision`: the paper's share of agents with at least one
+collision within the horizon; `*_collision_frames`: the per-frame rate of the official code), map lateral distance in metres, map Chamfer in m^2 (paper) or
 metres (corrected).
 """
 

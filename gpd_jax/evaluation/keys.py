@@ -10,7 +10,9 @@ TOKENIZER_CEILING = "map_tokenizer_reconstruction"
 MAP_PERSISTENCE = "map_persistence"
 MAP_BASELINES = (TOKENIZER_CEILING, MAP_PERSISTENCE)
 SCORED_AGENTS = "valid at the current frame"
-AGENT_METRICS = ("ade", "fde", "collision")
+# collision: share of entities with at least one collision within the horizon (the paper's definition);
+# collision_frames: per-frame rate (the official code's) -- see gpd_jax.metrics.agents.
+AGENT_METRICS = ("ade", "fde", "collision", "collision_frames")
 MAP_METRICS = ("map_f1", "map_precision", "map_recall", "map_lateral")
 # The paper-table targets of the traffic-simulation agent ADE relative to constant velocity.
 RATIO_TARGETS = {"3s": 0.8, "5s": 0.75, "8s": 0.7}

@@ -29,7 +29,8 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
     """Plain-text tables shaped like the paper's Table 1 (trajectories + map, tasks and baselines) and Table 2
     (map prediction), plus the traffic-simulation / constant-velocity ADE ratio line."""
     cols1 = [("ego ADE", "ego_ade"), ("ego FDE", "ego_fde"), ("ego Col%", "ego_collision"),
-             ("ag ADE", "agent_ade"), ("ag FDE", "agent_fde"), ("ag Col%", "agent_collision"),
+             ("ego Cf%", "ego_collision_frames"), ("ag ADE", "agent_ade"), ("ag FDE", "agent_fde"),
+             ("ag Col%", "agent_collision"), ("ag Cf%", "agent_collision_frames"),
              ("map F1", "map_f1"), ("map Lat", "map_lateral"), ("map Ch", "map_chamfer")]
     cols2 = [("F1", "map_f1"), ("Prec", "map_precision"), ("Rec", "map_recall"), ("Lat", "map_lateral"),
              ("Ch", "map_chamfer"), ({"paper": "Ch paper", "corrected": "Ch corr"}[other_variant(variant)], f"map_chamfer_{other_variant(variant)}")]
@@ -53,8 +54,8 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
     for n in BASELINE_NAMES:
         rows1.append((_title(n) + " (baseline):", None))
         rows1 += [(f"  {lb}", base[n][lb]) for lb in labels]
-    out = table(f"Table 1 - trajectories and map ({variant} metrics; ADE/FDE m, collisions %, Ch m^2 paper / m "
-                f"corrected)", rows1, cols1)
+    out = table(f"Table 1 - trajectories and map ({variant} metrics; ADE/FDE m; Col% = share of agents with a "
+                f"collision within the horizon, Cf% = per-frame rate; Ch m^2 paper / m corrected)", rows1, cols1)
     if maps:
         rows2: list[tuple[str, Any]] = []
         for n in maps:

@@ -6,15 +6,21 @@ Two variants, selected by `variant`:
   - N_exist = agents valid (in the log) in *any* future frame of the window passed in (the ego: one per scenario);
   - ADE@H = mean over the first H future steps of ADE[t], ADE[t] = sum_agents ||p^ - p|| * m_t / N_exist;
   - FDE@H = sum over agents of the error at the agent's last valid log frame within the first H steps / N_exist;
-  - collision@H = mean over the first H steps of (# colliding entities at t) / N_exist, in percent. At step t
-    every entity visible in the log gets a fixed 4.084 x 1.85 m box at its *predicted* pose (the ego too) and
-    entities are tested pairwise with the separating-axis test.
+  - collision@H = the paper's definition (appendix: "the proportion of agents that experienced at least one
+    collision during the evaluation period relative to the total number of interacting agents"): entities with
+    at least one colliding step among the first H / N_exist, in percent. At step t every entity visible in the log
+    gets a fixed 4.084 x 1.85 m box at its *predicted* pose (the ego too) and entities are tested pairwise with
+    the separating-axis test.
+  - collision_frames@H = the official code's per-frame rate: mean over the first H steps of (# colliding
+    entities at t) / N_exist, in percent (reads lower than the paper's definition: a collision lasting one
+    frame of H counts 1/H).
 * ``"corrected"`` — the same quantities normalised properly:
   - ADE@H = mean error over valid (agent, t) pairs, t < H;
   - FDE@H = mean over agents valid somewhere in the first H steps of the error at their last valid frame there;
-  - collision@H = colliding (entity, t) pairs / present (entity, t) pairs, t < H, in percent, where an entity is
-    present at t when it is valid in the log and in the prediction, boxes have each agent's own (length, width),
-    and an entity only collides with other present entities.
+  - collision@H = entities with at least one colliding step among the first H / entities present in at least
+    one of them, in percent, where an entity is present at t when it is valid in the log and in the prediction,
+    boxes have each agent's own (length, width), and an entity only collides with other present entities;
+  - collision_frames@H = colliding (entity, t) pairs / present (entity, t) pairs, t < H, in percent.
 
 Both variants are computed as sums and counts (`agent_metric_sums`, summed over every leading batch dim), which add
 up exactly across batches (`accumulate`) and are turned into the numbers by `reduce_agent_metrics`. Positions are
@@ -32,7 +38,8 @@ import jax.numpy as jnp
 PAPER_BOX = (4.084, 1.85)
 DEFAULT_HORIZONS = (30, 50, 80)  # future frames at 10 Hz: 3, 5, 8 s
 VARIANTS = ("paper", "corrected")
-_NAMES = ("ade", "fde", "collision")
+_NAMES = ("ade", "fde", "collision", "collision_frames")
+_RATES = ("collision", "collision_frames")  # reported in percent
 
 
 def horizon_label(frames: int, dt: float = 0.1) -> str:
@@ -131,7 +138,8 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
       dt: frame period in seconds (for the horizon labels only).
 
     Returns:
-      {horizon_label: {"{ego,agent}_{ade,fde,collision}_{num,den}": f32[]}}; feed to `reduce_agent_metrics`.
+      {horizon_label: {"{ego,agent}_{ade,fde,collision,collision_frames}_{num,den}": f32[]}}; feed to
+      `reduce_agent_metrics`.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
@@ -175,16 +183,20 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
                 d[f"{g}_ade_den"] = h * n_exist[g]
                 d[f"{g}_fde_num"] = f32(jnp.where(sel, fde_err, 0.0))
                 d[f"{g}_fde_den"] = n_exist[g]
-                d[f"{g}_collision_num"] = f32(c & m & s)
-                d[f"{g}_collision_den"] = h * n_exist[g]
+                d[f"{g}_collision_num"] = f32(jnp.any(c & m, axis=-2) & sel)
+                d[f"{g}_collision_den"] = n_exist[g]
+                d[f"{g}_collision_frames_num"] = f32(c & m & s)
+                d[f"{g}_collision_frames_den"] = h * n_exist[g]
             else:
                 pres = present[..., :h, :] & s
                 d[f"{g}_ade_num"] = f32(jnp.where(s & m, e, 0.0))
                 d[f"{g}_ade_den"] = f32(s & m)
                 d[f"{g}_fde_num"] = f32(jnp.where(sel & any_valid, fde_err, 0.0))
                 d[f"{g}_fde_den"] = f32(sel & any_valid)
-                d[f"{g}_collision_num"] = f32(c & pres)
-                d[f"{g}_collision_den"] = f32(pres)
+                d[f"{g}_collision_num"] = f32(jnp.any(c & pres, axis=-2))
+                d[f"{g}_collision_den"] = f32(jnp.any(pres, axis=-2))
+                d[f"{g}_collision_frames_num"] = f32(c & pres)
+                d[f"{g}_collision_frames_den"] = f32(pres)
         out[horizon_label(h, dt)] = d
     return out
 
@@ -195,7 +207,7 @@ def accumulate(a, b):
 
 
 def reduce_agent_metrics(sums: dict[str, dict[str, jax.Array]]) -> dict[str, dict[str, float]]:
-    """Sums -> {horizon_label: {ego_ade, ego_fde, ego_collision, agent_ade, agent_fde, agent_collision}}.
+    """Sums -> {horizon_label: {ego_ade, ego_fde, ego_collision, ego_collision_frames, agent_ade, ...}}.
 
     ADE / FDE in metres, collision rates in percent; NaN where the denominator is 0 (nothing to score).
     """
@@ -206,7 +218,7 @@ def reduce_agent_metrics(sums: dict[str, dict[str, jax.Array]]) -> dict[str, dic
             for n in _NAMES:
                 num, den = float(d[f"{g}_{n}_num"]), float(d[f"{g}_{n}_den"])
                 v = num / den if den > 0 else float("nan")
-                r[f"{g}_{n}"] = 100.0 * v if n == "collision" else v
+                r[f"{g}_{n}"] = 100.0 * v if n in _RATES else v
         out[hl] = r
     return out
 
