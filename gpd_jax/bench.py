@@ -17,7 +17,9 @@ Measures, in one run (so ratios are meaningful on a noisy shared machine):
   (`native_march`, `--native-march` to compare several in one run) and vector width, and for `auto` what it
   chose at each shape and why (`auto_choices`: timings of both paths, measured or read from the cache).
 * the recompute rollout (the official method: a full forward over the whole prefix for every future frame,
-  same model and weights) at batch 1. Timing 80 forwards of up to 9.7k tokens takes many minutes on a CPU,
+  same model and weights) at batch 1, with the fastest full-prefix forward this machine has: dense attention
+  (one masked softmax per layer, as the official code) and the chunked flash one are both timed at every prefix
+  length and the faster counts (`recompute_forward` in the JSON says which won where). Timing 80 forwards of up to 9.7k tokens takes many minutes on a CPU,
   so by default a forward is timed at K prefix lengths spread over [H, T-1], a quadratic in the prefix
   length is fitted, and the fit is summed over every future frame's prefix; the JSON says so
   (`recompute_method`). `--recompute-points 0` runs the full recompute rollout instead.
@@ -174,12 +176,13 @@ def bench_rollout(args, overrides) -> dict:
         })
     out = {"machine": machine, "matmul_gflops": mm, "rollout_gflop_per_scenario": flops / 1e9, "runs": runs}
     if 1 in args.batch:
-        rec, method = bench_recompute(model, m, cfg, t_total, h, args)
+        rec, method, rows = bench_recompute(model, m, cfg, t_total, h, args)
         for r in runs:
             if r["batch"] == 1:
                 r["recompute_s_per_scenario"] = rec
                 r["speedup"] = rec / r["cached_s_per_scenario"]
         out["recompute_method"] = method
+        out["recompute_forward"] = rows
     for r in runs:
         r["achieved_over_matmul"] = r["achieved_gflops"] / mm
     return out
@@ -200,41 +203,71 @@ def _label(kernel: str, choices: list) -> str:
     return "xla"
 
 
-def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, str]:
-    """Seconds per scenario of the official full-prefix recompute rollout at batch 1."""
-    graphdef, state = nnx.split(model)
+RECOMPUTE_ATTENTION = ("dense", "chunked")  # the full-prefix forward's attention: one masked softmax, or flash
+
+
+def _with_attention(model, attention_kind: str):
+    """`model`'s (graphdef, state) with its teacher-forced forward using `attention_kind` attention."""
+    dense = model.dense_attention
+    model.dense_attention = attention_kind == "dense"  # a static attribute: part of the graph definition
+    try:
+        return nnx.split(model)
+    finally:
+        model.dense_attention = dense
+
+
+def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, str, list[dict]]:
+    """Seconds per scenario of the official full-prefix recompute rollout at batch 1, with the fastest
+    attention this machine has for each prefix: dense (one masked softmax per layer, as the official code does)
+    and chunked (flash) are both timed at every measured prefix length and the faster one counts.
+
+    Returns (seconds, how it was measured, per prefix length {frames, dense_s, chunked_s, fastest}).
+    """
     scene = synthetic_scenes(0, 1, t_total, h, m.num_agents, m.num_map_tokens, m.codebook_size)
     scene = jax.tree.map(lambda x: jnp.asarray(x[0]), scene)
     if args.recompute_points <= 0:
         task = jax.tree.map(lambda x: jnp.asarray(x[0]), _mixed_tasks(1, m))
-        f = jax.jit(lambda s, sc, tk: rollout_recompute(nnx.merge(graphdef, s), sc, tk, jax.random.key(0), h,
-                                                            cfg.rollout.temperature))
-        jax.block_until_ready(f(state, scene, task))
-        t = _time(lambda: jax.block_until_ready(f(state, scene, task)), 1)
-        return t, "full recompute rollout timed end to end (fixed-length buffer of all frames per step)"
+        row = {"frames": f"{h}..{t_total - 1}"}
+        for kind in RECOMPUTE_ATTENTION:
+            graphdef, state = _with_attention(model, kind)
+            f = jax.jit(lambda s, sc, tk, g=graphdef: rollout_recompute(nnx.merge(g, s), sc, tk, jax.random.key(0),
+                                                                        h, cfg.rollout.temperature))
+            jax.block_until_ready(f(state, scene, task))
+            row[f"{kind}_s"] = _time(lambda: jax.block_until_ready(f(state, scene, task)), 1)
+            _log(f"recompute ({kind} attention): whole rollout {row[f'{kind}_s']:.2f} s")
+        row["fastest"] = min(RECOMPUTE_ATTENTION, key=lambda k: row[f"{k}_s"])
+        return (row[f"{row['fastest']}_s"], "full recompute rollout timed end to end with dense and with chunked "
+                f"attention (fixed-length buffer of all frames per step); the faster ({row['fastest']}) counts", [row])
 
-    def prefix_forward(s, xy, heading, valid, maps):
+    def prefix_forward(graphdef, s, xy, heading, valid, maps):
         mdl = nnx.merge(graphdef, s)
         p = xy.shape[0]
         hid = forward(mdl, mdl.embed(xy, heading, valid, maps, jnp.arange(p)))
         return mdl.predict(hid[-1:], xy[-1:], heading[-1:], valid[-1:], xy[-2:-1], valid[-2:-1])
 
-    fwd = jax.jit(prefix_forward)
+    fwd = jax.jit(prefix_forward, static_argnums=0)
+    splits = {kind: _with_attention(model, kind) for kind in RECOMPUTE_ATTENTION}
     lengths = np.unique(np.linspace(h, t_total - 1, args.recompute_points).round().astype(int))
-    times = []
+    rows = []
     for p in lengths:
-        a = (state, scene.xy[:p], scene.heading[:p], scene.valid[:p], scene.map_tokens[:p])
-        jax.block_until_ready(fwd(*a))
-        t = _time(lambda: jax.block_until_ready(fwd(*a)), max(1, args.repeats // 2))
-        times.append(t)
-        _log(f"recompute: forward over {p} frames {t:.3f} s")
+        row = {"frames": int(p)}
+        for kind, (graphdef, state) in splits.items():
+            a = (graphdef, state, scene.xy[:p], scene.heading[:p], scene.valid[:p], scene.map_tokens[:p])
+            jax.block_until_ready(fwd(*a))
+            row[f"{kind}_s"] = _time(lambda: jax.block_until_ready(fwd(*a)), max(1, args.repeats // 2))
+        row["fastest"] = min(RECOMPUTE_ATTENTION, key=lambda k: row[f"{k}_s"])
+        rows.append(row)
+        _log(f"recompute: forward over {p} frames: " + ", ".join(f"{k} {row[f'{k}_s']:.3f} s"
+                                                                  for k in RECOMPUTE_ATTENTION))
+    times = [row[f"{row['fastest']}_s"] for row in rows]
     deg = min(2, len(lengths) - 1)
     coef = np.polyfit(lengths, times, deg)
     total = float(np.sum(np.polyval(coef, np.arange(h, t_total))))
-    method = (f"forward over the prefix timed at {len(lengths)} prefix lengths {lengths.tolist()} frames "
-              f"(s: {[round(x, 4) for x in times]}), degree-{deg} fit summed over the {t_total - h} prefixes "
-              f"[{h}, {t_total - 1}]")
-    return total, method
+    method = (f"forward over the prefix timed at {len(lengths)} prefix lengths {lengths.tolist()} frames with dense "
+              f"and with chunked attention, the faster at each length "
+              f"({[row['fastest'] for row in rows]}: s {[round(x, 4) for x in times]}), degree-{deg} fit summed "
+              f"over the {t_total - h} prefixes [{h}, {t_total - 1}]")
+    return total, method, rows
 
 
 def _print_table(out: dict) -> None:

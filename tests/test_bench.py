@@ -33,5 +33,13 @@ def test_bench_records_machine_build_and_auto_choice(tmp_path):
         if "native" in r["decode_attention"]:
             assert r["native_march"] and r["native_vector_width"] in (4, 8, 16)
     assert "auto chose" in res.stdout
+    # the recompute baseline is the fastest full-prefix forward: both attentions timed at every prefix length
+    rows = rec["recompute_forward"]
+    assert [r["frames"] for r in rows] == sorted({r["frames"] for r in rows}) and len(rows) == 2
+    for r in rows:
+        assert r["dense_s"] > 0 and r["chunked_s"] > 0
+        assert r["fastest"] == min(("dense", "chunked"), key=lambda k: r[f"{k}_s"])
+    b1 = [r for r in rec["runs"] if r["batch"] == 1]
+    assert all(r["speedup"] == pytest.approx(r["recompute_s_per_scenario"] / r["cached_s_per_scenario"]) for r in b1)
     if any(c["source"] == "measured" for r in auto for c in r["auto_choices"]):
         assert list((tmp_path / "cache" / "decode-attention").glob("*.json"))
