@@ -61,6 +61,30 @@ def test_in_memory_scenes_score_as_the_store_does(model, scenes, store):
     assert from_scenes["baselines"] == from_store["baselines"]
 
 
+def test_per_layout_figures_are_each_layout_scored_alone(model, scenes):
+    """by_layout holds each layout's figures: the same as evaluating its scenarios alone; the overall figures
+    do not change with grouping (up to float summation order)."""
+    both = gpd_jax.evaluate(model, scenes, tasks=TASKS, batch_size=4, layouts=["grid", "real", "grid", "real"])
+    plain = gpd_jax.evaluate(model, scenes, tasks=TASKS, batch_size=4)
+    assert set(both["by_layout"]) == {"grid", "real"} and "by_layout" not in plain
+    close = lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+    def compare(a, b):
+        for name in ("tasks", "baselines"):
+            for key in a[name]:
+                for lb in a[name][key]:
+                    for k, v in a[name][key][lb].items():
+                        close(np.float64(np.nan if v is None else v), np.float64(np.nan if b[name][key][lb][k] is None
+                                                                                 else b[name][key][lb][k]))
+
+    compare(both, plain)
+    for layout, idx in (("grid", [0, 2]), ("real", [1, 3])):
+        alone = gpd_jax.evaluate(model, jax.tree.map(lambda x: x[np.array(idx)], scenes), tasks=TASKS)
+        assert both["by_layout"][layout]["scenarios"] == 2
+        compare(both["by_layout"][layout], alone)
+    assert "Per road-network layout" in gpd_jax.evaluation.format_tables(both)
+
+
 def test_one_scene_one_task_drop_their_axes_and_match_the_batch(model, scenes):
     batch = gpd_jax.rollout(model, scenes, TASKS, jax.random.key(0))
     one = gpd_jax.rollout(model, jax.tree.map(lambda x: x[2], scenes), "scene_generation", jax.random.key(0))

@@ -14,9 +14,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 import rollout  # noqa: E402
+from gpd_jax.evaluation.keys import AGENT_METRICS  # noqa: E402
 from gpd_jax.tasks import TASK_NAMES  # noqa: E402
 
-AGENT_KEYS = {f"{g}_{n}{s}" for g in ("ego", "agent") for n in ("ade", "fde", "collision") for s in ("", "_corrected")}
+AGENT_KEYS = {f"{g}_{n}{s}" for g in ("ego", "agent") for n in AGENT_METRICS for s in ("", "_corrected")}
 
 
 def tiny_config():

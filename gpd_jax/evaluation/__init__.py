@@ -75,6 +75,7 @@ metrics.json (written by rollout.py; NaN written as null)::
      "ratios": {"traffic_simulation_agent_ade_over_constant_velocity": {"3s": r, "5s": r, "8s": r},
                 "traffic_simulation_agent_ade_over_constant_velocity_model_rate": {...}},
      "ratio_targets": {...: {"3s": 0.8, "5s": 0.75, "8s": 0.7}},
+     "by_layout": {layout: {"scenarios": n, "tasks": ..., "baselines": ..., "ratios": ...}},  # 2+ layouts only
      "timing_s": {...}, "render": {...}}                           # render: only with --render
 
 ADE / FDE in metres, collision rates in percent (`*_collision`: the paper's share of agents with at least one

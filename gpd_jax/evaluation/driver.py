@@ -17,7 +17,7 @@ from tqdm import tqdm
 from gpd_jax.checkpoint import Model
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import to_scene
-from gpd_jax.data.store import foreign_map_token_shards
+from gpd_jax.data.store import foreign_map_token_shards, sample_layouts
 from gpd_jax.decoding import LogLanes, RolloutOutput, rollout_jit
 from gpd_jax.evaluation.keys import LOG_MAP_SOURCES, RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import (decode_map_tokens, encode_map_frames, gt_future_lanes,
@@ -43,8 +43,8 @@ class RenderItem:
 def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names: Sequence[str] | str = ("all",),
              num_scenarios: int | None = None, batch_size: int = 8, seed: int = 0, variant: str = "paper",
              horizons_s: Sequence[float] = HORIZONS_S, render_count: int = 0, log_map: str = "tokens",
-             temperature: float | None = None, progress: bool = True, log: Callable[[str], None] = print
-             ) -> tuple[dict[str, Any], list[RenderItem]]:
+             temperature: float | None = None, progress: bool = True, log: Callable[[str], None] = print,
+             layouts: Sequence[str] | None = None) -> tuple[dict[str, Any], list[RenderItem]]:
     """Rolls out every task on the first `num_scenarios` scenarios of a split (or of given scenes) and scores
     them.
 
@@ -62,6 +62,9 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
       log_map: "tokens" (the logged map tokens) or "lanes" (the log's lanes encoded around a generated ego;
         needs the tokenizer) for tasks that take the map from the log.
       temperature: map-token sampling temperature (default: the model config's `rollout.temperature`).
+      layouts: the road-network layout of every scenario (grid, spider, random, real, ...), for figures per
+        layout beside the overall ones (`results["by_layout"]`, when there are two or more). Default: read from
+        the store (`gpd_jax.data.store.sample_layouts`; SUMO builds record it), none for in-memory scenes.
 
     Returns:
       (results dict as written to metrics.json, render items). Raises EvalError on bad input.
@@ -89,6 +92,14 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
     tasks = jax.tree.map(jnp.asarray, make_tasks(names, spec.num_map_tokens, spec.num_agents))
     key = jax.random.key(seed)
     tok_args = {} if tokenizer is None else dict(tok=tokenizer, tok_params=tokenizer.params)
+
+    if layouts is None and isinstance(data, str):
+        layouts = sample_layouts(data, split)
+    layouts = None if layouts is None else [str(x) for x in list(layouts)[:n]]
+    if layouts is not None and len(layouts) < n:
+        raise EvalError(f"layouts: {len(layouts)} labels for {n} scenarios")
+    per_layout = layouts is not None and len(set(layouts)) > 1
+    layout_acc: dict[str, Any] = {}
 
     acc = None
     render_items: list[RenderItem] = []
@@ -141,7 +152,15 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
                 tokens = jnp.concatenate([out.map_tokens[:, mi, fut],
                                           jnp.asarray(scene.map_tokens)[:, None, fut]], axis=1)
                 map_pred = decode_map_tokens(tokenizer, tokenizer.params, tokens)
-            sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes, kept_lanes)
+            sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes, kept_lanes,
+                               per_scenario=per_layout)
+            if per_layout:  # each scenario's sums: the batch's total and each layout's part
+                sums = jax.tree.map(np.asarray, jax.device_get(sums))
+                labels = np.array([layouts[i] for i in idx])
+                for g in sorted(set(labels[:real])):
+                    part = (labels == g) & weight
+                    layout_acc[g] = add_sums(layout_acc.get(g), jax.tree.map(lambda x: x[part].sum(0), sums))
+                sums = jax.tree.map(lambda x: x[weight].sum(0), sums)
             acc = add_sums(acc, sums)
             t_score += time.perf_counter() - tc
             for j in range(real):
@@ -184,6 +203,8 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
         "seed": seed,
         **res,
         "ratio_targets": {k: RATIO_TARGETS for k in res["ratios"]},
+        **({"by_layout": {g: {"scenarios": int(a["counts"]["scenarios"]), **reduce_results(a, spec, names, variant)}
+                          for g, a in sorted(layout_acc.items())}} if per_layout else {}),
         "timing_s": {"total": round(wall, 2), "rollout": round(t_roll, 2), "scoring": round(t_score, 2),
                      "data": round(t_data, 2), "batches": num_batches, "batch_size": bs},
     }

@@ -16,6 +16,8 @@ from gpd_jax.tasks import generated
 
 # ------------------------------------------------------------------------------------------------ tables
 def _fmt(v) -> str:
+    if isinstance(v, int):
+        return str(v)
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
@@ -73,7 +75,43 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
         if ratio:
             parts = [f"{lb} {_fmt(v)} (target <= {RATIO_TARGETS.get(lb, float('nan')):g})" for lb, v in ratio.items()]
             out += [f"traffic simulation agent ADE / {what} agent ADE: " + ", ".join(parts)]
+    if results.get("by_layout"):
+        out += [""] + format_layout_table(results)
     return "\n".join(out)
+
+
+def format_layout_table(results: dict[str, Any]) -> list[str]:
+    """Per road-network layout (and overall): the traffic-simulation agents against constant velocity, the paper's
+    collision rate of the generated agents and of the log itself, and scene generation's map F1 against map
+    persistence, at the longest horizon (the map at the shortest)."""
+    rows = [("all", results)] + list(results["by_layout"].items())
+    labels = list(results["baselines"]["constant_velocity"])
+    lo, hi = labels[0], labels[-1]
+    get = lambda d, *ks: _dig(d, *ks)
+    cols = [("scn", lambda r: r.get("scenarios")),
+            (f"TS ADE {hi}", lambda r: get(r, "tasks", "traffic_simulation", hi, "agent_ade")),
+            (f"CV ADE {hi}", lambda r: get(r, "baselines", "constant_velocity", hi, "agent_ade")),
+            (f"TS/CV {hi}", lambda r: get(r, "ratios", RATIO_KEY, hi)),
+            (f"TS Col% {hi}", lambda r: get(r, "tasks", "traffic_simulation", hi, "agent_collision")),
+            (f"log Col% {hi}", lambda r: get(r, "baselines", "log_replay", hi, "agent_collision")),
+            (f"SG F1 {lo}", lambda r: get(r, "tasks", "scene_generation", lo, "map_f1")),
+            (f"keep F1 {lo}", lambda r: get(r, "baselines", MAP_PERSISTENCE, lo, "map_f1"))]
+    w0 = max(8, *(len(n) for n, _ in rows)) + 2
+    head = "".join(f"{c:>13}" for c, _ in cols)
+    lines = ["Per road-network layout (TS: traffic simulation agents, CV: constant velocity, log: log replay, "
+             "SG: scene generation, keep: map persistence; Col% = share of agents with a collision)",
+             f"{'':<{w0}}{head}", "-" * (w0 + len(head))]
+    for name, r in rows:
+        lines.append(f"{name:<{w0}}" + "".join(f"{_fmt(f(r)):>13}" for _, f in cols))
+    return lines
+
+
+def _dig(d, *keys):
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return None
+        d = d[k]
+    return d
 
 
 def to_json_compatible(x):

@@ -85,10 +85,14 @@ def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight, count_exact_
     return {key: jnp.sum(v.reshape(b, k, f) * w, axis=0) for key, v in s.items()}
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "task_names"))
+@functools.partial(jax.jit, static_argnames=("spec", "task_names", "per_scenario"))
 def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSpec,
-                task_names: tuple[str, ...], map_pred=None, gt_lanes=None, kept_lanes=None) -> dict[str, Any]:
+                task_names: tuple[str, ...], map_pred=None, gt_lanes=None, kept_lanes=None,
+                per_scenario: bool = False) -> dict[str, Any]:
     """Metric sums of one batch: every task and both baselines, both variants.
+
+    With `per_scenario`, every leaf keeps a leading [B] (each scenario's own sums, which add up to the batch's):
+    what per-group figures (e.g. per network layout) are summed from on the host.
 
     Args:
       pred: rollout output with leading dims [B, K] (K = len(task_names)) at the model's frames.
@@ -107,6 +111,16 @@ def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: Mo
       {"tasks": {name: {"paper": sums, "corrected": sums[, "map": {key: f32[F]}]}},
        "baselines": {name: {"paper": sums, "corrected": sums}}, "counts": {...}}.
     """
+    if per_scenario:
+        # each scenario as a batch of one: [B, ...] -> [B, 1, ...] and vmapped over the B
+        args = (pred, scene, full, jnp.asarray(weight), map_pred, gt_lanes, kept_lanes)
+        args = [None if x is None else jax.tree.map(lambda a: jnp.asarray(a)[:, None], x) for x in args]
+        return jax.vmap(lambda p, sc, fu, w, mp, gl, kl: _score(p, sc, fu, w, spec, task_names, mp, gl, kl))(*args)
+    return _score(pred, scene, full, weight, spec, task_names, map_pred, gt_lanes, kept_lanes)
+
+
+def _score(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSpec, task_names: tuple[str, ...],
+           map_pred=None, gt_lanes=None, kept_lanes=None) -> dict[str, Any]:
     scored = scored_mask(scene, spec, weight)
     # Tasks and baselines stacked on axis 1 and scored under one vmap (one traced metric graph, not K + 2).
     base = baseline_predictions(full, spec)
