@@ -2,9 +2,11 @@
 
     python train.py --config configs/map_tokenizer_tiny.py --workdir DIR [--config.a.b=value ...]   # stage 1
     python train.py --config configs/gpd_tiny.py --workdir DIR [--config.a.b=value ...]             # stage 2
+    python train.py --config configs/gpd_sumo_plan_head.py --workdir DIR [...]   # the planning head (fine-tuning)
 
 The config's `stage` field picks the stage: "map_tokenizer" trains the map VQ-VAE
-(`gpd_jax.training.map_tokenizer`), "gpd" the scene transformer. Runs resume from the latest checkpoint in
+(`gpd_jax.training.map_tokenizer`), "gpd" the scene transformer (`gpd_jax.training.loop`), or, when the config
+has a `plan_head` section, its planning head (`gpd_jax.training.planning`). Runs resume from the latest checkpoint in
 DIR when one is there.
 """
 
@@ -40,7 +42,10 @@ def main(argv=None) -> int:
         return 0
     if stage == "gpd":
         from gpd_jax.data.errors import DataError
-        from gpd_jax.training.loop import train_and_evaluate as train_gpd
+        if config.get("plan_head"):  # a GPD with the planning head (configs/gpd_sumo_plan_head*.py)
+            from gpd_jax.training.planning import train_and_evaluate as train_gpd
+        else:
+            from gpd_jax.training.loop import train_and_evaluate as train_gpd
 
         try:
             train_gpd(config, args.workdir, stop_after=args.stop_after)

@@ -2,7 +2,9 @@
 
     model = load_model()                                  # the shipped model (checkpoints/gpd_sumo)
     model = load_model("runs/gpd")                        # a train.py workdir: latest orbax step
+    model = load_model("checkpoints/gpd_sumo_plan_head")  # a GPD with the fine-tuned planning head
     model.module                                          # the NNX `GPD` (nnx.merge of the parts below)
+    model.module.plan_head                                # its planning head, if the config has `plan_head`
     model.graphdef, model.params, model.rest              # structure, trainable params, frozen state
     model.spec                                            # its view of a stored scene (gpd_jax.spec)
     model.tokenizer                                       # its map tokenizer (or None)
@@ -28,7 +30,7 @@ from flax import nnx
 from gpd_jax.config import config_from_json
 from gpd_jax.fsutil import atomic_directory, flatten_params, load_params_npz, restore_params
 from gpd_jax.map_tokenizer import MapTokenizer, load_tokenizer
-from gpd_jax.model import GPD
+from gpd_jax.model import GPD, PlanningHead
 from gpd_jax.spec import EvalError, ModelSpec, model_frame_period_s, spec_from_config
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -98,12 +100,18 @@ def build_model(config, seed: int | None = None, codebook: np.ndarray | None = N
                 checkpoint_dir: str | None = None) -> GPD:
     """A freshly initialised GPD of a full config. Map tokens are embedded with `codebook` when given, else with
     the codebook of the map tokenizer `config.model.map_tokenizer` names (resolved relative to
-    `checkpoint_dir` first), else a learned one. The frame period is `data.frame_stride * data.frame_period_s`."""
+    `checkpoint_dir` first), else a learned one. The frame period is `data.frame_stride * data.frame_period_s`.
+    A config with a `plan_head` section also gets the planning head (`module.plan_head`, a
+    `gpd_jax.model.PlanningHead`; `python train.py --config configs/gpd_sumo_plan_head.py` trains it)."""
     m = config.model
     if codebook is None and m.map_tokenizer:
         codebook = np.asarray(load_tokenizer(resolve_tokenizer_path(m.map_tokenizer, checkpoint_dir)).codebook)
-    return GPD(m, nnx.Rngs(config.seed if seed is None else seed), codebook=codebook,
-               frame_period_s=model_frame_period_s(config))
+    seed = config.seed if seed is None else seed
+    module = GPD(m, nnx.Rngs(seed), codebook=codebook, frame_period_s=model_frame_period_s(config))
+    if config.get("plan_head"):
+        # The fine-tuned planner (gpd_jax.model.planning_head): its parameters live under "plan_head".
+        module.plan_head = PlanningHead.from_config(config.plan_head, m, nnx.Rngs(seed + 1))
+    return module
 
 
 def is_exported(path: str) -> bool:

@@ -6,8 +6,12 @@ Public names (pure functions of an NNX module; `gpd_jax.checkpoint.build_model` 
 * `forward(model, tokens)`: teacher-forced pass over whole frames, memory-linear attention.
 * `forward_cached(model, tokens, cache, start_frame)`: a block of frames appended to a KV cache.
 * `Prediction`, `KVCache`: what the heads return and what the cache holds.
+* `PlanningHead`, `plan_trajectory(head, hidden[, ego_pose])`: the paper's fine-tuned planner, one decoder layer
+  on a frame's ego token -> the ego's next F poses (gpd_jax/model/planning_head.py).
 """
 
+from gpd_jax.model.planning_head import PlanningHead, plan_trajectory, to_ego_frame, to_scene_frame
 from gpd_jax.model.transformer import GPD, KVCache, Prediction, count_params, forward, forward_cached
 
-__all__ = ["GPD", "KVCache", "Prediction", "count_params", "forward", "forward_cached"]
+__all__ = ["GPD", "KVCache", "PlanningHead", "Prediction", "count_params", "forward", "forward_cached",
+           "plan_trajectory", "to_ego_frame", "to_scene_frame"]

@@ -1,0 +1,146 @@
+"""The fine-tuned planning head of GPD-1 (paper Table 2: "we added only a single decoder layer to decode the ego
+token"): one transformer decoder layer that reads a frame's output tokens and returns the ego's next F poses.
+
+    head = PlanningHead(d_model=128, num_future=8, num_heads=4, ffn_dim=512, ego_slot=64, rngs=nnx.Rngs(0))
+    plan = plan_trajectory(head, hidden)                 # hidden f32[..., N, d] -> f32[..., F, 3]
+    plan = plan_trajectory(head, hidden, ego_pose)       # the same in the scene frame (ego_pose f32[..., 3])
+
+The layer: F learned waypoint queries, each plus a projection of the ego token, attend to each other
+(self-attention), then to the frame's N tokens (cross-attention: map, ego and agents of the current frame,
+whose hidden states already carry the history through the backbone's causal attention), then a GELU FFN
+(pre-LN residual blocks, as the backbone's). A small MLP turns each query into (dx, dy, cos, sin): the
+displacement from the previous waypoint (scaled by `position_scale` metres) and the heading as a unit vector.
+Waypoint k is the running sum of the displacements, so positions start at the ego and grow smoothly.
+
+Frames: the head's output is in the ego frame of the frame whose tokens it read (origin at the ego's box
+centre, x along its heading); `to_scene_frame` (or `plan_trajectory(..., ego_pose)`) turns it into the scene
+frame. Output k (k = 0 .. F-1) is the ego at model frame t + 1 + k when the tokens are frame t's, at the
+model's frame rate (1 s for configs/gpd_sumo.py, so 8 frames = 8 s).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from gpd_jax.scene import wrap_angle
+
+
+def _attend(q, k, v):
+    """Multi-head softmax attention: q f32[..., Q, H, Dh], k, v f32[..., K, H, Dh] -> f32[..., Q, H, Dh]."""
+    logits = jnp.einsum("...qhd,...khd->...hqk", q, k) / jnp.sqrt(jnp.asarray(q.shape[-1], q.dtype))
+    return jnp.einsum("...hqk,...khd->...qhd", jax.nn.softmax(logits, axis=-1), v)
+
+
+class PlanningHead(nnx.Module):
+    """One decoder layer on the ego token -> the ego's next F poses (x, y, heading) in its current frame.
+
+    Args:
+      d_model: width of the backbone's tokens (the head works at the same width).
+      num_future: F, poses planned (model frames after the one read).
+      num_heads: attention heads of the self- and cross-attention.
+      ffn_dim: hidden width of the FFN.
+      ego_slot: index of the ego token among a frame's N tokens (M, the number of map tokens).
+      position_scale: metres per unit of the displacement output (initial outputs are O(1)).
+      rngs: parameter initialisation keys.
+    """
+
+    def __init__(self, d_model: int, num_future: int, num_heads: int, ffn_dim: int, ego_slot: int,
+                 rngs: nnx.Rngs, position_scale: float = 10.0):
+        d = int(d_model)
+        if d % int(num_heads):
+            raise ValueError(f"plan_head: d_model {d} is not divisible by num_heads {num_heads}")
+        if int(num_future) < 1:
+            raise ValueError(f"plan_head.num_future must be >= 1, got {num_future}")
+        self.num_future = int(num_future)
+        self.num_heads = int(num_heads)
+        self.ego_slot = int(ego_slot)
+        self.position_scale = float(position_scale)
+        self.queries = nnx.Param(0.02 * jax.random.normal(rngs.params(), (self.num_future, d)))
+        self.ego_in = nnx.Linear(d, d, rngs=rngs)
+        self.ln_mem = nnx.LayerNorm(d, rngs=rngs)
+        self.ln_self = nnx.LayerNorm(d, rngs=rngs)
+        self.self_qkv = nnx.Linear(d, 3 * d, rngs=rngs)
+        self.self_out = nnx.Linear(d, d, rngs=rngs)
+        self.ln_cross = nnx.LayerNorm(d, rngs=rngs)
+        self.cross_q = nnx.Linear(d, d, rngs=rngs)
+        self.cross_kv = nnx.Linear(d, 2 * d, rngs=rngs)
+        self.cross_out = nnx.Linear(d, d, rngs=rngs)
+        self.ln_ff = nnx.LayerNorm(d, rngs=rngs)
+        self.ff1 = nnx.Linear(d, int(ffn_dim), rngs=rngs)
+        self.ff2 = nnx.Linear(int(ffn_dim), d, rngs=rngs)
+        self.ln_out = nnx.LayerNorm(d, rngs=rngs)
+        self.out1 = nnx.Linear(d, d, rngs=rngs)
+        self.out2 = nnx.Linear(d, 4, rngs=rngs)
+
+    @classmethod
+    def from_config(cls, head_cfg, model_cfg, rngs: nnx.Rngs) -> "PlanningHead":
+        """The head of a full config's `plan_head` section for the backbone of its `model` section."""
+        return cls(d_model=int(model_cfg.d_model), num_future=int(head_cfg.num_future),
+                   num_heads=int(head_cfg.num_heads), ffn_dim=int(head_cfg.ffn_dim),
+                   ego_slot=int(model_cfg.num_map_tokens), rngs=rngs,
+                   position_scale=float(head_cfg.position_scale))
+
+    def _split(self, x):
+        return x.reshape(x.shape[:-1] + (self.num_heads, x.shape[-1] // self.num_heads))
+
+    def __call__(self, hidden):
+        """hidden f32[..., N, d] (one frame's backbone outputs, before the backbone's final LayerNorm) ->
+        f32[..., F, 3] (x, y, heading) in the ego frame of that frame."""
+        if hidden.ndim < 2 or hidden.shape[-2] <= self.ego_slot:
+            raise ValueError(f"plan_head: hidden must be f32[..., N, d] with N > ego slot {self.ego_slot}, "
+                             f"got shape {hidden.shape}")
+        mem = self.ln_mem(hidden)
+        ego = mem[..., self.ego_slot, :]
+        q = self.queries[...] + self.ego_in(ego)[..., None, :]                    # [..., F, d]
+        s = self.self_qkv(self.ln_self(q))
+        sq, sk, sv = (self._split(a) for a in jnp.split(s, 3, axis=-1))
+        q = q + self.self_out(_attend(sq, sk, sv).reshape(q.shape))
+        cq = self._split(self.cross_q(self.ln_cross(q)))
+        ck, cv = (self._split(a) for a in jnp.split(self.cross_kv(mem), 2, axis=-1))
+        q = q + self.cross_out(_attend(cq, ck, cv).reshape(q.shape))
+        q = q + self.ff2(jax.nn.gelu(self.ff1(self.ln_ff(q))))
+        out = self.out2(jax.nn.gelu(self.out1(self.ln_out(q))))                  # [..., F, 4]
+        xy = jnp.cumsum(out[..., :2] * self.position_scale, axis=-2)
+        heading = jnp.arctan2(out[..., 3], out[..., 2] + 1.0)  # +1: heading 0 (straight on) at initialisation
+        return jnp.concatenate([xy, heading[..., None]], axis=-1)
+
+
+def to_scene_frame(plan, ego_pose):
+    """Poses in the ego's frame -> the scene frame. plan f32[..., F, 3], ego_pose f32[..., 3] (x, y, heading of
+    the ego in the scene frame) -> f32[..., F, 3], headings wrapped to [-pi, pi)."""
+    c, s = jnp.cos(ego_pose[..., 2:3]), jnp.sin(ego_pose[..., 2:3])
+    x, y = plan[..., 0], plan[..., 1]
+    sx = ego_pose[..., 0:1] + c * x - s * y
+    sy = ego_pose[..., 1:2] + s * x + c * y
+    return jnp.stack([sx, sy, wrap_angle(plan[..., 2] + ego_pose[..., 2:3])], axis=-1)
+
+
+def to_ego_frame(xy, heading, ego_pose):
+    """Scene-frame poses -> the frame of `ego_pose`. xy f32[..., F, 2], heading f32[..., F], ego_pose f32[..., 3]
+    -> f32[..., F, 3] (the inverse of `to_scene_frame`)."""
+    c, s = jnp.cos(ego_pose[..., 2:3]), jnp.sin(ego_pose[..., 2:3])
+    dx, dy = xy[..., 0] - ego_pose[..., 0:1], xy[..., 1] - ego_pose[..., 1:2]
+    return jnp.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(heading - ego_pose[..., 2:3])], axis=-1)
+
+
+def plan_trajectory(head, hidden, ego_pose=None):
+    """The planned ego trajectory from one frame's backbone output tokens.
+
+    Args:
+      head: a `PlanningHead`, or a GPD module carrying one as `.plan_head` (`gpd_jax.load_model` of a plan-head
+        checkpoint: `model.module`, or `nnx.merge(model.graphdef, params, model.rest)` inside a jitted function).
+      hidden: f32[..., N, d] the frame's output tokens (map slots, then the ego at slot M, then agents), e.g.
+        `gpd_jax.decoding.DecodeState.hidden` after the frame was appended.
+      ego_pose: optional f32[..., 3] the ego's (x, y, heading) at that frame in the scene frame.
+    Returns:
+      f32[..., F, 3] (x, y, heading) of the ego at the next F model frames: in the ego's frame at the read
+      frame, or in the scene frame when `ego_pose` is given.
+    """
+    head = getattr(head, "plan_head", head)
+    if not isinstance(head, PlanningHead):
+        raise TypeError(f"plan_trajectory needs a PlanningHead or a model with one (.plan_head), got "
+                        f"{type(head).__name__}")
+    plan = head(hidden)
+    return plan if ego_pose is None else to_scene_frame(plan, ego_pose)

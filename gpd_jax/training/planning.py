@@ -1,0 +1,509 @@
+"""Fine-tuning GPD for planning: the paper's single decoder layer on the ego token (`gpd_jax.model.planning_head`)
+trained on the logged ego's future (`python train.py --config configs/gpd_sumo_plan_head.py ...`).
+
+A config with a `plan_head` section (configs/gpd_sumo_plan_head.py) builds the GPD with the head attached
+(`gpd_jax.checkpoint.build_model`); `train.py` then runs `train_and_evaluate` here instead of the stage-2 loop.
+
+* Targets: for every frame t from `plan_head.first_frame` (default: the current frame, H - 1) to T - 2, the
+  logged ego at frames t + 1 .. t + F expressed in the ego frame of frame t, masked where the ego is invalid at
+  t or at the target frame and where t + k runs past the scene. The head reads the teacher-forced backbone's
+  output tokens of frame t, so one pass trains the plans of every such frame, as a closed-loop simulator asks
+  for them (at frame t the ego is no longer at the scene origin).
+* Loss: smooth-L1 (beta 1 m) of the positions summed over x and y, plus `plan_head.heading_weight` x smooth-L1
+  of the wrapped heading difference, averaged over valid (frame, waypoint) pairs; optionally plus
+  `train.gpd_loss_weight` x the GPD's own teacher-forced loss (`gpd_jax.training.step.batch_loss`, a second
+  backbone pass) to keep its agent and map predictions while the backbone moves.
+* Backbone: `train.backbone_lr_scale` x the learning rate (0: frozen; no gradient flows into it). The head
+  always trains at `train.learning_rate` (AdamW, warm-up + cosine, clipping: `step.make_optimizer`).
+* Initialisation: `train.init_from` (an exported GPD or a workdir: the shipped `checkpoints/gpd_sumo`) gives
+  the backbone's parameters and must have the same `model` config; empty trains everything from scratch (the
+  paper's "without pre-training" ablation, configs/gpd_sumo_plan_head_scratch.py).
+* Checkpoints, resume, SIGTERM, metrics.jsonl and the export to WORKDIR/export work as in the stage-2 loop
+  (`gpd_jax.training.loop`); validation every `train.eval_every` steps over `train.eval_batches` batches of
+  `data.val_dir` (default `data.dir`) / `data.val_split`: the loss and the ego ADE / FDE of the current frame's
+  plan at 3 / 5 / 8 s.
+
+`evaluate_planning` scores an exported plan-head model open loop against the zero-shot GPD (the
+`motion_planning` rollout) and constant velocity: `python -m gpd_jax.training.planning evaluate ...`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import optax
+import tqdm
+from flax import nnx
+from jax.sharding import NamedSharding, PartitionSpec
+
+from gpd_jax.checkpoint import Model, build_model, export_model, load_model, model_spec, resolve_tokenizer_path
+from gpd_jax.config import config_differences
+from gpd_jax.data import loader as data_loader
+from gpd_jax.data.errors import DataError
+from gpd_jax.fsutil import atomic_write_json, atomic_write_text
+from gpd_jax.model import count_params, forward
+from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
+from gpd_jax.parallel import data_mesh
+from gpd_jax.scene import Scene, wrap_angle
+from gpd_jax.spec import EvalError
+from gpd_jax.training.common import MetricsLog, StopOnSigterm, checkpoint_manager, restore_state, save_state
+from gpd_jax.training.loop import _check_store, _check_token_source, _global_batch, resolve_data_dir
+from gpd_jax.training.step import TrainState, _smooth_l1, batch_loss, make_optimizer
+
+HEAD = "plan_head"
+
+
+def is_head_path(path) -> bool:
+    """Whether a params-tree path lies in the planning head."""
+    return bool(path) and getattr(path[0], "key", getattr(path[0], "name", None)) == HEAD
+
+
+def split_labels(params):
+    """'head' / 'backbone' per leaf of a GPD-with-head params tree (for `optax.multi_transform`)."""
+    return jax.tree_util.tree_map_with_path(lambda p, _: "head" if is_head_path(p) else "backbone", params)
+
+
+# ----------------------------------------------------------------------------------------------- targets, loss
+def plan_targets(scene: Scene, num_future: int, first_frame: int):
+    """The logged ego's next `num_future` poses from every frame, in that frame's ego frame.
+
+    scene: one unbatched Scene [T, A, ...] at the model's rate. Returns (target f32[T-1, F, 3] for source
+    frames t = 0 .. T-2, mask bool[T-1, F]: the ego valid at t and at t + 1 + k, t + 1 + k < T and
+    t >= first_frame)."""
+    t_total = scene.xy.shape[-3]
+    xy, heading, valid = scene.xy[:, 0], scene.heading[:, 0], scene.valid[:, 0]
+    src = jnp.arange(t_total - 1)
+    idx = src[:, None] + 1 + jnp.arange(num_future)[None, :]          # [T-1, F]
+    inside = idx < t_total
+    idx_c = jnp.minimum(idx, t_total - 1)
+    pose = jnp.concatenate([xy[:-1], heading[:-1, None]], axis=-1)    # [T-1, 3]
+    target = to_ego_frame(xy[idx_c], heading[idx_c], pose)
+    mask = inside & valid[idx_c] & valid[:-1, None] & (src >= first_frame)[:, None]
+    return target, mask
+
+
+def backbone_hidden(model, scene: Scene):
+    """Teacher-forced output tokens of frames [0, T-1) of one scene: f32[T-1, N, d]."""
+    vel = model.input_velocity(scene.velocity)
+    tokens = model.embed(scene.xy[:-1], scene.heading[:-1], scene.valid[:-1], scene.map_tokens[:-1],
+                         jnp.arange(scene.xy.shape[-3] - 1), None if vel is None else vel[:-1])
+    return forward(model, tokens)
+
+
+def plan_loss_terms(model, scene: Scene, first_frame: int) -> dict[str, jax.Array]:
+    """Sums and counts of the planning loss over one unbatched scene (model view), and the current-frame ADE."""
+    head: PlanningHead = model.plan_head
+    plan = head(backbone_hidden(model, scene))                        # [T-1, F, 3]
+    target, mask = plan_targets(scene, head.num_future, first_frame)
+    m = mask.astype(jnp.float32)
+    pos = jnp.sum(_smooth_l1(plan[..., :2] - target[..., :2]), axis=-1)
+    hd = _smooth_l1(wrap_angle(plan[..., 2] - target[..., 2]))
+    err = jnp.linalg.norm(plan[..., :2] - target[..., :2], axis=-1)
+    cur = m[first_frame]
+    return {"position_sum": jnp.sum(pos * m), "heading_sum": jnp.sum(hd * m), "count": jnp.sum(m),
+            "ade_sum": jnp.sum(err[first_frame] * cur), "ade_count": jnp.sum(cur)}
+
+
+def plan_batch_loss(model, scenes: Scene, config) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Weighted planning loss over a batch (leading dim B) and its parts (plus the GPD's own loss with
+    `train.gpd_loss_weight` > 0)."""
+    ph = config.plan_head
+    first = first_frame(config)
+    terms = jax.tree.map(jnp.sum, jax.vmap(lambda s: plan_loss_terms(model, s, first))(scenes))
+    n = jnp.maximum(terms["count"], 1.0)
+    parts = {"plan_position": terms["position_sum"] / n, "plan_heading": terms["heading_sum"] / n,
+             "plan_ade_current": terms["ade_sum"] / jnp.maximum(terms["ade_count"], 1.0)}
+    total = float(ph.position_weight) * parts["plan_position"] + float(ph.heading_weight) * parts["plan_heading"]
+    gw = float(config.train.gpd_loss_weight)
+    if gw > 0:
+        gpd_total, gpd_parts = batch_loss(model, scenes, config.loss, int(config.model.num_history))
+        parts.update({f"gpd_{k}": v for k, v in gpd_parts.items()})
+        total = total + gw * gpd_total
+    parts["loss"] = total
+    return total, parts
+
+
+def first_frame(config) -> int:
+    """The first frame whose plan is trained (`plan_head.first_frame`; -1: the current frame, H - 1)."""
+    f = int(config.plan_head.first_frame)
+    h = int(config.model.num_history)
+    f = h - 1 if f < 0 else f
+    if not 0 <= f < int(config.model.num_frames) - 1:
+        raise ValueError(f"plan_head.first_frame {f} outside [0, {int(config.model.num_frames) - 2}]")
+    return f
+
+
+# ----------------------------------------------------------------------------------------------- optimizer, step
+def make_plan_optimizer(config) -> optax.GradientTransformation:
+    """The head at `train.learning_rate`, the backbone at `train.backbone_lr_scale` x it (0: frozen)."""
+    tc = config.train
+    scale = float(tc.backbone_lr_scale)
+    if scale < 0:
+        raise ValueError(f"train.backbone_lr_scale must be >= 0, got {scale}")
+    head_tx = make_optimizer(tc)
+    if scale == 0:
+        backbone_tx = optax.set_to_zero()
+    else:
+        bc = ml_collections.ConfigDict(tc.to_dict())
+        bc.learning_rate = float(tc.learning_rate) * scale
+        bc.min_learning_rate = float(tc.min_learning_rate) * scale
+        backbone_tx = make_optimizer(bc)
+    return optax.multi_transform({"head": head_tx, "backbone": backbone_tx}, split_labels)
+
+
+class PlanTrainer:
+    """The jitted planning train / eval steps of a GPD-with-head (`train_step(state, scenes)`,
+    `eval_step(params, scenes)`), pure functions of (params, opt_state, batch)."""
+
+    def __init__(self, model, config, donate: bool = True):
+        if not isinstance(getattr(model, HEAD, None), PlanningHead):
+            raise ValueError("the model has no planning head: the config needs a `plan_head` section")
+        self.graphdef, params, self.rest = nnx.split(model, nnx.Param, ...)
+        self.tx = make_plan_optimizer(config)
+        frozen = float(config.train.backbone_lr_scale) == 0
+        if frozen and float(config.train.gpd_loss_weight) > 0:
+            raise ValueError("train.gpd_loss_weight keeps the backbone's own predictions while it moves; with a "
+                             "frozen backbone (train.backbone_lr_scale = 0) it does nothing: set it to 0")
+        graphdef, rest = self.graphdef, self.rest
+
+        def loss_of(p, scenes):
+            if frozen:  # no gradient into the backbone: XLA drops its backward pass
+                p = jax.tree_util.tree_map_with_path(lambda k, x: x if is_head_path(k) else
+                                                     jax.lax.stop_gradient(x), p)
+            return plan_batch_loss(nnx.merge(graphdef, p, rest), scenes, config)
+
+        def train_step(state: TrainState, scenes: Scene):
+            (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)
+            updates, opt_state = self.tx.update(grads, state.opt_state, state.params)
+            parts["grad_norm"] = optax.tree.norm(grads)
+            return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates),
+                              opt_state=opt_state), parts
+
+        self.train_step = jax.jit(train_step, donate_argnums=(0,) if donate else ())
+        self.eval_step = jax.jit(lambda p, scenes: loss_of(p, scenes)[1])
+        self.initial_params = params
+
+    def init_state(self, params) -> TrainState:
+        return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=self.tx.init(params))
+
+
+def pretrained_params(path: str, config, template):
+    """`template` (a GPD-with-head params tree) with every backbone leaf taken from the GPD at `path` (exported or
+    a workdir; same `model` config, map tokenizer path aside); the head keeps its initialisation."""
+    src = load_model(path)
+    diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
+    if diff:
+        raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
+    flat_src = {jax.tree_util.keystr(p): x for p, x in jax.tree_util.tree_leaves_with_path(src.params)}
+    missing = []
+
+    def take(p, x):
+        if is_head_path(p):
+            return x
+        k = jax.tree_util.keystr(p)
+        if k not in flat_src:
+            missing.append(k)
+            return x
+        return jnp.asarray(flat_src[k], x.dtype)
+
+    out = jax.tree_util.tree_map_with_path(take, template)
+    if missing:
+        raise ValueError(f"train.init_from {path}: no parameters for {missing[:5]}")
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- validation
+class PlanValidator:
+    """Loss and current-frame ego ADE / FDE of the plans over fixed validation batches."""
+
+    def __init__(self, config, trainer: PlanTrainer, data_dir: str):
+        tc = config.train
+        split = config.data.val_split
+        if not os.path.isdir(os.path.join(data_dir, split)):
+            raise DataError(os.path.join(data_dir, split), "no validation split (set data.val_dir / "
+                            "data.val_split, or train.eval_every=0)")
+        n_val = len(data_loader.SplitSource(data_dir, split))
+        bs = int(tc.batch_size)
+        n = min(int(tc.eval_batches), n_val // bs)
+        spec = model_spec(config)
+        self.trainer, self.batches = trainer, []
+        if n:
+            it = data_loader.make_loader(data_dir, split, bs, seed=12345, num_epochs=1, num_threads=2, prefetch=0)
+            self.batches = [jax.tree.map(jnp.asarray, spec.view(next(it))) for _ in range(n)]
+            it.close()
+
+    def __call__(self, params) -> dict[str, float]:
+        acc: dict[str, float] = {}
+        for b in self.batches:
+            for k, v in jax.device_get(self.trainer.eval_step(params, b)).items():
+                acc[k] = acc.get(k, 0.0) + float(v) / len(self.batches)
+        return acc
+
+
+# ----------------------------------------------------------------------------------------------- training
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_after: int | None = None,
+                       quiet: bool = False) -> dict[str, Any]:
+    """Trains the planning head of `config` (and the backbone, unless frozen) in `workdir`, resuming from its
+    latest checkpoint. Same arguments and return value as `gpd_jax.training.loop.train_and_evaluate`."""
+    tc = config.train
+    if not config.get(HEAD):
+        raise ValueError("the config has no plan_head section (configs/gpd_sumo_plan_head.py)")
+    data_dir = resolve_data_dir(config.data.dir)
+    val_dir = resolve_data_dir(config.data.get("val_dir") or config.data.dir)
+    n_train = _check_store(config, data_dir, config.data.train_split)
+    pcount, pindex = jax.process_count(), jax.process_index()
+    mesh = data_mesh()
+    bs = int(tc.batch_size)
+    if bs % mesh.devices.size or bs % pcount:
+        raise ValueError(f"train.batch_size {bs} must be divisible by the {mesh.devices.size} devices and "
+                         f"{pcount} processes")
+    first_frame(config)
+    if config.model.map_tokenizer:
+        config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
+        _check_token_source(data_dir, (config.data.train_split,), config.model.map_tokenizer)
+        if int(tc.eval_every) > 0:
+            _check_token_source(val_dir, (config.data.val_split,), config.model.map_tokenizer)
+
+    lead = pindex == 0
+    os.makedirs(workdir, exist_ok=True)
+    cfg_path = os.path.join(workdir, "config.json")
+    mine = json.loads(config.to_json())
+    if lead:
+        if os.path.exists(cfg_path):
+            with open(cfg_path) as f:
+                old = json.load(f)
+            if old.get("model") != mine.get("model") or old.get(HEAD) != mine.get(HEAD):
+                raise ValueError(f"{cfg_path}: the workdir holds a run with a different model or plan_head config; "
+                                 "use a new --workdir")
+        atomic_write_text(cfg_path, config.to_json(indent=2))
+
+    spec = model_spec(config)
+    model = build_model(config)
+    trainer = PlanTrainer(model, config)
+    state = trainer.init_state(trainer.initial_params)
+    mgr = checkpoint_manager(workdir, int(tc.keep_checkpoints))
+    if mgr.latest_step() is not None:
+        state = TrainState(**restore_state(mgr, state._asdict()))
+    elif tc.init_from:
+        state = trainer.init_state(pretrained_params(str(tc.init_from), config, trainer.initial_params))
+    start = int(state.step)
+    state = jax.device_put(state, NamedSharding(mesh, PartitionSpec()))
+    log = MetricsLog(workdir, enabled=lead)
+    if lead:
+        head_n = count_params(model.plan_head)
+        print(f"resumed {workdir} at step {start}" if start else
+              f"training a planning head of {head_n:,} parameters on a backbone of {count_params(model) - head_n:,} "
+              f"({'frozen' if float(tc.backbone_lr_scale) == 0 else f'lr x {float(tc.backbone_lr_scale):g}'}, "
+              f"{'pre-trained: ' + str(tc.init_from) if tc.init_from else 'from scratch'}) on {n_train} scenes")
+
+    it = data_loader.make_loader(data_dir, config.data.train_split, bs // pcount, seed=int(config.seed),
+                                 process_index=pindex, process_count=pcount, start_step=start,
+                                 num_threads=int(tc.loader_threads))
+    validator = PlanValidator(config, trainer, val_dir) if int(tc.eval_every) > 0 else None
+    total = int(tc.steps)
+    end = total if stop_after is None else min(total, start + int(stop_after))
+    last_train: dict[str, float] = {}
+    last_eval: dict[str, float] = {}
+    bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True, mininterval=2.0, disable=quiet or not lead,
+                    desc="plan head")
+    step = start
+    window_t, window_n = time.perf_counter(), 0
+    with StopOnSigterm() as stop:
+        try:
+            while step < end and not stop.requested:
+                view = spec.view(next(it))
+                if not np.all(view.map_valid):
+                    raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step {step + 1} "
+                                    "has model frames without map tokens; encode every shard: python -m "
+                                    f"gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
+                                    f"{config.data.frame_stride}")
+                state, parts = trainer.train_step(state, _global_batch(view, mesh))
+                step += 1
+                window_n += bs
+                bar.update(1)
+                if step % int(tc.log_every) == 0 or step == end:
+                    parts = {k: float(v) for k, v in jax.device_get(parts).items()}
+                    parts["samples_per_s"] = window_n / max(time.perf_counter() - window_t, 1e-9)
+                    window_t, window_n = time.perf_counter(), 0
+                    last_train = parts
+                    log.write(step, "train", parts)
+                    bar.set_postfix(loss=f"{parts['loss']:.3f}", ade=f"{parts['plan_ade_current']:.2f}")
+                if validator is not None and (step % int(tc.eval_every) == 0 or step == total):
+                    last_eval = validator(state.params)
+                    log.write(step, config.data.val_split, last_eval)
+                    if lead:
+                        bar.write(f"step {step} val: loss={last_eval.get('loss', float('nan')):.4g} "
+                                  f"plan_ade_current={last_eval.get('plan_ade_current', float('nan')):.3f} m")
+                    window_t, window_n = time.perf_counter(), 0
+                if step % int(tc.checkpoint_every) == 0 or step == total:
+                    save_state(mgr, step, state._asdict())
+        except KeyboardInterrupt:
+            stop.requested = True
+        finally:
+            bar.close()
+            it.close()
+            if mgr.latest_step() != step:
+                save_state(mgr, step, state._asdict(), force=True)
+            mgr.wait_until_finished()
+    exported = None
+    if step == total and lead:
+        exported = export_model(jax.device_get(state.params), config, os.path.join(workdir, "export"),
+                                tokenizer_dir=config.model.map_tokenizer or None)
+    if stop.requested and lead:
+        print(f"stopped at step {step}; run the same command again to resume")
+    return {"step": step, "train": last_train, "eval": last_eval, "export": exported}
+
+
+# ----------------------------------------------------------------------------------------------- evaluation
+def current_frame_plans(model: Model, view: Scene, params=None) -> jax.Array:
+    """The head's plan from the current frame of scenes in the model's view (only history frames are read):
+    Scene [S, ...] -> f32[S, F, 3] in the scene frame (the current ego frame)."""
+    h = model.spec.num_history
+    params = model.params if params is None else params
+    return _plans_jit(model.graphdef, params, model.rest, jax.tree.map(jnp.asarray, view.slice_frames(0, h + 1)))
+
+
+@jax.jit
+def _plans_jit(graphdef, params, rest, scenes: Scene):
+    module = nnx.merge(graphdef, params, rest)
+    h = scenes.xy.shape[-3] - 1
+    # Frames [0, H) are pushed through; the extra frame only gives backbone_hidden its T - 1 = H frames.
+    hidden = jax.vmap(lambda s: backbone_hidden(module, s))(scenes)[:, h - 1]
+    return module.plan_head(hidden)
+
+
+def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Model | None = None,
+                      key: jax.Array | None = None, batch_size: int = 32) -> dict[str, dict[str, dict[str, float]]]:
+    """Open-loop ego ADE / FDE (m) and ego collision rate (%, against the logged agents, own boxes) at the
+    model's horizons, scenes whose ego is valid at the current frame, for: the head's plan from the current
+    frame ("plan_head"), the zero-shot GPD's `motion_planning` rollout of `baseline` (map and agents from the
+    log, the ego generated; "gpd_motion_planning") and constant velocity at the stored rate.
+
+    view: Scene [S, ...] in the model's view with map tokens (`gpd_jax.prepare`); full: the same scenes at the
+    stored rate. Raises EvalError if the baseline reads other frames. Returns {predictor: {horizon label: {ego_ade, ego_fde, ego_collision}}}.
+    """
+    from gpd_jax.decoding import rollout_jit
+    from gpd_jax.evaluation.scoring import baseline_predictions
+    from gpd_jax.tasks import make_tasks
+    from gpd_jax.metrics.agents import accumulate, agent_metric_sums, reduce_agent_metrics
+
+    spec = head_model.spec
+    h, f = spec.num_history, spec.num_future
+    s_total = view.xy.shape[0]
+    key = jax.random.key(0) if key is None else key
+    sums: dict[str, Any] = {}
+
+    def score(name, xy, heading, v):
+        mask = np.zeros(v.valid.shape[:1] + v.valid.shape[-1:], bool)
+        mask[:, 0] = np.asarray(v.valid[:, spec.current, 0])
+        s = agent_metric_sums(jnp.asarray(xy), jnp.asarray(heading), v.xy, v.valid, v.size, num_history=h,
+                              eval_mask=mask, horizons=spec.horizons, variant="corrected", dt=spec.frame_period_s)
+        sums[name] = accumulate(sums.get(name), s)
+
+    for lo in range(0, s_total, batch_size):
+        sl = lambda x: x[lo:lo + batch_size]
+        v = jax.tree.map(lambda x: jnp.asarray(sl(x)), view.replace(polylines=None, polyline_valid=None))
+        fb = jax.tree.map(sl, full)
+        plan = np.asarray(current_frame_plans(head_model, v))[:, :f]
+        xy, heading = np.array(v.xy), np.array(v.heading)
+        xy[:, h:h + plan.shape[1], 0] = plan[..., :2]
+        heading[:, h:h + plan.shape[1], 0] = plan[..., 2]
+        score("plan_head", xy, heading, v)
+        if baseline is not None:
+            bspec = baseline.spec
+            if (bspec.num_frames, bspec.num_history, bspec.frame_stride) != (spec.num_frames, h, spec.frame_stride):
+                raise EvalError("the baseline GPD reads other frames than the plan-head model")
+            tasks = jax.tree.map(jnp.asarray, make_tasks(["motion_planning"], bspec.num_map_tokens,
+                                                         bspec.num_agents))
+            bv = jax.tree.map(jnp.asarray, bspec.view(fb).replace(polylines=None, polyline_valid=None))
+            out = rollout_jit(baseline.graphdef, baseline.params, baseline.rest, bv, tasks,
+                              jax.random.fold_in(key, lo), h, float(baseline.config.rollout.temperature))
+            bxy, bh = np.array(v.xy), np.array(v.heading)  # the baseline may read fewer agent slots
+            bxy[:, h:, 0], bh[:, h:, 0] = np.asarray(out.xy[:, 0, h:, 0]), np.asarray(out.heading[:, 0, h:, 0])
+            score("gpd_motion_planning", bxy, bh, v)
+        cv_xy, cv_heading, _ = baseline_predictions(fb, spec)["constant_velocity"]
+        score("constant_velocity", cv_xy, cv_heading, v)
+    keep = ("ego_ade", "ego_fde", "ego_collision")
+    return {name: {hl: {k: val for k, val in d.items() if k in keep} for hl, d in reduce_agent_metrics(s).items()}
+            for name, s in sums.items()}
+
+
+def model_view(model: Model, full: Scene, where: str) -> Scene:
+    """`model.spec.view(full)`, refusing scenes without map tokens at the model's frames (encode them first)."""
+    view = model.spec.view(full)
+    if not np.all(view.map_valid):
+        raise DataError(where, "no map tokens at some of the model's frames; encode them: python -m "
+                        f"gpd_jax.map_tokenizer encode --data DIR --frame-stride {model.spec.frame_stride}")
+    return view
+
+
+def main(argv=None) -> int:
+    """`python -m gpd_jax.training.planning evaluate --checkpoint DIR [DIR ...] --data STORE [--split val]
+    [--baseline checkpoints/gpd_sumo] [--num N] [--out JSON]`: open-loop ego ADE / FDE of plan-head models."""
+    p = argparse.ArgumentParser(prog="python -m gpd_jax.training.planning", description=main.__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    e = sub.add_parser("evaluate", help="open-loop ego ADE / FDE of plan heads, zero-shot GPD, constant velocity")
+    e.add_argument("--checkpoint", nargs="+", required=True, help="exported plan-head models or workdirs")
+    e.add_argument("--data", required=True)
+    e.add_argument("--split", default="val")
+    e.add_argument("--baseline", default=None, help="the zero-shot GPD (default: the shipped model)")
+    e.add_argument("--num", type=int, default=None, help="first N scenes (default: the whole split)")
+    e.add_argument("--out", default=None, help="write the figures here as JSON")
+    args = p.parse_args(argv)
+    try:
+        models = {c: load_model(c) for c in args.checkpoint}
+        for c, m in models.items():
+            if not isinstance(getattr(m.module, HEAD, None), PlanningHead):
+                raise ValueError(f"{c}: not a plan-head model (its config has no plan_head section)")
+        baseline = load_model(args.baseline)
+        if not os.path.isdir(os.path.join(args.data, args.split)):
+            raise FileNotFoundError(f"split {args.split!r} not found in {args.data}")
+        n = len(data_loader.SplitSource(args.data, args.split))
+        full = data_loader.load_split(args.data, args.split, indices=range(n if args.num is None else min(n, args.num)))
+        views = {c: model_view(m, full, f"{args.data}/{args.split}") for c, m in models.items()}
+        model_view(baseline, full, f"{args.data}/{args.split}")
+    except (FileNotFoundError, ValueError, DataError) as err:  # EvalError is a ValueError
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    results: dict[str, Any] = {"data": os.path.abspath(args.data), "split": args.split,
+                               "scenarios": int(full.xy.shape[0]), "baseline": baseline.path, "models": {}}
+    first = True
+    for c, m in models.items():
+        t0 = time.perf_counter()
+        r = evaluate_planning(m, views[c], full, baseline if first else None)
+        if first:
+            results["gpd_motion_planning"] = r.pop("gpd_motion_planning")
+            results["constant_velocity"] = r.pop("constant_velocity")
+        else:
+            r.pop("constant_velocity")
+        results["models"][c] = r["plan_head"]
+        print(f"{c}: {time.perf_counter() - t0:.1f} s")
+        first = False
+    rows = [(f"plan head: {c}", r) for c, r in results["models"].items()]
+    rows += [("GPD zero-shot (motion_planning)", results["gpd_motion_planning"]),
+             ("constant velocity (10 Hz)", results["constant_velocity"])]
+    labels = list(rows[0][1])
+    print(f"{results['scenarios']} scenes of {args.data}/{args.split}; ego ADE / FDE (m), ego collision (%)")
+    print("| predictor | " + " | ".join(f"ADE {l}" for l in labels) + " | " + " | ".join(f"FDE {l}" for l in labels)
+          + " | " + " | ".join(f"coll. {l}" for l in labels) + " |")
+    print("|---" * (1 + 3 * len(labels)) + "|")
+    for name, r in rows:
+        print(f"| {name} | " + " | ".join(f"{r[l]['ego_ade']:.2f}" for l in labels) + " | "
+              + " | ".join(f"{r[l]['ego_fde']:.2f}" for l in labels) + " | "
+              + " | ".join(f"{r[l]['ego_collision']:.1f}" for l in labels) + " |")
+    if args.out:
+        atomic_write_json(args.out, results, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

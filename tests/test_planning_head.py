@@ -1,0 +1,216 @@
+"""The fine-tuned planning head: shapes and frames, targets, the loss going down, a frozen backbone staying put,
+one compile of plan_trajectory, the training loop's resume / export / load round trip, and the scratch ablation
+not loading pre-trained parameters."""
+
+import json
+import os
+
+import chex
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import pytest
+from flax import nnx
+
+from conftest import ROOT
+
+
+def _with_head(config):
+    from gpd_jax.config import load_config
+
+    c = ml_collections.ConfigDict(config.to_dict())
+    ref = load_config(os.path.join(ROOT, "configs", "gpd_sumo_plan_head.py"))
+    c.plan_head = ml_collections.ConfigDict(ref.plan_head.to_dict())
+    c.plan_head.num_future = 4
+    c.plan_head.ffn_dim = 32
+    c.data.val_dir = ""
+    for k in ("backbone_lr_scale", "gpd_loss_weight"):
+        c.train[k] = ref.train[k]
+    return c
+
+
+@pytest.fixture(scope="module")
+def head_config(tiny_config):
+    return _with_head(tiny_config)
+
+
+def _close(a, b, rel=1e-5):
+    a, b = np.asarray(a), np.asarray(b)
+    np.testing.assert_allclose(a, b, rtol=0, atol=rel * max(1.0, float(np.max(np.abs(b)))))
+
+
+def test_head_shapes_frames_and_one_compile(head_config):
+    from gpd_jax.checkpoint import build_model
+    from gpd_jax.model import PlanningHead, plan_trajectory, to_ego_frame, to_scene_frame
+
+    model = build_model(head_config)
+    assert isinstance(model.plan_head, PlanningHead)
+    m = head_config.model
+    n, d = m.num_map_tokens + m.num_agents, m.d_model
+    hidden = jax.random.normal(jax.random.key(1), (2, 3, n, d))
+    plan = plan_trajectory(model, hidden)
+    assert plan.shape == (2, 3, 4, 3)
+    assert bool(jnp.all(jnp.abs(plan[..., 2]) <= jnp.pi))
+    # The ego token matters: changing it changes the plan; the scene-frame output is the ego-frame one moved.
+    other = hidden.at[..., m.num_map_tokens, :].add(jax.random.normal(jax.random.key(2), (d,)))
+    assert float(jnp.max(jnp.abs(plan_trajectory(model, other) - plan))) > 1e-4
+    pose = jnp.array([[3.0, -2.0, 2.5], [0.0, 0.0, -3.0]])[:, None, :].repeat(3, 1)
+    scene = plan_trajectory(model.plan_head, hidden, pose)
+    _close(to_ego_frame(scene[..., :2], scene[..., 2], pose), plan, 1e-4)
+    _close(to_scene_frame(plan, pose), scene)
+    with pytest.raises(TypeError, match="PlanningHead"):
+        plan_trajectory(object(), hidden)
+
+    # Pure in (params, hidden, pose) and compiled once for every call of the same shapes.
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def plan_fn(p, h, e):
+        return plan_trajectory(nnx.merge(graphdef, p, rest), h, e)
+
+    for i in range(3):
+        out = plan_fn(params, hidden + i, pose)
+    _close(out, plan_trajectory(model, hidden + 2, pose), 1e-4)
+
+
+def test_targets_in_each_frames_ego_frame():
+    from gpd_jax.scene import Scene
+    from gpd_jax.training.planning import plan_targets
+
+    t, a = 6, 2
+    # Ego driving straight along +y at 5 m per frame, heading pi/2; invalid at frame 4.
+    xy = np.zeros((t, a, 2), np.float32)
+    xy[:, 0, 1] = 5.0 * np.arange(t)
+    heading = np.full((t, a), np.pi / 2, np.float32)
+    valid = np.ones((t, a), bool)
+    valid[4, 0] = False
+    scene = Scene(xy=xy, heading=heading, valid=valid, size=np.ones((a, 2), np.float32),
+                  agent_type=np.zeros(a, np.int32), map_tokens=np.zeros((t, 4), np.int32),
+                  map_valid=np.ones(t, bool), ego_pose=np.zeros((t, 3), np.float32))
+    target, mask = plan_targets(jax.tree.map(jnp.asarray, scene), num_future=3, first_frame=1)
+    assert target.shape == (t - 1, 3, 3) and mask.shape == (t - 1, 3)
+    # In the ego frame the ego drives along +x: k + 1 frames ahead is 5 (k + 1) m forward, heading 0.
+    _close(target[1, :, 0], [5.0, 10.0, 15.0])
+    _close(target[1, :, 1:], np.zeros((3, 2)))
+    np.testing.assert_array_equal(mask[0], [False] * 3)            # before first_frame
+    np.testing.assert_array_equal(mask[1], [True, True, False])    # targets 2, 3, 4; frame 4 invalid
+    np.testing.assert_array_equal(mask[2], [True, False, True])    # targets 3, 4, 5
+    np.testing.assert_array_equal(mask[3], [False, True, False])   # targets 4, 5 and past the scene's end
+    np.testing.assert_array_equal(mask[4], [False] * 3)            # the ego invalid at the source frame
+
+
+def _scenes(config, batch=4, seed=0):
+    from gpd_jax.synthetic import synthetic_scenes
+
+    m = config.model
+    s = synthetic_scenes(seed, batch, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
+    return jax.tree.map(jnp.asarray, s)
+
+
+def test_loss_decreases_and_frozen_backbone_stays(head_config):
+    from gpd_jax.checkpoint import build_model
+    from gpd_jax.training.planning import PlanTrainer, is_head_path
+
+    scenes = _scenes(head_config)
+    c = ml_collections.ConfigDict(head_config.to_dict())
+    c.train.learning_rate, c.train.warmup_steps, c.train.steps = 3e-3, 1, 60
+    trainer = PlanTrainer(build_model(c), c, donate=False)
+    state = trainer.init_state(trainer.initial_params)
+    first = float(trainer.eval_step(state.params, scenes)["loss"])
+    for _ in range(40):
+        state, parts = trainer.train_step(state, scenes)
+    last = float(trainer.eval_step(state.params, scenes)["loss"])
+    assert np.isfinite(first) and last < 0.5 * first, (first, last)
+
+    c.train.backbone_lr_scale = 0.0
+    trainer = PlanTrainer(build_model(c), c, donate=False)
+    s0 = trainer.init_state(trainer.initial_params)
+    s1 = s0
+    for _ in range(3):
+        s1, _ = trainer.train_step(s1, scenes)
+    moved = {is_head_path(p): False for p, _ in jax.tree_util.tree_leaves_with_path(s0.params)}
+    for (p, a), b in zip(jax.tree_util.tree_leaves_with_path(s0.params), jax.tree.leaves(s1.params)):
+        moved[is_head_path(p)] |= bool(np.any(np.asarray(a) != np.asarray(b)))
+    assert moved == {True: True, False: False}
+    c.train.gpd_loss_weight = 1.0
+    with pytest.raises(ValueError, match="frozen"):
+        PlanTrainer(build_model(c), c)
+
+
+@pytest.fixture(scope="module")
+def store_dir(tmp_path_factory):
+    from test_train_loop import _store
+
+    return _store(str(tmp_path_factory.mktemp("planstore")))
+
+
+def _loop_config(store_dir, init_from=""):
+    from test_train_loop import _config
+
+    c = _with_head(_config(store_dir))
+    c.train.init_from = init_from
+    c.train.eval_batches = 1
+    return c
+
+
+def test_loop_resume_export_and_pretrained_init(store_dir, tmp_path):
+    from gpd_jax.checkpoint import build_model, export_model, load_model
+    from gpd_jax.training.planning import is_head_path, train_and_evaluate
+
+    cfg = _loop_config(store_dir)
+    # A "pre-trained" GPD (no head) of the same model config, exported.
+    plain = ml_collections.ConfigDict(cfg.to_dict())
+    del plain["plan_head"]
+    src_module = build_model(plain, seed=7)
+    assert not hasattr(src_module, "plan_head")
+    src = export_model(nnx.split(src_module, nnx.Param, ...)[1], plain, str(tmp_path / "pretrained"))
+    src_leaves = jax.tree.leaves(load_model(src).params)
+
+    ft = str(tmp_path / "ft")
+    train_and_evaluate(_loop_config(store_dir, src), ft, stop_after=0, quiet=True)
+    init = load_model(ft).params  # step 0: the backbone is the pre-trained one, the head its initialisation
+    backbone = [x for p, x in jax.tree_util.tree_leaves_with_path(init) if not is_head_path(p)]
+    assert len(backbone) == len(src_leaves)
+    for a, b in zip(backbone, src_leaves):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    # Stopped and resumed equals uninterrupted; the export loads as a GPD with the head.
+    out = train_and_evaluate(_loop_config(store_dir, src), ft, quiet=True)
+    assert out["step"] == 6 and out["export"] and np.isfinite(out["eval"]["plan_ade_current"])
+    full = str(tmp_path / "full")
+    train_and_evaluate(_loop_config(store_dir, src), full, quiet=True)
+    exported = load_model(os.path.join(ft, "export"))
+    assert hasattr(exported.module, "plan_head")
+    for a, b in zip(jax.tree.leaves(load_model(full).params), jax.tree.leaves(exported.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-6)
+    with open(os.path.join(ft, "metrics.jsonl")) as f:
+        assert any("plan_position" in json.loads(line) for line in f)
+
+
+def test_scratch_config_does_not_load_pretrained(store_dir, tmp_path):
+    from gpd_jax.checkpoint import build_model, load_model
+    from gpd_jax.config import config_differences, config_from_json, load_config
+    from gpd_jax.training.planning import train_and_evaluate
+
+    ft = load_config(os.path.join(ROOT, "configs", "gpd_sumo_plan_head.py"))
+    scratch = load_config(os.path.join(ROOT, "configs", "gpd_sumo_plan_head_scratch.py"))
+    shipped = config_from_json(os.path.join(ROOT, "checkpoints", "gpd_sumo", "config.json"))
+    assert ft.train.init_from == "checkpoints/gpd_sumo" and ft.train.backbone_lr_scale > 0
+    assert config_differences(ft.model, shipped.model, ignore=("map_tokenizer",)) == ""
+    assert scratch.train.init_from == "" and scratch.train.gpd_loss_weight == 0
+    # Same head, data and budget; only the backbone's start (and its learning rate) differ.
+    same = lambda a, b: json.loads(a.to_json()) == json.loads(b.to_json())
+    assert same(ft.plan_head, scratch.plan_head) and same(ft.model, scratch.model) and same(ft.data, scratch.data)
+    for k in ("steps", "batch_size", "learning_rate", "warmup_steps"):
+        assert ft.train[k] == scratch.train[k]
+
+    # The loop with the scratch setting starts from the random initialisation of its own config.
+    cfg = _loop_config(store_dir, "")
+    cfg.train.init_from = scratch.train.init_from
+    wd = str(tmp_path / "scratch")
+    train_and_evaluate(cfg, wd, stop_after=0, quiet=True)
+    fresh = nnx.split(build_model(cfg), nnx.Param, ...)[1]
+    for a, b in zip(jax.tree.leaves(load_model(wd).params), jax.tree.leaves(fresh)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
