@@ -17,6 +17,7 @@ from gpd_jax import metrics
 from gpd_jax.api import (Model, build_scenes, evaluate, load_model, load_scenes, make_rollout_fn, make_tasks,
                          prepare, render, rollout)
 from gpd_jax.decoding import RolloutOutput
+from gpd_jax.geometry import RoadGeometry, lane_direction, on_road, signed_distance_to_edge
 from gpd_jax.scene import AGENT_TYPES, TYPE_ID, Scene, empty_scene, wrap_angle
 from gpd_jax.spec import EvalError, ModelSpec
 from gpd_jax.tasks import TASK_NAMES, Task
@@ -28,20 +29,24 @@ __all__ = [
     "EvalError",
     "Model",
     "ModelSpec",
+    "RoadGeometry",
     "RolloutOutput",
     "Scene",
     "Task",
     "build_scenes",
     "empty_scene",
     "evaluate",
+    "lane_direction",
     "load_model",
     "load_scenes",
     "make_rollout_fn",
     "make_tasks",
     "metrics",
+    "on_road",
     "prepare",
     "render",
     "rollout",
+    "signed_distance_to_edge",
     "wrap_angle",
 ]
 __version__ = "0.1.0"

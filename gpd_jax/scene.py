@@ -56,6 +56,10 @@ class Scene:
         a map tokenizer rasterizes around any ego pose (map tokens made on the fly, lanes re-encoded around a
         generated ego, map metrics' ground truth).
       polyline_valid: optional bool[..., L, P] which polyline points exist.
+      road: optional `gpd_jax.geometry.RoadGeometry` (same leading dims): drivable-area rings, road edges and
+        directed lane centrelines in the scene frame, queried with `gpd_jax.geometry.on_road`,
+        `signed_distance_to_edge` and `lane_direction`. Not per frame: `subsample` / `slice_frames` keep it.
+        None for stores built before the geometry existed (rebuild with `python -m gpd_jax.data build ...`).
     """
 
     xy: jax.Array
@@ -71,6 +75,7 @@ class Scene:
     velocity: jax.Array | None = None
     polylines: jax.Array | None = None
     polyline_valid: jax.Array | None = None
+    road: "RoadGeometry | None" = None  # noqa: F821 (gpd_jax.geometry, a sibling layer: not imported here)
 
     # ---------------------------------------------------------------- shapes
     @property
@@ -96,6 +101,8 @@ class Scene:
         """
         validate_fields(_scene_spec(self), {f.name: getattr(self, f.name) for f in dataclasses.fields(self)},
                         where="Scene")
+        if self.road is not None:
+            self.road.validate(batch_shape=self.batch_shape, where="Scene.road")
         return self
 
     def slice_frames(self, start: int, stop: int) -> "Scene":

@@ -1,0 +1,246 @@
+"""Drivable-area geometry of a scene and the jit-able queries that planning and realism metrics share.
+
+A `RoadGeometry` lives in the *scene frame* (the ego frame of the current frame, like `Scene.polylines`) and
+holds three things, all fixed-shape with validity masks (never ragged):
+
+* **drivable areas** as polygon rings, each tagged with a kind (`AREA_KINDS`: lanes and roads, junctions /
+  intersections, other drivable surfaces such as car parks). Within one kind the rings are the boundary rings
+  of that kind's union, so they never cross: a ring may be a hole, and a point is inside kind k's area when it
+  lies inside an odd number of kind k's rings (even-odd rule). A polygon's valid vertices are a prefix of its
+  row; the ring closes implicitly from its last valid vertex back to the first.
+* **road edges**: open polylines along the boundary of the union of every drivable area (computed when the
+  sample is built). Where the geometry was clipped to the sample's region, the clip box's sides are *not*
+  edges. A closed edge repeats its first point at the end. Segments join consecutive valid points.
+* **lane centrelines**, directed (points in driving order), the same arrays as `Scene.polylines` /
+  `Scene.polyline_valid`; stores keep them only once (the loader fills them in from the polylines).
+
+Queries take one unbatched road and points `xy f32[..., 2]` with any leading dims (vmap over scenes):
+`on_road`, `area_kinds`, `signed_distance_to_edge`, `lane_direction`. They are pure, jit- and vmap-able and
+loop over nothing in Python; segment scans run in fixed-size blocks of points (`lax.map`) so memory stays
+bounded whatever the number of points.
+
+This module is at the bottom of the package's layers: it imports only jax, numpy and flax.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Kinds of drivable area (index = `RoadGeometry.polygon_kind`).
+AREA_KINDS = ("lane", "junction", "other")
+AREA_KIND_ID = {name: i for i, name in enumerate(AREA_KINDS)}
+
+# Points handled per block in the segment scans (bounded memory: block x segments floats).
+_BLOCK = 256
+
+
+@flax.struct.dataclass(frozen=True)
+class RoadGeometry:
+    """Drivable area, road edges and directed lane centrelines of one scene (or a batch: leading dims `...`).
+
+    Attributes:
+      polygons: f32[..., G, V, 2] drivable-area rings in the scene frame (metres); valid vertices are a prefix
+        of each row, the ring closes from the last valid vertex to the first.
+      polygon_valid: bool[..., G, V] which vertices exist (a ring needs >= 3 to enclose anything).
+      polygon_kind: i32[..., G] index into `AREA_KINDS` (any integer dtype is accepted).
+      edges: f32[..., E, P, 2] road-edge polylines in the scene frame (boundary of the union of all areas).
+      edge_valid: bool[..., E, P] which edge points exist; a segment joins two consecutive valid points.
+      lanes: f32[..., L, Q, 2] directed lane centrelines in the scene frame (= `Scene.polylines`).
+      lane_valid: bool[..., L, Q] which centreline points exist (= `Scene.polyline_valid`).
+    """
+
+    polygons: jax.Array
+    polygon_valid: jax.Array
+    polygon_kind: jax.Array
+    edges: jax.Array
+    edge_valid: jax.Array
+    lanes: jax.Array
+    lane_valid: jax.Array
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(np.shape(self.polygons)[:-3])
+
+    def validate(self, batch_shape: tuple[int, ...] | None = None, where: str = "RoadGeometry") -> "RoadGeometry":
+        """Checks shapes and dtype kinds of every field (and the leading dims against `batch_shape` if given).
+
+        Raises ValueError naming every field that is wrong. Returns the geometry itself.
+        """
+        spec = {
+            "polygons": (("G", "V", 2), "f"), "polygon_valid": (("G", "V"), "b"), "polygon_kind": (("G",), "i"),
+            "edges": (("E", "P", 2), "f"), "edge_valid": (("E", "P"), "b"),
+            "lanes": (("L", "Q", 2), "f"), "lane_valid": (("L", "Q"), "b"),
+        }
+        problems: list[str] = []
+        dims: dict[str, tuple[int, str]] = {}
+        lead_seen: tuple[tuple[int, ...], str] | None = (
+            (tuple(batch_shape), "the scene") if batch_shape is not None else None)
+        for name, (suffix, kind) in spec.items():
+            v = getattr(self, name)
+            if v is None:
+                problems.append(f"{name}: missing")
+                continue
+            shape = tuple(np.shape(v))
+            dt = np.dtype(v.dtype) if hasattr(v, "dtype") else np.asarray(v).dtype
+            if not (dt.kind == kind or (kind == "i" and dt.kind == "u")):
+                problems.append(f"{name}: dtype {dt}, expected {dict(f='float', i='integer', b='bool')[kind]}")
+            if len(shape) < len(suffix):
+                problems.append(f"{name}: shape {shape} has fewer than {len(suffix)} dims")
+                continue
+            lead, tail = shape[: len(shape) - len(suffix)], shape[len(shape) - len(suffix):]
+            if lead_seen is None:
+                lead_seen = (lead, name)
+            elif lead != lead_seen[0]:
+                problems.append(f"{name}: leading dims {lead} differ from {lead_seen[1]}'s {lead_seen[0]}")
+            for want, got in zip(suffix, tail):
+                if isinstance(want, int):
+                    if want != got:
+                        problems.append(f"{name}: shape {shape}, last dim must be {want}")
+                elif want in dims and dims[want][0] != got:
+                    problems.append(f"{name}: {want}={got} but {dims[want][1]} has {want}={dims[want][0]}")
+                else:
+                    dims.setdefault(want, (got, name))
+        if problems:
+            raise ValueError(f"invalid {where}:\n  " + "\n  ".join(problems))
+        return self
+
+
+def empty_road(num_polygons: int = 1, num_vertices: int = 4, num_edges: int = 1, num_edge_points: int = 2,
+               num_lanes: int = 1, num_lane_points: int = 2, batch_shape: tuple[int, ...] = ()) -> RoadGeometry:
+    """A geometry with no area, edge or lane (every point off the road)."""
+    b = tuple(batch_shape)
+    return RoadGeometry(
+        polygons=jnp.zeros(b + (num_polygons, num_vertices, 2), jnp.float32),
+        polygon_valid=jnp.zeros(b + (num_polygons, num_vertices), bool),
+        polygon_kind=jnp.zeros(b + (num_polygons,), jnp.int32),
+        edges=jnp.zeros(b + (num_edges, num_edge_points, 2), jnp.float32),
+        edge_valid=jnp.zeros(b + (num_edges, num_edge_points), bool),
+        lanes=jnp.zeros(b + (num_lanes, num_lane_points, 2), jnp.float32),
+        lane_valid=jnp.zeros(b + (num_lanes, num_lane_points), bool))
+
+
+# ------------------------------------------------------------------------------------------------ internals
+def _map_points(fn, xy: jax.Array, trailing: tuple[int, ...] = ()):
+    """Applies `fn: f32[N, 2] -> tuple of f32[N, *trailing]` to `xy f32[..., 2]` in blocks of `_BLOCK` points."""
+    lead = xy.shape[:-1]
+    pts = jnp.reshape(xy, (-1, 2)).astype(jnp.float32)
+    if pts.shape[0] <= _BLOCK:
+        outs = fn(pts)
+    else:
+        outs = jax.lax.map(lambda q: tuple(o[0] for o in fn(q[None])), pts, batch_size=_BLOCK)
+    return tuple(jnp.reshape(o, lead + trailing) for o in outs)
+
+
+def _segments(points: jax.Array, valid: jax.Array):
+    """Open polylines f32[K, P, 2] + bool[K, P] -> segment starts f32[S, 2], ends f32[S, 2], valid bool[S]."""
+    a, b = points[..., :-1, :], points[..., 1:, :]
+    ok = valid[..., :-1] & valid[..., 1:]
+    return a.reshape(-1, 2), b.reshape(-1, 2), ok.reshape(-1)
+
+
+def _ring_edges(polygons: jax.Array, valid: jax.Array):
+    """Rings f32[G, V, 2] (prefix-valid, implicitly closed) -> edge starts/ends f32[G, V, 2], valid bool[G, V]."""
+    nxt = jnp.roll(polygons, -1, axis=-2)
+    nxt_valid = jnp.roll(valid, -1, axis=-1)
+    nxt = jnp.where(nxt_valid[..., None], nxt, polygons[..., :1, :])
+    # the last vertex's roll wraps to the first, which is right; a ring with < 3 vertices encloses nothing
+    enough = jnp.sum(valid, axis=-1, keepdims=True) >= 3
+    return polygons, nxt, valid & enough
+
+
+def _point_segment_distance(p: jax.Array, a: jax.Array, b: jax.Array):
+    """p f32[N, 2], a/b f32[S, 2] -> (distance f32[N, S], projection parameter f32[N, S])."""
+    ab = b - a  # [S, 2]
+    ap = p[:, None, :] - a[None]  # [N, S, 2]
+    den = jnp.sum(ab * ab, -1)
+    t = jnp.clip(jnp.sum(ap * ab[None], -1) / jnp.where(den > 0, den, 1.0), 0.0, 1.0)
+    d = ap - t[..., None] * ab[None]
+    return jnp.sqrt(jnp.sum(d * d, -1)), t
+
+
+def _crossings(p: jax.Array, road: RoadGeometry) -> jax.Array:
+    """p f32[N, 2] -> i32[N, G] number of ring edges a ray from p towards +x crosses, per ring."""
+    a, b, ok = _ring_edges(road.polygons.astype(jnp.float32), road.polygon_valid)
+    x, y = p[:, 0, None, None], p[:, 1, None, None]  # [N, 1, 1]
+    ya, yb = a[None, ..., 1], b[None, ..., 1]
+    straddle = (ya > y) != (yb > y)
+    dy = jnp.where(straddle, yb - ya, 1.0)
+    x_cross = a[None, ..., 0] + (y - ya) * (b[None, ..., 0] - a[None, ..., 0]) / dy
+    hit = straddle & (x < x_cross) & ok[None]
+    return jnp.sum(hit, axis=-1, dtype=jnp.int32)
+
+
+def _area_kinds_flat(p: jax.Array, road: RoadGeometry) -> jax.Array:
+    cross = _crossings(p, road)  # [N, G]
+    onehot = road.polygon_kind.astype(jnp.int32)[:, None] == jnp.arange(len(AREA_KINDS))[None]  # [G, K]
+    per_kind = jnp.sum(jnp.where(onehot[None], cross[..., None], 0), axis=1)  # [N, K]
+    return per_kind % 2 == 1
+
+
+# ------------------------------------------------------------------------------------------------ queries
+def area_kinds(road: RoadGeometry, xy: jax.Array) -> jax.Array:
+    """bool[..., K]: whether each point `xy f32[..., 2]` lies in each kind of drivable area (`AREA_KINDS`)."""
+    (out,) = _map_points(lambda p: (_area_kinds_flat(p, road),), xy, trailing=(len(AREA_KINDS),))
+    return out
+
+
+def on_road(road: RoadGeometry, xy: jax.Array) -> jax.Array:
+    """bool[...]: whether points `xy f32[..., 2]` (scene frame) lie in any drivable area of the unbatched `road`.
+
+    Points on a ring's boundary may go either way. Outside the region the geometry covers, points are off-road.
+    """
+    return jnp.any(area_kinds(road, xy), axis=-1)
+
+
+def distance_to_edge(road: RoadGeometry, xy: jax.Array) -> jax.Array:
+    """f32[...]: unsigned distance (metres) from `xy f32[..., 2]` to the nearest road edge; +inf with no edges."""
+    a, b, ok = _segments(road.edges.astype(jnp.float32), road.edge_valid)
+
+    def fn(p):
+        d, _ = _point_segment_distance(p, a, b)
+        return (jnp.min(jnp.where(ok[None], d, jnp.inf), axis=-1),)
+
+    return _map_points(fn, xy)[0]
+
+
+def signed_distance_to_edge(road: RoadGeometry, xy: jax.Array) -> jax.Array:
+    """f32[...]: distance (metres) from `xy f32[..., 2]` to the nearest road edge, positive on the road (as
+    `on_road` says) and negative off it. +inf / -inf where the geometry has no edge segment at all.
+    """
+    d = distance_to_edge(road, xy)
+    return jnp.where(on_road(road, xy), d, -d)
+
+
+def lane_direction(road: RoadGeometry, xy: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(heading f32[...], distance f32[...]) of the nearest directed lane-centreline segment to `xy f32[..., 2]`.
+
+    `heading` is the segment's direction in the scene frame (radians, [-pi, pi)); `distance` is the
+    Euclidean distance to the segment (metres). With no lane segment: heading 0 and distance +inf.
+    """
+    a, b, ok = _segments(road.lanes.astype(jnp.float32), road.lane_valid)
+    seg_heading = jnp.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
+    ok = ok & (jnp.sum((b - a) ** 2, -1) > 0)
+
+    def fn(p):
+        d, _ = _point_segment_distance(p, a, b)
+        d = jnp.where(ok[None], d, jnp.inf)
+        i = jnp.argmin(d, axis=-1)
+        dist = jnp.take_along_axis(d, i[:, None], axis=-1)[:, 0]
+        h = jnp.where(jnp.isfinite(dist), seg_heading[i], 0.0)
+        return h, dist
+
+    heading, dist = _map_points(fn, xy)
+    heading = (heading + jnp.pi) % (2 * jnp.pi) - jnp.pi
+    return heading, dist
+
+
+def road_from_arrays(arrays: dict[str, Any], lanes: Any, lane_valid: Any, prefix: str = "road_") -> RoadGeometry:
+    """RoadGeometry from stored arrays named `<prefix>polygons`, ... (numpy or JAX leaves kept as they are)."""
+    return RoadGeometry(polygons=arrays[prefix + "polygons"], polygon_valid=arrays[prefix + "polygon_valid"],
+                        polygon_kind=arrays[prefix + "polygon_kind"], edges=arrays[prefix + "edges"],
+                        edge_valid=arrays[prefix + "edge_valid"], lanes=lanes, lane_valid=lane_valid)
