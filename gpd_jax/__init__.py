@@ -14,10 +14,11 @@ The layers, bottom to top (nothing imports upward; `tests/test_layers.py` enforc
 """
 
 from gpd_jax import metrics
-from gpd_jax.api import (Model, build_scenes, evaluate, load_model, load_scenes, make_rollout_fn, make_tasks,
-                         prepare, render, rollout)
+from gpd_jax.api import (Model, build_scenes, evaluate, load_model, load_scenes, make_prompt, make_rollout_fn,
+                         make_tasks, prepare, render, rollout, stack_prompts, task_prompt)
 from gpd_jax.decoding import RolloutOutput
 from gpd_jax.geometry import RoadGeometry, lane_direction, on_road, signed_distance_to_edge
+from gpd_jax.prompts import Prompt, PromptError
 from gpd_jax.scene import AGENT_TYPES, TYPE_ID, Scene, empty_scene, wrap_angle
 from gpd_jax.spec import EvalError, ModelSpec
 from gpd_jax.tasks import TASK_NAMES, Task
@@ -29,6 +30,8 @@ __all__ = [
     "EvalError",
     "Model",
     "ModelSpec",
+    "Prompt",
+    "PromptError",
     "RoadGeometry",
     "RolloutOutput",
     "Scene",
@@ -39,6 +42,7 @@ __all__ = [
     "lane_direction",
     "load_model",
     "load_scenes",
+    "make_prompt",
     "make_rollout_fn",
     "make_tasks",
     "metrics",
@@ -47,6 +51,8 @@ __all__ = [
     "render",
     "rollout",
     "signed_distance_to_edge",
+    "stack_prompts",
+    "task_prompt",
     "wrap_angle",
 ]
 __version__ = "0.1.0"

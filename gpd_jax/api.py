@@ -37,13 +37,15 @@ from gpd_jax.evaluation.driver import RenderItem
 from gpd_jax.evaluation.driver import evaluate as _evaluate
 from gpd_jax.evaluation.maps import encode_map_frames
 from gpd_jax.evaluation.render import render_items
+from gpd_jax.prompts import Prompt, as_prompt, prompt_from_task, stack_prompts
+from gpd_jax.prompts import make_prompt as _make_prompt
 from gpd_jax.scene import Scene
 from gpd_jax.spec import EvalError
 from gpd_jax.tasks import Task, resolve_task_names
 from gpd_jax.tasks import make_tasks as _make_tasks
 
-__all__ = ["Model", "build_scenes", "evaluate", "load_model", "load_scenes", "make_rollout_fn", "make_tasks",
-           "prepare", "render", "rollout"]
+__all__ = ["Model", "Prompt", "build_scenes", "evaluate", "load_model", "load_scenes", "make_prompt",
+           "make_rollout_fn", "make_tasks", "prepare", "render", "rollout", "stack_prompts", "task_prompt"]
 
 
 def load_scenes(data_dir: str, split: str = "test", indices: Sequence[int] | None = None) -> Scene:
@@ -74,6 +76,27 @@ def make_tasks(model: Model, tasks: str | Sequence[str]) -> Task:
                                                  model.spec.num_agents))
 
 
+def task_prompt(model: Model, task: str) -> Prompt:
+    """The prompt of a named task for `model` (it rolls out exactly as the task)."""
+    return jax.tree.map(jnp.asarray, prompt_from_task(task, model.spec.num_frames, model.spec.num_map_tokens,
+                                                      model.spec.num_agents))
+
+
+def make_prompt(model: Model, scene: Scene, **choices) -> Prompt:
+    """A prompt for one scene (`gpd_jax.prompts.make_prompt`: base task, given `paths`, `log_until`,
+    `initial_slots`, `max_agents`, `hidden`, `lanes` / `lanes_pose`, `map_tokens`). `scene`: one Scene at the
+    stored rate (its model view is taken) or already in the model's view; coordinates are the scene frame.
+    A prompt with lanes needs the model's map tokenizer."""
+    if np.ndim(scene.xy) != 3:
+        raise EvalError(f"make_prompt takes one scene [T, A, ...], got xy of shape {np.shape(scene.xy)}")
+    if choices.get("lanes") is not None and model.tokenizer is None:
+        raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
+    view = scene
+    if (scene.num_frames, scene.num_agents) != (model.spec.num_frames, model.spec.num_agents):
+        view = jax.tree.map(lambda x: x[0], prepare(model, jax.tree.map(lambda x: np.asarray(x)[None], scene)))
+    return _make_prompt(jax.tree.map(np.asarray, view), model.spec.num_history, **choices)
+
+
 def prepare(model: Model, scenes: Scene) -> Scene:
     """The model's view of stored-rate scenes (`model.spec.view`: frames, slots, velocities), with map tokens
     encoded on the fly by its tokenizer where the scenes have none: Scene [..., T, A, ...] at the model's rate.
@@ -98,7 +121,8 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
                     log_map: str = "tokens") -> Callable[..., RolloutOutput]:
     """The rollout as a pure function of the parameters: `fn(params, scenes, tasks, key) -> RolloutOutput`.
 
-    scenes: Scene [S, T, A, ...] in the model's view (`prepare`); tasks: Task [K, ...] (`make_tasks`); key: a
+    scenes: Scene [S, T, A, ...] in the model's view (`prepare`); tasks: Task [K, ...] (`make_tasks`) or Prompt
+    [K, ...] / [S, K, ...] (`make_prompt`, `stack_prompts`); key: a
     PRNG key (used at temperature > 0); params: a pytree shaped like `model.params` (swap or perturb it freely).
     Returns RolloutOutput [S, K, T, ...]. Nothing is compiled until you `jax.jit` it; it also `vmap`s.
 
@@ -125,12 +149,19 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
                 raise EvalError("log_map='lanes' needs the scenes' lane polylines (Scene.polylines)")
             lanes, encoder = LogLanes(scenes.polylines, scenes.polyline_valid), tok.pose_encoder(tok.params)
         scenes = scenes.replace(polylines=None, polyline_valid=None)
+        if isinstance(tasks, Prompt) and tasks.lanes is not None:  # a prompt's own vector map
+            if tok is None:
+                raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
+            encoder = tok.pose_encoder(tok.params)
         if method == "cached":
             return rollout_tasks(module, scenes, tasks, key, h, temp, lanes, encoder)
-        s, k = scenes.xy.shape[0], tasks.from_log.shape[0]
+        tasks = as_prompt(tasks, scenes.xy.shape[-3])
+        per_scene = tasks.from_log.ndim == 4
+        s, k = scenes.xy.shape[0], tasks.from_log.shape[1 if per_scene else 0]
         rep = lambda x: jnp.repeat(x, k, axis=0)
         flat_s, flat_l = jax.tree.map(rep, (scenes, lanes))
-        flat_t = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
+        flat_t = (jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks) if per_scene else
+                  jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks))
         one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder)
         out = jax.vmap(one)(flat_s, flat_t, jax.random.split(key, s * k), flat_l)
         return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
@@ -138,8 +169,14 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
     return fn
 
 
-def _as_tasks(model: Model, tasks) -> tuple[Task, bool]:
-    """(Task [K, ...], whether a single task was given)."""
+def _as_tasks(model: Model, tasks) -> tuple[Task | Prompt, bool]:
+    """(Task or Prompt [K, ...] (a Prompt also [B, K, ...]), whether a single task or prompt was given)."""
+    if isinstance(tasks, (list, tuple)) and tasks and all(isinstance(p, Prompt) for p in tasks):
+        return jax.tree.map(jnp.asarray, stack_prompts(tasks)), False
+    if isinstance(tasks, Prompt):
+        single = np.ndim(tasks.from_log) == 2
+        t = jax.tree.map(lambda x: jnp.asarray(x)[None] if single else jnp.asarray(x), tasks)
+        return t, single
     if isinstance(tasks, Task):
         single = np.ndim(tasks.from_log) == 1
         t = jax.tree.map(lambda x: jnp.asarray(x)[None] if single else jnp.asarray(x), tasks)
@@ -148,13 +185,15 @@ def _as_tasks(model: Model, tasks) -> tuple[Task, bool]:
     return make_tasks(model, tasks), single
 
 
-def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task = "all", key: jax.Array | None = None,
-            *, temperature: float | None = None, log_map: str = "tokens") -> RolloutOutput:
-    """Rolls out stored-rate scenes under tasks with the KV-cached rollout, compiled once per shape.
+def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Prompt | Sequence[Prompt] = "all",
+            key: jax.Array | None = None, *, temperature: float | None = None, log_map: str = "tokens"
+            ) -> RolloutOutput:
+    """Rolls out stored-rate scenes under tasks or prompts with the KV-cached rollout, compiled once per shape.
 
     scenes: one Scene [T, A, ...] or a batch [B, T, A, ...] at the stored rate (`load_scenes`); the model's view
-    is taken inside, map tokens encoded on the fly where missing. tasks: a task name, names, "all", or Task
-    arrays. key: PRNG key for sampling (temperature > 0; default key 0).
+    is taken inside, map tokens encoded on the fly where missing. tasks: a task name, names, "all", Task arrays,
+    a Prompt (`make_prompt`, `task_prompt`), a list of prompts (stacked: K prompts, every scene under each), or
+    a Prompt [B, K, ...] (scene b under prompts[b, k]). key: PRNG key for sampling (temperature > 0; default 0).
     Returns RolloutOutput at the model's rate: [B, K, T, A, ...], without the B axis for one scene and without
     the K axis for one task (a single name or an unstacked Task).
     """
@@ -166,10 +205,14 @@ def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task = "al
     key = jax.random.key(0) if key is None else key
     temp = float(model.config.rollout.temperature if temperature is None else temperature)
     extra: dict[str, Any] = {}
+    if isinstance(task_arrays, Prompt) and task_arrays.lanes is not None:
+        if model.tokenizer is None:
+            raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
+        extra = dict(tok=model.tokenizer, tok_params=model.tokenizer.params)
     if log_map == "lanes":
         if model.tokenizer is None or view.polylines is None:
             raise EvalError("log_map='lanes' needs the model's map tokenizer and the scenes' lane polylines")
-        extra = dict(tok=model.tokenizer, tok_params=model.tokenizer.params,
+        extra = dict(extra, tok=model.tokenizer, tok_params=model.tokenizer.params,
                      lanes=LogLanes(jnp.asarray(view.polylines), jnp.asarray(view.polyline_valid)))
     elif log_map != "tokens":
         raise ValueError(f"log_map must be 'tokens' or 'lanes', got {log_map!r}")

@@ -18,6 +18,12 @@ may instead re-encode the log's lanes around the ego it generated (`LogLanes` + 
 `gpd_jax.map_tokenizer.MapTokenizer.pose_encoder`): rasterize and tokenize inside the compiled step, so the map
 stays where the log's roads are relative to the generated ego. Without them (the default, as the paper and the
 official code do) the logged tokens are used as they are.
+
+Prompts (`gpd_jax.prompts.Prompt`, conditional generation): wherever a task is taken, a prompt may be given
+instead: its from-log mask is per frame, its agent states and map tokens override the log where it says so, its
+agent cap removes slots like hidden agents, and its own vector map (`Prompt.lanes`) is encoded with the
+`map_encoder` around the ego of every frame, history included. A task is converted with `as_prompt` and rolls
+out to the same arrays.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from gpd_jax.model import GPD, KVCache, Prediction, forward, forward_cached
+from gpd_jax.prompts import Prompt, as_prompt
 from gpd_jax.scene import Scene
 from gpd_jax.tasks import Task
 
@@ -87,11 +94,12 @@ class Frame:
 @flax.struct.dataclass
 class Given:
     """What a rollout of one scenario is given: the log's frames as model inputs (`Frame` with a leading T:
-    hidden agents removed, velocities zero for a model without velocity inputs), the task, and optionally the
+    hidden agents removed, velocities zero for a model without velocity inputs; a prompt's given agent states and
+    map tokens in place), the prompt (`task`: a `Prompt`, a task converted by `as_prompt`), and optionally the
     log's lanes to re-encode the map around a generated ego."""
 
     log: Frame
-    task: Task
+    task: Prompt
     lanes: LogLanes | None = None
 
 
@@ -109,23 +117,48 @@ class DecodeState:
     hidden: jax.Array
 
 
-def given_inputs(model: GPD, scene: Scene, task: Task, lanes: LogLanes | None = None) -> Given:
-    """The log of `scene` as model inputs under `task` (hidden agents removed)."""
-    valid = scene.valid & ~task.hidden[None, :]
+def given_inputs(model: GPD, scene: Scene, task: Task | Prompt, lanes: LogLanes | None = None,
+                 map_encoder: MapEncoder | None = None) -> Given:
+    """The log of `scene` as model inputs under `task` (a Task or a Prompt): hidden and capped agents removed, a
+    prompt's given agent states and map tokens in place (velocities of given states: backward differences over
+    the model's frame period), and with a prompt's own lanes and `map_encoder` every frame's map tokens encoded
+    from those lanes around that frame's given ego."""
+    prompt = jax.tree.map(jnp.asarray, as_prompt(task, scene.num_frames))
+    xy, heading, valid = scene.xy, scene.heading, scene.valid
     vel = model.input_velocity(scene.velocity)  # raises if the model needs velocities and the scene has none
+    if prompt.agent_given is not None:
+        g = prompt.agent_given
+        xy = jnp.where(g[..., None], prompt.xy.astype(xy.dtype), xy)
+        heading = jnp.where(g, prompt.heading.astype(heading.dtype), heading)
+        valid = jnp.where(g, prompt.valid, valid)
+        if vel is not None:
+            diff = (xy[1:] - xy[:-1]) / model.frame_period_s
+            ok = (valid[1:] & valid[:-1])[..., None]
+            redo = jnp.concatenate([jnp.zeros_like(diff[:1]), jnp.where(ok, diff, 0.0)], 0).astype(vel.dtype)
+            touched = g | jnp.concatenate([jnp.zeros_like(g[:1]), g[:-1]], 0)
+            vel = jnp.where(touched[..., None], redo, vel)
+    valid = valid & ~prompt.removed()[None, :]
     vel = jnp.zeros_like(scene.xy) if vel is None else vel
-    log = Frame(xy=scene.xy, heading=scene.heading, valid=valid, valid_logit=jnp.zeros(valid.shape, jnp.float32),
-                map_tokens=scene.map_tokens, velocity=vel)
-    return Given(log=log, task=task, lanes=lanes)
+    map_tokens = scene.map_tokens
+    if prompt.map_given is not None:
+        map_tokens = jnp.where(prompt.map_given[:, None], prompt.map_tokens.astype(map_tokens.dtype), map_tokens)
+    if prompt.lanes is not None and map_encoder is not None:
+        poses = jnp.where(valid[:, :1], jnp.concatenate([xy[:, 0], heading[:, :1]], -1), scene.ego_pose)
+        enc = jax.vmap(lambda p: map_encoder(prompt.lanes, prompt.lanes_valid, p))(poses).astype(map_tokens.dtype)
+        map_tokens = jnp.where(prompt.use_lanes, enc, map_tokens)
+    log = Frame(xy=xy, heading=heading, valid=valid, valid_logit=jnp.zeros(valid.shape, jnp.float32),
+                map_tokens=map_tokens, velocity=vel)
+    return Given(log=log, task=prompt, lanes=lanes)
 
 
 def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
                   map_encoder: MapEncoder | None = None) -> Frame:
-    """Frame t's inputs: the log where the task says so, the prediction elsewhere.
+    """Frame t's inputs: the given data where the prompt says so at frame t, the prediction elsewhere.
 
     `pred` holds the single-frame prediction made at frame t-1 (leading dim 1). With `given.lanes` and
     `map_encoder`, map tokens taken from the log while the ego is generated (and valid) are the log's lanes
-    encoded around the generated ego pose instead of the logged tokens.
+    encoded around the generated ego pose instead of the logged tokens. With a prompt's own lanes (and
+    `map_encoder`), the map slots taken from the given data are those lanes encoded around frame t's ego.
     """
     log, task = given.log, given.task
     num_map = log.map_tokens.shape[-1]
@@ -135,39 +168,48 @@ def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
     else:
         sampled = jnp.argmax(logits, axis=-1)
     log_map = log.map_tokens[t]
-    fl_map, fl_agent = task.from_log[:num_map], task.from_log[num_map:]
+    prompt = isinstance(task, Prompt)
+    row = jnp.asarray(task.from_log)[t] if prompt else task.from_log
+    removed = task.removed() if prompt else task.hidden
+    fl_map, fl_agent = row[:num_map], row[num_map:]
     map_t = jnp.where(fl_map, log_map, sampled.astype(log_map.dtype))
     xy_t = jnp.where(fl_agent[:, None], log.xy[t], pred.xy[0])
     heading_t = jnp.where(fl_agent, log.heading[t], pred.heading[0])
-    valid_t = jnp.where(fl_agent, log.valid[t], pred.valid_logit[0] > 0) & ~task.hidden
+    valid_t = jnp.where(fl_agent, log.valid[t], pred.valid_logit[0] > 0) & ~removed
     logit_t = jnp.where(fl_agent, 0.0, pred.valid_logit[0])
-    if map_encoder is not None:
+    if map_encoder is not None and given.lanes is not None:
         pose = jnp.stack([xy_t[0, 0], xy_t[0, 1], heading_t[0]])
         around_ego = map_encoder(given.lanes.polylines, given.lanes.valid, pose).astype(log_map.dtype)
         map_t = jnp.where(fl_map & ~fl_agent[0] & valid_t[0], around_ego, map_t)
+    if map_encoder is not None and prompt and task.lanes is not None:
+        pose = jnp.where(valid_t[0], jnp.stack([xy_t[0, 0], xy_t[0, 1], heading_t[0]]),
+                         jnp.stack([log.xy[t, 0, 0], log.xy[t, 0, 1], log.heading[t, 0]]))
+        own = map_encoder(task.lanes, task.lanes_valid, pose).astype(log_map.dtype)
+        map_t = jnp.where(fl_map & task.use_lanes, own, map_t)
     pred_vel = jnp.zeros_like(log.velocity[t]) if pred.velocity is None else pred.velocity[0]
     vel_t = jnp.where(fl_agent[:, None], log.velocity[t], pred_vel)
     return Frame(xy=xy_t, heading=heading_t, valid=valid_t, valid_logit=logit_t, map_tokens=map_t, velocity=vel_t)
 
 
-def rollout(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
+def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_history: int,
             temperature: float = 0.0, lanes: LogLanes | None = None,
             map_encoder: MapEncoder | None = None) -> RolloutOutput:
-    """KV-cached rollout of one scenario under one task.
+    """KV-cached rollout of one scenario under one task or prompt.
 
     Args:
       model: the GPD transformer.
       scene: a single (unbatched) scene with T frames at the model's rate; frames [0, num_history) are given.
-      task: a single task (from_log bool[M + A], hidden bool[A]).
+      task: a single task (from_log bool[M + A], hidden bool[A]) or prompt (from_log bool[T, M + A], ...).
       key: PRNG key (used only when temperature > 0).
       num_history: H, the number of given frames (21 in the paper).
       temperature: 0 for greedy map tokens, > 0 to sample them.
       lanes, map_encoder: the scene's logged lanes and a tokenizer's pose encoder, to re-encode the logged map
-        around a generated ego (see the module docstring); both or neither.
+        around a generated ego (see the module docstring); a prompt with its own lanes needs the encoder.
     """
     t_total, h = scene.num_frames, num_history
-    _check_map_encoder(lanes, map_encoder)
-    given = given_inputs(model, scene, task, lanes)
+    task = as_prompt(task, t_total)
+    _check_map_encoder(lanes, map_encoder, task)
+    given = given_inputs(model, scene, task, lanes, map_encoder)
     log = given.log
 
     def step(state: DecodeState, t):
@@ -206,8 +248,12 @@ def advance(model: GPD, state: DecodeState, frame: Frame, t) -> DecodeState:
     return DecodeState(cache=cache, pred=pred, last_xy=f.xy, last_valid=f.valid, hidden=hid[0])
 
 
-def _check_map_encoder(lanes, map_encoder) -> None:
-    if (lanes is None) != (map_encoder is None):
+def _check_map_encoder(lanes, map_encoder, prompt: Prompt | None = None) -> None:
+    own = prompt is not None and prompt.lanes is not None
+    if own and map_encoder is None:
+        raise ValueError("a prompt with its own lanes (Prompt.lanes) needs `map_encoder` (a map tokenizer's "
+                         "pose_encoder) to encode them into map tokens")
+    if (lanes is None) != (map_encoder is None) and not (own and lanes is None):
         raise ValueError("re-encoding the logged map around a generated ego needs both `lanes` (the log's lane "
                          f"polylines) and `map_encoder`; got lanes={'None' if lanes is None else 'given'}, "
                          f"map_encoder={map_encoder!r}")
@@ -229,7 +275,7 @@ def _assemble(log: Frame, frames: Frame, h: int) -> RolloutOutput:
                          map_tokens=cat(log.map_tokens, frames.map_tokens))
 
 
-def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_history: int,
+def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_history: int,
                       temperature: float = 0.0, lanes: LogLanes | None = None,
                       map_encoder: MapEncoder | None = None) -> RolloutOutput:
     """The official method: for every future frame, a full forward over the whole buffer (no cache).
@@ -239,8 +285,9 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
     Same arguments and outputs as `rollout`.
     """
     t_total, h = scene.num_frames, num_history
-    _check_map_encoder(lanes, map_encoder)
-    given = given_inputs(model, scene, task, lanes)
+    task = as_prompt(task, t_total)
+    _check_map_encoder(lanes, map_encoder, task)
+    given = given_inputs(model, scene, task, lanes, map_encoder)
 
     def step(buf: Frame, t):
         tokens = model.embed(buf.xy, buf.heading, buf.valid, buf.map_tokens, jnp.arange(t_total), buf.velocity)
@@ -259,43 +306,53 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task, key: jax.Array, num_
                          map_tokens=buf.map_tokens)
 
 
-def rollout_batch(model: GPD, scenes: Scene, tasks: Task, keys: jax.Array, num_history: int,
+def rollout_batch(model: GPD, scenes: Scene, tasks: Task | Prompt, keys: jax.Array, num_history: int,
                   temperature: float = 0.0, lanes: LogLanes | None = None,
                   map_encoder: MapEncoder | None = None) -> RolloutOutput:
-    """`rollout` vmapped over a leading batch dim shared by scenes, tasks, keys (and lanes; mixed tasks
-    allowed)."""
+    """`rollout` vmapped over a leading batch dim shared by scenes, tasks or prompts, keys (and lanes; mixed
+    tasks and prompts allowed)."""
     fn = lambda s, t, k, ln: rollout(model, s, t, k, num_history, temperature, ln, map_encoder)
     return jax.vmap(fn)(scenes, tasks, keys, lanes)
 
 
-def rollout_tasks(model: GPD, scenes: Scene, tasks: Task, key: jax.Array, num_history: int,
+def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Array, num_history: int,
                   temperature: float = 0.0, lanes: LogLanes | None = None,
                   map_encoder: MapEncoder | None = None) -> RolloutOutput:
-    """Every scenario under every task: scenes [S, ...], tasks [K, ...] -> outputs with leading dims [S, K].
+    """Every scenario under every task or prompt: scenes [S, ...], tasks [K, ...] -> outputs [S, K, ...].
 
-    The S x K pairs are flattened into one vmapped batch (so the attention kernel's per-scenario batching
-    rule sees the whole batch); keys are split per (scenario, task).
+    Prompts may also be per scenario, Prompt [S, K, ...] (e.g. paths given in each scene's frame): scenario s
+    then runs prompts[s, k]. The S x K pairs are flattened into one vmapped batch (so the attention kernel's
+    per-scenario batching rule sees the whole batch); keys are split per (scenario, task).
     """
     s = scenes.xy.shape[0]
-    k = tasks.from_log.shape[0]
+    tasks = as_prompt(tasks, scenes.xy.shape[-3])
+    per_scene = tasks.from_log.ndim == 4
+    k = tasks.from_log.shape[1 if per_scene else 0]
     flat_scenes, flat_lanes = jax.tree.map(lambda x: jnp.repeat(x, k, axis=0), (scenes, lanes))
-    flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
+    if per_scene:
+        if tasks.from_log.shape[0] != s:
+            raise ValueError(f"per-scenario prompts [S, K, ...] with S = {tasks.from_log.shape[0]} for {s} scenes")
+        flat_tasks = jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks)
+    else:
+        flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
     keys = jax.random.split(key, s * k)
     out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature, flat_lanes, map_encoder)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "temperature", "tok"))
-def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task, key, num_history: int, temperature: float = 0.0,
-                tok=None, tok_params=None, lanes: LogLanes | None = None) -> RolloutOutput:
+def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key, num_history: int,
+                temperature: float = 0.0, tok=None, tok_params=None, lanes: LogLanes | None = None) -> RolloutOutput:
     """`rollout_tasks` of the model `nnx.merge(graphdef, params, rest)`, jitted: the one compiled rollout entry
     of evaluation, training's validation, the benchmark and `gpd_jax.rollout` (one compile per shape and static
     setting).
 
-    scenes [S, ...] at the model's rate, tasks [K, ...] -> outputs [S, K, ...]. With a map tokenizer `tok` (its
-    `tok_params`) and the scenes' `lanes` [S, ...], logged map tokens of tasks that generate the ego are
-    re-encoded around the generated ego.
+    scenes [S, ...] at the model's rate, tasks or prompts [K, ...] (prompts also [S, K, ...]) -> outputs
+    [S, K, ...]. With a map tokenizer `tok` (its `tok_params`) and the scenes' `lanes` [S, ...], logged map tokens
+    of tasks that generate the ego are re-encoded around the generated ego; prompts with their own lanes are
+    encoded with `tok` (needed then).
     """
-    encoder = None if tok is None else tok.pose_encoder(tok_params)
+    own = isinstance(tasks, Prompt) and tasks.lanes is not None
+    encoder = None if tok is None or (lanes is None and not own) else tok.pose_encoder(tok_params)
     return rollout_tasks(nnx.merge(graphdef, params, rest), scenes, tasks, key, num_history, temperature, lanes,
                          encoder)
