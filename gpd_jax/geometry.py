@@ -35,6 +35,10 @@ import numpy as np
 AREA_KINDS = ("lane", "junction", "other")
 AREA_KIND_ID = {name: i for i, name in enumerate(AREA_KINDS)}
 
+# What a consumer that needs the geometry says when a scene has none (a store built before it existed).
+ROAD_MISSING = ("these scenes carry no road geometry (Scene.road is None): the data store was built before "
+                "drivable-area geometry was stored; rebuild it with `python -m gpd_jax.data build ...`")
+
 # Points handled per block in the segment scans (bounded memory: block x segments floats).
 _BLOCK = 256
 
@@ -108,6 +112,13 @@ class RoadGeometry:
         if problems:
             raise ValueError(f"invalid {where}:\n  " + "\n  ".join(problems))
         return self
+
+
+def require_road(road: "RoadGeometry | None", where: str = "") -> "RoadGeometry":
+    """`road` itself, or ValueError with `ROAD_MISSING` (prefixed by `where`) when it is None."""
+    if road is None:
+        raise ValueError((f"{where}: " if where else "") + ROAD_MISSING)
+    return road
 
 
 def empty_road(num_polygons: int = 1, num_vertices: int = 4, num_edges: int = 1, num_edge_points: int = 2,

@@ -6,6 +6,8 @@ import numpy as np
 
 from gpd_jax.data import preprocess, store
 from gpd_jax.data.raw import RawLog
+from gpd_jax.data.roadgeom import Area, lane_area
+from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import TYPE_ID
 
 THETA = 0.5  # the world frame is rotated against the road so that frame conversions are exercised
@@ -55,22 +57,28 @@ def straight_road_log(num_frames: int = 130, num_others: int = 40, seed: int = 0
         lanes.append(np.stack([s, np.full_like(s, off)], -1) @ R.T + np.array([100.0, -50.0]))
     cross = np.stack([np.full(81, 40.0), np.linspace(-40, 40, 81)], -1) @ R.T + np.array([100.0, -50.0])
     lanes.append(cross)
+    # drivable area: the three lanes 3.5 m wide (road lateral -5.25 .. 5.25), the crossing road 7 m wide and a
+    # 20 x 20 m junction where they meet (road coordinates along 30 .. 50, lateral -10 .. 10)
+    areas = [lane_area(ln, 3.5) for ln in lanes[:3]] + [lane_area(cross, 7.0)]
+    jn = np.array([[30.0, -10.0], [50.0, -10.0], [50.0, 10.0], [30.0, 10.0]]) @ R.T + np.array([100.0, -50.0])
+    areas.append(Area(AREA_KIND_ID["junction"], jn))
     return RawLog(name="straight", location="road_a", timestamps=t, agent_ids=tuple(f"v{j}" for j in range(N)),
                   agent_xy=xy, agent_heading=heading, agent_valid=valid, agent_size=size, agent_type=atype,
-                  lanes=tuple(lanes), ego_index=None)
+                  lanes=tuple(lanes), ego_index=None, areas=tuple(areas))
 
 
 def write_small_store(path: str, n_shards: int = 3, per_shard: int = 4, split: str = "train") -> list[str]:
     """A store of `n_shards` shards built from the hand-built log (different window starts)."""
     log = straight_road_log()
     lp = preprocess.lane_points(log.lanes)
+    road = preprocess.road_index(log)
     ids = []
     k = 0
     for s in range(n_shards):
         samples, sids = [], []
         for _ in range(per_shard):
             start = k % 25
-            smp = preprocess.make_sample(log, start, 0, lp=lp)
+            smp = preprocess.make_sample(log, start, 0, lp=lp, road=road)
             smp["xy"][:, 0, 0] += 0.001 * k  # make every sample distinguishable
             smp["ego_pose"][:, 0] = smp["xy"][:, 0, 0]
             samples.append(smp)

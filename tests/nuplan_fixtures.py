@@ -76,6 +76,23 @@ def lane_polylines_utm() -> dict[str, np.ndarray]:
     return {"lane0": lane0, "lane1": lane1, "connector": conn, "lane2": lane2, "far": far}
 
 
+def _quad(s0: float, s1: float, l0: float, l1: float) -> np.ndarray:
+    """Closed ring (UTM 11N) of the road-aligned rectangle s in [s0, s1], lateral in [l0, l1]."""
+    return np.stack([road_point(s0, l0), road_point(s1, l0), road_point(s1, l1), road_point(s0, l1),
+                     road_point(s0, l0)])
+
+
+def intersection_ring_utm() -> np.ndarray:
+    """The `intersections` polygon: where lane 1 turns left into lane 2 (s in [200, 222], lateral in
+    [-1.75, 25])."""
+    return _quad(200.0, 222.0, -1.75, LANE_WIDTH + 21.5)
+
+
+def layby_ring_utm() -> np.ndarray:
+    """A `generic_drivable_areas` lay-by right of lane 0 (s in [40, 70], lateral in [-8, -1.75])."""
+    return _quad(40.0, 70.0, -8.0, -1.75)
+
+
 def merged_polylines_utm() -> dict[str, np.ndarray]:
     """The centrelines as SLEDGE-style chains: lane1 -> connector -> lane2 is one polyline."""
     u = lane_polylines_utm()
@@ -331,7 +348,8 @@ def write_map_gpkg(
     with_z: bool = False,
     bad_blob: bool = False,
     nan_point: bool = False,
-    layers: tuple[str, ...] = ("baseline_paths", "lanes_polygons", "lane_connectors"),
+    layers: tuple[str, ...] = ("baseline_paths", "lanes_polygons", "lane_connectors", "intersections",
+                               "generic_drivable_areas"),
 ) -> Path:
     """Writes a nuPlan-style map GeoPackage with the fixture's lanes stored in `srs`. Returns its path.
 
@@ -421,6 +439,17 @@ def write_map_gpkg(
                 "INSERT INTO lanes_polygons VALUES (?, ?, ?, 1, ?, NULL, NULL, 13.4)",
                 (fid, gp_blob(wkb, srs, little=little, envelope=envelope, xy=ring), str(fid), fid - 1),
             )
+    for table, rings in (("intersections", [intersection_ring_utm()]),
+                         ("generic_drivable_areas", [layby_ring_utm()])):
+        if table not in layers:
+            continue
+        conn.execute(f"CREATE TABLE {table} (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, geom POLYGON)")
+        register(table, "POLYGON")
+        for fid, ring in enumerate(rings, 1):
+            ring = project_from_utm11(ring, srs)
+            conn.execute(f"INSERT INTO {table} VALUES (?, ?)",
+                         (fid, gp_blob(wkb_polygon(ring, little=little), srs, little=little, envelope=envelope,
+                                       xy=ring)))
     if "lane_connectors" in layers:
         conn.execute(
             """CREATE TABLE lane_connectors (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, geom LINESTRING,

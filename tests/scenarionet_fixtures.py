@@ -27,6 +27,10 @@ middle of three lanes 3.5 m apart. Special tracks (road coordinates: along, late
 * a pedestrian, a cyclist and a traffic cone (dropped by the reader);
 * `extra_tracks` more cars spread over the lanes behind and ahead (for realistic sizes).
 
+Drivable area: the right and middle lanes carry `width` (P, 2) = 1.75 m to each side, the left lane a real
+`polygon` (lateral 1.75 .. 5.25); a `DRIVEWAY` polygon left of the road at along 80 .. 90, lateral 5.25 .. 15.
+The union is lateral -5.25 .. 5.25 (where the `ROAD_EDGE_BOUNDARY` lines are) plus the driveway.
+
 Usage as a script (writes a dataset of realistic size for timing the importer):
 
     python tests/scenarionet_fixtures.py OUT_DIR --scenarios 20 --frames 91 --tracks 100 --lanes 300
@@ -115,6 +119,14 @@ def make_scenario(num_frames: int = 121, hz: float = 10.0, speed: float = 10.0, 
         feats[str(100 + i)] = {"type": "LANE_FREEWAY" if i == 0 else "LANE_SURFACE_STREET", "polyline": pl,
                                "polygon": pl[::40], "width": np.full((len(s), 2), 1.75, np.float32),
                                "entry_lanes": [], "exit_lanes": [], "left_neighbor": [], "right_neighbor": []}
+    # the left lane carries a real polygon (as nuPlan / nuScenes conversions do); the others a width
+    left_poly = np.zeros((4, 3), np.float32)
+    left_poly[:, :2] = road_to_world(np.array([-200.0, 600.0, 600.0, -200.0]), np.array([1.75, 1.75, 5.25, 5.25]),
+                                     theta, origin)
+    feats["102"]["polygon"] = left_poly
+    dw = np.zeros((4, 3), np.float32)
+    dw[:, :2] = road_to_world(np.array([80.0, 90.0, 90.0, 80.0]), np.array([5.25, 5.25, 15.0, 15.0]), theta, origin)
+    feats["600"] = {"type": "DRIVEWAY", "polygon": dw}
     bike = np.zeros((len(s), 3), np.float32)
     bike[:, :2] = road_to_world(s, 6.0, theta, origin)
     feats["200"] = {"type": "LANE_BIKE_LANE", "polyline": bike}

@@ -283,12 +283,13 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
         spec, net, density = None, job.net_path, sim_cfg.insertion_density
     try:
         lanes = sumo.read_network_lanes(net)
+        areas = sumo.read_network_areas(net)
         for attempt in range(max_tries):
             seed = job.seed + 7919 * attempt
             cfg = dataclasses.replace(sim_cfg, insertion_density=density)
             try:
                 raw = sumo.simulate(net, f"{job.location}_s{seed}", job.location, seed, cfg, workdir=work,
-                                    lanes=lanes)
+                                    lanes=lanes, areas=areas)
             except sumo.SumoRunRejected as e:
                 rejections.append(str(e))
                 stats["sumo_runs_rejected"] += 1
@@ -679,9 +680,10 @@ def _scenario_samples(raw, sample_cfg, max_per_log, seed, stats) -> list:
         stats["windows_over_max_per_log"] += len(starts) - max_per_log
         starts = np.sort(np.random.default_rng([seed, len(starts)]).choice(starts, max_per_log, replace=False))
     lp = preprocess.lane_points(raw.lanes, sample_cfg.lane_spacing)
+    road = preprocess.road_index(raw)
     out = []
     for s in starts.tolist():
-        smp = preprocess.make_sample(raw, s, ego, sample_cfg, lp, stats)
+        smp = preprocess.make_sample(raw, s, ego, sample_cfg, lp, stats, road)
         if smp is None:
             continue
         if sample_cfg.reject_overlaps and sample_has_overlap(smp["xy"], smp["heading"], smp["valid"], smp["size"]):

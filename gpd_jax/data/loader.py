@@ -17,7 +17,9 @@ True; without them, and in frames that were not encoded (`encode --frame-stride`
 of every frame (`gpd_jax.data.lanes`) fill `Scene.lanes` / `lanes_valid` (computed on the fly, ~10-20 ms
 per sample). With `with_polylines=True` each batch comes as `(scene, polylines)` where
 `polylines = {"polylines": f32[B, L, P, 2], "polyline_valid": bool[B, L, P]}`, the stored lane centrelines
-in the scene frame; the frame poses are `scene.ego_pose` (what the rasterizer takes).
+in the scene frame; the frame poses are `scene.ego_pose` (what the rasterizer takes). With the polylines, the
+road geometry (`store.ROAD_KEYS`) is read too where every shard of the split has it, and `to_scene` makes
+`Scene.road` (else None: a store built before it; rebuild to get it).
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ import numpy as np
 from gpd_jax.data import lanes as lanes_lib
 from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.roadgeom import ROAD_KEYS
+from gpd_jax.geometry import RoadGeometry
 from gpd_jax.scene import Scene
 
 SCENE_KEYS = ("xy", "heading", "valid", "size", "agent_type", "ego_pose")
@@ -53,12 +57,16 @@ class SplitSource:
         self.paths = store.list_shards(data_dir, split)
         if not self.paths:
             raise DataError(os.path.join(data_dir, split), "no complete shards in this split")
-        counts = []
+        counts, road = [], []
         for p in self.paths:
-            counts.append(_read_count(p))
+            n, has_road = _read_count(p)
+            counts.append(n)
+            road.append(has_road)
         self.counts = np.asarray(counts, np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)])
-        self.keys = SCENE_KEYS + (POLY_KEYS if with_polylines else ())
+        # the road geometry comes with the polylines (its lane centrelines), where every shard has it
+        self.has_road = all(road)
+        self.keys = SCENE_KEYS + (POLY_KEYS + (ROAD_KEYS if self.has_road else ()) if with_polylines else ())
         self.max_open = max_open_shards
         self._open: collections.OrderedDict[int, store.Shard] = collections.OrderedDict()
         self._lock = threading.Lock()
@@ -105,13 +113,15 @@ class SplitSource:
         return f"SplitSource({self.data_dir!r}, {self.split!r}, {len(self)} samples)"
 
 
-def _read_count(path: str) -> int:
+def _read_count(path: str) -> tuple[int, bool]:
+    """(sample count, whether the shard has the road geometry keys) from a shard's meta.json."""
     import json
 
     mp = os.path.join(path, "meta.json")
     try:
         with open(mp) as f:
-            return int(json.load(f)["num_samples"])
+            meta = json.load(f)
+        return int(meta["num_samples"]), all(k in meta.get("keys", {}) for k in ROAD_KEYS)
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise DataError(mp, f"unreadable shard metadata: {e}") from e
 
@@ -125,12 +135,19 @@ def add_lanes(rec: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def to_scene(batch: dict[str, np.ndarray]) -> Scene:
-    """A dict of (batched) record arrays -> Scene (numpy leaves, agent_type as int32)."""
+    """A dict of (batched) record arrays -> Scene (numpy leaves, agent_type as int32); with the road keys and the
+    polylines, `Scene.road` is their `RoadGeometry` (lane centrelines = the polylines), else None."""
+    road = None
+    if all(k in batch for k in ROAD_KEYS) and "polylines" in batch:
+        road = RoadGeometry(polygons=batch["road_polygons"], polygon_valid=batch["road_polygon_valid"],
+                            polygon_kind=batch["road_polygon_kind"].astype(np.int32), edges=batch["road_edges"],
+                            edge_valid=batch["road_edge_valid"], lanes=batch["polylines"],
+                            lane_valid=batch["polyline_valid"])
     return Scene(xy=batch["xy"], heading=batch["heading"], valid=batch["valid"], size=batch["size"],
                  agent_type=batch["agent_type"].astype(np.int32), map_tokens=batch["map_tokens"],
                  map_valid=batch["map_valid"], ego_pose=batch["ego_pose"], lanes=batch.get("lanes"),
                  lanes_valid=batch.get("lanes_valid"), polylines=batch.get("polylines"),
-                 polyline_valid=batch.get("polyline_valid"))
+                 polyline_valid=batch.get("polyline_valid"), road=road)
 
 
 def _split_output(with_polylines: bool):

@@ -36,6 +36,10 @@ What is read, and the conventions:
   nuPlan cities (`MAP_UTM_EPSG`). Lanes are cropped to the bounding box of the log's boxes grown by
   `map_margin` metres (lanes are kept whole); no lane there is a `DataError` (it means a projection or map
   mismatch).
+* **Drivable area** (`read_map_areas`, `RawLog.areas`): the polygons of the `AREA_LAYERS` the map has —
+  `lanes_polygons` and `lane_groups_polygons` (kind "lane"), `intersections` ("junction"),
+  `generic_drivable_areas` and `carpark_areas` ("other") — projected like the lanes and cropped to the same
+  box (polygons whose bounds meet it, kept whole).
 * `RawLog.location` is the map name (e.g. "us-nv-las-vegas-strip"); `RawLog.name` is the file stem.
 
 Every problem with an input file raises `gpd_jax.data.errors.DataError` naming the file and the reason.
@@ -57,6 +61,8 @@ import numpy as np
 from gpd_jax.data import gpkg
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.raw import RawLog
+from gpd_jax.data.roadgeom import Area
+from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import TYPE_ID
 
 log = logging.getLogger(__name__)
@@ -531,6 +537,88 @@ def _concat_polylines(parts: list[np.ndarray], tol: float = 1e-3) -> np.ndarray:
     return np.concatenate(out)
 
 
+def _layer_transform(gpkg_path, layer, crs: str, projection: str):
+    """The transform from a layer's spatial reference to `crs` (undefined Cartesian: already in it)."""
+    src = layer.srs.user_input
+    if layer.srs.srs_id == -1 or (layer.srs.organization.upper() == "NONE" and layer.srs.srs_id <= 0):
+        src = crs  # "undefined Cartesian": taken to be already in the logs' frame
+    elif layer.srs.srs_id == 0:
+        src = "EPSG:4326"  # "undefined geographic": WGS84 lon/lat
+    try:
+        return gpkg.make_transform(src, crs, backend=projection)
+    except ValueError as e:
+        raise DataError(gpkg_path, f"cannot project layer '{layer.name}' to {str(crs)[:60]} ({e})") from e
+
+
+# The map layers whose polygons make the drivable surface, and the area kind of each.
+AREA_LAYERS = (("lanes_polygons", "lane"), ("lane_groups_polygons", "lane"), ("intersections", "junction"),
+               ("generic_drivable_areas", "other"), ("carpark_areas", "other"))
+
+
+@dataclasses.dataclass(frozen=True)
+class MapAreas:
+    """Drivable areas of one map in the logs' frame: `areas` tuple of `Area`, `bounds` f64[K, 4], `layers`
+    the `AREA_LAYERS` the map has (a map without any has no geometry; its samples say so in the statistics)."""
+
+    areas: tuple
+    bounds: np.ndarray
+    layers: tuple[str, ...]
+
+    def crop(self, box: np.ndarray) -> tuple:
+        b = self.bounds
+        keep = (b[:, 0] <= box[2]) & (b[:, 2] >= box[0]) & (b[:, 1] <= box[3]) & (b[:, 3] >= box[1])
+        return tuple(self.areas[i] for i in np.flatnonzero(keep))
+
+
+def _polygon_rings(kind: str, parts: tuple[np.ndarray, ...]) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+    """(exterior, holes) of a Polygon's rings (first = exterior) or a MultiPolygon's (a ring inside a larger
+    ring of the same geometry is that ring's hole)."""
+    rings = [p for p in parts if len(p) >= 3]
+    if kind == "Polygon":
+        return [(rings[0], rings[1:])] if rings else []
+    from shapely.geometry import Point, Polygon
+    polys = [Polygon(r) for r in rings]
+    area = [abs(p.area) for p in polys]
+    owner = {}
+    for i, p in enumerate(polys):
+        if p.is_empty:
+            continue
+        pt = Point(rings[i][0]) if not p.is_valid else p.representative_point()
+        outer = [j for j, q in enumerate(polys) if j != i and area[j] > area[i] and q.is_valid and q.contains(pt)]
+        if outer:
+            owner[i] = min(outer, key=lambda j: area[j])
+    return [(rings[i], [rings[k] for k, o in owner.items() if o == i]) for i in range(len(rings)) if i not in owner]
+
+
+def read_map_areas(gpkg_path: str | os.PathLike, crs: str, projection: str = "auto") -> MapAreas:
+    """The drivable surface of a nuPlan map (`AREA_LAYERS` that it has), projected to `crs`, as `Area`s."""
+    conn = gpkg.open_sqlite(gpkg_path, "GeoPackage")
+    try:
+        present = {r[0] for r in _query(conn, gpkg_path, "SELECT table_name FROM gpkg_geometry_columns")}
+        layers = [(name, kind) for name, kind in AREA_LAYERS if name in present]
+        read = [(gpkg.read_layer(gpkg_path, name, (), conn=conn), kind) for name, kind in layers]
+    finally:
+        conn.close()
+    areas, bounds = [], []
+    for layer, kind in read:
+        transform = _layer_transform(gpkg_path, layer, crs, projection)
+        for k, g in enumerate(layer.geometries):
+            if g.is_empty:
+                continue
+            if g.kind not in ("Polygon", "MultiPolygon"):
+                raise DataError(gpkg_path, f"layer '{layer.name}' fid {layer.fids[k]} is a {g.kind}, not a polygon")
+            for ext, holes in _polygon_rings(g.kind, g.parts):
+                proj = []
+                for r in [ext, *holes]:
+                    x, y = transform(r[:, 0], r[:, 1])
+                    proj.append(np.stack([x, y], -1))
+                if not all(np.isfinite(p).all() for p in proj):
+                    raise DataError(gpkg_path, f"projecting '{layer.name}' to {str(crs)[:60]} gave non-finite points")
+                areas.append(Area(AREA_KIND_ID[kind], proj[0], tuple(proj[1:])))
+                bounds.append([*proj[0].min(0), *proj[0].max(0)])
+    return MapAreas(tuple(areas), np.asarray(bounds, np.float64).reshape(-1, 4), tuple(n for n, _ in layers))
+
+
 def read_map_lanes(
     gpkg_path: str | os.PathLike, crs: str, projection: str = "auto", merge: bool = True
 ) -> MapLanes:
@@ -555,15 +643,7 @@ def read_map_lanes(
             raise DataError(gpkg_path, f"cannot read lane_connectors ({e})") from e
     finally:
         conn.close()
-    src = layer.srs.user_input
-    if layer.srs.srs_id == -1 or (layer.srs.organization.upper() == "NONE" and layer.srs.srs_id <= 0):
-        src = crs  # "undefined Cartesian": taken to be already in the logs' frame
-    elif layer.srs.srs_id == 0:
-        src = "EPSG:4326"  # "undefined geographic": WGS84 lon/lat
-    try:
-        transform = gpkg.make_transform(src, crs, backend=projection)
-    except ValueError as e:
-        raise DataError(gpkg_path, f"cannot project layer '{BASELINE_LAYER}' to {str(crs)[:60]} ({e})") from e
+    transform = _layer_transform(gpkg_path, layer, crs, projection)
 
     pieces: list[np.ndarray] = []
     keys: list = []  # graph node of each piece (None: not part of the lane graph)
@@ -634,8 +714,10 @@ def _read_log(
     key = (os.fspath(map_path.resolve()), frames.epsg, projection, merge_lanes)
     if key not in map_cache:
         crs = map_crs(map_path, map_name, frames.epsg)
-        map_cache[key] = read_map_lanes(map_path, crs, projection, merge=merge_lanes)
-    lanes_map: MapLanes = map_cache[key]
+        map_cache[key] = (read_map_lanes(map_path, crs, projection, merge=merge_lanes),
+                          read_map_areas(map_path, crs, projection))
+    lanes_map: MapLanes = map_cache[key][0]
+    areas_map: MapAreas = map_cache[key][1]
 
     ego_heading = wrap_angle(quaternion_yaw(*frames.ego[:, 2:6].T))
     ego_xy = rear_axle_to_center(frames.ego[:, :2], ego_heading)
@@ -648,10 +730,12 @@ def _read_log(
 
     if map_margin is None:
         lanes = lanes_map.lanes
+        areas = areas_map.areas
     else:
         pts = agent_xy[agent_valid]
         box = np.array([*(pts.min(0) - map_margin), *(pts.max(0) + map_margin)])
         lanes = lanes_map.crop(box)
+        areas = areas_map.crop(box)
         if not lanes:
             raise DataError(
                 db_path,
@@ -670,6 +754,7 @@ def _read_log(
         agent_type=agent_type,
         lanes=tuple(lanes),
         ego_index=0,
+        areas=tuple(areas),
     )
 
 

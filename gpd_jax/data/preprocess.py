@@ -37,6 +37,7 @@ import numpy as np
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.geometry import sample_has_overlap
 from gpd_jax.data.raw import RawLog
+from gpd_jax.data.roadgeom import RoadIndex, clip_road
 from gpd_jax.scene import TYPE_ID
 
 
@@ -56,6 +57,11 @@ class SampleConfig:
     min_ego_travel: float = 0.0  # SUMO ego choice: metres the ego's centre moves over the window
     window_stride: int = 10  # frames between windows for logs with a fixed ego (nuPlan)
     reject_overlaps: bool = False  # skip windows in which two recorded boxes overlap (SUMO quality gate)
+    max_road_rings: int = 64  # drivable-area rings per sample (G)
+    max_ring_vertices: int = 32  # vertices per ring (V)
+    max_road_edges: int = 64  # road-edge runs per sample (E)
+    max_edge_points: int = 32  # points per road-edge run (P_e)
+    road_tolerance: float = 0.1  # metres: simplification of area rings and edges
 
     @property
     def num_frames(self) -> int:
@@ -78,6 +84,11 @@ def sample_spec(cfg: SampleConfig = SampleConfig()) -> dict[str, tuple[tuple[int
         "ego_pose": ((T, 3), "float32"),
         "polylines": ((L, P, 2), "float32"),
         "polyline_valid": ((L, P), "bool"),
+        "road_polygons": ((cfg.max_road_rings, cfg.max_ring_vertices, 2), "float32"),
+        "road_polygon_valid": ((cfg.max_road_rings, cfg.max_ring_vertices), "bool"),
+        "road_polygon_kind": ((cfg.max_road_rings,), "int8"),
+        "road_edges": ((cfg.max_road_edges, cfg.max_edge_points, 2), "float32"),
+        "road_edge_valid": ((cfg.max_road_edges, cfg.max_edge_points), "bool"),
     }
 
 
@@ -185,9 +196,18 @@ def clip_lanes(lp: LanePoints, scene_pose_world: np.ndarray, ego_pose: np.ndarra
     return out, ok
 
 
+def road_index(log: RawLog) -> RoadIndex | None:
+    """The log's drivable areas indexed for `clip_road` (None when the log has none)."""
+    return RoadIndex(log.areas) if log.areas else None
+
+
 def make_sample(log: RawLog, start: int, ego: int, cfg: SampleConfig = SampleConfig(),
-                lp: LanePoints | None = None, stats: Counter | None = None) -> dict[str, np.ndarray] | None:
+                lp: LanePoints | None = None, stats: Counter | None = None, road: RoadIndex | None = None
+                ) -> dict[str, np.ndarray] | None:
     """One sample from frames [start, start + T) of `log` with track `ego` as the ego (None if skipped).
+
+    `lp` / `road`: the log's `lane_points` / `road_index`, made once per log by callers that cut many windows
+    (computed here when not given).
 
     Skips (and counts in `stats`) windows where the ego is not valid throughout or has bad coordinates.
     """
@@ -241,9 +261,16 @@ def make_sample(log: RawLog, start: int, ego: int, cfg: SampleConfig = SampleCon
     if lp is None:
         lp = lane_points(log.lanes, cfg.lane_spacing)
     poly, pvalid = clip_lanes(lp, origin, ego_pose.astype(np.float64), cfg, stats)
+    if road is None and log.areas:
+        road = road_index(log)
+    geo = clip_road(road, origin, ego_pose.astype(np.float64), reach=(cfg.view_half + cfg.view_margin) * np.sqrt(2.0),
+                    G=cfg.max_road_rings, V=cfg.max_ring_vertices, E=cfg.max_road_edges, P=cfg.max_edge_points,
+                    tolerance=cfg.road_tolerance, stats=stats, agents_xy=xy[valid].astype(np.float64))
+    if road is None:
+        stats["samples_without_road_geometry"] += 1
     stats["samples"] += 1
     return {"xy": xy, "heading": hd, "valid": valid, "size": size, "agent_type": atype, "ego_pose": ego_pose,
-            "polylines": poly, "polyline_valid": pvalid}
+            "polylines": poly, "polyline_valid": pvalid, **geo}
 
 
 def sample_windows(log: RawLog, cfg: SampleConfig, num: int | None, rng: np.random.Generator
@@ -333,13 +360,14 @@ def iter_samples(log: RawLog, cfg: SampleConfig = SampleConfig(), num: int | Non
         stats["skip_log_too_short"] += 1
         return
     lp = lane_points(log.lanes, cfg.lane_spacing)
+    road = road_index(log)
     # with the overlap gate, draw spare candidate windows so that `num` samples still come out
     want = None if num is None else (3 * num if cfg.reject_overlaps else num)
     made = 0
     for start, ego in sample_windows(log, cfg, want, rng):
         if num is not None and made >= num:
             break
-        s = make_sample(log, start, ego, cfg, lp, stats)
+        s = make_sample(log, start, ego, cfg, lp, stats, road)
         if s is None:
             continue
         if cfg.reject_overlaps:

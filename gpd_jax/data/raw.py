@@ -30,6 +30,9 @@ class RawLog:
       lanes: tuple of f64[P_i, 2] lane centrelines (junction/connector lanes included) in the world frame.
       ego_index: index of the track that is the recording vehicle (nuPlan), or None when any vehicle present
         for a whole window may serve as ego (SUMO).
+      areas: tuple of `gpd_jax.data.roadgeom.Area` (kind, exterior ring f64[V, 2], holes) in the world frame:
+        the drivable surface (lanes, junctions / intersections, other drivable areas); empty when the source
+        has no geometry (samples then carry an all-invalid road geometry, counted in the build statistics).
     """
 
     name: str
@@ -43,6 +46,7 @@ class RawLog:
     agent_type: np.ndarray
     lanes: tuple[np.ndarray, ...]
     ego_index: int | None = None
+    areas: tuple = ()
 
     @property
     def num_frames(self) -> int:

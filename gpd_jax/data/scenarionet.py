@@ -48,8 +48,15 @@ What is read, and the conventions:
 * **Lanes.** The centrelines are the `polyline`s of the map features whose type is a vehicle lane:
   `LANE_SURFACE_STREET`, `LANE_FREEWAY`, `LANE_SURFACE_UNSTRUCTURE`, `LANE_UNKNOWN` (`VEHICLE_LANE_TYPES`).
   `LANE_BIKE_LANE` is not a vehicle lane and is left out (counted). Road lines (`ROAD_LINE_*`), road edges
-  (`ROAD_EDGE_*`), crosswalks, speed bumps, driveways and stop signs are counted by kind
+  (`ROAD_EDGE_*`), crosswalks, speed bumps and stop signs are counted by kind
   (`map_<kind>` statistics) but not used; traffic-light states (`dynamic_map_states`) are not used.
+* **Drivable area** (`RawLog.areas`): each vehicle lane's `polygon` where it encloses an area (nuPlan and
+  nuScenes conversions), else its centreline buffered by its `width` ((P, 2): distances to the left and right
+  boundaries; (P,) or a scalar: the full width), else by `DEFAULT_LANE_WIDTH` (counted:
+  `lane_width_defaulted`); `DRIVEWAY` polygons as "other" drivable area. The road edges of a sample are the
+  boundary of that union (`gpd_jax.data.roadgeom`); the `ROAD_EDGE_*` lines are not used (they bound the road
+  including shoulders and kerbs the lanes do not cover, and are not closed). ScenarioNet has no junction
+  feature: junction areas are what the lanes crossing them cover (kind "lane").
 * **Location** (`scenario_location`, the key splits are made by): the first of `metadata["map"]`,
   `["location"]`, `["city"]`, `["map_name"]` that is set (for nuScenes and nuPlan the map name, so the same road
   network gets the same key as from the nuPlan source). Waymo scenarios name no map: each is its own location
@@ -75,6 +82,8 @@ import numpy as np
 from gpd_jax.data import safe_pickle
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.raw import RawLog
+from gpd_jax.data.roadgeom import Area, lane_area
+from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import TYPE_ID
 
 SUMMARY_FILE = "dataset_summary.pkl"
@@ -85,6 +94,7 @@ PERIOD_TOLERANCE = 0.2  # relative: a step may differ from the median by 20 %, t
 RATE_TOLERANCE = 0.02
 
 VEHICLE_TYPE = "VEHICLE"
+DEFAULT_LANE_WIDTH = 3.5  # metres, for a lane with neither a polygon nor a width
 VEHICLE_LANE_TYPES = ("LANE_SURFACE_STREET", "LANE_FREEWAY", "LANE_SURFACE_UNSTRUCTURE", "LANE_UNKNOWN")
 LOCATION_KEYS = ("map", "location", "city", "map_name")
 DEFAULT_SIZE = (4.6, 1.85)  # metres, a mid-size car, for tracks without length / width
@@ -349,15 +359,19 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
     size_arr[bad] = DEFAULT_SIZE
     stats["agent_size_defaulted"] += int(bad.sum())
     size_arr = size_arr.astype(np.float32)
-    lanes = []
+    lanes, areas = [], []
     for fid in sorted(map_features, key=_track_order):
         feat = map_features[fid]
         ftype = str(_need(feat, "type", f"scenario['map_features'][{str(fid)!r}]", path)).upper()
         kind = _map_kind(ftype)
         stats[f"map_{kind}"] += 1
+        fw = f"scenario['map_features'][{str(fid)!r}]"
+        if kind == "driveway":
+            ring = _polygon_of(feat, fw, path)
+            if ring is not None:
+                areas.append(Area(AREA_KIND_ID["other"], ring))
         if kind != "lane":
             continue
-        fw = f"scenario['map_features'][{str(fid)!r}]"
         if "polygon" in feat:
             stats["map_lane_with_polygon"] += 1
         if "width" in feat:
@@ -374,6 +388,9 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
             stats["lane_polylines_too_short"] += 1
             continue
         lanes.append(pl)
+        area = _lane_area(feat, pl, fw, path, stats)
+        if area is not None:
+            areas.append(area)
     from gpd_jax.data.nuplan import vehicle_type
 
     atype = vehicle_type(size_arr[:, 0]).astype(np.int32)
@@ -382,7 +399,51 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
     tk = ts[keep]
     return RawLog(name=file_stem(path), location=location or scenario_location(md, file_stem(path)),
                   timestamps=tk - tk[0], agent_ids=tuple(names), agent_xy=xy, agent_heading=heading,
-                  agent_valid=valid, agent_size=size_arr, agent_type=atype, lanes=tuple(lanes), ego_index=0)
+                  agent_valid=valid, agent_size=size_arr, agent_type=atype, lanes=tuple(lanes), ego_index=0,
+                  areas=tuple(areas))
+
+
+def _polygon_of(feat: dict, fw: str, path: str) -> np.ndarray | None:
+    """The feature's `polygon` as f64[Q, 2] if it encloses an area (>= 3 finite points, area > 0.5 m^2)."""
+    if "polygon" not in feat or feat["polygon"] is None:
+        return None
+    try:
+        pg = np.asarray(feat["polygon"], np.float64)
+    except (TypeError, ValueError) as e:
+        raise DataError(path, f"{fw}['polygon'] is not numeric: {e}") from None
+    if pg.ndim != 2 or pg.shape[1] not in (2, 3):
+        raise DataError(path, f"{fw}['polygon'] has shape {pg.shape}, expected (Q, 2) or (Q, 3)")
+    pg = pg[:, :2]
+    pg = pg[np.isfinite(pg).all(-1)]
+    if len(pg) < 3:
+        return None
+    x, y = pg[:, 0], pg[:, 1]
+    area = 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+    return pg if area > 0.5 else None
+
+
+def _lane_area(feat: dict, pl: np.ndarray, fw: str, path: str, stats: Counter) -> Area | None:
+    """A vehicle lane's drivable area: its `polygon` where it encloses an area, else its centreline `pl` buffered
+    by `width` (per point: (P, 2) = distances to the left and right boundary, (P,) or (P, 1) or a scalar = the
+    full width), else by `DEFAULT_LANE_WIDTH` (counted: `lane_width_defaulted`)."""
+    ring = _polygon_of(feat, fw, path)
+    if ring is not None:
+        stats["lane_area_from_polygon"] += 1
+        return Area(AREA_KIND_ID["lane"], ring)
+    w = feat.get("width")
+    if w is not None:
+        try:
+            w = np.asarray(w, np.float64)
+        except (TypeError, ValueError):
+            w = None
+    if w is not None and w.ndim == 2 and w.shape == (len(pl), 2) and np.isfinite(w).all() and (w > 0).all():
+        stats["lane_area_from_width"] += 1
+        return lane_area(pl, w[:, 0] + w[:, 1], offset=(w[:, 0] - w[:, 1]) / 2)
+    if w is not None and w.size in (1, len(pl)) and np.isfinite(w).all() and (w > 0).all():
+        stats["lane_area_from_width"] += 1
+        return lane_area(pl, w.reshape(-1) if w.size > 1 else float(w.reshape(-1)[0]))
+    stats["lane_width_defaulted"] += 1
+    return lane_area(pl, DEFAULT_LANE_WIDTH)
 
 
 def _track_order(key) -> tuple:

@@ -29,8 +29,23 @@ Sample keys (paper configuration T=101, A=33, L=96, P=128; see `gpd_jax.data.pre
     polylines       f32[n, L, P, 2]   lane centrelines in the scene frame, 1 m spacing, clipped to what the
                                       ego's 64x64 m window sees over the sample
     polyline_valid  bool[n, L, P]     which polyline points exist (a prefix of each row)
+    road_polygons   f32[n, G, V, 2]   drivable-area rings in the scene frame (G=48 rings of V=32 vertices; a
+                                      prefix of each row valid, closed implicitly): per kind the rings of the
+                                      union of that kind's areas, clipped to the sample's region; even-odd
+                                      rule per kind (see `gpd_jax.geometry`, `gpd_jax.data.roadgeom`)
+    road_polygon_valid bool[n, G, V]  which ring vertices exist
+    road_polygon_kind  i8[n, G]       index into gpd_jax.geometry.AREA_KINDS (lane, junction, other)
+    road_edges      f32[n, E, Pe, 2]  road edges (boundary of the union of all areas) in the scene frame,
+                                      E=32 runs of Pe=48 points
+    road_edge_valid bool[n, E, Pe]    which edge points exist (a prefix of each row)
 
-About 145 kB per sample (98 kB of it lanes). Shards are written to a hidden temporary directory in the split directory and
+The loader makes `Scene.road` (`gpd_jax.geometry.RoadGeometry`) from the road keys with the polylines as its
+lane centrelines. Stores built before the road geometry existed lack the five road keys: they stay readable
+(`Shard.has_road` False, `Scene.road` None) and consumers that need the geometry refuse with
+`gpd_jax.geometry.ROAD_MISSING` ("rebuild with python -m gpd_jax.data build ..."). A source without map
+geometry writes all-invalid road arrays (counted as `samples_without_road_geometry` in the build statistics).
+
+About 175 kB per sample (98 kB of it lanes, 30 kB road geometry). Shards are written to a hidden temporary directory in the split directory and
 renamed into place when complete (`os.replace`), so a shard directory that exists is complete; leftover
 temporaries from a killed build are ignored and removed by the next build. Files are plain `.npy` so
 that readers memory-map them (memory stays flat whatever the dataset size).
@@ -48,6 +63,7 @@ import numpy as np
 
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.preprocess import SAMPLE_SPEC
+from gpd_jax.data.roadgeom import ROAD_KEYS
 from gpd_jax import fsutil
 from gpd_jax.fsutil import umask_mode
 
@@ -178,9 +194,17 @@ class Shard:
             raise DataError(mpath, f"bad num_samples {n!r}")
         self.num_samples = n
         self.arrays: dict[str, np.ndarray] = {}
+        present = meta.get("keys", {})
+        road_present = [k for k in ROAD_KEYS if k in present]
+        if road_present and len(road_present) != len(ROAD_KEYS):
+            raise DataError(mpath, f"road geometry keys incomplete: has {road_present}, needs all of {ROAD_KEYS}")
+        # stores built before the road geometry existed have none of its keys: readable, `has_road` False
+        self.has_road = bool(road_present)
         for k, (shape, dtype) in spec.items():
             f = os.path.join(path, f"{k}.npy")
             info = meta.get("keys", {}).get(k)
+            if info is None and k in ROAD_KEYS and not self.has_road:
+                continue
             if info is None:
                 raise DataError(mpath, f"key {k!r} missing from the shard's meta.json")
             if spec is SAMPLE_SPEC:  # sizes (T, A, L, P) come from the build's config; ranks must match
@@ -215,7 +239,8 @@ class Shard:
         """Sample i as a dict of arrays (copies). Raises DataError on non-finite agent or lane values."""
         keys = self.arrays.keys() if keys is None else keys
         out = {k: np.array(self.arrays[k][i]) for k in keys}
-        for k, vk in (("xy", "valid"), ("heading", "valid"), ("ego_pose", None), ("polylines", "polyline_valid")):
+        for k, vk in (("xy", "valid"), ("heading", "valid"), ("ego_pose", None), ("polylines", "polyline_valid"),
+                      ("road_polygons", "road_polygon_valid"), ("road_edges", "road_edge_valid")):
             if k in out:
                 a = out[k]
                 m = out.get(vk) if vk else None

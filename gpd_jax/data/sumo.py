@@ -41,6 +41,8 @@ import numpy as np
 
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.raw import RawLog
+from gpd_jax.data.roadgeom import Area, lane_area
+from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import TYPE_ID
 
 log = logging.getLogger(__name__)
@@ -261,6 +263,39 @@ def _parse_shape(s: str) -> np.ndarray:
     return np.asarray(pts, np.float64).reshape(-1, 2)
 
 
+DEFAULT_LANE_WIDTH = 3.2  # SUMO's default where a lane has no `width`
+
+
+def read_network_areas(net_path: str) -> tuple[Area, ...]:
+    """The drivable surface of a SUMO network as `Area`s in the network's frame: every normal lane open to
+    passenger cars as the polygon its `width` (default 3.2 m) covers around its `shape` (kind "lane"), and every
+    junction's `shape` polygon (kind "junction", which covers its internal lanes)."""
+    if not os.path.isfile(net_path):
+        raise DataError(net_path, "network file not found")
+    areas: list[Area] = []
+    try:
+        with _open_xml(net_path) as f:
+            for _, el in ET.iterparse(f, events=("end",)):
+                if el.tag == "edge":
+                    if el.get("function", "normal") == "normal":
+                        for ln in el.findall("lane"):
+                            if _passenger_allowed(ln.attrib) and ln.get("shape"):
+                                a = lane_area(_parse_shape(ln.get("shape")),
+                                              float(ln.get("width", DEFAULT_LANE_WIDTH)))
+                                if a is not None:
+                                    areas.append(a)
+                    el.clear()
+                elif el.tag == "junction":
+                    if el.get("type") != "internal" and el.get("shape"):
+                        shp = _parse_shape(el.get("shape"))
+                        if len(shp) >= 3:
+                            areas.append(Area(AREA_KIND_ID["junction"], shp))
+                    el.clear()
+    except (ET.ParseError, ValueError, OSError, EOFError) as e:
+        raise DataError(net_path, f"not a readable SUMO network: {e}") from e
+    return tuple(areas)
+
+
 def read_network_lanes(net_path: str, merge_chains: bool = True) -> tuple[np.ndarray, ...]:
     """Lane centrelines (normal and internal junction lanes open to passenger cars) of a SUMO network.
 
@@ -438,7 +473,8 @@ def _vtypes_xml() -> str:
 
 
 def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig = SimConfig(),
-             workdir: str | None = None, lanes: tuple[np.ndarray, ...] | None = None) -> RawLog:
+             workdir: str | None = None, lanes: tuple[np.ndarray, ...] | None = None,
+             areas: tuple[Area, ...] | None = None) -> RawLog:
     """Makes demand on `net_path`, runs SUMO and returns the recording as a `RawLog` (10 Hz, box centres).
 
     Raises `SumoRunRejected` for runs with teleports, gridlock or too little traffic.
@@ -497,7 +533,9 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
         raise SumoRunRejected(f"{name}: only {raw.num_agents} vehicles recorded")
     if lanes is None:
         lanes = read_network_lanes(net_path)
-    return dataclasses.replace(raw, lanes=lanes)
+    if areas is None:
+        areas = read_network_areas(net_path)
+    return dataclasses.replace(raw, lanes=lanes, areas=areas)
 
 
 def drop_discontinuous_tracks(raw: RawLog, max_speed: float = 70.0) -> RawLog:

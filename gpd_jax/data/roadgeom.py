@@ -1,0 +1,231 @@
+"""Drivable-area geometry of a sample, built from a log's world-frame areas (numpy + shapely, build time only).
+
+Every source turns its map into `Area`s in the world frame (`RawLog.areas`): SUMO lanes buffered by their
+width and junction shapes, nuPlan's lane / lane-group / intersection / generic-drivable / car-park polygons,
+ScenarioNet lane polygons (or centrelines buffered by their width). `RoadIndex` indexes them once per log;
+`clip_road` cuts one sample's geometry out of it, in the sample's scene frame, as the fixed-shape arrays of
+`gpd_jax.geometry.RoadGeometry` (stored under the `ROAD_KEYS`):
+
+* the union of each kind's areas (`gpd_jax.geometry.AREA_KINDS`), clipped to the sample's region (the box
+  around the ego's path that the lane clip uses: ego positions +- the window's half diagonal, grown to hold
+  every valid agent position +- 10 m), simplified
+  (`tolerance` metres), and written as rings: each polygon's exterior and holes; a polygon with more than V
+  vertices in a ring is split into quarters of its bounding box until every piece fits. If more than G rings
+  remain, whole polygons farthest from the ego's path are dropped (counted: `road_rings_dropped`);
+* road edges: the boundary of the union of every area (unclipped, so the region's box is never an edge),
+  cut to the region, simplified, split into runs of at most P points sharing end points, the E nearest to
+  the ego's path kept (`road_edges_dropped` counts the rest).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import Counter
+
+import numpy as np
+import shapely
+from shapely.geometry import MultiPolygon, Polygon, box
+
+from gpd_jax.geometry import AREA_KIND_ID, AREA_KINDS
+
+ROAD_KEYS = ("road_polygons", "road_polygon_valid", "road_polygon_kind", "road_edges", "road_edge_valid")
+
+
+@dataclasses.dataclass(frozen=True)
+class Area:
+    """One drivable area in the world frame: `kind` (index into `AREA_KINDS`), exterior f64[V, 2], holes."""
+
+    kind: int
+    exterior: np.ndarray
+    holes: tuple[np.ndarray, ...] = ()
+
+
+def lane_area(centreline: np.ndarray, width: float | np.ndarray, kind: int = AREA_KIND_ID["lane"],
+              offset: float | np.ndarray = 0.0) -> Area | None:
+    """The polygon a lane of `width` metres (scalar or per point) covers around its centreline f[P, 2], shifted
+    `offset` metres to the left (scalar or per point; for lanes whose centreline is off their middle)."""
+    pts = np.asarray(centreline, np.float64)
+    if len(pts) < 2:
+        return None
+    w = np.broadcast_to(np.asarray(width, np.float64), (len(pts),))
+    off = np.broadcast_to(np.asarray(offset, np.float64), (len(pts),))
+    d = np.gradient(pts, axis=0) if len(pts) > 2 else np.repeat(pts[1:] - pts[:1], 2, axis=0)
+    n = np.linalg.norm(d, axis=-1, keepdims=True)
+    keep = n[:, 0] > 1e-9
+    if keep.sum() < 2:
+        return None
+    pts, d, n, w, off = pts[keep], d[keep], n[keep], w[keep], off[keep]
+    left = np.stack([-d[:, 1], d[:, 0]], -1) / n
+    ring = np.concatenate([pts + left * (off + w / 2)[:, None], (pts + left * (off - w / 2)[:, None])[::-1]])
+    return Area(kind, ring)
+
+
+def _polygon(a: Area):
+    try:
+        p = Polygon(a.exterior, [h for h in a.holes if len(h) >= 3])
+    except (ValueError, TypeError):
+        return None
+    if not p.is_valid:
+        p = shapely.make_valid(p)
+        p = shapely.union_all([g for g in getattr(p, "geoms", [p]) if isinstance(g, (Polygon, MultiPolygon))]) \
+            if not isinstance(p, (Polygon, MultiPolygon)) else p
+    return None if p.is_empty or p.area <= 1e-6 else p
+
+
+class RoadIndex:
+    """A log's drivable areas, indexed for clipping (an STRtree per kind)."""
+
+    def __init__(self, areas):
+        self.geoms: list[list] = [[] for _ in AREA_KINDS]
+        for a in areas:
+            p = _polygon(a)
+            if p is not None:
+                self.geoms[int(a.kind)].append(p)
+        self.trees = [shapely.STRtree(g) if g else None for g in self.geoms]
+
+    @property
+    def empty(self) -> bool:
+        return not any(self.geoms)
+
+    def query(self, region) -> list[list]:
+        out = []
+        for g, t in zip(self.geoms, self.trees):
+            out.append([] if t is None else [g[i] for i in t.query(region)])
+        return out
+
+
+def _to_frame_fn(pose):
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+
+    def fn(xy):
+        dx, dy = xy[:, 0] - pose[0], xy[:, 1] - pose[1]
+        return np.stack([c * dx + s * dy, -s * dx + c * dy], -1)
+
+    return fn
+
+
+def _from_frame(xy, pose):
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return np.stack([pose[0] + c * xy[:, 0] - s * xy[:, 1], pose[1] + s * xy[:, 0] + c * xy[:, 1]], -1)
+
+
+def _polys(g) -> list:
+    if g.is_empty:
+        return []
+    if isinstance(g, Polygon):
+        return [g]
+    return [p for q in getattr(g, "geoms", []) for p in _polys(q)]
+
+
+def _lines(g) -> list[np.ndarray]:
+    if g.is_empty:
+        return []
+    if g.geom_type in ("LineString", "LinearRing"):
+        return [np.asarray(g.coords)]
+    return [c for q in getattr(g, "geoms", []) for c in _lines(q)]
+
+
+def _fit(poly: Polygon, V: int, depth: int = 0) -> list[Polygon]:
+    """Pieces of `poly` whose rings each have at most V vertices (quartering its bounding box)."""
+    n = max([len(poly.exterior.coords) - 1] + [len(r.coords) - 1 for r in poly.interiors])
+    if n <= V or depth >= 8:
+        return [poly]
+    x0, y0, x1, y1 = poly.bounds
+    xm, ym = (x0 + x1) / 2, (y0 + y1) / 2
+    out = []
+    for q in (box(x0, y0, xm, ym), box(xm, y0, x1, ym), box(x0, ym, xm, y1), box(xm, ym, x1, y1)):
+        for p in _polys(poly.intersection(q)):
+            if p.area > 1e-6:
+                out.extend(_fit(p, V, depth + 1))
+    return out
+
+
+def _ring(coords, V: int) -> np.ndarray:
+    c = np.asarray(coords)[:-1]  # shapely rings repeat the first point
+    if len(c) > V:  # only after depth-limited splitting; keep an even subsample
+        c = c[np.linspace(0, len(c) - 1, V).round().astype(int)]
+    return c
+
+
+def _path_distance(xy: np.ndarray, path: np.ndarray) -> float:
+    return float(np.min(np.linalg.norm(xy[:, None, :] - path[None], axis=-1)))
+
+
+def empty_road_arrays(G: int, V: int, E: int, P: int) -> dict[str, np.ndarray]:
+    return {"road_polygons": np.zeros((G, V, 2), np.float32), "road_polygon_valid": np.zeros((G, V), bool),
+            "road_polygon_kind": np.zeros((G,), np.int8), "road_edges": np.zeros((E, P, 2), np.float32),
+            "road_edge_valid": np.zeros((E, P), bool)}
+
+
+def clip_road(index: RoadIndex | None, scene_pose_world: np.ndarray, ego_pose: np.ndarray, *, reach: float,
+              G: int, V: int, E: int, P: int, tolerance: float = 0.1, stats: Counter | None = None,
+              agents_xy: np.ndarray | None = None, agent_margin: float = 10.0) -> dict[str, np.ndarray]:
+    """One sample's geometry arrays (`ROAD_KEYS`) in the scene frame.
+
+    Args:
+      index: the log's areas (None or empty: an all-invalid geometry).
+      scene_pose_world: f[3] the scene frame's pose in the world.
+      ego_pose: f[T, 3] the ego's pose per frame in the scene frame.
+      reach: metres around the ego's positions that the region covers.
+      G, V, E, P: ring count, vertices per ring, edge count, points per edge.
+      agents_xy: optional f[K, 2] valid agent positions in the scene frame; the region grows to hold them
+        with `agent_margin` metres around (so that every recorded agent can be asked whether it is on the road).
+    """
+    out = empty_road_arrays(G, V, E, P)
+    if index is None or index.empty:
+        return out
+    stats = Counter() if stats is None else stats
+    lo, hi = ego_pose[:, :2].min(0) - reach, ego_pose[:, :2].max(0) + reach
+    if agents_xy is not None and len(agents_xy):
+        lo = np.minimum(lo, agents_xy.min(0) - agent_margin)
+        hi = np.maximum(hi, agents_xy.max(0) + agent_margin)
+    region_scene = box(lo[0], lo[1], hi[0], hi[1])
+    corners = _from_frame(np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]),
+                          scene_pose_world)
+    region_world = Polygon(corners)
+    hits = index.query(region_world)
+    to_scene = _to_frame_fn(scene_pose_world)
+    path = ego_pose[::5, :2]
+    # rings of each kind's union, clipped and simplified, in the scene frame
+    pieces: list[tuple[float, int, list[np.ndarray]]] = []
+    for kind, geoms in enumerate(hits):
+        if not geoms:
+            continue
+        u = shapely.transform(shapely.union_all(geoms), to_scene)
+        u = shapely.intersection(u, region_scene).simplify(tolerance, preserve_topology=True)
+        for p in _polys(u):
+            for q in _fit(p, V):
+                rings = [_ring(q.exterior.coords, V)] + [_ring(r.coords, V) for r in q.interiors]
+                rings = [r for r in rings if len(r) >= 3]
+                if rings:
+                    pieces.append((_path_distance(rings[0], path), kind, rings))
+    pieces.sort(key=lambda x: x[0])
+    g = 0
+    for _, kind, rings in pieces:
+        if g + len(rings) > G:
+            stats["road_rings_dropped"] += len(rings)
+            continue
+        for r in rings:
+            out["road_polygons"][g, :len(r)] = r
+            out["road_polygon_valid"][g, :len(r)] = True
+            out["road_polygon_kind"][g] = kind
+            g += 1
+    # road edges: boundary of the union of everything (unclipped), cut to the region
+    allg = [p for geoms in hits for p in geoms]
+    boundary = shapely.transform(shapely.union_all(allg).boundary, to_scene)
+    lines = _lines(shapely.intersection(boundary, region_scene).simplify(tolerance))
+    runs = []
+    for ln in lines:
+        if len(ln) < 2:
+            continue
+        for a in range(0, len(ln) - 1, P - 1):
+            c = ln[a:a + P]
+            if len(c) >= 2:
+                runs.append(c)
+    if len(runs) > E:
+        stats["road_edges_dropped"] += len(runs) - E
+        runs = [runs[i] for i in np.argsort([_path_distance(r, path) for r in runs], kind="stable")[:E]]
+    for i, r in enumerate(runs):
+        out["road_edges"][i, :len(r)] = r
+        out["road_edge_valid"][i, :len(r)] = True
+    return out
