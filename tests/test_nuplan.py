@@ -402,3 +402,55 @@ def test_iter_logs_reads_each_map_once(tmp_path, maps_root, monkeypatch):
     raws = list(nuplan.iter_logs(logs, maps_root))
     assert len(raws) == 2 and len(calls) == 1
     assert all(len(r.lanes) == 2 for r in raws)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Drivable area (map polygons -> sample geometry)
+# ---------------------------------------------------------------------------------------------------------
+
+
+def test_map_areas_read_by_layer(raw, maps_root):
+    from gpd_jax.geometry import AREA_KIND_ID
+
+    kinds = sorted(a.kind for a in raw.areas)
+    # lanes_polygons lane0, lane1, lane2 (the far lane is cropped away), the intersection, the lay-by
+    assert kinds == sorted([AREA_KIND_ID["lane"]] * 3 + [AREA_KIND_ID["junction"], AREA_KIND_ID["other"]])
+    jn = [a for a in raw.areas if a.kind == AREA_KIND_ID["junction"]][0]
+    np.testing.assert_allclose(jn.exterior, fx.intersection_ring_utm(), atol=1e-6)
+
+
+def test_sample_geometry_from_the_map(raw):
+    """Scene frame: the ego centre at the current frame sits on lane 0, x along the road, y lateral (left)."""
+    import jax
+    import jax.numpy as jnp
+
+    from gpd_jax import geometry as geo
+    from gpd_jax.data import preprocess
+
+    cfg = preprocess.SampleConfig(num_history=5, num_future=10, view_half=150.0)
+    s = preprocess.make_sample(raw, 0, 0, cfg)
+    origin = np.array([*raw.agent_xy[cfg.current, 0], raw.agent_heading[cfg.current, 0]])
+    road = geo.road_from_arrays(s, s["polylines"], s["polyline_valid"]).validate()
+
+    def scene(along, lat):
+        return preprocess.to_frame(fx.road_point(along, lat), origin)
+
+    pts = {  # name: (road coordinates, on road, kinds, signed distance)
+        "on lane 0": ((30.0, 0.0), True, [True, False, False], 1.75),
+        "between the lanes": ((30.0, 1.75), True, [True, False, False], 3.5),
+        "in the intersection": ((205.0, 15.0), True, [False, True, False], None),
+        "in the lay-by": ((55.0, -6.0), True, [False, False, True], 2.0),
+        "off the road": ((30.0, -5.0), False, [False, False, False], -3.25),
+    }
+    xy = jnp.asarray(np.stack([scene(*p[0]) for p in pts.values()]), jnp.float32)
+    on = np.asarray(jax.jit(geo.on_road)(road, xy))
+    kinds = np.asarray(jax.jit(geo.area_kinds)(road, xy))
+    sd = np.asarray(jax.jit(geo.signed_distance_to_edge)(road, xy))
+    for i, (name, (_, want_on, want_kinds, want_sd)) in enumerate(pts.items()):
+        assert on[i] == want_on and kinds[i].tolist() == want_kinds, name
+        if want_sd is not None:
+            assert sd[i] == pytest.approx(want_sd, abs=0.02), (name, sd[i])
+    heading, dist = jax.jit(geo.lane_direction)(road, xy[:1])
+    assert float(dist[0]) == pytest.approx(0.0, abs=1e-3) and float(heading[0]) == pytest.approx(0.0, abs=1e-4)
+    # the ego and the vehicles on the road are on it
+    assert np.asarray(jax.jit(geo.on_road)(road, jnp.asarray(s["xy"][:, 0]))).all()

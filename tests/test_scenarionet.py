@@ -470,3 +470,38 @@ def test_rollout_cli_on_a_scenarionet_store(tmp_path):
     per = m["tasks"]["traffic_simulation"]["3s"]
     assert np.isfinite(per["ego_ade"]) and np.isfinite(per["agent_ade"])
     assert m["baselines"]["log_replay"]["3s"]["agent_ade"] == 0.0
+
+
+# -------------------------------------------------------------------------------------- drivable area
+def test_sample_geometry_from_lane_widths_polygons_and_driveways():
+    """Scene frame of the first window: x = road along - 20 m (the ego's position at the current frame), y =
+    lateral. Lanes at y = -3.5 and 0 from `width`, the left lane from its `polygon`, a driveway at x 60 .. 70,
+    y 5.25 .. 15."""
+    import jax
+    import jax.numpy as jnp
+
+    from gpd_jax import geometry as geo
+
+    stats = Counter()
+    raw = _raw(fx.make_scenario(), stats)
+    assert stats["lane_area_from_width"] == 2 and stats["lane_area_from_polygon"] == 1
+    (_, s), *_ = list(preprocess.iter_samples(raw, preprocess.SampleConfig()))
+    road = geo.road_from_arrays(s, s["polylines"], s["polyline_valid"]).validate()
+    pts = {  # name: (xy, on road, kinds, signed distance)
+        "on the ego's lane": ((10.0, 0.0), True, [True, False, False], 5.25),
+        "between two lanes": ((10.0, 1.75), True, [True, False, False], 3.5),
+        "on the polygon lane": ((10.0, 4.0), True, [True, False, False], 1.25),
+        "in the driveway": ((65.0, 10.0), True, [False, False, True], 5.0),
+        "off the road": ((10.0, 8.0), False, [False, False, False], -2.75),
+    }
+    xy = jnp.asarray([p[0] for p in pts.values()], jnp.float32)
+    on = np.asarray(jax.jit(geo.on_road)(road, xy))
+    kinds = np.asarray(jax.jit(geo.area_kinds)(road, xy))
+    sd = np.asarray(jax.jit(geo.signed_distance_to_edge)(road, xy))
+    for i, (name, (_, want_on, want_kinds, want_sd)) in enumerate(pts.items()):
+        assert on[i] == want_on and kinds[i].tolist() == want_kinds, name
+        assert sd[i] == pytest.approx(want_sd, abs=0.02), (name, sd[i])
+    heading, dist = jax.jit(geo.lane_direction)(road, xy[:2])
+    np.testing.assert_allclose(np.asarray(dist), [0.0, 1.75], atol=1e-3)
+    np.testing.assert_allclose(np.asarray(heading), 0.0, atol=1e-4)
+    assert np.asarray(jax.jit(geo.on_road)(road, jnp.asarray(s["xy"][s["valid"]]))).all()
