@@ -4,6 +4,7 @@
     python rollout.py --checkpoint DIR --data DIR [--split test] [--tasks all|a,b] --out DIR [--scenarios N]
                       [--batch B] [--render K] [--seed S] [--variant paper|corrected] [--horizons 3,5,8]
                       [--log-map tokens|lanes] [--config.rollout.temperature=0.5]
+    python rollout.py --data DIR --out DIR --prompt examples/prompt_inpaint.json[,more.json] [--render K]
 
 Runs every task (gpd_jax/tasks.py) on the first N scenarios of the split in one compiled rollout per batch, scores
 them at 3 / 5 / 8 s next to the constant-velocity, log-replay and map baselines, prints tables shaped like the
@@ -44,6 +45,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--log-map", default="tokens", choices=("tokens", "lanes"),
                    help="tasks that take the map from the log but generate the ego get the logged map tokens "
                         "(the paper's choice) or the log's lanes re-encoded around the generated ego every frame")
+    p.add_argument("--prompt", default=None, metavar="FILE[,FILE]",
+                   help="JSON prompt file(s) (examples/prompt_*.json): roll out every scenario under each prompt "
+                        "and score how the conditions are respected (OUT/conditions.json) instead of the tasks")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 

@@ -214,12 +214,50 @@ def _slot(slot, num_agents: int, where: str) -> int:
     return int(slot)
 
 
+def _braking_path(scene: Scene, num_history: int, j: int, frames: np.ndarray, decel, period: float | None,
+                  where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slot j's logged path from the current frame on, driven at a constant deceleration from its current speed:
+    (xy f32[F, 2], heading f32[F], valid bool[F]) at `frames` (future frames)."""
+    if period is None or period <= 0:
+        raise PromptError(f"{where}.decelerate: needs the model's frame period (frame_period_s)")
+    try:
+        a = float(decel)
+    except (TypeError, ValueError):
+        raise PromptError(f"{where}.decelerate: expected a deceleration in m/s^2, got {decel!r}") from None
+    if not a > 0 or not math.isfinite(a):
+        raise PromptError(f"{where}.decelerate: expected a positive deceleration in m/s^2, got {decel!r}")
+    if (frames < num_history).any():
+        raise PromptError(f"{where}.frames: a braking path is given over future frames (>= {num_history})")
+    lxy, lhd, lv = (np.asarray(scene.xy)[:, j].astype(np.float64), np.asarray(scene.heading)[:, j],
+                    np.asarray(scene.valid)[:, j])
+    c = num_history - 1
+    if c < 1 or not (lv[c] and lv[c - 1]):
+        return lxy[frames].astype(np.float32), lhd[frames], lv[frames]
+    v0 = float(np.linalg.norm(lxy[c] - lxy[c - 1])) / period
+    # the path: logged points from the current frame while valid, then straight on along the last heading
+    run = [c]
+    while run[-1] + 1 < len(lv) and lv[run[-1] + 1]:
+        run.append(run[-1] + 1)
+    pts = lxy[run]
+    last_dir = np.array([math.cos(lhd[run[-1]]), math.sin(lhd[run[-1]])])
+    pts = np.concatenate([pts, pts[-1:] + 1000.0 * last_dir[None]], 0)
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=-1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    tau = (frames - c) * period
+    s_stop = v0 * v0 / (2 * a)
+    s = np.where(tau < v0 / a, v0 * tau - 0.5 * a * tau ** 2, s_stop)
+    out = np.stack([np.interp(s, cum, pts[:, 0]), np.interp(s, cum, pts[:, 1])], -1)
+    i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    d = pts[i + 1] - pts[i]
+    return out.astype(np.float32), np.arctan2(d[:, 1], d[:, 0]).astype(np.float32), np.ones(len(frames), bool)
+
+
 def make_prompt(scene: Scene, num_history: int, *, base: str = "traffic_simulation",
                 paths: Mapping[int, Mapping[str, Any]] | None = None, log_until: int | None = None,
                 initial_slots: Sequence[int] | None = None, max_agents: int | None = None,
                 hidden: Sequence[int] = (), lanes: Sequence[Any] | None = None,
                 lanes_pose: Sequence[float] | None = None, map_tokens: Any | None = None,
-                map_frames: Sequence[int] | None = None) -> Prompt:
+                map_frames: Sequence[int] | None = None, frame_period_s: float | None = None) -> Prompt:
     """A prompt for one scene in the model's view (`gpd_jax.prepare`: T frames, A slots, M map tokens).
 
     Args:
@@ -228,7 +266,10 @@ def make_prompt(scene: Scene, num_history: int, *, base: str = "traffic_simulati
       base: a task name: which slots come from the log at future frames before the choices below.
       paths: {slot: {"frames": [t, ...], "xy": [[x, y], ...], "heading": [...] (optional: along the path),
         "valid": [...] (optional, default all True)}} given agent states (in-painting; frames < H replace the
-        history). {"frames": [...], "from": "log"} takes the log's states at those frames instead.
+        history). {"frames": [...], "from": "log"} takes the log's states at those frames instead, and
+        {"frames": [future...], "from": "log", "decelerate": a} the logged path driven from the current speed
+        with a constant deceleration of a m/s^2 to a stop (needs `frame_period_s`; a slot not logged at the
+        last two history frames keeps its log).
       log_until: k: every agent slot (ego included) comes from the log at frames < k, generated after.
       initial_slots: given initial trajectories for a subset of slots: only these slots are present in the
         history (the others are absent there and generated afterwards, if the model brings them in).
@@ -281,6 +322,11 @@ def make_prompt(scene: Scene, num_history: int, *, base: str = "traffic_simulati
                               "{'frames': [...], 'from': 'log'}")
         fr = _frames(spec["frames"], t_total, f"{where}.frames")
         from_log[fr, m + j] = True
+        if spec.get("from") == "log" and "decelerate" in spec:
+            bxy, bhd, bv = _braking_path(scene, num_history, j, fr, spec["decelerate"], frame_period_s, where)
+            xy[fr, j], heading[fr, j], valid[fr, j] = bxy, bhd, bv
+            agent_given[fr, j] = True
+            continue
         if spec.get("from") == "log":
             continue
         if "from" in spec:
@@ -375,12 +421,12 @@ def stack_prompts(prompts: Sequence[Prompt], scene: Scene | None = None) -> Prom
 # ------------------------------------------------------------------------------------------------ JSON file
 
 _KEYS = {"base", "log_until", "initial_slots", "max_agents", "hidden", "agents", "lanes", "comment"}
-_AGENT_KEYS = {"slot", "frames", "xy", "heading", "valid", "from", "comment"}
+_AGENT_KEYS = {"slot", "frames", "xy", "heading", "valid", "from", "decelerate", "comment"}
 _LANE_KEYS = {"frame", "pose", "polylines", "comment"}
 
 
 def prompt_from_json(obj: Mapping[str, Any], scene: Scene, num_history: int, *, has_tokenizer: bool = True,
-                     where: str = "prompt") -> Prompt:
+                     where: str = "prompt", frame_period_s: float | None = None) -> Prompt:
     """The prompt of a JSON prompt file's content for one scene in the model's view (format: the docstring of
     examples/README.md; an example: examples/prompt_inpaint.json). Every problem raises `PromptError` naming
     the JSON path."""
@@ -449,6 +495,7 @@ def prompt_from_json(obj: Mapping[str, Any], scene: Scene, num_history: int, *, 
     try:
         return make_prompt(scene, num_history, base=base, paths=paths, log_until=obj.get("log_until"),
                            initial_slots=obj.get("initial_slots"), max_agents=obj.get("max_agents"),
-                           hidden=obj.get("hidden", []), lanes=lanes, lanes_pose=pose)
+                           hidden=obj.get("hidden", []), lanes=lanes, lanes_pose=pose,
+                           frame_period_s=frame_period_s)
     except PromptError as e:
         raise PromptError(f"{where}: {e}") from None

@@ -81,11 +81,83 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> tuple[a
     except (EvalError, KeyError, ValueError) as e:
         raise UsageError(str(e.args[0]) if e.args else str(e)) from None
     args.config = config
+    args.prompts = _read_prompts(getattr(args, "prompt", None), bool(args.tokenizer_path), config)
     return args, overrides
+
+
+def _read_prompts(spec: str | None, has_tokenizer: bool, config) -> dict:
+    """--prompt FILE[,FILE...]: {name: JSON content}, checked against the model's shapes (slots, frames, lanes)
+    on an empty scene before the model loads (what depends on a scene's log is checked before the rollout)."""
+    import json
+
+    import jax
+    import numpy as np
+
+    from gpd_jax.prompts import PromptError, prompt_from_json
+    from gpd_jax.scene import empty_scene
+    from gpd_jax.spec import spec_from_config
+
+    if not spec:
+        return {}
+    out = {}
+    for path in [p for p in spec.split(",") if p]:
+        if not os.path.isfile(path):
+            raise UsageError(f"--prompt {path}: file not found")
+        try:
+            with open(path) as f:
+                obj = json.load(f)
+        except json.JSONDecodeError as e:
+            raise UsageError(f"--prompt {path}: not valid JSON ({e})") from None
+        if not isinstance(obj, dict):
+            raise UsageError(f"--prompt {path}: expected a JSON object at the top level")
+        if "lanes" in obj and not has_tokenizer:
+            raise UsageError(f"--prompt {path}: a vector-map prompt (lanes) needs the model's map tokenizer, and "
+                             "the model has none (config.model.map_tokenizer is empty)")
+        mspec, _ = spec_from_config(config)
+        blank = jax.tree.map(np.asarray, empty_scene(mspec.num_frames, mspec.num_agents, mspec.num_map_tokens)).replace(
+            polylines=np.array([[[0.0, 0.0], [1.0, 0.0]]], np.float32), polyline_valid=np.ones((1, 2), bool))
+        try:
+            prompt_from_json(obj, blank, mspec.num_history, has_tokenizer=has_tokenizer, where=f"{path}: $",
+                             frame_period_s=mspec.frame_period_s)
+        except PromptError as e:
+            raise UsageError(f"--prompt {e}") from None
+        name = os.path.splitext(os.path.basename(path))[0]
+        if name in out:
+            raise UsageError(f"--prompt: two files named {name}")
+        out[name] = obj
+    return out
+
+
+def run_prompts(args: argparse.Namespace) -> int:
+    """`rollout.py --prompt FILE[,FILE...]`: every scenario under every prompt (and the unconditioned traffic
+    simulation), condition-respect scores to OUT/conditions.json, pictures with --render K."""
+    from gpd_jax.evaluation.conditions import evaluate_prompts
+    from gpd_jax.fsutil import atomic_write_json
+    from gpd_jax.prompts import PromptError
+
+    model = load_model(args.checkpoint).replace(config=args.config)
+    render_dir = os.path.join(args.out, "render") if args.render else None
+    try:
+        res = evaluate_prompts(model, args.data, args.split, args.prompts, num_scenarios=args.scenarios,
+                               batch_size=args.batch, seed=args.seed, render_count=args.render,
+                               render_dir=render_dir, size_px=args.render_size)
+    except (PromptError, EvalError) as e:
+        raise UsageError(str(e)) from None
+    os.makedirs(args.out, exist_ok=True)
+    atomic_write_json(os.path.join(args.out, "conditions.json"), res)
+    keys = ("given_max_xy_m", "cap_violations", "max_valid_slots", "offroad_share", "mean_lane_distance_m",
+            "map_f1")
+    print("prompt".ljust(30) + "".join(k.rjust(22) for k in keys))
+    for name, r in res["prompts"].items():
+        print(name.ljust(30) + "".join(f"{r.get(k, float('nan')):22.4g}" for k in keys))
+    print(f"wrote {os.path.join(args.out, 'conditions.json')}", flush=True)
+    return 0
 
 
 def run(args: argparse.Namespace, overrides: list[str]) -> int:
     """Loads the model, evaluates, prints the tables and writes the outputs (see `rollout.py`)."""
+    if getattr(args, "prompts", None):
+        return run_prompts(args)
     t0 = time.perf_counter()
     try:
         model = load_model(args.checkpoint)

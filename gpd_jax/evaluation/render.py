@@ -28,6 +28,7 @@ from gpd_jax.tasks import generated
 EGO, AGENT = "#d62728", "#1f77b4"
 EGO_GIVEN, AGENT_GIVEN = "#f0a8a8", "#a9c4de"
 LANE, LANE_LOG = "#555555", "#c8c8c8"
+GIVEN_LANE = "#2ca02c"  # a prompt's own lanes (drawn under everything, wide and pale green)
 
 
 def lanes_to_scene(points: np.ndarray, poses: np.ndarray) -> np.ndarray:
@@ -64,7 +65,7 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
                    num_history: int, frame_period_s: float, title: str = "",
                    generated: Sequence[str] = ("ego", "agent", "map"), lanes=None, lanes_valid=None,
                    lane_poses=None, log_lanes=None, log_lanes_valid=None, size_px: int = 320, panels: int = 4,
-                   view_m: float = 40.0) -> tuple[str, str]:
+                   view_m: float = 40.0, given=None, given_lanes=None, given_lanes_valid=None) -> tuple[str, str]:
     """Writes `stem.gif` (every frame) and `stem.png` (a strip of `panels` frames from the current one on).
 
     Args:
@@ -76,6 +77,9 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
         f32[T, 3] the pose of each frame's ego frame in the scene frame (default: the rolled-out ego).
       log_lanes, log_lanes_valid: optional faint reference lines (same layout, placed with the log's ego pose).
       size_px: side of one frame in pixels; view_m: half side of the view in metres.
+      given: optional bool[T, A] a prompt's per-frame given slots (drawn pale with a green edge, overriding
+        `generated` for agents); given_lanes, given_lanes_valid: optional f32[L, P, 2] / bool[L, P] a prompt's
+        own lanes in the scene frame (wide pale green underneath).
 
     Returns:
       (gif path, png path).
@@ -111,6 +115,11 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
     ax = fig.add_axes((0.0, 0.06, 1.0, 0.84) if legend else (0.0, 0.0, 1.0, 0.9))
     ax.set_aspect("equal")
     ax.set_axis_off()
+    if given_lanes is not None:
+        gl, gv = np.asarray(given_lanes, np.float64), np.asarray(given_lanes_valid, bool)
+        ax.add_collection(LineCollection([ln[ok] for ln, ok in zip(gl, gv) if ok.sum() >= 2], colors=GIVEN_LANE,
+                                         linewidths=6.0, alpha=0.25, zorder=0))
+    given_mask = None if given is None else np.asarray(given, bool)
     log_lane_lc = ax.add_collection(LineCollection([], colors=LANE_LOG, linewidths=0.8, zorder=1))
     lane_lc = ax.add_collection(LineCollection([], colors=LANE, linewidths=0.8, zorder=2))
     # static: logged paths
@@ -143,7 +152,13 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
         v = pv[t]
         boxes = box_polygons(pxy[t][v], phd[t][v], size[v])
         box_pc.set_verts(list(boxes))
-        box_pc.set_facecolor(list(slot_colors[v]))
+        colors = slot_colors
+        if given_mask is not None:
+            colors = np.where(given_mask[t], np.array([EGO_GIVEN] + [AGENT_GIVEN] * (a - 1), dtype=object),
+                              np.array([EGO] + [AGENT] * (a - 1), dtype=object))
+        box_pc.set_facecolor(list(colors[v]))
+        if given_mask is not None:
+            box_pc.set_edgecolor(list(np.where(given_mask[t][v], GIVEN_LANE, "black")))
         front = boxes[:, [0, 3]].mean(1)
         tick_lc.set_segments([np.stack([c, f]) for c, f in zip(pxy[t][v], front)])
         psegs, pcols = [], []
