@@ -42,13 +42,13 @@ def get_config():
     t.backbone_lr_scale = 0.1
     t.gpd_loss_weight = 0.0
     t.batch_size = 8
-    t.steps = 600
+    t.steps = 300
     t.learning_rate = 1e-3
     t.warmup_steps = 50
     t.min_learning_rate = 1e-5
     t.log_every = 25
-    t.eval_every = 200
-    t.eval_batches = 8
+    t.eval_every = 150
+    t.eval_batches = 4
     t.checkpoint_every = 100
     t.loader_threads = 2
     return c

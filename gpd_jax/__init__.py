@@ -6,6 +6,8 @@
     out = gpd_jax.rollout(model, scenes, ["traffic_simulation", "scene_generation"], jax.random.key(0))
     results = gpd_jax.evaluate(model, scenes, tasks="traffic_simulation")
     fn = gpd_jax.make_rollout_fn(model)                              # pure: fn(params, scenes, tasks, key)
+    head_model = gpd_jax.load_model("checkpoints/gpd_sumo_plan_head")  # GPD + the fine-tuned planning head
+    plan = gpd_jax.plan_trajectory(head_model.module, hidden)        # one frame's tokens -> ego's next 8 s
 
 The layers, bottom to top (nothing imports upward; `tests/test_layers.py` enforces it): `scene`, `tasks`,
 `spec`, `config`, `fsutil`, `parallel`, `data/`, `metrics/` | `model/`, `map_tokenizer/` | `checkpoint` |
@@ -17,6 +19,7 @@ from gpd_jax import metrics
 from gpd_jax.api import (Model, build_scenes, evaluate, load_model, load_scenes, make_prompt, make_rollout_fn,
                          make_tasks, prepare, render, rollout, stack_prompts, task_prompt)
 from gpd_jax.decoding import RolloutOutput
+from gpd_jax.model import PlanningHead, plan_trajectory
 from gpd_jax.geometry import RoadGeometry, lane_direction, on_road, signed_distance_to_edge
 from gpd_jax.prompts import Prompt, PromptError
 from gpd_jax.scene import AGENT_TYPES, TYPE_ID, Scene, empty_scene, wrap_angle
@@ -30,6 +33,7 @@ __all__ = [
     "EvalError",
     "Model",
     "ModelSpec",
+    "PlanningHead",
     "Prompt",
     "PromptError",
     "RoadGeometry",
@@ -47,6 +51,7 @@ __all__ = [
     "make_tasks",
     "metrics",
     "on_road",
+    "plan_trajectory",
     "prepare",
     "render",
     "rollout",
