@@ -1,0 +1,185 @@
+"""IDM agents along their logged paths (nuPlan's reactive baseline), in JAX, at the stored rate.
+
+Each agent keeps to the path it drove in the log (its logged positions from the current frame on, as a polyline
+parametrised by arc length, extended 200 m straight on past its last logged point) and chooses only its speed,
+by the Intelligent Driver Model
+
+    a = a_max [1 - (v / v0)^delta - (s* / gap)^2],   s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b)))
+
+with nuPlan's IDM-agent constants (min gap s0 1 m, headway T 1.5 s, a_max 1 m/s^2, b 2 m/s^2, delta 4). nuPlan
+takes the target speed v0 from the lane's speed limit; the stores carry none, so v0 is the agent's highest logged
+speed (at least 0.5 m/s). The leader is the nearest box ahead on the path: another agent or the ego whose centre
+lies within half the two widths of the path, ahead in arc length (its speed taken along the path); the gap is the
+arc difference less half the two lengths. Because the stores carry no traffic lights, an agent also treats the
+place where its logged self was standing still (logged speed < 0.5 m/s) as a stopped leader while the log stands
+there, so it waits where the log waited (at lights and yields) and otherwise drives freely.
+
+An agent enters when it first appears in the log (at its logged place and speed) and leaves when it reaches the
+arc length at which the log lost it (never, when the log keeps it to the end of the window).
+"""
+
+from __future__ import annotations
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from gpd_jax.scene import wrap_angle
+
+EXTENSION_M = 200.0
+
+
+@flax.struct.dataclass(frozen=True)
+class IDMParams:
+    """nuPlan's IDM-agent constants (static)."""
+
+    min_gap: float = flax.struct.field(pytree_node=False, default=1.0)
+    headway: float = flax.struct.field(pytree_node=False, default=1.5)
+    accel_max: float = flax.struct.field(pytree_node=False, default=1.0)
+    decel_comfort: float = flax.struct.field(pytree_node=False, default=2.0)
+    decel_max: float = flax.struct.field(pytree_node=False, default=9.0)
+    exponent: float = flax.struct.field(pytree_node=False, default=4.0)
+    stop_speed: float = flax.struct.field(pytree_node=False, default=0.5)
+
+
+@flax.struct.dataclass
+class Paths:
+    """Every slot's logged path from the current stored frame on (slot 0: the logged ego's route).
+
+    xy: f32[A, P, 2] points (P = future stored frames + 2: the current frame, the future, one extension point);
+    heading: f32[A, P]; s: f32[A, P] arc length at each point (non-decreasing, 0 at the first);
+    log_s: f32[A, P-1] arc length of the logged agent at each stored frame; log_speed: f32[A, P-1];
+    spawn: i32[A] first stored frame (relative to the current one) where the log has the agent (P-1 if never);
+    end_s: f32[A] arc length where the log lost it (+inf when it is kept to the end); v0: f32[A] target speed.
+    """
+
+    xy: jax.Array
+    heading: jax.Array
+    s: jax.Array
+    log_s: jax.Array
+    log_speed: jax.Array
+    spawn: jax.Array
+    end_s: jax.Array
+    v0: jax.Array
+
+
+@flax.struct.dataclass
+class IDMState:
+    """s f32[A] arc position, v f32[A] speed, active bool[A] entered (and not yet left the log's path)."""
+
+    s: jax.Array
+    v: jax.Array
+    active: jax.Array
+
+
+def make_paths(xy: jax.Array, heading: jax.Array, valid: jax.Array, speed: jax.Array) -> Paths:
+    """Paths of the log from the current frame on: xy f32[F, A, 2], heading f32[F, A], valid bool[F, A], speed
+    f32[F, A] (F stored frames, the current one first; unbatched)."""
+    f = xy.shape[0]
+    idx = jnp.arange(f)[:, None]
+    last = jax.lax.cummax(jnp.where(valid, idx, -1), axis=0)                     # last valid frame <= k
+    first = jnp.min(jnp.where(valid, idx, f), axis=0)                            # [A]
+    src = jnp.where(last >= 0, last, jnp.minimum(first, f - 1)[None])            # forward, then backward fill
+    take = lambda a: jnp.take_along_axis(a, src.reshape(src.shape + (1,) * (a.ndim - 2)), axis=0)
+    pxy, ph = take(xy), take(heading)                                             # [F, A, 2], [F, A]
+    ext = pxy[-1] + EXTENSION_M * jnp.stack([jnp.cos(ph[-1]), jnp.sin(ph[-1])], -1)
+    pxy = jnp.concatenate([pxy, ext[None]], 0).transpose(1, 0, 2)                 # [A, P, 2]
+    ph = jnp.concatenate([ph, ph[-1:]], 0).T                                      # [A, P]
+    seg = jnp.linalg.norm(pxy[:, 1:] - pxy[:, :-1], axis=-1)
+    s = jnp.concatenate([jnp.zeros_like(seg[:, :1]), jnp.cumsum(seg, axis=1)], 1)
+    last_valid = jnp.max(jnp.where(valid, idx, -1), axis=0)                       # [A]
+    end_s = jnp.where(last_valid >= f - 1, jnp.inf, jnp.take_along_axis(s, jnp.maximum(last_valid, 0)[:, None], 1)[:, 0])
+    spd = jnp.where(valid, speed, 0.0)
+    v0 = jnp.maximum(jnp.max(spd, axis=0), 0.5)
+    return Paths(xy=pxy, heading=ph, s=s, log_s=s[:, :-1], log_speed=spd.T, spawn=first.astype(jnp.int32),
+                 end_s=end_s, v0=v0)
+
+
+def project(path_xy: jax.Array, path_s: jax.Array, q: jax.Array):
+    """Projects points q f32[Q, 2] on one path (xy f32[P, 2], s f32[P]): (arc f32[Q], lateral distance f32[Q],
+    unit tangent f32[Q, 2])."""
+    a, b = path_xy[:-1], path_xy[1:]
+    ab = b - a
+    len2 = jnp.sum(ab * ab, -1)
+    t = jnp.clip(jnp.sum((q[:, None] - a[None]) * ab[None], -1) / jnp.maximum(len2, 1e-9)[None], 0.0, 1.0)
+    foot = a[None] + t[..., None] * ab[None]
+    d = jnp.linalg.norm(q[:, None] - foot, axis=-1)                              # [Q, P-1]
+    d = jnp.where(len2[None] > 1e-9, d, jnp.inf)
+    d = jnp.where(jnp.isfinite(jnp.min(d, -1, keepdims=True)), d, jnp.linalg.norm(q[:, None] - a[None], axis=-1))
+    i = jnp.argmin(d, axis=-1)
+    seg_len = jnp.sqrt(len2)
+    arc = path_s[i] + jnp.take_along_axis(t, i[:, None], 1)[:, 0] * seg_len[i]
+    tangent = ab[i] / jnp.maximum(seg_len[i], 1e-6)[:, None]
+    return arc, jnp.take_along_axis(d, i[:, None], 1)[:, 0], tangent
+
+
+def pose_at(path_xy: jax.Array, path_heading: jax.Array, path_s: jax.Array, s: jax.Array):
+    """Pose on one path at arc s f32[]: (xy f32[2], heading f32[]); the heading interpolates the logged ones."""
+    p = path_s.shape[0]
+    i = jnp.clip(jnp.searchsorted(path_s, s, side="right") - 1, 0, p - 2)
+    seg = path_s[i + 1] - path_s[i]
+    frac = jnp.where(seg > 1e-6, jnp.clip((s - path_s[i]) / jnp.maximum(seg, 1e-6), 0.0, 1.0), 0.0)
+    xy = path_xy[i] + frac * (path_xy[i + 1] - path_xy[i])
+    h = wrap_angle(path_heading[i] + frac * wrap_angle(path_heading[i + 1] - path_heading[i]))
+    return xy, h
+
+
+def idm_accel(v, v0, gap, dv, p: IDMParams):
+    """The IDM acceleration (clipped to [-decel_max, accel_max]); gap = +inf for a free road."""
+    s_star = p.min_gap + jnp.maximum(0.0, v * p.headway + v * dv / (2 * jnp.sqrt(p.accel_max * p.decel_comfort)))
+    inter = jnp.where(jnp.isfinite(gap), (s_star / jnp.maximum(gap, 0.1)) ** 2, 0.0)
+    a = p.accel_max * (1 - (v / jnp.maximum(v0, 0.1)) ** p.exponent - inter)
+    return jnp.clip(a, -p.decel_max, p.accel_max)
+
+
+def lead_gaps(paths: Paths, state_s: jax.Array, size: jax.Array, others_xy: jax.Array, others_vel: jax.Array,
+              others_valid: jax.Array, self_mask: jax.Array):
+    """Gap (m) and closing speed to each slot's leader among `others` (slot j is never its own leader).
+
+    paths for A slots, state_s f32[A], size f32[A, 2]; others_xy f32[B, 2], others_vel f32[B, 2], others_valid
+    bool[B] (B = A: the same slots), self_mask bool[A, B] pairs to skip. -> (gap f32[A], lead speed f32[A]).
+    """
+    arc, lat, tan = jax.vmap(lambda pxy, ps: project(pxy, ps, others_xy))(paths.xy, paths.s)   # [A, B]
+    width = 0.5 * (size[:, None, 1] + size[None, :, 1])
+    ahead = arc > state_s[:, None]
+    cand = others_valid[None] & ~self_mask & (lat < width) & ahead
+    gap = arc - state_s[:, None] - 0.5 * (size[:, None, 0] + size[None, :, 0])
+    gap = jnp.where(cand, gap, jnp.inf)
+    j = jnp.argmin(gap, axis=1)
+    g = jnp.take_along_axis(gap, j[:, None], 1)[:, 0]
+    along = jnp.sum(others_vel[None] * tan, -1)                                                # [A, B]
+    return g, jnp.take_along_axis(along, j[:, None], 1)[:, 0]
+
+
+def idm_substep(paths: Paths, st: IDMState, k, size: jax.Array, others_xy, others_vel, others_valid, dt: float,
+                p: IDMParams, slots: jax.Array) -> IDMState:
+    """One stored-rate step to relative stored frame k (1-based from the current frame) of the slots `slots`
+    bool[A] (the others are left as they are). Leaders are `others` at the previous stored frame."""
+    a_n = paths.s.shape[0]
+    spawn_now = slots & ~st.active & (paths.spawn == k)
+    kk = jnp.clip(k, 0, paths.log_s.shape[1] - 1)
+    s = jnp.where(spawn_now, paths.log_s[:, kk], st.s)
+    v = jnp.where(spawn_now, paths.log_speed[:, kk], st.v)
+    self_mask = jnp.eye(a_n, dtype=bool)
+    gap, lead_v = lead_gaps(paths, st.s, size, others_xy, others_vel, others_valid, self_mask)
+    # the log's own stops as stopped leaders (see the module docstring)
+    km = jnp.clip(k - 1, 0, paths.log_s.shape[1] - 1)
+    ghost = (paths.log_speed[:, km] < p.stop_speed) & (paths.log_s[:, km] >= st.s - 0.5)
+    ghost_gap = jnp.where(ghost, paths.log_s[:, km] - st.s + p.min_gap, jnp.inf)
+    use_ghost = ghost_gap < gap
+    gap = jnp.where(use_ghost, ghost_gap, gap)
+    lead_v = jnp.where(use_ghost, 0.0, lead_v)
+    acc = idm_accel(st.v, paths.v0, gap, st.v - lead_v, p)
+    v_new = jnp.maximum(st.v + acc * dt, 0.0)
+    s_new = st.s + v_new * dt
+    move = slots & st.active
+    s = jnp.where(move, s_new, s)
+    v = jnp.where(move, v_new, v)
+    active = (st.active | spawn_now) & slots
+    return IDMState(s=s, v=v, active=jnp.where(slots, active, st.active))
+
+
+def idm_poses(paths: Paths, st: IDMState):
+    """Poses of every slot at its arc: (xy f32[A, 2], heading f32[A], valid bool[A])."""
+    xy, h = jax.vmap(pose_at)(paths.xy, paths.heading, paths.s, st.s)
+    return xy, h, st.active & (st.s <= paths.end_s)

@@ -1,0 +1,170 @@
+"""The policies shipped with the simulator (each a `Policy` of pure functions, built once per model so a batch
+shape compiles once):
+
+* ``log``: the expert: the logged ego at the stored rate (its open-loop plan is the logged future);
+* ``cv``: constant velocity and heading from the ego's current velocity;
+* ``idm``: IDM lane following along the logged ego's route (the route has no timing: nuPlan gives its planners
+  the route, not the expert's speeds), target speed `target_speed` (the stores carry no speed limits; 13.89 m/s
+  is SUMO's default lane speed), leaders = the agents of the current frame projected on the route and moved at
+  constant velocity through the step;
+* ``gpd``: the GPD zero-shot: the model's own prediction of the ego's next frame (pose and velocity), as in the
+  motion-planning task (no open-loop plan of its own: its open-loop score reads the run with GPD agents, the
+  model's imagined future);
+* ``gpd_head``: the paper's fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the
+  current frame, run by its own backbone (a KV cache in the policy state): its first planned pose (velocity from
+  the plan's central difference); its open-loop plan is the head's 8 s trajectory at the current frame.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from gpd_jax.checkpoint import Model
+from gpd_jax.decoding import Frame, advance, prefill
+from gpd_jax.sim.agents import IDMParams, idm_accel, pose_at, project
+from gpd_jax.sim.core import Observation, Policy, SimError
+from gpd_jax.spec import ModelSpec
+
+PLANNERS = ("log", "cv", "idm", "gpd", "gpd_head")
+
+
+def _slice_fine(obs: Observation, spec: ModelSpec, start, count: int):
+    return jax.lax.dynamic_slice_in_dim(obs.log_ego, start, count, axis=0)
+
+
+def expert_policy(spec: ModelSpec) -> Policy:
+    s, h = spec.frame_stride, spec.num_history
+
+    def select(params, obs, state, key):
+        return _slice_fine(obs, spec, s * obs.t + 1, s), state
+
+    def plan(params, obs, key):
+        return obs.log_ego[s * h:: s][: spec.num_future]
+
+    return Policy(name="log", select=select, plan=plan)
+
+
+def constant_velocity_policy(spec: ModelSpec) -> Policy:
+    period = spec.frame_period_s
+
+    def select(params, obs, state, key):
+        nxt = obs.ego_pose[:2] + obs.ego_velocity * period
+        return jnp.concatenate([nxt, obs.ego_pose[2:], obs.ego_velocity]), state
+
+    def plan(params, obs, key):
+        k = jnp.arange(1, spec.num_future + 1, dtype=jnp.float32)[:, None]
+        xy = obs.ego_pose[:2] + k * period * obs.ego_velocity
+        return jnp.concatenate([xy, jnp.broadcast_to(obs.ego_pose[2], (spec.num_future, 1))], -1)
+
+    return Policy(name="cv", select=select, plan=plan)
+
+
+def _idm_route(obs: Observation, num_steps: int, dt: float, target_speed: float, p: IDMParams):
+    """IDM along the route for `num_steps` stored-rate steps with the current agents moved at constant velocity:
+    f32[num_steps, 3] poses."""
+    s0, _, _ = project(obs.route_xy, obs.route_s, obs.ego_pose[None, :2])
+    v = jnp.linalg.norm(obs.ego_velocity)
+    length, width = obs.size[0, 0], obs.size[0, 1]
+    others = obs.cur_valid.at[0].set(False)
+
+    def sub(carry, k):
+        s, v = carry
+        q = obs.cur_xy + obs.cur_velocity * (k * dt)
+        arc, lat, tan = project(obs.route_xy, obs.route_s, q)
+        cand = others & (lat < 0.5 * (width + obs.size[:, 1])) & (arc > s)
+        gap = jnp.where(cand, arc - s - 0.5 * (length + obs.size[:, 0]), jnp.inf)
+        j = jnp.argmin(gap)
+        lead_v = jnp.sum(obs.cur_velocity[j] * tan[j])
+        a = idm_accel(v, target_speed, gap[j], v - lead_v, p)
+        v = jnp.maximum(v + a * dt, 0.0)
+        s = s + v * dt
+        xy, h = pose_at(obs.route_xy, obs.route_heading, obs.route_s, s)
+        return (s, v), jnp.concatenate([xy, h[None]])
+
+    _, poses = jax.lax.scan(sub, (s0[0], v), jnp.arange(num_steps, dtype=jnp.float32))
+    return poses
+
+
+def idm_policy(spec: ModelSpec, target_speed: float = 13.89, params: IDMParams = IDMParams()) -> Policy:
+    s, dt = spec.frame_stride, spec.stored_period_s
+
+    def select(p, obs, state, key):
+        return _idm_route(obs, s, dt, target_speed, params), state
+
+    def plan(p, obs, key):
+        return _idm_route(obs, s * spec.num_future, dt, target_speed, params)[s - 1:: s]
+
+    return Policy(name="idm", select=select, plan=plan)
+
+
+def gpd_policy(spec: ModelSpec) -> Policy:
+    def select(params, obs, state, key):
+        return jnp.concatenate([obs.pred_pose, obs.pred_velocity]), state
+
+    return Policy(name="gpd", select=select, needs_model=True)
+
+
+def gpd_head_policy(head_model: Model) -> Policy:
+    """The fine-tuned planning head of `head_model` (a GPD whose config has a `plan_head` section) as a policy
+    that carries its own backbone's KV cache in its policy state: each frame it appends what the simulator
+    placed (ego, agents, the map encoded around the ego) to its cache, reads the ego token's output and plans. So
+    it runs beside any world model and agent model (its backbone may be fine-tuned away from the world model's)."""
+    from gpd_jax.model import plan_trajectory
+
+    if not head_model.config.get("plan_head"):
+        raise SimError(f"gpd_head needs a model with the fine-tuned planning head (a config with a plan_head "
+                       f"section); {head_model.path or 'the given model'} has none")
+    graphdef, rest, spec = head_model.graphdef, head_model.rest, head_model.spec
+    h, t_total, period = spec.num_history, spec.num_frames, spec.frame_period_s
+
+    def frames(module, obs):
+        vel = module.input_velocity(obs.velocity)
+        vel = jnp.zeros_like(obs.xy) if vel is None else vel
+        return Frame(xy=obs.xy, heading=obs.heading, valid=obs.valid,
+                     valid_logit=jnp.zeros(obs.valid.shape, jnp.float32), map_tokens=obs.map_tokens, velocity=vel)
+
+    def init(params, obs):
+        module = nnx.merge(graphdef, params, rest)
+        return prefill(module, frames(module, obs), h - 1, t_total)
+
+    def select(params, obs, state, key):
+        module = nnx.merge(graphdef, params, rest)
+        f = frames(module, obs)
+        cur = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, obs.t, 0, keepdims=False), f)
+        state = advance(module, state, cur, obs.t)
+        plan = plan_trajectory(module, state.hidden, obs.ego_pose)
+        nxt = plan[1, :2] if plan.shape[0] > 1 else 2 * plan[0, :2] - obs.ego_pose[:2]
+        vel = (nxt - obs.ego_pose[:2]) / (2 * period)
+        return jnp.concatenate([plan[0], vel]), state
+
+    def plan(params, obs, key):
+        module = nnx.merge(graphdef, params, rest)
+        st = prefill(module, frames(module, obs), h, t_total)
+        return plan_trajectory(module, st.hidden, obs.ego_pose)[: spec.num_future]
+
+    return Policy(name="gpd_head", select=select, init=init, plan=plan, needs_map=True, params=head_model.params)
+
+
+@functools.lru_cache(maxsize=32)
+def _cached(name: str, spec: ModelSpec) -> Policy:
+    return {"log": expert_policy, "cv": constant_velocity_policy, "idm": idm_policy, "gpd": gpd_policy}[name](spec)
+
+
+_HEADS: dict[int, Policy] = {}
+
+
+def make_policy(name: str, model: Model) -> Policy:
+    """A shipped policy by name (`PLANNERS`), built once per model (so repeated runs reuse one compile); for
+    ``gpd_head`` `model` is the model with the planning head."""
+    if name not in PLANNERS:
+        raise SimError(f"unknown planner {name!r}; known planners: {', '.join(PLANNERS)}")
+    if name == "gpd_head":
+        key = id(model)
+        if key not in _HEADS:
+            _HEADS[key] = gpd_head_policy(model)
+        return _HEADS[key]
+    return _cached(name, model.spec)
