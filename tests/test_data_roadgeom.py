@@ -74,9 +74,9 @@ def test_clip_splits_big_rings_and_keeps_the_clip_box_out_of_the_edges():
     # a wavy 10 m wide road: many vertices in one ring, split into pieces of <= V vertices
     x = np.linspace(-200, 200, 801)
     centre = np.stack([x, 3 * np.sin(x / 7)], -1)
-    idx = roadgeom.RoadIndex([roadgeom.lane_area(centre, 10.0)])
+    idx = roadgeom.RoadIndex([roadgeom.lane_area(centre, 10.0)], tolerance=0.01)
     ego = np.zeros((11, 3))
-    out = roadgeom.clip_road(idx, np.zeros(3), ego, reach=40.0, G=64, V=16, E=64, P=32, tolerance=0.01)
+    out = roadgeom.clip_road(idx, np.zeros(3), ego, reach=40.0, G=64, V=16, E=64, P=32)
     road = geo.road_from_arrays(out, np.zeros((1, 2, 2), np.float32), np.zeros((1, 2), bool))
     assert out["road_polygon_valid"].sum(-1).max() <= 16 and out["road_polygon_valid"].any(-1).sum() > 2
     xs = np.linspace(-35, 35, 15)

@@ -44,6 +44,20 @@ def test_tiny_build_resume_and_load(tmp_path):
     scene.validate()
     assert scene.valid[:, :, 0].all() and np.abs(scene.xy[:, 20, 0]).max() < 1e-4
     assert (scene.size[:, 0, 0] >= 4.0).all()
+    # drivable area: every sample has it, and SUMO's vehicles drive on it, along their lanes
+    import jax
+    import jax.numpy as jnp
+
+    from gpd_jax import geometry as geo
+    withroad, _ = loader.load_split(out, next(iter(man["splits"])), with_polylines=True)
+    road = jax.tree.map(jnp.asarray, withroad.road)
+    assert road.polygon_valid.any(-1).any(-1).all() and road.edge_valid.any(-1).any(-1).all()
+    on = np.asarray(jax.jit(jax.vmap(geo.on_road))(road, jnp.asarray(withroad.xy)))
+    valid = np.asarray(withroad.valid)
+    assert on[:, :, 0].all() and on[valid].mean() > 0.98
+    heading, dist = jax.jit(jax.vmap(geo.lane_direction))(road, jnp.asarray(withroad.xy[:, :, 0]))
+    err = np.abs(np.angle(np.exp(1j * (np.asarray(heading) - np.asarray(withroad.heading[:, :, 0])))))
+    assert np.median(err) < 0.05 and np.median(np.asarray(dist)) < 0.5
     # resume: a killed job (no marker, a stale temporary) is redone, finished jobs are not
     marker = os.path.join(out, "_jobs", "job_00001.json")
     old0 = json.load(open(os.path.join(out, "_jobs", "job_00000.json")))

@@ -680,7 +680,7 @@ def _scenario_samples(raw, sample_cfg, max_per_log, seed, stats) -> list:
         stats["windows_over_max_per_log"] += len(starts) - max_per_log
         starts = np.sort(np.random.default_rng([seed, len(starts)]).choice(starts, max_per_log, replace=False))
     lp = preprocess.lane_points(raw.lanes, sample_cfg.lane_spacing)
-    road = preprocess.road_index(raw)
+    road = preprocess.road_index(raw, sample_cfg)
     out = []
     for s in starts.tolist():
         smp = preprocess.make_sample(raw, s, ego, sample_cfg, lp, stats, road)

@@ -196,9 +196,9 @@ def clip_lanes(lp: LanePoints, scene_pose_world: np.ndarray, ego_pose: np.ndarra
     return out, ok
 
 
-def road_index(log: RawLog) -> RoadIndex | None:
-    """The log's drivable areas indexed for `clip_road` (None when the log has none)."""
-    return RoadIndex(log.areas) if log.areas else None
+def road_index(log: RawLog, cfg: SampleConfig = SampleConfig()) -> RoadIndex | None:
+    """The log's drivable areas merged for `clip_road` (None when the log has none)."""
+    return RoadIndex(log.areas, cfg.road_tolerance) if log.areas else None
 
 
 def make_sample(log: RawLog, start: int, ego: int, cfg: SampleConfig = SampleConfig(),
@@ -262,7 +262,7 @@ def make_sample(log: RawLog, start: int, ego: int, cfg: SampleConfig = SampleCon
         lp = lane_points(log.lanes, cfg.lane_spacing)
     poly, pvalid = clip_lanes(lp, origin, ego_pose.astype(np.float64), cfg, stats)
     if road is None and log.areas:
-        road = road_index(log)
+        road = road_index(log, cfg)
     geo = clip_road(road, origin, ego_pose.astype(np.float64), reach=(cfg.view_half + cfg.view_margin) * np.sqrt(2.0),
                     G=cfg.max_road_rings, V=cfg.max_ring_vertices, E=cfg.max_road_edges, P=cfg.max_edge_points,
                     tolerance=cfg.road_tolerance, stats=stats, agents_xy=xy[valid].astype(np.float64))
@@ -360,7 +360,7 @@ def iter_samples(log: RawLog, cfg: SampleConfig = SampleConfig(), num: int | Non
         stats["skip_log_too_short"] += 1
         return
     lp = lane_points(log.lanes, cfg.lane_spacing)
-    road = road_index(log)
+    road = road_index(log, cfg)
     # with the overlap gate, draw spare candidate windows so that `num` samples still come out
     want = None if num is None else (3 * num if cfg.reject_overlaps else num)
     made = 0
