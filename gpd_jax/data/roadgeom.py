@@ -87,13 +87,14 @@ class RoadIndex:
             p = _polygon(a)
             if p is not None:
                 geoms[int(a.kind)].append(p)
-        grown = [shapely.buffer(np.asarray(g, dtype=object), SEAM, join_style="mitre") if g else None
-                 for g in geoms]
+        # simplified here, once per log and not per sample: each area and the unions by half of `tolerance` each
+        half = tolerance / 2
+        grown = [shapely.buffer(shapely.simplify(np.asarray(g, dtype=object), half, preserve_topology=True), SEAM,
+                                join_style="mitre") if g else None for g in geoms]
         unions = [None if g is None else shapely.union_all(g) for g in grown]
         present = [u for u in unions if u is not None]
-        # simplified once here (`tolerance` metres), not per sample
-        self.unions = [None if u is None else u.simplify(tolerance, preserve_topology=True) for u in unions]
-        self.boundary = shapely.union_all(present).boundary.simplify(tolerance) if present else None
+        self.unions = [None if u is None else u.simplify(half, preserve_topology=True) for u in unions]
+        self.boundary = shapely.union_all(present).boundary.simplify(half) if present else None
         for g in [*self.unions, self.boundary]:
             if g is not None:
                 shapely.prepare(g)
