@@ -56,18 +56,38 @@ def _prompts(m, scene):
     ], path
 
 
-def test_given_path_cap_log_until_and_lanes(setup):
+@pytest.fixture(scope="module")
+def mixed(setup):
+    """Every scene under five prompts (`_prompts` + the plain traffic simulation) in one compiled rollout, twice:
+    prompts in order (a) and reversed (b): (run, prompts a, out a, out b, singles and path of scene 0)."""
     graphdef, state, m, scenes = setup
+    h = m.num_history
+    enc = _enc(m.num_map_tokens, m.codebook_size)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def run(state, scenes, prompts):
+        return rollout_tasks(nnx.merge(graphdef, state), scenes, prompts, jax.random.key(0), h, map_encoder=enc)
+
+    plain = prompt_from_task("traffic_simulation", m.num_frames, m.num_map_tokens, m.num_agents)
+    rows = [_prompts(m, jax.tree.map(lambda x: x[i], scenes))[0] + [plain] for i in range(scenes.xy.shape[0])]
+    k = len(rows[0])
+    stack = lambda rs: jax.tree.map(lambda x: jnp.asarray(x).reshape((len(rs), k) + x.shape[1:]),
+                                    stack_prompts([p for row in rs for p in row]))
+    a, b = stack(rows), stack([row[::-1] for row in rows])  # other prompts in every position: same compile
+    sc = jax.tree.map(jnp.asarray, scenes)
+    out_a = jax.tree.map(np.asarray, run(state, sc, a))
+    out_b = jax.tree.map(np.asarray, run(state, sc, b))
+    singles, path = _prompts(m, jax.tree.map(lambda x: x[0], scenes))
+    return enc, a, out_a, out_b, singles, path
+
+
+def test_given_path_cap_log_until_and_lanes(setup, mixed):
+    graphdef, state, m, scenes = setup
+    enc, _, out, _, singles, path = mixed
     h, a = m.num_history, m.num_agents
     scene = jax.tree.map(lambda x: x[0], scenes)
-    singles, path = _prompts(m, scene)
-    plain = prompt_from_task("traffic_simulation", m.num_frames, m.num_map_tokens, a)
-    prompts = stack_prompts(singles + [plain])
-    enc = _enc(m.num_map_tokens, m.codebook_size)
-    out = jax.jit(lambda s, sc, p: rollout_tasks(nnx.merge(graphdef, s), sc, p, jax.random.key(0), h,
-                                                 map_encoder=enc))(
-        state, jax.tree.map(lambda x: jnp.asarray(x)[None], scene), jax.tree.map(jnp.asarray, prompts))
-    o = jax.tree.map(lambda x: np.asarray(x[0]), out)
+    o = jax.tree.map(lambda x: x[0], out)
     # given path: slot 3 exactly on it (and valid); the other generated agents react (differ from the plain run)
     np.testing.assert_array_equal(o.xy[0, h:, 3], path.astype(np.float32))
     assert o.valid[0, h:, 3].all()
@@ -90,36 +110,17 @@ def test_given_path_cap_log_until_and_lanes(setup):
     assert (o.map_tokens[3] != scene.map_tokens).any()
 
 
-def test_one_compile_for_batches_mixing_prompts(setup):
+def test_one_compile_for_batches_mixing_prompts(setup, mixed):
     graphdef, state, m, scenes = setup
-    h = m.num_history
-    enc = _enc(m.num_map_tokens, m.codebook_size)
-
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def run(state, scenes, prompts):
-        return rollout_tasks(nnx.merge(graphdef, state), scenes, prompts, jax.random.key(0), h, map_encoder=enc)
-
-    per_scene = []
-    for i in range(scenes.xy.shape[0]):
-        sc = jax.tree.map(lambda x: x[i], scenes)
-        singles, _ = _prompts(m, sc)
-        per_scene.append(singles)
-    sc = jax.tree.map(jnp.asarray, scenes)
-    a = stack_prompts([p for row in per_scene for p in row])
-    a = jax.tree.map(lambda x: jnp.asarray(x).reshape((len(per_scene), 4) + x.shape[1:]), a)
-    b_rows = [row[::-1] for row in per_scene]  # other prompts in every position: same shapes, same compile
-    b = stack_prompts([p for row in b_rows for p in row])
-    b = jax.tree.map(lambda x: jnp.asarray(x).reshape((len(per_scene), 4) + x.shape[1:]), b)
-    out_a = run(state, sc, a)
-    out_b = run(state, sc, b)
-    np.testing.assert_array_equal(np.asarray(out_a.xy[:, 0]), np.asarray(out_b.xy[:, 3]))
-    # each element equals its own single rollout
-    single = jax.jit(lambda s, sc, p: rollout(nnx.merge(graphdef, s), sc, p, jax.random.key(0), h,
-                                              map_encoder=enc))
-    one = single(state, jax.tree.map(lambda x: jnp.asarray(x[1]), scenes),
-                 jax.tree.map(lambda x: jnp.asarray(x[1, 2]), a))
-    np.testing.assert_allclose(np.asarray(out_a.xy[1, 2]), np.asarray(one.xy), atol=1e-4)
+    enc, a, out_a, out_b, _, _ = mixed  # both runs went through one trace (assert_max_traces in the fixture)
+    k = out_a.xy.shape[1]
+    for q in range(k):
+        np.testing.assert_array_equal(out_a.xy[:, q], out_b.xy[:, k - 1 - q])
+    # an element of the mixed batch equals its own single rollout
+    one = jax.jit(lambda s, sc, p: rollout(nnx.merge(graphdef, s), sc, p, jax.random.key(0), m.num_history,
+                                           map_encoder=enc))(
+        state, jax.tree.map(lambda x: jnp.asarray(x[1]), scenes), jax.tree.map(lambda x: x[1, 2], a))
+    np.testing.assert_allclose(out_a.xy[1, 2], np.asarray(one.xy), atol=1e-4)
 
 
 def test_task_prompt_shapes_and_conversion(setup):
