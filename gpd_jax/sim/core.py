@@ -482,10 +482,13 @@ def needs_model(policy: Policy, agents: str) -> bool:
     return agents == "gpd" or policy.needs_model
 
 
-def run(model: Model, scenes: SimScene, policy, key: jax.Array, *, agents: str = "gpd",
+def run(model: Model, scenes: SimScene, policy, key: jax.Array, *, agents: str = "gpd", policy_params: Any = None,
         limits: BicycleLimits = BicycleLimits(), check: bool = True) -> SimResult:
     """Closed-loop runs of `policy` on a batch of scenarios (SimScene [B, ...]) over the model's future frames,
     one `lax.scan` vmapped over the batch, compiled once per batch shape, policy and agent model.
+
+    `policy_params` (default `policy.params`) is what the policy's functions receive as `params`: traced, so other
+    values of the same shapes (new weights, a different setting) reuse the compiled run.
 
     With `check`, a policy output that is not finite raises SimError naming the policy, the scenarios and frames.
     """
@@ -497,7 +500,8 @@ def run(model: Model, scenes: SimScene, policy, key: jax.Array, *, agents: str =
     with_model = needs_model(policy, agents)
     static = (_static_model_cached(model.graphdef, model.tokenizer, model.spec), policy, agents, with_model, limits)
     tok_params = model.tokenizer.params if model.tokenizer is not None else None
-    out = _run_jit(model.params, model.rest, tok_params, policy.params, scenes, keys, static)
+    pparams = policy.params if policy_params is None else policy_params
+    out = _run_jit(model.params, model.rest, tok_params, pparams, scenes, keys, static)
     if check:
         check_finite(out, policy.name)
     return out

@@ -1,0 +1,311 @@
+"""The closed-loop simulator (gpd_jax.sim) and nuPlan's planning scores.
+
+Behavioural tests use the shipped model on a hand-built straight road: an ego cruising at 10 m/s with a follower
+14 m behind it in the same lane (both logged at constant speed). Score tests use hand-built trajectories.
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import gpd_jax
+from gpd_jax.geometry import RoadGeometry
+from gpd_jax.scene import Scene
+from gpd_jax import sim
+from gpd_jax.sim import scores as S
+
+T, A = 101, 33
+SPEED = 10.0
+GAP = 25.0
+
+
+def _road(batch=()):
+    x0, x1, w = -300.0, 420.0, 4.8
+    ring = np.array([[x0, -w], [x1, -w], [x1, w], [x0, w]], np.float32)
+    polygons = np.zeros((1, 8, 2), np.float32)
+    polygons[0, :4] = ring
+    pv = np.zeros((1, 8), bool)
+    pv[0, :4] = True
+    edges = np.stack([np.array([[x0, -w], [x1, -w]]), np.array([[x0, w], [x1, w]])]).astype(np.float32)
+    lanes, lane_valid = _lanes()
+    road = RoadGeometry(polygons=polygons, polygon_valid=pv, polygon_kind=np.zeros(1, np.int32), edges=edges,
+                        edge_valid=np.ones((2, 2), bool), lanes=lanes, lane_valid=lane_valid)
+    return jax.tree.map(lambda x: np.broadcast_to(x, batch + x.shape).copy(), road)
+
+
+def _lanes():
+    xs = np.linspace(-280.0, 400.0, 128, dtype=np.float32)
+    fwd = lambda y: np.stack([xs, np.full_like(xs, y)], -1)
+    lanes = np.stack([fwd(-1.6), fwd(1.6)[::-1].copy()])      # right lane +x, left lane -x (two-way road)
+    return lanes.astype(np.float32), np.ones(lanes.shape[:2], bool)
+
+
+def straight_scenes(n: int = 2) -> Scene:
+    """n stored-rate scenes: ego in the right lane at 10 m/s, a follower GAP m behind (scene frame = ego at frame
+    20), slight per-scene speed differences."""
+    t = np.arange(T, dtype=np.float32)
+    xy = np.zeros((n, T, A, 2), np.float32)
+    valid = np.zeros((n, T, A), bool)
+    for i in range(n):
+        v = SPEED + 0.5 * i
+        xy[i, :, 0, 0] = (t - 20) * 0.1 * v
+        xy[i, :, 1, 0] = xy[i, :, 0, 0] - GAP
+        xy[i, :, :2, 1] = -1.6
+        valid[i, :, :2] = True
+    heading = np.zeros((n, T, A), np.float32)
+    size = np.broadcast_to(np.array([4.6, 1.9], np.float32), (n, A, 2)).copy()
+    lanes, lv = _lanes()
+    ego_pose = np.concatenate([xy[:, :, 0], heading[:, :, :1]], -1)
+    return Scene(xy=xy, heading=heading, valid=valid, size=size, agent_type=np.ones((n, A), np.int32),
+                 map_tokens=np.zeros((n, T, 64), np.int32), map_valid=np.zeros((n, T), bool), ego_pose=ego_pose,
+                 polylines=np.broadcast_to(lanes, (n,) + lanes.shape).copy(),
+                 polyline_valid=np.broadcast_to(lv, (n,) + lv.shape).copy(), road=_road((n,)))
+
+
+@pytest.fixture(scope="module")
+def model():
+    return gpd_jax.load_model()
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return straight_scenes(2)
+
+
+@pytest.fixture(scope="module")
+def sim_scenes(model, scenes):
+    return sim.make_sim_scenes(model, scenes)
+
+
+# A policy that replays the log or brakes to a stop (params["brake"]), as stored-rate poses: one compiled function
+# serves both, so `assert_max_traces` proves a second run with other params and scenes does not retrace.
+def _select(params, obs, state, key):
+    log = jax.lax.dynamic_slice_in_dim(obs.log_ego, 10 * obs.t + 1, 10, axis=0)
+    brake = sim.bicycle_path(obs.ego_pose, obs.ego_velocity, jnp.array([-3.0, 0.0]), obs.size[0, 0], 10, 0.1)
+    return jnp.where(params["brake"], brake, log), state
+
+
+_TRACED = chex.assert_max_traces(_select, n=1)
+TEST_POLICY = sim.Policy(name="brake_or_log", select=_TRACED)
+BRAKE, LOG = {"brake": jnp.array(True)}, {"brake": jnp.array(False)}
+
+
+@pytest.fixture(scope="module")
+def gpd_runs(model, scenes, sim_scenes):
+    """The test policy braking and replaying the log, both with GPD agents (one compile: `assert_max_traces`), and
+    the task rollouts they should reproduce."""
+    chex.clear_trace_counter()
+    brake = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(0), agents="gpd", policy_params=BRAKE)
+    log = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(1), agents="gpd", policy_params=LOG)
+    ref = gpd_jax.rollout(model, scenes, ["closed_loop", "motion_planning"], jax.random.key(0), log_map="lanes")
+    return brake, log, jax.tree.map(np.asarray, ref)
+
+
+def test_braking_ego_gpd_follower_slows_log_follower_hits_not_at_fault(model, sim_scenes, gpd_runs):
+    out, out_log, _ = gpd_runs
+    ego = np.asarray(out.fine_xy[:, :, 0, 0])
+    assert np.all(ego[:, -1] - ego[:, 20] < 22.0)                       # the ego stopped within ~17-19 m
+    assert np.all(np.abs(np.diff(ego[:, -20:], axis=1)) < 1e-3)
+    # reactive: behind a braking ego the GPD follower slows down well below its pace behind the logged ego
+    fol, fol_log = np.asarray(out.xy[:, :, 1, 0]), np.asarray(out_log.xy[:, :, 1, 0])
+    h = model.spec.num_history
+    travel, travel_log = fol[:, -1] - fol[:, h - 1], fol_log[:, -1] - fol_log[:, h - 1]
+    assert np.all(travel < travel_log - 15.0), (travel, travel_log)
+    speed = np.diff(fol[:, h - 1:], axis=1) / model.spec.frame_period_s
+    speed_log = np.diff(fol_log[:, h - 1:], axis=1) / model.spec.frame_period_s
+    assert np.all(speed.min(axis=1) < 0.6 * speed_log.min(axis=1)), (speed, speed_log)
+    # non-reactive: the log-replay follower drives into the stopped ego; nuPlan does not blame the ego (another
+    # agent model is another compiled run: a new trace is expected)
+    chex.clear_trace_counter()
+    out_nr = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(0), agents="log", policy_params=BRAKE)
+    sc = jax.vmap(lambda s, x, h, v: _score(model.spec, s, x, h, v))(sim_scenes, out_nr.fine_xy, out_nr.fine_heading,
+                                                                     out_nr.fine_valid)
+    assert np.all(np.asarray(sc["num_collisions"]) >= 1)
+    assert np.all(np.asarray(sc["num_at_fault_collisions"]) == 0)
+    assert np.all(np.asarray(sc["no_ego_at_fault_collisions"]) == 1.0)
+    # IDM followers (the same compiled policy) keep to their logged path and stop behind the ego
+    chex.clear_trace_counter()
+    out_idm = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(0), agents="idm", policy_params=BRAKE)
+    f, e = np.asarray(out_idm.fine_xy[:, :, 1]), np.asarray(out_idm.fine_xy[:, :, 0])
+    np.testing.assert_allclose(f[:, 20:, 1], -1.6, atol=1e-4)
+    gap = e[:, -1, 0] - f[:, -1, 0] - 4.6
+    assert np.all(gap > 0.5) and np.all(gap < 6.0), gap                  # IDM's minimum gap is 1 m
+
+
+def _score(spec, s, x, h, v):
+    from gpd_jax.sim.evaluate import score_one
+    return score_one(spec, s, x, h, v)
+
+
+def _same(out, ref, name):
+    np.testing.assert_array_equal(np.asarray(out.valid), ref.valid, err_msg=name)
+    np.testing.assert_allclose(np.asarray(out.xy)[ref.valid], ref.xy[ref.valid], atol=1e-4, rtol=0, err_msg=name)
+    np.testing.assert_array_equal(np.asarray(out.map_tokens), ref.map_tokens, err_msg=name)
+
+
+def test_log_replay_ego_with_gpd_agents_is_the_closed_loop_task(gpd_runs):
+    _, out_log, ref = gpd_runs
+    _same(out_log, jax.tree.map(lambda x: x[:, 0], ref), "closed_loop")
+
+
+def test_own_ego_replay_is_the_motion_planning_task_with_lane_reencoding(model, sim_scenes, gpd_runs):
+    ref = jax.tree.map(lambda x: x[:, 1], gpd_runs[2])
+    out = sim.run(model, sim_scenes, sim.make_policy("gpd", model), jax.random.key(0), agents="log")
+    _same(out, ref, "motion_planning")
+    # a real generated ego (not the log), and its map re-encoded around it (not the logged tokens)
+    assert np.abs(ref.xy[:, 3:, 0] - np.asarray(sim_scenes.view.xy)[:, 3:, 0]).max() > 0.01
+    assert (ref.map_tokens[:, 3:] != np.asarray(sim_scenes.view.map_tokens)[:, 3:]).any()
+
+
+def test_host_loop_matches_the_scan_and_bad_policies_are_named(model, sim_scenes):
+    def cv(obs):
+        nxt = obs.ego_pose[:, :2] + obs.ego_velocity * 1.0
+        return np.concatenate([nxt, obs.ego_pose[:, 2:], obs.ego_velocity], -1)
+
+    host = sim.run_host(model, sim_scenes, cv, agents="idm", with_model=False)
+    scan = sim.run(model, sim_scenes, sim.make_policy("cv", model), jax.random.key(0), agents="idm")
+    np.testing.assert_allclose(np.asarray(host.fine_xy), np.asarray(scan.fine_xy), atol=1e-4)
+    nan = sim.Policy(name="nan_policy", select=lambda p, o, s, k: (jnp.full(3, jnp.nan), s))
+    with pytest.raises(sim.SimError, match="nan_policy.*non-finite"):
+        sim.run(model, sim_scenes, nan, jax.random.key(0), agents="log")
+    wrong = sim.Policy(name="wrong_shape", select=lambda p, o, s, k: (jnp.zeros(4), s))
+    with pytest.raises(sim.SimError, match="wrong_shape.*shape \\(4,\\)"):
+        sim.run(model, sim_scenes, wrong, jax.random.key(0), agents="log")
+    with pytest.raises(sim.SimError, match="unknown agent model"):
+        sim.run(model, sim_scenes, nan, jax.random.key(0), agents="reactive")
+
+
+# ------------------------------------------------------------------------------------------------ scores
+F = 81
+DT = 0.1
+
+
+@jax.jit
+def _cls(exy, eh, axy, ah, av, route, rs, expert, road, speed_limit):
+    size = jnp.array([4.6, 1.9])
+    rq = S.road_queries(road, exy, eh, size)
+    return S.cls_scores(exy, eh, size, axy, ah, av, jnp.array([[4.6, 1.9]]), route, rs, expert, DT, rq,
+                        speed_limit=speed_limit)
+
+
+@jax.jit
+def _cls_no_limit(exy, eh, axy, ah, av, route, rs, expert, road):
+    size = jnp.array([4.6, 1.9])
+    rq = S.road_queries(road, exy, eh, size)
+    return S.cls_scores(exy, eh, size, axy, ah, av, jnp.array([[4.6, 1.9]]), route, rs, expert, DT, rq)
+
+
+def _case(ego_x, ego_y=None, ego_h=None, ag_x=None, ag_y=None, ag_h=None, speed_limit=None, expert=80.0):
+    """Scores of a hand-built run on the straight road: ego along x (and y), one agent (invalid if ag_x None)."""
+    ego_y = np.full(F, -1.6) if ego_y is None else ego_y
+    ego_h = np.zeros(F) if ego_h is None else ego_h
+    exy = np.stack([ego_x, ego_y], -1).astype(np.float32)
+    road = jax.tree.map(jnp.asarray, _road())
+    axy = np.zeros((F, 1, 2), np.float32)
+    av = np.zeros((F, 1), bool)
+    if ag_x is not None:
+        axy[:, 0, 0] = ag_x
+        axy[:, 0, 1] = -1.6 if ag_y is None else ag_y
+        av[:] = True
+    ah = np.zeros((F, 1), np.float32) if ag_h is None else ag_h
+    route = np.stack([np.linspace(0, 400, 200), np.full(200, -1.6)], -1).astype(np.float32)
+    rs = np.linspace(0, 400, 200).astype(np.float32)
+    args = (jnp.asarray(exy), jnp.asarray(ego_h, jnp.float32), jnp.asarray(axy), jnp.asarray(ah, jnp.float32),
+            jnp.asarray(av), jnp.asarray(route), jnp.asarray(rs), jnp.asarray(expert, jnp.float32), road)
+    out = _cls_no_limit(*args) if speed_limit is None else _cls(*args, jnp.full(F, speed_limit, jnp.float32))
+    return {k: float(v) for k, v in out.items()}
+
+
+t = np.arange(F) * DT
+CRUISE = 10.0 * t
+
+
+def test_cls_clean_run_scores_one():
+    r = _case(CRUISE)
+    for k in S.CLS_MULTIPLIERS + ("ego_progress_along_expert_route", "time_to_collision_within_bound",
+                                  "ego_is_comfortable"):
+        assert r[k] == 1.0, k
+    assert r["CLS"] == pytest.approx(1.0)
+    assert "speed_limit_compliance" not in r
+
+
+def test_cls_at_fault_and_not_at_fault_collisions():
+    # the ego drives into a car standing 40 m ahead: front collision with a stopped track, at fault, TTC 0
+    r = _case(CRUISE, ag_x=np.full(F, 40.0))
+    assert r["num_at_fault_collisions"] == 1 and r["no_ego_at_fault_collisions"] == 0.0 and r["CLS"] == 0.0
+    assert r["time_to_collision_within_bound"] == 0.0
+    # a car drives into the stopped ego from behind: not at fault
+    r = _case(np.zeros(F), ag_x=-30.0 + 12.0 * t)
+    assert r["num_collisions"] == 1 and r["num_at_fault_collisions"] == 0 and r["no_ego_at_fault_collisions"] == 1.0
+    # both moving, the ego catches up with a slower car ahead: its front bumper, at fault
+    r = _case(CRUISE, ag_x=20.0 + 5.0 * t)
+    assert r["num_at_fault_collisions"] == 1
+    # a moving car beside the ego (not reaching its front bumper) sideswipes it from the left while the ego keeps
+    # its lane: lateral, not at fault
+    r = _case(CRUISE, ag_x=CRUISE - 1.5, ag_y=np.clip(1.6 - 0.5 * t, -0.5, 1.6), ag_h=np.zeros((F, 1)))
+    assert r["num_collisions"] == 1 and r["num_at_fault_collisions"] == 0
+    # ... and the same with the ego straddling the lane line (in two lanes): at fault
+    r = _case(CRUISE, ego_y=np.full(F, 0.0), ag_x=CRUISE - 1.5, ag_y=np.clip(3.2 - 0.5 * t, 1.2, 3.2))
+    assert r["num_at_fault_collisions"] == 1
+
+
+def test_cls_drivable_area_direction_progress():
+    r = _case(CRUISE, ego_y=-1.6 - 0.05 * np.arange(F))                  # drifts off the road (edge at -4.8)
+    assert r["drivable_area_compliance"] == 0.0 and r["CLS"] == 0.0
+    r = _case(CRUISE, ego_y=np.full(F, -3.5))                            # corner 0.15 m out: tolerated
+    assert r["drivable_area_compliance"] == 1.0
+    r = _case(-CRUISE, ego_y=np.full(F, -1.6), ego_h=np.full(F, np.pi))  # 10 m/s against the lane: 10 m in 1 s
+    assert r["driving_direction_compliance"] == 0.0 and r["max_wrong_way_m"] == pytest.approx(10.0, rel=0.02)
+    r = _case(-0.4 * t, ego_h=np.full(F, np.pi))                         # 0.4 m/s backwards: < 2 m per second
+    assert r["driving_direction_compliance"] == 1.0
+    r = _case(-4.0 * t, ego_h=np.full(F, np.pi))                         # 4 m in 1 s: 0.5
+    assert r["driving_direction_compliance"] == 0.5
+    r = _case(np.full(F, 0.0))                                           # standing still, expert made 80 m
+    assert r["ego_is_making_progress"] == 0.0 and r["ego_progress_along_expert_route"] == pytest.approx(2 / 80)
+    r = _case(5.0 * t)                                                   # half the expert's progress
+    assert r["ego_is_making_progress"] == 1.0 and r["ego_progress_along_expert_route"] == pytest.approx(0.5, abs=0.01)
+
+
+def test_cls_ttc_comfort_speed_limit():
+    # the ego brakes hard behind a stopped car and stops 0.5 m short: no collision, but TTC < 0.95 s
+    v = np.maximum(10.0 - 9.0 * t, 0.0)
+    x = np.concatenate([[0.0], np.cumsum(v[1:] * DT)])
+    r = _case(x, ag_x=np.full(F, x[-1] + 4.6 + 0.5))
+    assert r["num_collisions"] == 0 and r["time_to_collision_within_bound"] == 0.0
+    assert r["ego_is_comfortable"] == 0.0                                # -9 m/s^2 is below -4.05
+    r = _case(CRUISE + 1.0 * t ** 2)                                     # +2 m/s^2: comfortable
+    assert r["ego_is_comfortable"] == 1.0
+    r = _case(CRUISE + 1.5 * t ** 2)                                     # +3 m/s^2: not
+    assert r["ego_is_comfortable"] == 0.0
+    r = _case(CRUISE, speed_limit=9.0)                                   # 1 m/s over for the whole run
+    assert r["speed_limit_compliance"] == pytest.approx(1 - 1.0 / 2.23, abs=0.01)
+    # weights renormalise: progress 5, TTC 5, speed 4, comfort 2
+    assert r["CLS"] == pytest.approx((5 + 5 + 4 * r["speed_limit_compliance"] + 2) / 16, abs=1e-4)
+
+
+def test_ols_terms():
+    expert = jnp.stack([jnp.arange(1, 9.0) * 10, jnp.zeros(8), jnp.zeros(8)], -1)
+    r = S.ols_scores(expert, expert, (3, 5, 8), 1.0)
+    assert float(r["OLS"]) == 1.0
+    r = S.ols_scores(expert.at[:, 1].add(4.0), expert, (3, 5, 8), 1.0)   # 4 m off everywhere
+    assert float(r["planner_expert_avg_displacement_error_within_bound"]) == pytest.approx(0.5)
+    assert float(r["planner_miss_rate_within_bound"]) == 1.0
+    assert float(r["OLS"]) == pytest.approx((0.5 + 0.5 + 2 + 2) / 6)
+    r = S.ols_scores(expert.at[:, 1].add(7.0), expert, (3, 5, 8), 1.0)   # > 6 m at 3 s: a miss
+    assert float(r["OLS"]) == 0.0
+
+
+def test_plan_command_errors_exit_2(tmp_path, capsys):
+    from gpd_jax.plan.__main__ import main
+
+    assert main(["evaluate", "--data", str(tmp_path), "--planners", "log,teleport", "--out", str(tmp_path)]) == 2
+    assert "teleport" in capsys.readouterr().err
+    assert main(["evaluate", "--data", str(tmp_path), "--out", str(tmp_path)]) == 2
+    assert "split 'test' not found" in capsys.readouterr().err
+    from gpd_jax.sim.evaluate import check_road
+    with pytest.raises(sim.SimError, match="no road geometry"):
+        check_road(straight_scenes(1).replace(road=None), "store X")
