@@ -8,14 +8,16 @@
     fn = gpd_jax.make_rollout_fn(model)                              # pure: fn(params, scenes, tasks, key)
     head_model = gpd_jax.load_model("checkpoints/gpd_sumo_plan_head")  # GPD + the fine-tuned planning head
     plan = gpd_jax.plan_trajectory(head_model.module, hidden)        # one frame's tokens -> ego's next 8 s
+    sim_scenes = gpd_jax.sim.make_sim_scenes(model, scenes)          # closed loop: your planner, GPD agents
+    out = gpd_jax.sim.run(model, sim_scenes, gpd_jax.sim.make_policy("cv", model), jax.random.key(0), agents="gpd")
 
 The layers, bottom to top (nothing imports upward; `tests/test_layers.py` enforces it): `scene`, `tasks`,
 `spec`, `config`, `fsutil`, `parallel`, `data/`, `metrics/` | `model/`, `map_tokenizer/` | `checkpoint` |
-`decoding` | `evaluation/` | `training/`, `api` | command lines (`bench`, `python -m gpd_jax.{data,map_tokenizer}`,
-`train.py`, `rollout.py`).
+`decoding` | `evaluation/`, `sim/` | `training/`, `api` | command lines (`bench`,
+`python -m gpd_jax.{data,map_tokenizer,plan}`, `train.py`, `rollout.py`).
 """
 
-from gpd_jax import metrics
+from gpd_jax import metrics, sim
 from gpd_jax.api import (Model, build_scenes, evaluate, load_model, load_scenes, make_prompt, make_rollout_fn,
                          make_tasks, prepare, render, rollout, stack_prompts, task_prompt)
 from gpd_jax.decoding import RolloutOutput
@@ -56,6 +58,7 @@ __all__ = [
     "render",
     "rollout",
     "signed_distance_to_edge",
+    "sim",
     "stack_prompts",
     "task_prompt",
     "wrap_angle",
