@@ -427,9 +427,20 @@ _LANE_KEYS = {"frame", "pose", "polylines", "comment"}
 
 def prompt_from_json(obj: Mapping[str, Any], scene: Scene, num_history: int, *, has_tokenizer: bool = True,
                      where: str = "prompt", frame_period_s: float | None = None) -> Prompt:
-    """The prompt of a JSON prompt file's content for one scene in the model's view (format: the docstring of
-    examples/README.md; an example: examples/prompt_inpaint.json). Every problem raises `PromptError` naming
-    the JSON path."""
+    """The prompt of a JSON prompt file's content for one scene in the model's view. Every problem raises
+    `PromptError` naming the JSON path. Examples: examples/prompt_*.json. Format (every key optional):
+
+        {"base": "traffic_simulation",                      # a task name: the slots from the log at first
+         "agents": [{"slot": 3, "frames": "future" | "all" | [t, ...],
+                     "xy": [[x, y], ...], "heading": [...], "valid": [...]},        # given states
+                    {"slot": 4, "frames": ..., "from": "log", "decelerate": 3.0}],  # the log (braking on it)
+         "log_until": 6, "initial_slots": [0, 1, 2], "max_agents": 5, "hidden": [7],
+         "lanes": {"frame": "scene" | "world", "pose": [x, y, heading], "polylines": [[[x, y], ...], ...]}
+                  | [[[x, y], ...], ...] | "log",
+         "comment": "free text"}
+
+    Frames are the model's (0 .. T-1, the first num_history the history); coordinates are metres in the scene
+    frame (the ego frame of the current frame) unless lanes say "world" with the scene frame's pose."""
     if not isinstance(obj, Mapping):
         raise PromptError(f"{where}: expected a JSON object at the top level")
     unknown = set(obj) - _KEYS
