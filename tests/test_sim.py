@@ -306,6 +306,10 @@ def test_plan_command_errors_exit_2(tmp_path, capsys):
     assert "teleport" in capsys.readouterr().err
     assert main(["evaluate", "--data", str(tmp_path), "--out", str(tmp_path)]) == 2
     assert "split 'test' not found" in capsys.readouterr().err
+    (tmp_path / "test").mkdir()
+    assert main(["evaluate", "--data", str(tmp_path), "--planners", "gpd_head", "--head-model", str(tmp_path / "none"),
+                 "--out", str(tmp_path)]) == 2
+    assert "no planning-head model" in capsys.readouterr().err
     from gpd_jax.sim.evaluate import check_road
     with pytest.raises(sim.SimError, match="no road geometry"):
         check_road(straight_scenes(1).replace(road=None), "store X")

@@ -1,7 +1,7 @@
 """Planning command line (thin over `gpd_jax.sim`).
 
-    python -m gpd_jax.plan evaluate --data DIR [--split test] --planners log,cv,idm,gpd,gpd_head \
-        --agents log,idm,gpd --out DIR [--render K] [--checkpoint MODEL] [--head-model MODEL]
+    python -m gpd_jax.plan evaluate --data DIR [--split test] --planners log,cv,idm,gpd,gpd_head[,gpd_head_scratch] \
+        --agents log,idm,gpd --out DIR [--render K] [--checkpoint MODEL] [--head-model M] [--scratch-head-model M]
     python -m gpd_jax.plan bench --data DIR [--batch 8] [--planners ...] [--agents ...]
 
 `evaluate` prints a table shaped like GPD-1's Table 2 (one row per planner: OLS, NR-CLS, R-CLS with IDM agents,
@@ -40,21 +40,24 @@ def _load(args, planners):
 
     if not os.path.isdir(os.path.join(args.data, args.split)):
         raise SimError(f"split {args.split!r} not found in {args.data}")
-    model = gpd_jax.load_model(args.checkpoint)
-    head = None
-    if "gpd_head" in planners:
-        path = args.head_model or DEFAULT_HEAD
+    heads = {}
+    for name, path, cfg in (("gpd_head", args.head_model or DEFAULT_HEAD, "gpd_sumo_plan_head.py"),
+                            ("gpd_head_scratch", args.scratch_head_model or DEFAULT_HEAD + "_scratch",
+                             "gpd_sumo_plan_head_scratch.py")):
+        if name not in planners:
+            continue
         if not os.path.exists(os.path.join(path, "config.json")):
-            raise SimError(f"planner gpd_head: no planning-head model at {path} (train one with configs/"
-                           "gpd_sumo_plan_head.py and pass --head-model)")
-        head = gpd_jax.load_model(path)
-        if not head.config.get("plan_head"):
-            raise SimError(f"planner gpd_head: {path} has no plan_head section (not a planning-head model)")
+            raise SimError(f"planner {name}: no planning-head model at {path} (train one with configs/{cfg} and "
+                           f"pass --{'scratch-' if 'scratch' in name else ''}head-model)")
+        heads[name] = gpd_jax.load_model(path)
+        if not heads[name].config.get("plan_head"):
+            raise SimError(f"planner {name}: {path} has no plan_head section (not a planning-head model)")
+    model = gpd_jax.load_model(args.checkpoint)
     from gpd_jax.data.loader import SplitSource
     n_all = len(SplitSource(args.data, args.split, with_polylines=True))
     n = n_all if args.num_scenarios is None else min(args.num_scenarios, n_all)
     scenes = gpd_jax.load_scenes(args.data, args.split, indices=range(n))
-    return model, head, scenes
+    return model, heads, scenes
 
 
 def cmd_evaluate(args) -> int:
@@ -64,10 +67,10 @@ def cmd_evaluate(args) -> int:
 
     planners = _names(args.planners, PLANNERS, "planner")
     agents = _names(args.agents, AGENT_MODELS, "agent model")
-    model, head, scenes = _load(args, planners)
+    model, heads, scenes = _load(args, planners)
     check_road(scenes, f"{args.data}/{args.split}")
     t0 = time.perf_counter()
-    results, extra = evaluate_planners(model, scenes, planners, agents, head_model=head, batch_size=args.batch_size,
+    results, extra = evaluate_planners(model, scenes, planners, agents, head_models=heads, batch_size=args.batch_size,
                                        seed=args.seed, progress=not args.quiet, keep_runs=args.render)
     results["seconds"] = round(time.perf_counter() - t0, 1)
     results["data"] = os.path.abspath(args.data)
@@ -103,7 +106,7 @@ def cmd_bench(args) -> int:
     planners = _names(args.planners, PLANNERS, "planner")
     agents = _names(args.agents, AGENT_MODELS, "agent model")
     args.num_scenarios = args.batch
-    model, head, scenes = _load(args, planners)
+    model, heads, scenes = _load(args, planners)
     sim = make_sim_scenes(model, scenes)
     b = int(np.shape(sim.log_xy)[0])
     sim_s = model.spec.num_future * model.spec.frame_period_s
@@ -113,7 +116,7 @@ def cmd_bench(args) -> int:
           f"(nuPlan: ~{NUPLAN_S_PER_SCENARIO:g} s per {NUPLAN_SCENARIO_S:g} s scenario = {nuplan:.2f} simulated s/s)")
     print(f"{'planner':<10}{'agents':<8}{'compile s':>10}{'run s':>9}{'scen/s':>9}{'sim s/s':>9}{'x nuPlan':>10}")
     for p in planners:
-        pol = make_policy(p, head if p == "gpd_head" else model)
+        pol = make_policy(p, heads.get(p, model))
         for a in agents:
             t0 = time.perf_counter()
             jax.block_until_ready(run(model, sim, pol, jax.random.key(0), agents=a).fine_xy)
@@ -148,6 +151,8 @@ def main(argv=None) -> int:
         s.add_argument("--agents", default="log,idm,gpd")
         s.add_argument("--checkpoint", default=None, help="the GPD world model (default: the shipped one)")
         s.add_argument("--head-model", default=None, help=f"the planning-head model for gpd_head (default {DEFAULT_HEAD})")
+        s.add_argument("--scratch-head-model", default=None,
+                       help=f"the head trained without pre-training, for gpd_head_scratch (default {DEFAULT_HEAD}_scratch)")
         s.add_argument("--seed", type=int, default=0)
     e = sub.choices["evaluate"]
     e.add_argument("--out", required=True)

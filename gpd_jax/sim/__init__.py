@@ -13,11 +13,11 @@ from gpd_jax.sim.agents import IDMParams, IDMState, Paths
 from gpd_jax.sim.core import (AGENT_MODELS, Observation, Policy, RunCarry, SimError, SimResult, SimScene, SimState,
                               as_policy, make_sim_scenes, observe, reset, run, run_host, step)
 from gpd_jax.sim.dynamics import BicycleLimits, bicycle_path
-from gpd_jax.sim.policies import (PLANNERS, constant_velocity_policy, expert_policy, gpd_head_policy, gpd_policy,
+from gpd_jax.sim.policies import (HEAD_PLANNERS, PLANNERS, constant_velocity_policy, expert_policy, gpd_head_policy, gpd_policy,
                                   idm_policy, make_policy)
 
 __all__ = [
-    "AGENT_MODELS", "PLANNERS", "BicycleLimits", "IDMParams", "IDMState", "Observation", "Paths", "Policy",
+    "AGENT_MODELS", "HEAD_PLANNERS", "PLANNERS", "BicycleLimits", "IDMParams", "IDMState", "Observation", "Paths", "Policy",
     "RunCarry", "SimError", "SimResult", "SimScene", "SimState", "as_policy", "bicycle_path",
     "constant_velocity_policy", "expert_policy", "gpd_head_policy", "gpd_policy", "idm_policy", "make_policy",
     "make_sim_scenes", "observe", "reset", "run", "run_host", "step",

@@ -23,7 +23,7 @@ from gpd_jax.geometry import ROAD_MISSING
 from gpd_jax.scene import Scene
 from gpd_jax.sim.agents import make_paths, project
 from gpd_jax.sim.core import AGENT_MODELS, SimError, SimResult, SimScene, make_sim_scenes, run
-from gpd_jax.sim.policies import PLANNERS, make_policy
+from gpd_jax.sim.policies import HEAD_PLANNERS, PLANNERS, make_policy
 from gpd_jax.sim.scores import cls_scores, ols_scores, road_queries
 from gpd_jax.spec import ModelSpec
 
@@ -74,7 +74,7 @@ def check_road(scenes: Scene | SimScene, where: str = "the scenes") -> None:
 
 
 def evaluate_planners(model: Model, scenes: Scene, planners: Sequence[str] = ("log", "cv", "idm", "gpd"),
-                      agents: Sequence[str] = AGENT_MODELS, *, head_model: Model | None = None,
+                      agents: Sequence[str] = AGENT_MODELS, *, head_models: dict[str, Model] | None = None,
                       batch_size: int = 8, seed: int = 0, progress: bool = True,
                       log: Callable[[str], Any] = print, keep_runs: int = 0) -> tuple[dict, dict]:
     """Every planner against every agent model on stored-rate scenes Scene [n, ...] (with road geometry).
@@ -90,8 +90,10 @@ def evaluate_planners(model: Model, scenes: Scene, planners: Sequence[str] = ("l
     for a in agents:
         if a not in AGENT_MODELS:
             raise SimError(f"unknown agent model {a!r}; known: {', '.join(AGENT_MODELS)}")
-    if "gpd_head" in planners and head_model is None:
-        raise SimError("planner gpd_head needs the model with the fine-tuned planning head (--head-model)")
+    head_models = head_models or {}
+    for p in planners:
+        if p in HEAD_PLANNERS and p not in head_models:
+            raise SimError(f"planner {p} needs a model with the planning head ({p}: --head-model / --scratch-head-model)")
     check_road(scenes)
     n = int(np.shape(scenes.xy)[0])
     spec = model.spec
@@ -113,7 +115,7 @@ def evaluate_planners(model: Model, scenes: Scene, planners: Sequence[str] = ("l
         sim = make_sim_scenes(model, sub)
         bkey = jax.random.fold_in(key, bi)
         for p in planners:
-            pm = head_model if p == "gpd_head" else model
+            pm = head_models.get(p, model)
             policy = make_policy(p, pm)
             plan = None
             for a in agents:
@@ -162,7 +164,7 @@ def format_table(results: dict) -> str:
     """A Table-2-shaped table: one row per planner; OLS, NR-CLS, R-CLS-idm, R-CLS-gpd."""
     cols = ["OLS", "NR-CLS", "R-CLS-idm", "R-CLS-gpd"]
     names = {"log": "Log replay (expert)", "cv": "Constant velocity", "idm": "IDM (route)", "gpd": "GPD zero-shot",
-             "gpd_head": "GPD + planning head"}
+             "gpd_head": "GPD + planning head", "gpd_head_scratch": "  head w/o pre-training"}
     present = [c for c in cols if any(c in r for r in results["planners"].values())]
     head = f"{'Planner':<24}" + "".join(f"{c:>11}" for c in present)
     lines = [f"Planning scores on {results['scenarios']} scenarios (nuPlan definitions, x100; CLS over 8 s at 10 Hz)",

@@ -12,7 +12,8 @@ shape compiles once):
   model's imagined future);
 * ``gpd_head``: the paper's fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the
   current frame, run by its own backbone (a KV cache in the policy state): its first planned pose (velocity from
-  the plan's central difference); its open-loop plan is the head's 8 s trajectory at the current frame.
+  the plan's central difference); its open-loop plan is the head's 8 s trajectory at the current frame;
+  ``gpd_head_scratch`` is the same head trained without pre-training (the paper's ablation).
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ from gpd_jax.sim.agents import IDMParams, idm_accel, pose_at, project
 from gpd_jax.sim.core import Observation, Policy, SimError
 from gpd_jax.spec import ModelSpec
 
-PLANNERS = ("log", "cv", "idm", "gpd", "gpd_head")
+PLANNERS = ("log", "cv", "idm", "gpd", "gpd_head", "gpd_head_scratch")
+HEAD_PLANNERS = ("gpd_head", "gpd_head_scratch")  # the planning head fine-tuned from GPD / trained from scratch
 
 
 def _slice_fine(obs: Observation, spec: ModelSpec, start, count: int):
@@ -108,7 +110,7 @@ def gpd_policy(spec: ModelSpec) -> Policy:
     return Policy(name="gpd", select=select, needs_model=True)
 
 
-def gpd_head_policy(head_model: Model) -> Policy:
+def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
     """The fine-tuned planning head of `head_model` (a GPD whose config has a `plan_head` section) as a policy
     that carries its own backbone's KV cache in its policy state: each frame it appends what the simulator
     placed (ego, agents, the map encoded around the ego) to its cache, reads the ego token's output and plans. So
@@ -146,7 +148,7 @@ def gpd_head_policy(head_model: Model) -> Policy:
         st = prefill(module, frames(module, obs), h, t_total)
         return plan_trajectory(module, st.hidden, obs.ego_pose)[: spec.num_future]
 
-    return Policy(name="gpd_head", select=select, init=init, plan=plan, needs_map=True, params=head_model.params)
+    return Policy(name=name, select=select, init=init, plan=plan, needs_map=True, params=head_model.params)
 
 
 @functools.lru_cache(maxsize=32)
@@ -154,17 +156,17 @@ def _cached(name: str, spec: ModelSpec) -> Policy:
     return {"log": expert_policy, "cv": constant_velocity_policy, "idm": idm_policy, "gpd": gpd_policy}[name](spec)
 
 
-_HEADS: dict[int, Policy] = {}
+_HEADS: dict[tuple[str, int], Policy] = {}
 
 
 def make_policy(name: str, model: Model) -> Policy:
     """A shipped policy by name (`PLANNERS`), built once per model (so repeated runs reuse one compile); for
-    ``gpd_head`` `model` is the model with the planning head."""
+    ``gpd_head`` / ``gpd_head_scratch`` `model` is the model with the planning head."""
     if name not in PLANNERS:
         raise SimError(f"unknown planner {name!r}; known planners: {', '.join(PLANNERS)}")
-    if name == "gpd_head":
-        key = id(model)
+    if name in HEAD_PLANNERS:
+        key = (name, id(model))
         if key not in _HEADS:
-            _HEADS[key] = gpd_head_policy(model)
+            _HEADS[key] = gpd_head_policy(model, name)
         return _HEADS[key]
     return _cached(name, model.spec)
