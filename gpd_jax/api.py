@@ -94,6 +94,7 @@ def make_prompt(model: Model, scene: Scene, **choices) -> Prompt:
     view = scene
     if (scene.num_frames, scene.num_agents) != (model.spec.num_frames, model.spec.num_agents):
         view = jax.tree.map(lambda x: x[0], prepare(model, jax.tree.map(lambda x: np.asarray(x)[None], scene)))
+    choices.setdefault("frame_period_s", model.spec.frame_period_s)
     return _make_prompt(jax.tree.map(np.asarray, view), model.spec.num_history, **choices)
 
 

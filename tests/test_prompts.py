@@ -222,3 +222,31 @@ def test_shipped_model_cars_behind_a_given_braking_path_slow_down():
     travel = xy[:, -1, :4, 0] - xy[:, h - 1, :4, 0]
     assert travel[0, 0] - travel[1, 0] > 10.0, travel
     assert travel[0, 1] - travel[1, 1] > 10.0, travel
+
+
+@pytest.mark.parametrize("content, match", [
+    ('{"agents": [{"slot": 40, "frames": "future", "from": "log"}]}', r"\$\.agents\[0\]\.slot: unknown agent slot 40"),
+    ('{"agents": [{"slot": 3, "frames": [3, 44], "from": "log"}]}', r"frames \[3, 44\] out of range \[0, 11\)"),
+    ('{"lanes": [[[0, 0], [1, NaN]]]}', r"lanes\.polylines\[0\]: has NaN"),
+    ('{"lanes": [[[0, 0]]]}', r"at least 2 points"),
+    ('not json', r"not valid JSON"),
+])
+def test_rollout_cli_rejects_a_bad_prompt_file_before_loading(tmp_path, capsys, content, match):
+    import os
+    import re
+    import sys
+
+    from data_fixtures import write_small_store
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    sys.path.insert(0, root)
+    import rollout as cli
+
+    data = str(tmp_path / "store")
+    write_small_store(data, n_shards=1, per_shard=1, split="test")
+    f = tmp_path / "p.json"
+    f.write_text(content)
+    out = tmp_path / "out"
+    assert cli.main(["--data", data, "--out", str(out), "--prompt", str(f)]) == 2
+    assert re.search(match, capsys.readouterr().err)
+    assert not out.exists()
