@@ -146,7 +146,7 @@ def run_prompts(args: argparse.Namespace) -> int:
     os.makedirs(args.out, exist_ok=True)
     atomic_write_json(os.path.join(args.out, "conditions.json"), res)
     keys = ("given_max_xy_m", "cap_violations", "max_valid_slots", "offroad_share", "mean_lane_distance_m",
-            "map_f1")
+            "map_f1", "agent_ade_m", "agent_collision_share")
     print("prompt".ljust(30) + "".join(k.rjust(22) for k in keys))
     for name, r in res["prompts"].items():
         print(name.ljust(30) + "".join(f"{r.get(k, float('nan')):22.4g}" for k in keys))

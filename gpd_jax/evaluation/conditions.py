@@ -10,6 +10,7 @@ Per rolled-out scenario (host numpy, model-rate arrays):
 * `lane_offroad`: the share of generated agent positions (future frames, slots the prompt does not give) farther
   than half a lane width from every given lane centreline (the distance to the polylines; the drivable-area
   queries of `gpd_jax.geometry` can replace it once they land);
+* `agent_figures`: beside them, the usual ADE against the log and collision share of the generated agents;
 * `lane_map_f1`: map F1 (the paper's, `gpd_jax.metrics.map`) of the lanes decoded from the rollout's map tokens
   of future frames against the given lanes seen from each frame's rolled-out ego (SLEDGE vector lanes,
   `gpd_jax.data.lanes.vector_lanes_frames`).
@@ -70,6 +71,29 @@ def cap_violations(out: Any, prompt: Prompt, num_history: int) -> dict[str, floa
     removed = p.removed()
     return {"violations": int(v[:, removed].sum()), "max_valid_slots": int(v[num_history:].sum(-1).max()),
             "cap": int(p.max_agents)}
+
+
+def agent_figures(out: Any, log_xy: np.ndarray, log_valid: np.ndarray, size: np.ndarray, prompt: Prompt,
+                  num_history: int) -> dict[str, float]:
+    """The usual figures beside the condition scores, for generated agent slot-frames (future frames, not given):
+    mean displacement from the log where both are valid ("ade_m", the log being one possible future), and the
+    share of generated slots that overlap another valid box in some future frame ("collision_share", the
+    paper's definition over the horizon)."""
+    from gpd_jax.metrics.agents import box_overlap_pairwise
+
+    gen = ~given_mask(prompt, num_history)
+    gen[:num_history] = False
+    v = np.asarray(out.valid)
+    both = gen & v & np.asarray(log_valid)
+    d = np.linalg.norm(np.asarray(out.xy) - np.asarray(log_xy), axis=-1)
+    ov = np.asarray(box_overlap_pairwise(np.asarray(out.xy)[num_history:], np.asarray(out.heading)[num_history:],
+                                         np.asarray(size)[None].repeat(v.shape[0] - num_history, 0),
+                                         v[num_history:])).any(-1)  # [F, A]
+    slots = (gen & v)[num_history:].any(0)
+    hit = (ov & (gen & v)[num_history:]).any(0)
+    return {"ade_m": float(d[both].mean()) if both.any() else float("nan"),
+            "collision_share": float(hit[slots].mean()) if slots.any() else float("nan"),
+            "ade_count": int(both.sum()), "generated_slots": int(slots.sum())}
 
 
 def distance_to_polylines(points: np.ndarray, lanes: np.ndarray, lanes_valid: np.ndarray) -> np.ndarray:
@@ -200,6 +224,7 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
                 gv = np.where(p.agent_given, p.valid, sc.valid) if p.agent_given is not None else sc.valid
                 gv = gv & ~p.removed()[None]
                 row = {**{f"given_{k_}": v for k_, v in given_deviation(o, gxy, ghd, gv, p, h).items()},
+                       **{f"agents_{k_}": v for k_, v in agent_figures(o, sc.xy, sc.valid, sc.size, p, h).items()},
                        **{f"cap_{k_}": v for k_, v in cap_violations(o, p, h).items()}}
                 own = p.lanes is not None and bool(p.use_lanes)
                 ln, lv = (p.lanes, p.lanes_valid) if own else (sc.polylines, sc.polyline_valid)
@@ -235,6 +260,8 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
             "cap": agg("cap_cap", np.max),
             "max_valid_slots": agg("cap_max_valid_slots", np.max),
             "offroad_share": agg("lanes_offroad_share", np.nanmean),
+            "agent_ade_m": agg("agents_ade_m", np.nanmean),
+            "agent_collision_share": agg("agents_collision_share", np.nanmean),
             "mean_lane_distance_m": agg("lanes_mean_lane_distance_m", np.nanmean),
             **reduce_map(maps[name]),
         }
