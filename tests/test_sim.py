@@ -169,6 +169,15 @@ def test_host_loop_matches_the_scan_and_bad_policies_are_named(model, sim_scenes
     host = sim.run_host(model, sim_scenes, cv, agents="idm", with_model=False)
     scan = sim.run(model, sim_scenes, sim.make_policy("cv", model), jax.random.key(0), agents="idm")
     np.testing.assert_allclose(np.asarray(host.fine_xy), np.asarray(scan.fine_xy), atol=1e-4)
+    # the pure pieces under run: reset, observe, step
+    one = jax.tree.map(lambda x: x[0], sim_scenes)
+    state = jax.jit(lambda sc: sim.reset(model, sc, jax.random.key(0), agents="idm", with_model=False))(one)
+    obs = jax.jit(lambda st: sim.observe(model, st))(state)
+    step = jax.jit(lambda st, e: sim.step(model, st, e))
+    for _ in range(model.spec.num_future):
+        ego = cv(jax.tree.map(lambda x: np.asarray(x)[None], obs))[0]
+        state, obs = step(state, jnp.asarray(ego))
+    np.testing.assert_allclose(np.asarray(state.fine_xy), np.asarray(host.fine_xy[0]), atol=1e-4)
     nan = sim.Policy(name="nan_policy", select=lambda p, o, s, k: (jnp.full(3, jnp.nan), s))
     with pytest.raises(sim.SimError, match="nan_policy.*non-finite"):
         sim.run(model, sim_scenes, nan, jax.random.key(0), agents="log")

@@ -6,8 +6,8 @@ vmapped over scenarios, compiled once per batch shape) and `run_host` (a plain-P
     out.fine_xy                                # f32[8, 101, A, 2]: the closed-loop scene at the stored rate
 
     state = reset(model, one_scene, key, agents="idm")     # frames [0, H) from the log, the KV cache prefilled
-    state = step(model, state, ego)                         # append one model frame with the ego placed by `ego`
     obs = observe(model, state)                             # what a policy sees
+    state, obs = step(model, state, ego)                    # append one model frame with the ego placed by `ego`
 
 Each step appends one model frame (1 s for the shipped model) and the S = frame_stride stored frames before it:
 the ego from the policy (`gpd_jax.sim.dynamics`: a pose, pose + velocity, an action through the bicycle model, or
@@ -401,10 +401,12 @@ def reset(model: Model, scene: SimScene, key: jax.Array | None = None, *, agents
     return _reset(_parts(model, with_model=with_model), scene, agents)
 
 
-def step(model: Model, state: SimState, ego: jax.Array, *, limits: BicycleLimits = BicycleLimits()) -> SimState:
-    """Appends the next model frame with the ego placed by `ego` (see `Policy`); returns the new state (read it
-    with `observe`). Pure."""
-    return _step(_parts(model, with_model=state.decode is not None), state, ego, limits)
+def step(model: Model, state: SimState, ego: jax.Array, *, limits: BicycleLimits = BicycleLimits()
+         ) -> tuple[SimState, Observation]:
+    """Appends the next model frame with the ego placed by `ego` (see `Policy`): `state, obs = step(...)`. Pure."""
+    parts = _parts(model, with_model=state.decode is not None)
+    state = _step(parts, state, ego, limits)
+    return state, _observe(parts, state)
 
 
 def observe(model: Model, state: SimState) -> Observation:
