@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -172,17 +172,39 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     elif lead:
         print(f"training {count_params(model):,} parameters on {n_train} scenes, {mesh.devices.size} device(s)")
 
+    validator = Validator(config, data_dir, trainer) if int(tc.eval_every) > 0 else None
+
+    def summary(ev: dict[str, float]) -> str:
+        keys = [k for k in ev if k in ("loss", "position") or k.endswith("_vs_cv")]
+        return ", ".join(f"{k}={ev[k]:.4g}" for k in keys)
+
+    return run_steps(config, trainer, state, data_dir=data_dir, workdir=workdir, mesh=mesh, spec=spec, mgr=mgr,
+                     log=log, start=start, stop_after=stop_after, lead=lead, quiet=quiet, desc="gpd",
+                     validate=validator,
+                     postfix=lambda parts: {"sps": f"{parts['samples_per_s']:.1f}"}, summary=summary)
+
+
+def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, data_dir: str, workdir: str, mesh,
+              spec, mgr, log: MetricsLog, start: int, stop_after: int | None, lead: bool, quiet: bool, desc: str,
+              validate: Callable[[Any, int], dict[str, float]] | None, postfix: Callable[[dict], dict],
+              summary: Callable[[dict], str]) -> dict[str, Any]:
+    """The training steps of a run (stage 2 and the planning head's), from `start` to `train.steps` (or
+    `stop_after` more): batches from the seeded loader at the resumed step, a jitted `trainer.train_step` on the
+    device mesh, metrics every `log_every`, `validate(params, step)` every `eval_every`, checkpoints every
+    `checkpoint_every` and on a stop (Ctrl-C, SIGTERM), the export when the run is complete.
+
+    Returns {"step", "train": last logged train metrics, "eval": last evaluation, "export": dir or None}."""
+    tc = config.train
+    bs, pcount, pindex = int(tc.batch_size), jax.process_count(), jax.process_index()
     it = data_loader.make_loader(data_dir, config.data.train_split, bs // pcount, seed=int(config.seed),
                                  process_index=pindex, process_count=pcount, start_step=start,
                                  num_threads=int(tc.loader_threads))
-    validator = Validator(config, data_dir, trainer) if int(tc.eval_every) > 0 else None
-
     total = int(tc.steps)
     end = total if stop_after is None else min(total, start + int(stop_after))
     last_train: dict[str, float] = {}
     last_eval: dict[str, float] = {}
     bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True, mininterval=2.0, disable=quiet or not lead,
-                    desc="gpd")
+                    desc=desc)
     step = start
     window_t, window_n = time.perf_counter(), 0
     with StopOnSigterm() as stop:
@@ -194,25 +216,22 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
                                     "has model frames without map tokens; encode every shard: python -m "
                                     f"gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
                                     f"{config.data.frame_stride}")
-                batch = _global_batch(view, mesh)
-                state, parts = trainer.train_step(state, batch)
+                state, parts = trainer.train_step(state, _global_batch(view, mesh))
                 step += 1
                 window_n += bs
                 bar.update(1)
                 if step % int(tc.log_every) == 0 or step == end:
                     parts = {k: float(v) for k, v in jax.device_get(parts).items()}
-                    dt = time.perf_counter() - window_t
-                    parts["samples_per_s"] = window_n / max(dt, 1e-9)
+                    parts["samples_per_s"] = window_n / max(time.perf_counter() - window_t, 1e-9)
                     window_t, window_n = time.perf_counter(), 0
                     last_train = parts
                     log.write(step, "train", parts)
-                    bar.set_postfix(loss=f"{parts['loss']:.3f}", sps=f"{parts['samples_per_s']:.1f}")
-                if validator is not None and (step % int(tc.eval_every) == 0 or step == total):
-                    last_eval = validator(state.params, step)
+                    bar.set_postfix(loss=f"{parts['loss']:.3f}", **postfix(parts))
+                if validate is not None and (step % int(tc.eval_every) == 0 or step == total):
+                    last_eval = validate(state.params, step)
                     log.write(step, config.data.val_split, last_eval)
                     if lead:
-                        keys = [k for k in last_eval if k in ("loss", "position") or k.endswith("_vs_cv")]
-                        bar.write(f"step {step} val: " + ", ".join(f"{k}={last_eval[k]:.4g}" for k in keys))
+                        bar.write(f"step {step} val: " + summary(last_eval))
                     window_t, window_n = time.perf_counter(), 0
                 if step % int(tc.checkpoint_every) == 0 or step == total:
                     save_state(mgr, step, state._asdict())

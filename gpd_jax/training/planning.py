@@ -41,11 +41,10 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import optax
-import tqdm
 from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from gpd_jax.checkpoint import Model, build_model, export_model, load_model, model_spec, resolve_tokenizer_path
+from gpd_jax.checkpoint import Model, build_model, load_model, model_spec, resolve_tokenizer_path
 from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data.errors import DataError
@@ -55,8 +54,8 @@ from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
 from gpd_jax.parallel import data_mesh
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.spec import EvalError
-from gpd_jax.training.common import MetricsLog, StopOnSigterm, checkpoint_manager, restore_state, save_state
-from gpd_jax.training.loop import _check_store, _check_token_source, _global_batch, resolve_data_dir
+from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state
+from gpd_jax.training.loop import _check_store, _check_token_source, resolve_data_dir, run_steps
 from gpd_jax.training.step import TrainState, _smooth_l1, batch_loss, make_optimizer
 
 HEAD = "plan_head"
@@ -305,62 +304,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
               f"({'frozen' if float(tc.backbone_lr_scale) == 0 else f'lr x {float(tc.backbone_lr_scale):g}'}, "
               f"{'pre-trained: ' + str(tc.init_from) if tc.init_from else 'from scratch'}) on {n_train} scenes")
 
-    it = data_loader.make_loader(data_dir, config.data.train_split, bs // pcount, seed=int(config.seed),
-                                 process_index=pindex, process_count=pcount, start_step=start,
-                                 num_threads=int(tc.loader_threads))
     validator = PlanValidator(config, trainer, val_dir) if int(tc.eval_every) > 0 else None
-    total = int(tc.steps)
-    end = total if stop_after is None else min(total, start + int(stop_after))
-    last_train: dict[str, float] = {}
-    last_eval: dict[str, float] = {}
-    bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True, mininterval=2.0, disable=quiet or not lead,
-                    desc="plan head")
-    step = start
-    window_t, window_n = time.perf_counter(), 0
-    with StopOnSigterm() as stop:
-        try:
-            while step < end and not stop.requested:
-                view = spec.view(next(it))
-                if not np.all(view.map_valid):
-                    raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step {step + 1} "
-                                    "has model frames without map tokens; encode every shard: python -m "
-                                    f"gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
-                                    f"{config.data.frame_stride}")
-                state, parts = trainer.train_step(state, _global_batch(view, mesh))
-                step += 1
-                window_n += bs
-                bar.update(1)
-                if step % int(tc.log_every) == 0 or step == end:
-                    parts = {k: float(v) for k, v in jax.device_get(parts).items()}
-                    parts["samples_per_s"] = window_n / max(time.perf_counter() - window_t, 1e-9)
-                    window_t, window_n = time.perf_counter(), 0
-                    last_train = parts
-                    log.write(step, "train", parts)
-                    bar.set_postfix(loss=f"{parts['loss']:.3f}", ade=f"{parts['plan_ade_current']:.2f}")
-                if validator is not None and (step % int(tc.eval_every) == 0 or step == total):
-                    last_eval = validator(state.params)
-                    log.write(step, config.data.val_split, last_eval)
-                    if lead:
-                        bar.write(f"step {step} val: loss={last_eval.get('loss', float('nan')):.4g} "
-                                  f"plan_ade_current={last_eval.get('plan_ade_current', float('nan')):.3f} m")
-                    window_t, window_n = time.perf_counter(), 0
-                if step % int(tc.checkpoint_every) == 0 or step == total:
-                    save_state(mgr, step, state._asdict())
-        except KeyboardInterrupt:
-            stop.requested = True
-        finally:
-            bar.close()
-            it.close()
-            if mgr.latest_step() != step:
-                save_state(mgr, step, state._asdict(), force=True)
-            mgr.wait_until_finished()
-    exported = None
-    if step == total and lead:
-        exported = export_model(jax.device_get(state.params), config, os.path.join(workdir, "export"),
-                                tokenizer_dir=config.model.map_tokenizer or None)
-    if stop.requested and lead:
-        print(f"stopped at step {step}; run the same command again to resume")
-    return {"step": step, "train": last_train, "eval": last_eval, "export": exported}
+    return run_steps(config, trainer, state, data_dir=data_dir, workdir=workdir, mesh=mesh, spec=spec, mgr=mgr,
+                     log=log, start=start, stop_after=stop_after, lead=lead, quiet=quiet, desc="plan head",
+                     validate=None if validator is None else (lambda params, _step: validator(params)),
+                     postfix=lambda parts: {"ade": f"{parts['plan_ade_current']:.2f}"},
+                     summary=lambda ev: (f"loss={ev.get('loss', float('nan')):.4g} "
+                                         f"plan_ade_current={ev.get('plan_ade_current', float('nan')):.3f} m"))
 
 
 # ----------------------------------------------------------------------------------------------- evaluation
