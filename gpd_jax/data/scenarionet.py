@@ -376,14 +376,7 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
             stats["map_lane_with_polygon"] += 1
         if "width" in feat:
             stats["map_lane_with_width"] += 1
-        try:
-            pl = np.asarray(_need(feat, "polyline", fw, path), np.float64)
-        except (TypeError, ValueError) as e:
-            raise DataError(path, f"{fw}['polyline'] is not numeric: {e}") from None
-        if pl.ndim != 2 or pl.shape[1] not in (2, 3):
-            raise DataError(path, f"{fw}['polyline'] has shape {pl.shape}, expected (P, 2) or (P, 3)")
-        pl = pl[:, :2]
-        pl = pl[np.isfinite(pl).all(-1)]
+        pl = _finite_points(_need(feat, "polyline", fw, path), "polyline", "P", fw, path)
         if len(pl) < 2:
             stats["lane_polylines_too_short"] += 1
             continue
@@ -403,18 +396,23 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
                   areas=tuple(areas))
 
 
+def _finite_points(value, key: str, n: str, fw: str, path: str) -> np.ndarray:
+    """A feature's `key` ((n, 2) or (n, 3) numbers) as its finite xy points f64[<= n, 2]; DataError otherwise."""
+    try:
+        pts = np.asarray(value, np.float64)
+    except (TypeError, ValueError) as e:
+        raise DataError(path, f"{fw}['{key}'] is not numeric: {e}") from None
+    if pts.ndim != 2 or pts.shape[1] not in (2, 3):
+        raise DataError(path, f"{fw}['{key}'] has shape {pts.shape}, expected ({n}, 2) or ({n}, 3)")
+    pts = pts[:, :2]
+    return pts[np.isfinite(pts).all(-1)]
+
+
 def _polygon_of(feat: dict, fw: str, path: str) -> np.ndarray | None:
     """The feature's `polygon` as f64[Q, 2] if it encloses an area (>= 3 finite points, area > 0.5 m^2)."""
     if "polygon" not in feat or feat["polygon"] is None:
         return None
-    try:
-        pg = np.asarray(feat["polygon"], np.float64)
-    except (TypeError, ValueError) as e:
-        raise DataError(path, f"{fw}['polygon'] is not numeric: {e}") from None
-    if pg.ndim != 2 or pg.shape[1] not in (2, 3):
-        raise DataError(path, f"{fw}['polygon'] has shape {pg.shape}, expected (Q, 2) or (Q, 3)")
-    pg = pg[:, :2]
-    pg = pg[np.isfinite(pg).all(-1)]
+    pg = _finite_points(feat["polygon"], "polygon", "Q", fw, path)
     if len(pg) < 3:
         return None
     x, y = pg[:, 0], pg[:, 1]

@@ -131,14 +131,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
       {"step": last step, "train": last logged train metrics, "eval": last evaluation, "export": dir or None}.
     """
     tc = config.train
-    data_dir = resolve_data_dir(config.data.dir)
-    n_train = _check_store(config, data_dir, config.data.train_split)
-    pcount, pindex = jax.process_count(), jax.process_index()
-    mesh = data_mesh()
-    bs = int(tc.batch_size)
-    if bs % mesh.devices.size or bs % pcount:
-        raise ValueError(f"train.batch_size {bs} must be divisible by the {mesh.devices.size} devices and "
-                         f"{pcount} processes")
+    data_dir, n_train, mesh, pindex = prepare_run(config)
     if config.model.map_tokenizer:
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
         _check_token_source(data_dir, (config.data.train_split, config.data.val_split), config.model.map_tokenizer)
@@ -182,6 +175,21 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
                      log=log, start=start, stop_after=stop_after, lead=lead, quiet=quiet, desc="gpd",
                      validate=validator,
                      postfix=lambda parts: {"sps": f"{parts['samples_per_s']:.1f}"}, summary=summary)
+
+
+def prepare_run(config: ml_collections.ConfigDict) -> tuple[str, int, Any, int]:
+    """What every training run checks first: the training store (resolved, with its number of training scenes),
+    the device mesh, and a batch size that divides over its devices and processes. Returns (data_dir, n_train,
+    mesh, process index)."""
+    data_dir = resolve_data_dir(config.data.dir)
+    n_train = _check_store(config, data_dir, config.data.train_split)
+    pcount = jax.process_count()
+    mesh = data_mesh()
+    bs = int(config.train.batch_size)
+    if bs % mesh.devices.size or bs % pcount:
+        raise ValueError(f"train.batch_size {bs} must be divisible by the {mesh.devices.size} devices and "
+                         f"{pcount} processes")
+    return data_dir, n_train, mesh, jax.process_index()
 
 
 def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, data_dir: str, workdir: str, mesh,

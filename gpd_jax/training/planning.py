@@ -51,11 +51,10 @@ from gpd_jax.data.errors import DataError
 from gpd_jax.fsutil import atomic_write_json, atomic_write_text
 from gpd_jax.model import count_params, forward
 from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
-from gpd_jax.parallel import data_mesh
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.spec import EvalError
 from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state
-from gpd_jax.training.loop import _check_store, _check_token_source, resolve_data_dir, run_steps
+from gpd_jax.training.loop import _check_token_source, prepare_run, resolve_data_dir, run_steps
 from gpd_jax.training.step import TrainState, _smooth_l1, batch_loss, make_optimizer
 
 HEAD = "plan_head"
@@ -256,15 +255,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     tc = config.train
     if not config.get(HEAD):
         raise ValueError("the config has no plan_head section (configs/gpd_sumo_plan_head.py)")
-    data_dir = resolve_data_dir(config.data.dir)
+    data_dir, n_train, mesh, pindex = prepare_run(config)
     val_dir = resolve_data_dir(config.data.get("val_dir") or config.data.dir)
-    n_train = _check_store(config, data_dir, config.data.train_split)
-    pcount, pindex = jax.process_count(), jax.process_index()
-    mesh = data_mesh()
-    bs = int(tc.batch_size)
-    if bs % mesh.devices.size or bs % pcount:
-        raise ValueError(f"train.batch_size {bs} must be divisible by the {mesh.devices.size} devices and "
-                         f"{pcount} processes")
     first_frame(config)
     if config.model.map_tokenizer:
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
