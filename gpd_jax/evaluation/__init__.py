@@ -75,8 +75,23 @@ metrics.json (written by rollout.py; NaN written as null)::
      "ratios": {"traffic_simulation_agent_ade_over_constant_velocity": {"3s": r, "5s": r, "8s": r},
                 "traffic_simulation_agent_ade_over_constant_velocity_model_rate": {...}},
      "ratio_targets": {...: {"3s": 0.8, "5s": 0.75, "8s": 0.7}},
-     "by_layout": {layout: {"scenarios": n, "tasks": ..., "baselines": ..., "ratios": ...}},  # 2+ layouts only
+     "motion_split": {"stationary_below_mps": 0.5, "speed": "...", "classes": ["stationary", "moving",
+                                                                          "speed_unknown"],
+                      "tasks": {task: {"3s": {"agent_ade_stationary", "agent_fde_stationary", "agent_n_stationary",
+                                              "agent_ade_stationary_corrected", ..., "ego_ade_moving", ...}}},
+                      "baselines": {"constant_velocity": {...}, "constant_velocity_model_rate": ..., "log_replay": ...},
+                      "ratios": {"traffic_simulation_over_constant_velocity": {"agent_stationary": {"3s": r}, ...},
+                                 "traffic_simulation_over_constant_velocity_model_rate": {...}}},
+     "by_layout": {layout: {"scenarios": n, "tasks": ..., "baselines": ..., "ratios": ...,
+                            "motion_split": ...}},  # 2+ layouts only
      "timing_s": {...}, "render": {...}}                           # render: only with --render
+
+**Motion split** ("motion_split"): ego and agent ADE / FDE of every task and baseline again, separately for slots
+*stationary* (speed < 0.5 m/s at the current frame), *moving* and of unknown speed (not valid at the stored frame
+before the current one: first seen now), with `*_n_<class>` the number of such slots with a valid log frame within
+the horizon. The speed is the stored-rate backward difference at the current frame (the velocity a
+`velocity_inputs` model is given, and the one constant velocity extrapolates). Each class's sums are the unsplit
+sums restricted to it (the paper variant's N_exist too), so the three classes add up to the unsplit figures.
 
 ADE / FDE in metres, collision rates in percent (`*_collision`: the paper's share of agents with at least one
 collision within the horizon; `*_collision_frames`: the per-frame rate of the official code), map lateral distance in metres, map Chamfer in m^2 (paper) or

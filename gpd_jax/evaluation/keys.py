@@ -18,3 +18,12 @@ MAP_METRICS = ("map_f1", "map_precision", "map_recall", "map_lateral")
 RATIO_TARGETS = {"3s": 0.8, "5s": 0.75, "8s": 0.7}
 RATIO_KEY = "traffic_simulation_agent_ade_over_constant_velocity"
 RATIO_KEY_MODEL_RATE = "traffic_simulation_agent_ade_over_constant_velocity_model_rate"
+# ADE / FDE split by motion at the current frame (`metrics.json`'s "motion_split"; `gpd_jax.metrics.agents`).
+MOTION_SPLIT = "motion_split"
+MOTION_SPEED = ("stored-rate backward difference at the current frame: |xy[c] - xy[c-1]| / stored frame period "
+                "(the velocity input of a velocity_inputs model and constant velocity's velocity); unknown where "
+                "the slot is not valid at both frames")
+# The model / baseline ratios of the motion split: (key, task, baseline).
+MOTION_RATIOS = (("traffic_simulation_over_constant_velocity", "traffic_simulation", "constant_velocity"),
+                 ("traffic_simulation_over_constant_velocity_model_rate", "traffic_simulation",
+                  "constant_velocity_model_rate"))

@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, MAP_BASELINES, MAP_METRICS, RATIO_KEY,
-                                     RATIO_KEY_MODEL_RATE)
-from gpd_jax.metrics import VARIANTS, reduce_agent_metrics, reduce_map_metrics
+from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, MAP_BASELINES, MAP_METRICS, MOTION_RATIOS,
+                                     MOTION_SPEED, MOTION_SPLIT, RATIO_KEY, RATIO_KEY_MODEL_RATE)
+from gpd_jax.metrics import MOTION_CLASSES, STATIONARY_MPS, VARIANTS, reduce_agent_metrics, reduce_map_metrics
 from gpd_jax.spec import EvalError, ModelSpec
 from gpd_jax.tasks import generated
 
@@ -34,6 +34,22 @@ def _agent_entries(red: dict[str, dict[str, dict[str, float]]], label: str, grou
     return d
 
 
+def _motion_entries(red: dict[str, dict[str, dict[str, float]]], label: str, groups: Sequence[str],
+                    variant: str) -> dict[str, float]:
+    """ADE / FDE (and the counts) of each motion class; {} when the sums have no motion split."""
+    other = other_variant(variant)
+    d: dict[str, float] = {}
+    for g in groups:
+        for k in MOTION_CLASSES:
+            if f"{g}_n_{k}" not in red[variant][label]:
+                return {}
+            d[f"{g}_n_{k}"] = red[variant][label][f"{g}_n_{k}"]
+            for n in ("ade", "fde"):
+                d[f"{g}_{n}_{k}"] = red[variant][label][f"{g}_{n}_{k}"]
+                d[f"{g}_{n}_{k}_{other}"] = red[other][label][f"{g}_{n}_{k}"]
+    return d
+
+
 def _map_entries(sums: dict[str, np.ndarray], h: int, variant: str) -> dict[str, float]:
     r = reduce_map_metrics({k: v[:h] for k, v in sums.items()})
     d = {k: r[k] for k in MAP_METRICS}
@@ -54,6 +70,7 @@ def reduce_results(acc: dict[str, Any], spec: ModelSpec, task_names: Sequence[st
         raise EvalError(f"variant must be one of {VARIANTS}, got {variant!r}")
     labels = spec.labels
     res: dict[str, Any] = {"tasks": {}, "baselines": {}}
+    motion: dict[str, Any] = {"tasks": {}, "baselines": {}}
     for name in task_names:
         s = acc["tasks"][name]
         red = {v: reduce_agent_metrics(s[v]) for v in VARIANTS}
@@ -64,9 +81,13 @@ def reduce_results(acc: dict[str, Any], spec: ModelSpec, task_names: Sequence[st
             if "map" in generated(name) and "map" in s:
                 d.update(_map_entries(s["map"], h, variant))
             res["tasks"][name][label] = d
+        if groups:
+            motion["tasks"][name] = {label: _motion_entries(red, label, groups, variant) for label in labels}
     for name in BASELINE_NAMES:
         red = {v: reduce_agent_metrics(acc["baselines"][name][v]) for v in VARIANTS}
         res["baselines"][name] = {label: _agent_entries(red, label, ("ego", "agent"), variant) for label in labels}
+        motion["baselines"][name] = {label: _motion_entries(red, label, ("ego", "agent"), variant)
+                                     for label in labels}
     for name in MAP_BASELINES:
         if name in acc["baselines"]:
             s = acc["baselines"][name]["map"]
@@ -77,7 +98,23 @@ def reduce_results(acc: dict[str, Any], spec: ModelSpec, task_names: Sequence[st
         for key, base in ((RATIO_KEY, "constant_velocity"), (RATIO_KEY_MODEL_RATE, "constant_velocity_model_rate")):
             cv = res["baselines"][base]
             res["ratios"][key] = {label: _ratio(ts[label]["agent_ade"], cv[label]["agent_ade"]) for label in labels}
+    if all(d for part in ("tasks", "baselines") for per in motion[part].values() for d in per.values()):
+        res[MOTION_SPLIT] = _motion_block(motion, labels)
     return res
+
+
+def _motion_block(motion: dict[str, Any], labels: Sequence[str]) -> dict[str, Any]:
+    """metrics.json's "motion_split": the split entries of every task and baseline, and the model / baseline
+    ADE ratios of each group and motion class."""
+    ratios: dict[str, Any] = {}
+    for key, task, base in MOTION_RATIOS:
+        if task not in motion["tasks"]:
+            continue
+        t, b = motion["tasks"][task], motion["baselines"][base]
+        ratios[key] = {f"{g}_{k}": {lb: _ratio(t[lb][f"{g}_ade_{k}"], b[lb][f"{g}_ade_{k}"]) for lb in labels}
+                       for g in ("agent", "ego") for k in MOTION_CLASSES if f"{g}_ade_{k}" in t[labels[0]]}
+    return {"stationary_below_mps": STATIONARY_MPS, "speed": MOTION_SPEED, "classes": list(MOTION_CLASSES),
+            "tasks": motion["tasks"], "baselines": motion["baselines"], "ratios": ratios}
 
 
 def _ratio(a: float, b: float) -> float:

@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from gpd_jax.evaluation.keys import (BASELINE_NAMES, MAP_PERSISTENCE, RATIO_KEY, RATIO_KEY_MODEL_RATE, RATIO_TARGETS,
-                                     TOKENIZER_CEILING)
+from gpd_jax.evaluation.keys import (BASELINE_NAMES, MAP_PERSISTENCE, MOTION_SPLIT, RATIO_KEY, RATIO_KEY_MODEL_RATE,
+                                     RATIO_TARGETS, TOKENIZER_CEILING)
 from gpd_jax.evaluation.reduce import other_variant
 from gpd_jax.tasks import generated
 
@@ -75,9 +75,52 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
         if ratio:
             parts = [f"{lb} {_fmt(v)} (target <= {RATIO_TARGETS.get(lb, float('nan')):g})" for lb, v in ratio.items()]
             out += [f"traffic simulation agent ADE / {what} agent ADE: " + ", ".join(parts)]
+    if results.get(MOTION_SPLIT):
+        out += [""] + format_motion_table(results, variant)
     if results.get("by_layout"):
         out += [""] + format_layout_table(results)
     return "\n".join(out)
+
+
+def format_motion_table(results: dict[str, Any], variant: str = "paper", task: str = "traffic_simulation"
+                        ) -> list[str]:
+    """Markdown table of `task`'s agent and ego ADE split by motion at the current frame, against both
+    constant-velocity baselines: n at the first horizon, ADE at every horizon, and the ratios. Rows of
+    unknown speed only where there are any. [] when the task or the split is missing."""
+    ms = results.get(MOTION_SPLIT) or {}
+    t = ms.get("tasks", {}).get(task)
+    cv, cvm = (ms.get("baselines", {}).get(b) for b in ("constant_velocity", "constant_velocity_model_rate"))
+    if not t or not cv or not cvm:
+        return []
+    labels = list(t)
+    secs = " / ".join(lb.rstrip("s") for lb in labels) + " s"
+    row = lambda d, key: " / ".join(f"{d[lb].get(key, float('nan')):.2f}" if _finite(d[lb].get(key)) else "-"
+                                    for lb in labels)
+    ratio = lambda key, b: " / ".join(f"{t[lb][key] / b[lb][key]:.2f}"
+                                      if _finite(t[lb].get(key)) and _finite(b[lb].get(key)) and b[lb][key] else "-"
+                                      for lb in labels)
+    lines = [f"Motion at the current frame ({_title(task)} against constant velocity; {variant} ADE; stationary: "
+             f"< {ms['stationary_below_mps']:g} m/s; speed: {ms['speed']})",
+             f"| | n at {labels[0]} | model {secs} (m) | constant velocity (m) | model / CV | CV model rate (m) | "
+             "model / CV model rate |",
+             "|---|---|---|---|---|---|---|"]
+    for g, gname in (("agent", "agents"), ("ego", "ego")):
+        for k in ms["classes"]:
+            key = f"{g}_ade_{k}"
+            if key not in t[labels[0]]:
+                continue
+            n = t[labels[0]][f"{g}_n_{k}"]
+            if k == "speed_unknown" and not any(t[lb][f"{g}_n_{k}"] for lb in labels):
+                continue
+            name = {"stationary": f"stationary (< {ms['stationary_below_mps']:g} m/s)", "moving": "moving",
+                    "speed_unknown": "speed unknown"}[k]
+            lines.append(f"| {gname} {name} | {n} | {row(t, key)} | {row(cv, key)} | {ratio(key, cv)} | "
+                         f"{row(cvm, key)} | {ratio(key, cvm)} |")
+    return lines
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
 
 
 def format_layout_table(results: dict[str, Any]) -> list[str]:

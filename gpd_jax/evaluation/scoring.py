@@ -28,15 +28,34 @@ def scored_mask(scene: Scene, spec: ModelSpec, weight) -> jax.Array:
     return scene.valid[..., spec.current, :] & jnp.asarray(weight, bool)[..., None]
 
 
-def agent_sums(pred_xy, pred_heading, pred_valid, scene: Scene, scored, spec: ModelSpec) -> dict[str, Any]:
-    """{variant: agent_metric_sums(...)} for both variants, scoring `scored: bool[..., A]` slots only.
+def current_speed(full: Scene, spec: ModelSpec) -> jax.Array:
+    """f32[..., A] each model slot's speed (m/s) at the current frame, NaN where it is unknown.
+
+    The stored-rate backward difference |xy[c] - xy[c-1]| / stored period at the current stored frame c (the
+    model's last history frame), where the slot is valid at both frames: the velocity a `velocity_inputs` model
+    is given (`Scene.with_velocity` at the stored rate) and the one `constant_velocity` extrapolates. Slots not
+    valid at c - 1 (first seen at the current frame) have no measured speed (NaN); with one history frame, none
+    does.
+    """
+    c, a = spec.full_history - 1, spec.num_agents
+    if c < 1:
+        return jnp.full(full.valid.shape[:-2] + (a,), jnp.nan, jnp.float32)
+    xy, v = full.xy[..., c - 1:c + 1, :a, :], full.valid[..., c - 1:c + 1, :a]
+    speed = jnp.linalg.norm(xy[..., 1, :, :] - xy[..., 0, :, :], axis=-1) / spec.stored_period_s
+    return jnp.where(v[..., 0, :] & v[..., 1, :], speed, jnp.nan).astype(jnp.float32)
+
+
+def agent_sums(pred_xy, pred_heading, pred_valid, scene: Scene, scored, spec: ModelSpec, speed=None
+               ) -> dict[str, Any]:
+    """{variant: agent_metric_sums(...)} for both variants, scoring `scored: bool[..., A]` slots only; with
+    `speed` (f32[..., A], `current_speed`) ADE / FDE split by motion at the current frame too.
 
     Ground-truth validity is restricted to the scored slots, so unscored slots are not obstacles either.
     """
     gv = scene.valid & scored[..., None, :]
     return {v: agent_metric_sums(pred_xy, pred_heading, scene.xy, gv, scene.size, num_history=spec.num_history,
                                  pred_valid=pred_valid, eval_mask=scored, horizons=spec.horizons, variant=v,
-                                 dt=spec.frame_period_s)
+                                 dt=spec.frame_period_s, current_speed=speed)
             for v in VARIANTS}
 
 
@@ -126,7 +145,8 @@ def _score(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSp
     base = baseline_predictions(full, spec)
     stack = lambda i, x: jnp.concatenate([x] + [b[i][:, None] for b in base.values()], axis=1)
     preds = (stack(0, pred.xy), stack(1, pred.heading), stack(2, pred.valid))
-    sums = jax.vmap(lambda xy, hd, v: agent_sums(xy, hd, v, scene, scored, spec), in_axes=1)(*preds)
+    speed = current_speed(full, spec)
+    sums = jax.vmap(lambda xy, hd, v: agent_sums(xy, hd, v, scene, scored, spec, speed), in_axes=1)(*preds)
     pick = lambda i: jax.tree.map(lambda x: x[i], sums)
     out: dict[str, Any] = {"tasks": {name: pick(k) for k, name in enumerate(task_names)},
                            "baselines": {name: pick(len(task_names) + j) for j, name in enumerate(base)}}

@@ -23,7 +23,14 @@ Two variants, selected by `variant`:
   - collision_frames@H = colliding (entity, t) pairs / present (entity, t) pairs, t < H, in percent.
 
 Both variants are computed as sums and counts (`agent_metric_sums`, summed over every leading batch dim), which add
-up exactly across batches (`accumulate`) and are turned into the numbers by `reduce_agent_metrics`. Positions are
+up exactly across batches (`accumulate`) and are turned into the numbers by `reduce_agent_metrics`.
+
+**Split by motion at the current frame** (optional, `current_speed=`): ADE and FDE are also summed separately for
+entities *stationary* (speed < `STATIONARY_MPS` = 0.5 m/s), *moving* (>= 0.5 m/s) and of unknown speed (NaN: no
+velocity measured, e.g. first seen at the current frame), with the same numerators and denominators as the
+unsplit metric restricted to each class (the paper variant's N_exist too), so the three classes' sums add up to
+the unsplit sums exactly; `{g}_n_{class}` counts the entities of a class with a valid log frame within the
+horizon. Positions are
 box centres for every slot (the official code puts the ego box at the rear axle; our scenes store box centres).
 """
 
@@ -40,6 +47,10 @@ DEFAULT_HORIZONS = (30, 50, 80)  # future frames at 10 Hz: 3, 5, 8 s
 VARIANTS = ("paper", "corrected")
 _NAMES = ("ade", "fde", "collision", "collision_frames")
 _RATES = ("collision", "collision_frames")  # reported in percent
+# Motion at the current frame (the optional split of ADE / FDE): speed below this (m/s) is stationary.
+STATIONARY_MPS = 0.5
+MOTION_CLASSES = ("stationary", "moving", "speed_unknown")
+_SPLIT_NAMES = ("ade", "fde")
 
 
 def horizon_label(frames: int, dt: float = 0.1) -> str:
@@ -118,7 +129,8 @@ def _last_valid_error(err: jax.Array, m: jax.Array) -> tuple[jax.Array, jax.Arra
 def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Array, gt_valid: jax.Array,
                       size: jax.Array, *, num_history: int = 0, pred_valid: jax.Array | None = None,
                       eval_mask: jax.Array | None = None, horizons: Sequence[int] = DEFAULT_HORIZONS,
-                      variant: str = "paper", dt: float = 0.1) -> dict[str, dict[str, jax.Array]]:
+                      variant: str = "paper", dt: float = 0.1, current_speed: jax.Array | None = None,
+                      stationary_below: float = STATIONARY_MPS) -> dict[str, dict[str, jax.Array]]:
     """Sums and counts of the ADE / FDE / collision metrics, summed over every leading batch dim.
 
     Args:
@@ -136,10 +148,14 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
       horizons: future frame counts, each <= T - num_history.
       variant: "paper" or "corrected" (see module docstring).
       dt: frame period in seconds (for the horizon labels only).
+      current_speed: optional f32[..., A] each slot's speed (m/s) at the current frame, NaN where unknown: adds
+        the ADE / FDE sums split by motion class (`MOTION_CLASSES`, module docstring).
+      stationary_below: the speed (m/s) below which a slot is stationary.
 
     Returns:
-      {horizon_label: {"{ego,agent}_{ade,fde,collision,collision_frames}_{num,den}": f32[]}}; feed to
-      `reduce_agent_metrics`.
+      {horizon_label: {"{ego,agent}_{ade,fde,collision,collision_frames}_{num,den}": f32[]}}; with
+      `current_speed` also "{ego,agent}_{ade,fde}_{class}_{num,den}" and "{ego,agent}_n_{class}" for every class
+      of `MOTION_CLASSES`. Feed to `reduce_agent_metrics`.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
@@ -155,6 +171,12 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
     ev = jnp.ones(batch + (a,), bool) if eval_mask is None else jnp.broadcast_to(eval_mask, batch + (a,))
     is_ego = jnp.arange(a) == 0
     groups = {"ego": ev & is_ego, "agent": ev & ~is_ego}  # [..., A]
+
+    if current_speed is not None:
+        speed = jnp.broadcast_to(current_speed, batch + (a,))
+        known = ~jnp.isnan(speed)
+        classes = {"stationary": known & (speed < stationary_below), "moving": known & (speed >= stationary_below),
+                   "speed_unknown": ~known}  # [..., A], a partition of the slots
 
     err = jnp.linalg.norm(pxy - gxy, axis=-1)  # [..., F, A]
     err = jnp.where(gv, err, 0.0)
@@ -197,6 +219,21 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
                 d[f"{g}_collision_den"] = f32(jnp.any(pres, axis=-2))
                 d[f"{g}_collision_frames_num"] = f32(c & pres)
                 d[f"{g}_collision_frames_den"] = f32(pres)
+            if current_speed is None:
+                continue
+            for k, in_class in classes.items():
+                sk = sel & in_class  # [..., A]
+                d[f"{g}_ade_{k}_num"] = f32(jnp.where(sk[..., None, :] & m, e, 0.0))
+                d[f"{g}_n_{k}"] = f32(sk & any_valid)
+                if variant == "paper":
+                    ne = (f32(sk[..., 0]) if g == "ego" else f32(exists & sk))
+                    d[f"{g}_ade_{k}_den"] = h * ne
+                    d[f"{g}_fde_{k}_num"] = f32(jnp.where(sk, fde_err, 0.0))
+                    d[f"{g}_fde_{k}_den"] = ne
+                else:
+                    d[f"{g}_ade_{k}_den"] = f32(sk[..., None, :] & m)
+                    d[f"{g}_fde_{k}_num"] = f32(jnp.where(sk & any_valid, fde_err, 0.0))
+                    d[f"{g}_fde_{k}_den"] = f32(sk & any_valid)
         out[horizon_label(h, dt)] = d
     return out
 
@@ -209,21 +246,30 @@ def accumulate(a, b):
 def reduce_agent_metrics(sums: dict[str, dict[str, jax.Array]]) -> dict[str, dict[str, float]]:
     """Sums -> {horizon_label: {ego_ade, ego_fde, ego_collision, ego_collision_frames, agent_ade, ...}}.
 
+    With the motion split (`current_speed` given to `agent_metric_sums`) also "{g}_{ade,fde}_{class}" and the
+    count "{g}_n_{class}" for every class of `MOTION_CLASSES`.
+
     ADE / FDE in metres, collision rates in percent; NaN where the denominator is 0 (nothing to score).
     """
     out = {}
+    ratio = lambda num, den: float(num) / float(den) if float(den) > 0 else float("nan")
     for hl, d in sums.items():
         r = {}
         for g in ("ego", "agent"):
             for n in _NAMES:
-                num, den = float(d[f"{g}_{n}_num"]), float(d[f"{g}_{n}_den"])
-                v = num / den if den > 0 else float("nan")
+                v = ratio(d[f"{g}_{n}_num"], d[f"{g}_{n}_den"])
                 r[f"{g}_{n}"] = 100.0 * v if n in _RATES else v
+            for k in MOTION_CLASSES:
+                if f"{g}_n_{k}" not in d:
+                    continue
+                for n in _SPLIT_NAMES:
+                    r[f"{g}_{n}_{k}"] = ratio(d[f"{g}_{n}_{k}_num"], d[f"{g}_{n}_{k}_den"])
+                r[f"{g}_n_{k}"] = int(round(float(d[f"{g}_n_{k}"])))
         out[hl] = r
     return out
 
 
-_STATIC = ("num_history", "horizons", "variant", "dt")
+_STATIC = ("num_history", "horizons", "variant", "dt", "stationary_below")
 _agent_metric_sums_jit = jax.jit(agent_metric_sums, static_argnames=_STATIC)
 
 
