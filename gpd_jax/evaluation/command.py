@@ -145,11 +145,14 @@ def run_prompts(args: argparse.Namespace) -> int:
         raise UsageError(str(e)) from None
     os.makedirs(args.out, exist_ok=True)
     atomic_write_json(os.path.join(args.out, "conditions.json"), res)
-    keys = ("given_max_xy_m", "cap_violations", "max_valid_slots", "offroad_share", "mean_lane_distance_m",
-            "map_f1", "agent_ade_m", "agent_collision_share")
-    print("prompt".ljust(30) + "".join(k.rjust(22) for k in keys))
+    keys = ("given_max_xy_m", "cap_violations", "max_valid_slots", "offroad_share", "offroad_corner_share",
+            "offroad_share_lane_distance", "mean_lane_distance_m", "map_f1", "agent_ade_m", "agent_collision_share")
+    print("prompt".ljust(30) + "".join(k.rjust(29) for k in keys))
     for name, r in res["prompts"].items():
-        print(name.ljust(30) + "".join(f"{r.get(k, float('nan')):22.4g}" for k in keys))
+        print(name.ljust(30) + "".join(f"{r.get(k, float('nan')):29.4g}" for k in keys))
+    for source in sorted({r.get("offroad_source", "") for r in res["prompts"].values()} - {""}):
+        which = ", ".join(n for n, r in res["prompts"].items() if r.get("offroad_source") == source)
+        print(f"offroad_share drivable area ({which}): {source}")
     print(f"wrote {os.path.join(args.out, 'conditions.json')}", flush=True)
     return 0
 

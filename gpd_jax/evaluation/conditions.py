@@ -7,9 +7,15 @@ Per rolled-out scenario (host numpy, model-rate arrays):
   initial trajectories): 0 when the condition holds to float precision;
 * `cap_violations`: slot-frames valid although hidden or beyond the agent cap (should be 0), and the largest
   number of valid agents in a generated frame;
-* `lane_offroad`: the share of generated agent positions (future frames, slots the prompt does not give) farther
-  than half a lane width from every given lane centreline (the distance to the polylines; the drivable-area
-  queries of `gpd_jax.geometry` can replace it once they land);
+* `lane_offroad`: the share of generated agent positions (future frames, slots the prompt does not give) outside
+  the drivable area (`offroad_share`: box centres, `gpd_jax.geometry.on_road`; `offroad_corner_share`: boxes with
+  a corner outside), and, under its own name, the share farther than half a lane width from every lane
+  centreline (`offroad_share_lane_distance`: the distance to the polylines, which needs no area). The drivable
+  area is the store's (`Scene.road`) for a prompt on the log's map, and, for a prompt with lanes of its own (a
+  hand-drawn road), the area those lanes cover at `LANE_WIDTH_M` (`road_from_lanes`: each lane buffered by half
+  the width on either side, the lanes' union). A store built before road geometry was stored has no drivable
+  area: `offroad_share` is then null (NaN) with `offroad_source` saying so and naming the rebuild, and
+  `offroad_share_lane_distance` is the figure there is (no error: the other scores do not need the area);
 * `agent_figures`: beside them, the usual ADE against the log and collision share of the generated agents;
 * `lane_map_f1`: map F1 (the paper's, `gpd_jax.metrics.map`) of the lanes decoded from the rollout's map tokens
   of future frames against the given lanes seen from each frame's rolled-out ego (SLEDGE vector lanes,
@@ -21,19 +27,27 @@ from __future__ import annotations
 import os
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.data.lanes import vector_lanes_frames
 from gpd_jax.evaluation.maps import decode_map_tokens
+from gpd_jax.geometry import RoadGeometry, on_road, road_from_arrays
+from gpd_jax.metrics.agents import box_corners
 from gpd_jax.metrics.map import map_metric_sums, reduce_map_metrics
 from gpd_jax.prompts import Prompt
 
-LANE_HALF_WIDTH_M = 1.75  # half of a 3.5 m lane: farther than this from every given centreline is off the road
+LANE_WIDTH_M = 3.5  # a hand-drawn lane's width: its drivable area (`road_from_lanes`)
+LANE_HALF_WIDTH_M = LANE_WIDTH_M / 2  # farther than this from every centreline is off the lanes
+# Where `offroad_share`'s drivable area comes from (`lane_offroad`'s "offroad_source").
+OFFROAD_SOURCES = {"store": "the store's drivable-area geometry (Scene.road)",
+                   "given_lanes": f"the prompt's own lanes, {LANE_WIDTH_M:g} m wide (road_from_lanes)",
+                   "none": "none: the store has no drivable-area geometry (built before it was stored; rebuild it "
+                           "with `python -m gpd_jax.data build ...`); offroad_share_lane_distance is reported"}
 
 
 def _np(p: Prompt) -> Prompt:
-    import jax
-
     return jax.tree.map(np.asarray, p)
 
 
@@ -110,19 +124,83 @@ def distance_to_polylines(points: np.ndarray, lanes: np.ndarray, lanes_valid: np
     return np.linalg.norm(points[:, None] - near, axis=-1).min(-1)
 
 
+def road_from_lanes(lanes: np.ndarray, lanes_valid: np.ndarray, width: float = LANE_WIDTH_M, *,
+                    num_rings: int = 64, ring_vertices: int = 128, num_edges: int = 64,
+                    edge_points: int = 64) -> RoadGeometry:
+    """The drivable area of a hand-drawn road: every lane centreline f32[L, P, 2] (valid points bool[L, P], scene
+    frame) buffered by `width` / 2 on either side (`gpd_jax.data.roadgeom.lane_area`, ends cut square), the
+    union of all lanes (`RoadIndex`), as a `RoadGeometry` of fixed shape (rings [num_rings, ring_vertices], edges
+    [num_edges, edge_points]) around the lanes. Raises ValueError when the union needs more rings than
+    `num_rings` (never silently smaller)."""
+    from collections import Counter
+
+    from gpd_jax.data.roadgeom import RoadIndex, clip_road, lane_area
+
+    lanes, lanes_valid = np.asarray(lanes, np.float64), np.asarray(lanes_valid, bool)
+    areas = [lane_area(ln[ok], width) for ln, ok in zip(lanes, lanes_valid) if ok.sum() >= 2]
+    areas = [x for x in areas if x is not None]
+    stats: Counter = Counter()
+    # the region: the lanes' points with a margin wider than the road (clip_road grows its box to hold them)
+    pts = lanes[lanes_valid] if lanes_valid.any() else np.zeros((1, 2))
+    arr = clip_road(RoadIndex(areas, tolerance=0.02) if areas else None, np.zeros(3), np.zeros((1, 3)), reach=0.0,
+                    G=num_rings, V=ring_vertices, E=num_edges, P=edge_points, stats=stats, agents_xy=pts,
+                    agent_margin=width + 1.0)
+    if stats["road_rings_dropped"]:
+        raise ValueError(f"road_from_lanes: the lanes' drivable area needs more than {num_rings} rings of "
+                         f"{ring_vertices} vertices ({stats['road_rings_dropped']} dropped); raise num_rings")
+    arr["road_polygon_kind"] = arr["road_polygon_kind"].astype(np.int32)
+    return road_from_arrays(arr, lanes.astype(np.float32), lanes_valid)
+
+
+_on_road = jax.jit(on_road)
+
+
 def lane_offroad(out: Any, prompt: Prompt, num_history: int, lanes: np.ndarray, lanes_valid: np.ndarray,
-                 half_width: float = LANE_HALF_WIDTH_M) -> dict[str, float]:
-    """Share of generated agent positions (future frames, slots not given there) off the given lanes, and their
-    mean distance to the nearest centreline."""
+                 road: RoadGeometry | None = None, half_width: float = LANE_HALF_WIDTH_M, *,
+                 size: np.ndarray | None = None, source: str | None = None) -> dict[str, Any]:
+    """Off-road figures of the generated agent positions (future frames, slots not given there).
+
+    Args:
+      out: one rollout: xy f32[T, A, 2], heading f32[T, A], valid bool[T, A] (scene frame).
+      lanes, lanes_valid: the lane centrelines f32[L, P, 2] / bool[L, P] the agents should keep to (the prompt's
+        own or the log's), for the lane-distance figure (and the area when `road` is None and `source` is not
+        "none").
+      road: the drivable area (the store's `Scene.road`, unbatched). None: the area of `lanes` at twice
+        `half_width` (`road_from_lanes`, the rule for a hand-drawn road), unless `source` is "none".
+      size: f32[A, 2] box (length, width) per slot for `offroad_corner_share` (default 4.5 x 1.9 m).
+      source: a key of `OFFROAD_SOURCES` (default: "store" with a road, "given_lanes" without); "none" reports
+        `offroad_share` as NaN (a store without drivable-area geometry).
+
+    Returns:
+      {"offroad_share": share of box centres outside the drivable area, "offroad_corner_share": share of boxes
+       with a corner outside it, "offroad_source", "offroad_share_lane_distance": share farther than
+       `half_width` from every centreline, "mean_lane_distance_m", "positions": how many positions}.
+    """
+    source = source or ("store" if road is not None else "given_lanes")
+    if source not in OFFROAD_SOURCES:
+        raise ValueError(f"source must be one of {tuple(OFFROAD_SOURCES)}, got {source!r}")
     gen = ~given_mask(prompt, num_history)
     gen[:num_history] = False
     sel = gen & np.asarray(out.valid)
-    pts = np.asarray(out.xy)[sel]
-    if not len(pts):
-        return {"offroad_share": float("nan"), "mean_lane_distance_m": float("nan"), "positions": 0}
-    d = distance_to_polylines(pts, np.asarray(lanes), np.asarray(lanes_valid, bool))
-    return {"offroad_share": float((d > half_width).mean()), "mean_lane_distance_m": float(d.mean()),
-            "positions": int(len(pts))}
+    nan = float("nan")
+    res: dict[str, Any] = {"offroad_share": nan, "offroad_corner_share": nan, "offroad_source": source,
+                           "offroad_share_lane_distance": nan, "mean_lane_distance_m": nan, "positions": 0}
+    if not sel.any():
+        return res
+    xy, hd = np.asarray(out.xy, np.float32), np.asarray(out.heading, np.float32)
+    d = distance_to_polylines(xy[sel], np.asarray(lanes), np.asarray(lanes_valid, bool))
+    res.update(offroad_share_lane_distance=float((d > half_width).mean()), mean_lane_distance_m=float(d.mean()),
+               positions=int(sel.sum()))
+    if source == "none":
+        return res
+    if road is None:
+        road = road_from_lanes(lanes, lanes_valid, 2 * half_width)
+    box = np.broadcast_to(np.asarray([4.5, 1.9] if size is None else size, np.float32), xy.shape)
+    corners = np.asarray(box_corners(jnp.asarray(xy), jnp.asarray(hd), jnp.asarray(box)))  # [T, A, 4, 2]
+    pts = np.concatenate([xy[..., None, :], corners], -2)  # [T, A, 5, 2]: centre and corners, every slot-frame
+    inside = np.asarray(_on_road(jax.tree.map(jnp.asarray, road), jnp.asarray(pts)))[sel]  # [N, 5]
+    res.update(offroad_share=float((~inside[:, 0]).mean()), offroad_corner_share=float((~inside[:, 1:]).any(-1).mean()))
+    return res
 
 
 def lane_map_sums(tokenizer, out_map_tokens: np.ndarray, ego_poses: np.ndarray, lanes: np.ndarray,
@@ -154,6 +232,12 @@ def rollout_poses(out: Any) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------ prompt evaluation (CLI)
+def _aggregate(values, fn) -> float:
+    """fn over the finite values (NaN when there are none: nothing to score, without numpy's empty-mean warning)."""
+    v = np.asarray(values if values else [], np.float64)
+    v = v[np.isfinite(v)] if fn in (np.nanmean, np.nanmax) else v
+    return float(fn(v)) if v.size else float("nan")
+
 
 
 def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict], *, num_scenarios: int | None,
@@ -162,9 +246,6 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
     """Rolls out every scenario of a split under every prompt (JSON content by name) plus the unconditioned
     `traffic_simulation` for reference, in one compiled rollout per batch (per-scenario prompts [B, K]), and
     scores each prompt's conditions (module docstring). Returns {"prompts": {name: scores}, ...}."""
-    import jax
-    import jax.numpy as jnp
-
     from gpd_jax.data.loader import SplitSource, to_scene
     from gpd_jax.decoding import rollout_jit
     from gpd_jax.evaluation.maps import encode_map_frames
@@ -179,6 +260,10 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
     if n == 0:
         raise EvalError(f"split {split!r} of {data} has no scenarios")
     names = ["reference_traffic_simulation"] + list(prompt_files)
+    sources: dict[str, set] = {k: set() for k in names}
+    if not src.has_road:
+        log(f"note: offroad_share needs drivable-area geometry and {data}/{split} has none: "
+            f"{OFFROAD_SOURCES['none']}")
     bs = max(1, min(batch_size, n))
     acc: dict[str, dict[str, list]] = {k: {} for k in names}
     maps: dict[str, Any] = {k: None for k in names}
@@ -210,7 +295,8 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
         prompts = jax.tree.map(lambda x: jnp.asarray(x.reshape((bs, k) + x.shape[1:])), prompts)
         extra = {} if prompts.lanes is None else dict(tok=tok, tok_params=tok.params)
         out = rollout_jit(model.graphdef, model.params, model.rest,
-                          jax.tree.map(jnp.asarray, view.replace(polylines=None, polyline_valid=None)), prompts,
+                          jax.tree.map(jnp.asarray, view.replace(polylines=None, polyline_valid=None, road=None)),
+                          prompts,
                           jax.random.fold_in(jax.random.key(seed), b), h, float(model.config.rollout.temperature),
                           **extra)
         out = jax.tree.map(np.asarray, out)
@@ -228,7 +314,13 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
                        **{f"cap_{k_}": v for k_, v in cap_violations(o, p, h).items()}}
                 own = p.lanes is not None and bool(p.use_lanes)
                 ln, lv = (p.lanes, p.lanes_valid) if own else (sc.polylines, sc.polyline_valid)
-                row.update({f"lanes_{k_}": v for k_, v in lane_offroad(o, p, h, ln, lv).items()})
+                if own:  # a hand-drawn road: the area its lanes cover (built once per prompt and scenario)
+                    road, source = None, "given_lanes"
+                else:
+                    road, source = sc.road, "store" if sc.road is not None else "none"
+                off = lane_offroad(o, p, h, ln, lv, road, size=sc.size, source=source)
+                sources[name].add(off.pop("offroad_source"))
+                row.update({f"lanes_{k_}": v for k_, v in off.items()})
                 if tok is not None:
                     maps[name] = add_sums(maps[name], lane_map_sums(tok, o.map_tokens[h:], rollout_poses(o)[h:],
                                                                     ln, lv))
@@ -251,7 +343,7 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
     res = {}
     for name in names:
         a = acc[name]
-        agg = lambda key, fn: float(fn(np.asarray(a[key], np.float64))) if a.get(key) else float("nan")
+        agg = lambda key, fn: _aggregate(a.get(key), fn)
         res[name] = {
             "given_max_xy_m": agg("given_max_xy_m", np.max),
             "given_max_heading_rad": agg("given_max_heading_rad", np.max),
@@ -260,6 +352,9 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
             "cap": agg("cap_cap", np.max),
             "max_valid_slots": agg("cap_max_valid_slots", np.max),
             "offroad_share": agg("lanes_offroad_share", np.nanmean),
+            "offroad_corner_share": agg("lanes_offroad_corner_share", np.nanmean),
+            "offroad_source": "; ".join(OFFROAD_SOURCES[x] for x in sorted(sources[name])),
+            "offroad_share_lane_distance": agg("lanes_offroad_share_lane_distance", np.nanmean),
             "agent_ade_m": agg("agents_ade_m", np.nanmean),
             "agent_collision_share": agg("agents_collision_share", np.nanmean),
             "mean_lane_distance_m": agg("lanes_mean_lane_distance_m", np.nanmean),

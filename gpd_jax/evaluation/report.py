@@ -99,9 +99,9 @@ def format_motion_table(results: dict[str, Any], variant: str = "paper", task: s
     ratio = lambda key, b: " / ".join(f"{t[lb][key] / b[lb][key]:.2f}"
                                       if _finite(t[lb].get(key)) and _finite(b[lb].get(key)) and b[lb][key] else "-"
                                       for lb in labels)
-    lines = [f"Motion at the current frame ({_title(task)} against constant velocity; {variant} ADE; stationary: "
-             f"< {ms['stationary_below_mps']:g} m/s; speed: {ms['speed']})",
-             f"| | n at {labels[0]} | model {secs} (m) | constant velocity (m) | model / CV | CV model rate (m) | "
+    lines = [f"Motion at the current frame ({_title(task)} against constant velocity, {variant} ADE; speed: the "
+             f"stored-rate difference of the last two frames, stationary below {ms['stationary_below_mps']:g} m/s)",
+             f"| | n at {labels[0].rstrip('s')} s | model {secs} (m) | constant velocity (m) | model / CV | CV model rate (m) | "
              "model / CV model rate |",
              "|---|---|---|---|---|---|---|"]
     for g, gname in (("agent", "agents"), ("ego", "ego")):
