@@ -2,6 +2,9 @@
 
   build --source sumo --out DIR --scenarios N --seed S [--net FILE.net.xml ...] [--workers W] [--split NAME]
         [--real-networks] [--keep-overlaps] [--allow-near-duplicates] [--against STORE ...]
+        [--traffic realistic|legacy] [--parking-edge-share F] [--parking-occupancy F] [--parked-leave-share F]
+        [--short-stop-share F] [--drivers heterogeneous|uniform] [--ego-rule mixed|travel]
+        [--ego-stationary-share F] [--lefthand-share F] [--static-tls-share F]
   build --source nuplan --out DIR --db PATH_OR_DIR --maps DIR [--max-per-log K] [--split NAME]
   build --source scenarionet --out DIR --db DATASET_DIR_OR_PKL [--max-per-log K] [--split NAME] [--workers W]
   inspect DIR [--json PATH] [--no-lanes]
@@ -28,6 +31,38 @@ def _count(text: str) -> int:
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
     return v
+
+
+def _share(text: str) -> float:
+    """argparse type of the shares: a number in [0, 1]."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a share in [0, 1], got {v}")
+    return v
+
+
+def traffic_options(args) -> dict:
+    """The keyword arguments of `build.build_sumo` for the traffic flags (the preset, then each flag given)."""
+    from gpd_jax.data import build, sumo
+
+    legacy = args.traffic == "legacy"
+    traffic = dict(sumo.LEGACY_TRAFFIC) if legacy else {}
+    for k in ("parking_edge_share", "parking_occupancy", "parked_leave_share", "short_stop_share", "drivers"):
+        v = getattr(args, k)
+        if v is not None:
+            traffic[k] = v
+    base = build.LEGACY_EGO if legacy else build.EgoChoice()
+    ego = build.EgoChoice(args.ego_rule or base.rule,
+                          base.stationary_share if args.ego_stationary_share is None else args.ego_stationary_share)
+    if ego.rule == "travel" and args.ego_stationary_share is None:
+        ego = build.EgoChoice("travel", 0.0)
+    return {"traffic": traffic or None, "ego": ego,
+            "lefthand_share": args.lefthand_share if args.lefthand_share is not None else (0.0 if legacy else 0.25),
+            "static_tls_share": (args.static_tls_share if args.static_tls_share is not None
+                                 else (0.0 if legacy else 0.5))}
 
 
 def main(argv=None) -> int:
@@ -62,6 +97,27 @@ def main(argv=None) -> int:
                    help="SUMO: metres of mean lane distance below which two networks are near-duplicates (2.5)")
     b.add_argument("--against", nargs="+", default=(), metavar="STORE",
                    help="SUMO: also check this build's networks against these stores' networks")
+    t = b.add_argument_group("SUMO traffic (defaults: real-traffic mix; --traffic legacy = stores built before)")
+    t.add_argument("--traffic", choices=("realistic", "legacy"), default="realistic",
+                   help="preset of the options below: 'legacy' turns off parking, stops, driver mix, left-hand and "
+                        "fixed-cycle networks and uses the 30 m travel ego rule")
+    t.add_argument("--parking-edge-share", type=_share, default=None, help="share of suitable edges with road-side "
+                   "parking (0.4)")
+    t.add_argument("--parking-occupancy", type=_share, default=None, help="share of parking spaces filled (0.6)")
+    t.add_argument("--parked-leave-share", type=_share, default=None,
+                   help="share of parked vehicles that leave during the recording (0.1)")
+    t.add_argument("--short-stop-share", type=_share, default=None,
+                   help="share of moving vehicles that make one pick-up / drop-off stop (0.1)")
+    t.add_argument("--drivers", choices=("heterogeneous", "uniform"), default=None,
+                   help="driver types: vTypeDistributions of Krauss / IDM / EIDM drivers, or one IDM per class")
+    t.add_argument("--ego-rule", choices=("mixed", "travel"), default=None,
+                   help="mixed: a share of egos stationary at the current frame; travel: egos that move 30 m")
+    t.add_argument("--ego-stationary-share", type=_share, default=None,
+                   help="mixed rule: share of windows whose ego stands at the current frame (0.25)")
+    t.add_argument("--lefthand-share", type=_share, default=None,
+                   help="generated networks: share with left-hand traffic, netconvert --lefthand (0.25)")
+    t.add_argument("--static-tls-share", type=_share, default=None,
+                   help="generated networks: share whose traffic lights run fixed cycles (0.5)")
     i = sub.add_parser("inspect", help="summary statistics of a dataset")
     i.add_argument("dir")
     i.add_argument("--json", default=None, help="also write the statistics to this JSON file")
@@ -102,7 +158,8 @@ def main(argv=None) -> int:
                 man = build.build_sumo(args.out, args.scenarios, args.seed, nets, args.workers, args.split,
                                        args.per_job, net_layout=layout, keep_overlaps=args.keep_overlaps,
                                        refuse_near_duplicates=args.refuse_near_duplicates,
-                                       near_duplicate_tol=args.near_duplicate_tol, against=args.against)
+                                       near_duplicate_tol=args.near_duplicate_tol, against=args.against,
+                                       **traffic_options(args))
             elif args.source == "scenarionet":
                 if not args.db:
                     p.error("--source scenarionet needs --db (a ScenarioNet dataset directory or .pkl files)")

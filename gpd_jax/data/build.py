@@ -69,6 +69,48 @@ class SumoJob:
     split: str
     net_path: str | None = None  # None: generated from seed (into DIR/_networks/<location>.net.xml.gz)
     layout: str = ""  # "grid" | "spider" | "random" (generated), "real" (--real-networks) or "given" (--net)
+    lefthand_share: float = 0.0  # generated networks: probability of left-hand traffic (`sumo.random_net_spec`)
+    static_tls_share: float = 0.0  # generated networks: probability of fixed-cycle traffic lights
+
+    def net_spec(self):
+        """The `sumo.NetSpec` of a generated network (None for given networks)."""
+        from gpd_jax.data import sumo
+
+        if self.net_path is not None:
+            return None
+        return sumo.random_net_spec(self.seed, self.layout or None, self.lefthand_share, self.static_tls_share)
+
+
+@dataclasses.dataclass(frozen=True)
+class EgoChoice:
+    """How a SUMO build picks the ego of a window (`sumo_windows`).
+
+    rule "mixed" (default): as a recording car would be: `stationary_share` of the windows take an ego that
+      stands (< 0.5 m/s) at the current frame but moves at some time in the window (waiting at a light or in
+      a queue; never a parked car), the others an ego that moves (>= 0.5 m/s) at the current frame, with no
+      minimum distance travelled. 0.25 = the real logs' share (29 of 115 windows had a stationary ego).
+    rule "travel" (stores built before): an ego whose centre moves `SampleConfig.min_ego_travel` (30 m)
+      between the first and the last frame of the window (`preprocess.sample_windows`).
+    Both: present throughout, at least `min_neighbours` vehicles within `agent_radius`, egos drawn with
+    probability proportional to their neighbour count plus one.
+    """
+
+    rule: str = "mixed"
+    stationary_share: float = 0.25
+    min_path_m: float = 2.0  # a stationary ego still moves this far along its path within the window
+
+    def __post_init__(self):
+        from gpd_jax.data.errors import DataError
+
+        if self.rule not in EGO_RULES:
+            raise DataError(None, f"ego rule must be one of {EGO_RULES}, got {self.rule!r}")
+        if not 0.0 <= self.stationary_share <= 1.0:
+            raise DataError(None, f"ego stationary share must be in [0, 1], got {self.stationary_share!r}")
+
+
+EGO_RULES = ("mixed", "travel")
+LEGACY_EGO = EgoChoice("travel", 0.0)
+STATIONARY_MPS = 0.5
 
 
 def check_count(name: str, value, allow_none: bool = False) -> None:
@@ -96,7 +138,8 @@ def _assign_by_layout(locs: list[str], layouts: list[str], seed: int) -> dict[st
 
 
 def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_job: int = 50,
-                   split: str | None = None, net_layout: str = "given") -> list[SumoJob]:
+                   split: str | None = None, net_layout: str = "given", lefthand_share: float = 0.0,
+                   static_tls_share: float = 0.0) -> list[SumoJob]:
     """Jobs of a SUMO build: `ceil(num_scenarios / per_job)` runs, one network each when generating,
     cycling over the given networks (with different demand seeds) otherwise; with fewer jobs than given
     networks, one job per network (as long as there are scenarios for it), the scenarios spread evenly.
@@ -126,7 +169,8 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
     ss = np.random.SeedSequence([seed, 1234])
     seeds = [int(s.generate_state(1)[0]) for s in ss.spawn(n_jobs)]
     return [SumoJob(i, seeds[i], counts[i], locs[i], splits[locs[i]],
-                    nets[i % len(nets)] if nets else None, layouts[i]) for i in range(n_jobs)]
+                    nets[i % len(nets)] if nets else None, layouts[i], lefthand_share, static_tls_share)
+            for i in range(n_jobs)]
 
 
 def _net_location(path: str) -> str:
@@ -168,7 +212,7 @@ def _prepare_network(args) -> tuple[str, dict]:
     fp_path = os.path.join(d, f"{job.location}.fp.npz")
     rec = {"layout": job.layout, "split": job.split, "fingerprint": os.path.basename(fp_path)}
     if job.net_path is None:
-        spec = sumo.random_net_spec(job.seed, job.layout)
+        spec = job.net_spec()
         net = _generated_net_path(out_dir, job.location)
         if not os.path.isfile(net):
             tmp = os.path.join(d, f".tmp-{job.location}-{os.getpid()}.net.xml.gz")
@@ -188,6 +232,7 @@ def _prepare_network(args) -> tuple[str, dict]:
         fp = netgeom.fingerprint_network(net, job.location)
         netgeom.save_fingerprint(fp, fp_path)
     rec["lane_km"] = round(fp.length / 1000.0, 3)
+    rec["lefthand"] = sumo.is_lefthand(net)
     return job.location, rec
 
 
@@ -255,15 +300,128 @@ def check_near_duplicates(out_dir: str, index: dict[str, dict], against: list[st
                                                          "tol_m": tol}
 
 
+def sumo_windows(log, cfg: preprocess.SampleConfig, num: int | None, rng: np.random.Generator,
+                 ego: EgoChoice = EgoChoice(), stats: Counter | None = None) -> list[tuple[int, int]]:
+    """(start frame, ego track) pairs of a SUMO log under the ego rule `ego` (see `EgoChoice`); the "travel"
+    rule is `preprocess.sample_windows`. "mixed": window starts in random order; at each, the egos present
+    throughout with at least `min_neighbours` vehicles within `agent_radius` at the current frame are split
+    into stationary (speed at the current frame < 0.5 m/s, path over the window >= `min_path_m`) and moving
+    (>= 0.5 m/s); each kind takes egos (probability proportional to neighbours + 1) until it holds its quota
+    (`stationary_share` of `num`, rounded); the two lists are interleaved in that share. A log with too few
+    stationary candidates gives fewer stationary windows (counted in `stats` as "ego_windows_<kind>"). Counts in `stats`
+    ("ego_windows_stationary" / "ego_windows_moving")."""
+    if ego.rule == "travel":
+        return preprocess.sample_windows(log, cfg, num, rng)
+    T, c, F = cfg.num_frames, cfg.current, log.num_frames
+    if F < T or log.ego_index is not None:
+        return preprocess.sample_windows(log, cfg, num, rng)
+    num = 1 if num is None else num
+    quota = {"stationary": int(round(ego.stationary_share * num))}
+    quota["moving"] = num - quota["stationary"]
+    picked: dict[str, list[tuple[int, int]]] = {"stationary": [], "moving": []}
+    starts = rng.permutation(F - T + 1)
+    per_start = max(1, int(np.ceil(num / max(1, len(starts)))))
+    cv = np.concatenate([np.zeros((1, log.num_agents), np.int64), np.cumsum(log.agent_valid, 0)], 0)
+    for s in starts:
+        if all(len(picked[k]) >= quota[k] for k in picked):
+            break
+        cand = np.nonzero((cv[s + T] - cv[s]) == T)[0]
+        if len(cand) == 0:
+            continue
+        pc = log.agent_xy[s + c]
+        others = pc[log.agent_valid[s + c]]
+        nb = np.sum(np.linalg.norm(pc[cand][:, None] - others[None], axis=-1) <= cfg.agent_radius, axis=1) - 1
+        cand, nb = cand[nb >= cfg.min_neighbours], nb[nb >= cfg.min_neighbours]
+        if len(cand) == 0:
+            continue
+        step = np.linalg.norm(np.diff(log.agent_xy[s:s + T, cand], axis=0), axis=-1)  # [T-1, n]
+        speed_c = step[c - 1] / 0.1
+        kinds = {"stationary": (speed_c < STATIONARY_MPS) & (step.sum(0) >= ego.min_path_m),
+                 "moving": speed_c >= STATIONARY_MPS}
+        for kind, ok in kinds.items():
+            take = min(per_start, int(ok.sum()), quota[kind] - len(picked[kind]))
+            if take <= 0:
+                continue
+            p = (nb[ok] + 1.0) / np.sum(nb[ok] + 1.0)
+            picked[kind] += [(int(s), int(e)) for e in rng.choice(cand[ok], size=take, replace=False, p=p)]
+    # interleave in the stated share (stationary while fewer than the share of those so far, rounded), so that
+    # the first windows that pass the later gates keep it; a kind that ran out leaves its turns to the other
+    out: list[tuple[int, int]] = []
+    i = {"stationary": 0, "moving": 0}
+    while any(i[k] < len(picked[k]) for k in picked):
+        turn = "stationary" if i["stationary"] < ego.stationary_share * (len(out) + 1) - 0.5 + 1e-9 else "moving"
+        if i[turn] >= len(picked[turn]):
+            turn = "moving" if turn == "stationary" else "stationary"
+        out.append(picked[turn][i[turn]])
+        i[turn] += 1
+        if stats is not None:
+            stats[f"ego_windows_{turn}"] += 1
+    return out[:num]
+
+
+def iter_sumo_samples(log, cfg: preprocess.SampleConfig, num: int | None, seed: int, stats: Counter,
+                      ego: EgoChoice = EgoChoice()):
+    """`preprocess.iter_samples` with the windows of `sumo_windows` (the same with the "travel" rule): yields
+    (scenario id, sample); with the overlap gate, 3 x `num` candidate windows are drawn so that `num` come out."""
+    from gpd_jax.data.geometry import sample_has_overlap
+
+    if ego.rule == "travel":
+        yield from preprocess.iter_samples(log, cfg, num=num, seed=seed, stats=stats)
+        return
+    preprocess.check_rawlog(log)
+    if log.num_frames < cfg.num_frames:
+        stats["skip_log_too_short"] += 1
+        return
+    rng = np.random.default_rng(seed)
+    lp = preprocess.lane_points(log.lanes, cfg.lane_spacing)
+    road = preprocess.road_index(log, cfg)
+    want = None if num is None else (3 * num if cfg.reject_overlaps else num)
+    made = 0
+    windows = sumo_windows(log, cfg, want, rng, ego, stats)
+    # the kinds come interleaved in the stated share: the first `num` windows that pass the gates keep it
+    for start, e in windows:
+        if num is not None and made >= num:
+            break
+        s = preprocess.make_sample(log, start, e, cfg, lp, stats, road)
+        if s is None:
+            continue
+        if cfg.reject_overlaps:
+            stats["overlap_gate_checked"] += 1
+            if sample_has_overlap(s["xy"], s["heading"], s["valid"], s["size"]):
+                stats["skip_overlapping_boxes"] += 1
+                stats["samples"] -= 1
+                continue
+        made += 1
+        still = float(np.linalg.norm(s["xy"][cfg.current, 0] - s["xy"][cfg.current - 1, 0])) / 0.1 < STATIONARY_MPS
+        stats["ego_stationary_at_current"] += int(still)
+        yield f"{log.name}/{start}/{log.agent_ids[e]}", s
+
+
+def traffic_settings(sim_cfg, ego: EgoChoice, lefthand_share: float, static_tls_share: float) -> dict:
+    """The real-traffic options of a SUMO build as recorded in its settings and shards."""
+    from gpd_jax.data import sumo
+
+    def plain(v):  # as JSON gives it back (tuples -> lists), so that recorded and fresh settings compare equal
+        return list(v) if isinstance(v, tuple) else v
+
+    return {**{k: plain(getattr(sim_cfg, k)) for k in sumo.TRAFFIC_FIELDS}, "ego_rule": ego.rule,
+            "ego_stationary_share": ego.stationary_share, "lefthand_share": lefthand_share,
+            "static_tls_share": static_tls_share}
+
+
 def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
-                 sim_cfg=None, max_tries: int = 4) -> dict:
+                 sim_cfg=None, max_tries: int = 4, ego: EgoChoice = EgoChoice(), traffic: dict | None = None) -> dict:
     """Runs one SUMO job (demand, simulation, samples, shard) on its network (prepared by
     `prepare_networks`). A rejected run is retried on the same network with another demand seed and 30 %
-    less demand, up to `max_tries` runs. Returns the job summary."""
+    less demand, up to `max_tries` runs. `traffic`: `SimConfig` traffic fields set over the simulation
+    config (REAL_NETWORK_SIM for given networks, SimConfig() for generated ones, unless `sim_cfg`). Returns the
+    job summary."""
     from gpd_jax.data import sumo
     from gpd_jax.data.geometry import sample_has_overlap
 
     sim_cfg = sim_cfg or (sumo.REAL_NETWORK_SIM if job.net_path else sumo.SimConfig())
+    if traffic:
+        sim_cfg = dataclasses.replace(sim_cfg, **traffic)
     t0 = time.time()
     work = os.path.join(out_dir, "_work", f"job_{job.index:05d}")
     shutil.rmtree(work, ignore_errors=True)
@@ -272,7 +430,7 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
     rejections = []
     samples, ids = [], []
     if job.net_path is None:
-        spec = sumo.random_net_spec(job.seed, job.layout or None)
+        spec = job.net_spec()
         net = _generated_net_path(out_dir, job.location)
         if not os.path.isfile(net):  # run without prepare_networks (e.g. a direct call)
             os.makedirs(os.path.dirname(net), exist_ok=True)
@@ -287,15 +445,20 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
         for attempt in range(max_tries):
             seed = job.seed + 7919 * attempt
             cfg = dataclasses.replace(sim_cfg, insertion_density=density)
+            info: dict = {}
             try:
                 raw = sumo.simulate(net, f"{job.location}_s{seed}", job.location, seed, cfg, workdir=work,
-                                    lanes=lanes, areas=areas)
+                                    lanes=lanes, areas=areas, info=info)
             except sumo.SumoRunRejected as e:
                 rejections.append(str(e))
                 stats["sumo_runs_rejected"] += 1
                 density *= 0.7
                 continue
-            for sid, s in preprocess.iter_samples(raw, sample_cfg, num=job.num_samples, seed=seed, stats=stats):
+            for k, v in info.items():
+                if k in ("short_stops", "parking_spaces", "parked_vehicles", "parking_jumps_smoothed",
+                         "planned_stop_frames", "vehicle_frames"):
+                    stats[f"sim_{k}"] += int(v)
+            for sid, s in iter_sumo_samples(raw, sample_cfg, job.num_samples, seed, stats, ego):
                 if not sample_cfg.reject_overlaps:  # gate off: count what it would have removed
                     stats["overlap_gate_checked"] += 1
                     stats["overlapping_windows_kept"] += sample_has_overlap(s["xy"], s["heading"], s["valid"],
@@ -312,7 +475,10 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
                 shutil.rmtree(existing)
             store.write_shard(out_dir, job.split, job.index, arrays, ids, [job.location] * len(ids),
                               extra={"source": "sumo", "job_seed": job.seed, "layout": job.layout,
-                                     "net": job.net_path or dataclasses.asdict(spec)})
+                                     "net": job.net_path or dataclasses.asdict(spec),
+                                     "lefthand": sumo.is_lefthand(net),
+                                     "traffic": traffic_settings(sim_cfg, ego, job.lefthand_share,
+                                                                 job.static_tls_share)})
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary = {"index": job.index, "split": job.split, "location": job.location, "layout": job.layout,
@@ -363,11 +529,11 @@ def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str) -> list[dict]:
 class _Bound:
     """Picklable job runner bound to its settings."""
 
-    def __init__(self, out_dir, sample_cfg, sim_cfg):
-        self.out_dir, self.sample_cfg, self.sim_cfg = out_dir, sample_cfg, sim_cfg
+    def __init__(self, out_dir, sample_cfg, sim_cfg, ego=EgoChoice(), traffic=None):
+        self.out_dir, self.sample_cfg, self.sim_cfg, self.ego, self.traffic = out_dir, sample_cfg, sim_cfg, ego, traffic
 
     def __call__(self, job):
-        return run_sumo_job(job, self.out_dir, self.sample_cfg, self.sim_cfg)
+        return run_sumo_job(job, self.out_dir, self.sample_cfg, self.sim_cfg, ego=self.ego, traffic=self.traffic)
 
 
 NETGEN_VERSION = 2  # 2: seed-drawn shapes + node perturbation, networks generated before the runs
@@ -377,7 +543,9 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                workers: int = 2, split: str | None = None, per_job: int = 50,
                sample_cfg: preprocess.SampleConfig | None = None, sim_cfg=None, *, net_layout: str = "given",
                keep_overlaps: bool = False, refuse_near_duplicates: bool = True,
-               near_duplicate_tol: float | None = None, against: list[str] | tuple = ()) -> dict:
+               near_duplicate_tol: float | None = None, against: list[str] | tuple = (),
+               traffic: dict | None = None, ego: EgoChoice = EgoChoice(), lefthand_share: float = 0.25,
+               static_tls_share: float = 0.5) -> dict:
     """Builds (or resumes) a SUMO dataset in `out_dir`. Returns the manifest.
 
     Args:
@@ -389,6 +557,13 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
         geometry nearly matches a train network's (`check_near_duplicates`); otherwise only warn. Either
         way the pairs go into the manifest (`build.near_duplicates`).
       against: other stores whose networks are checked against this build's (see `check_near_duplicates`).
+      traffic: `sumo.SimConfig` traffic fields (`sumo.TRAFFIC_FIELDS`: parking, short stops, drivers) set over
+        the simulation config; None keeps those of `sim_cfg` (default: `SimConfig`'s, parked vehicles, stops
+        and heterogeneous drivers on); `sumo.LEGACY_TRAFFIC` = the behaviour of stores built before them.
+      ego: how egos are chosen (`EgoChoice`; `LEGACY_EGO` = the 30 m travel rule of stores built before).
+      lefthand_share / static_tls_share: generated networks: probability of left-hand traffic
+        (`netconvert --lefthand`) / of fixed-cycle traffic lights (queues), drawn per network from its seed.
+    All of them are recorded in the settings (`build.traffic` in the manifest) and in every shard's meta.
     """
     from gpd_jax.data import netgeom, sumo
     from gpd_jax.data.errors import DataError
@@ -398,6 +573,17 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
     check_count("per_job", per_job)
     check_count("workers", workers)
     sample_cfg = sample_cfg or default_sumo_sample_config()
+    for name, v in (("lefthand_share", lefthand_share), ("static_tls_share", static_tls_share)):
+        if not 0.0 <= v <= 1.0:
+            raise DataError(None, f"{name} must be a share in [0, 1], got {v!r}")
+    if traffic:
+        unknown = sorted(set(traffic) - set(sumo.TRAFFIC_FIELDS))
+        if unknown:
+            raise DataError(None, f"unknown traffic option(s) {unknown}; expected some of {sumo.TRAFFIC_FIELDS}")
+    eff_sim = dataclasses.replace(sim_cfg or sumo.SimConfig(), **(traffic or {}))
+    sumo.check_sim_config(eff_sim)
+    if ego.rule == "mixed":  # the mixed rule has no travel minimum: say so in the recorded sample config
+        sample_cfg = dataclasses.replace(sample_cfg, min_ego_travel=0.0)
     if keep_overlaps:
         sample_cfg = dataclasses.replace(sample_cfg, reject_overlaps=False)
     for n in nets or []:  # parse every given network now, not after SUMO fails on it
@@ -413,10 +599,16 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                 "nets": [os.path.abspath(n) for n in nets] if nets else None, "split": split,
                 "per_job": per_job, "sample_config": dataclasses.asdict(sample_cfg),
                 "sim_config": dataclasses.asdict(sim_cfg) if sim_cfg else None,
-                "netgen_version": None if nets else NETGEN_VERSION, "net_layout": net_layout if nets else None}
+                "netgen_version": None if nets else NETGEN_VERSION, "net_layout": net_layout if nets else None,
+                "traffic": traffic_settings(eff_sim, ego, 0.0 if nets else lefthand_share,
+                                            0.0 if nets else static_tls_share)}
+    if _built_before_traffic_options(out_dir) and settings["traffic"] == traffic_settings(
+            dataclasses.replace(eff_sim, **sumo.LEGACY_TRAFFIC), LEGACY_EGO, 0.0, 0.0):
+        settings.pop("traffic")  # resuming a build from before the traffic options, with --traffic legacy
     if _check_settings(out_dir, settings):  # an abandoned start with other settings: its networks go too
         shutil.rmtree(netgeom.networks_dir(out_dir), ignore_errors=True)
-    jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout)
+    jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout,
+                          0.0 if nets else lefthand_share, 0.0 if nets else static_tls_share)
     index = prepare_networks(jobs, out_dir, workers)
     dups, dup_summary = check_near_duplicates(out_dir, index, against, near_duplicate_tol)
     if dups:
@@ -428,14 +620,26 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                                      f"distance < {dup_summary['tol_m']} m after rigid alignment): {lines}. Use other "
                                      f"networks, or build with --allow-near-duplicates to record them and go on")
         log.warning("%d evaluation network(s) nearly match training networks: %s", len(dups), lines)
-    results = run_jobs(jobs, _Bound(out_dir, sample_cfg, sim_cfg), out_dir, workers, "sumo build")
+    results = run_jobs(jobs, _Bound(out_dir, sample_cfg, sim_cfg, ego, traffic), out_dir, workers, "sumo build")
     extra = {"near_duplicates": dups, "near_duplicate_check": dup_summary,
-             "networks": {loc: {k: r[k] for k in ("layout", "split", "lane_km")} for loc, r in index.items()}}
+             "networks": {loc: {k: r.get(k) for k in ("layout", "split", "lane_km", "lefthand")}
+                          for loc, r in index.items()}}
     return _finish(out_dir, settings, results, time.time() - t0, extra)
 
 
 def default_sumo_sample_config() -> preprocess.SampleConfig:
     return preprocess.SampleConfig(min_neighbours=6, min_ego_travel=30.0, reject_overlaps=True)
+
+
+def _built_before_traffic_options(out_dir: str) -> bool:
+    """Whether `out_dir` holds SUMO build settings recorded before the traffic options existed."""
+    p = os.path.join(out_dir, "_jobs", "settings.json")
+    try:
+        with open(p) as f:
+            old = json.load(f)
+    except (OSError, ValueError):
+        return False
+    return old.get("source") == "sumo" and "traffic" not in old
 
 
 def _check_settings(out_dir: str, settings: dict) -> bool:
@@ -455,9 +659,11 @@ def _check_settings(out_dir: str, settings: dict) -> bool:
         finished = any(n.startswith("job_") and n.endswith(".json") for n in os.listdir(os.path.dirname(p)))
         if old != json.loads(json.dumps(settings)) and finished:
             diff = sorted(k for k in set(old or {}) | set(settings) if (old or {}).get(k) != settings.get(k))
+            hint = (" It was built before the SUMO traffic options: resume it with --traffic legacy."
+                    if "traffic" in diff and old and "traffic" not in old else "")
             raise DataError(out_dir, f"holds a build with other settings (differing: {', '.join(diff)}; see {p}). "
                                      f"Run the same command as before to resume it, use another --out, or delete "
-                                     f"{out_dir} to start again")
+                                     f"{out_dir} to start again.{hint}")
         if old == json.loads(json.dumps(settings)):
             return False
         store.atomic_write_json(p, settings)

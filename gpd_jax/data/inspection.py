@@ -2,7 +2,11 @@
 
 Keys: scenarios, scenarios_per_split, agents_per_frame_mean / _max (valid vehicles besides the ego),
 lanes_per_frame_mean / _min (SLEDGE vector lanes, `gpd_jax.data.lanes`), stationary_fraction (valid
-agent-frames, ego included, under 0.5 m/s), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
+agent-frames, ego included, under 0.5 m/s), agent_stationary_fraction / ego_stationary_fraction (the same for
+the other agents / the ego alone), ego_stationary_at_current_fraction (scenarios whose ego is under 0.5 m/s at
+the current frame), agents_stationary_at_current_fraction (other agents valid there, under 0.5 m/s),
+agents_never_moving_fraction (other agents valid at the current frame that never reach 0.5 m/s in the window:
+parked), agent_speed_mps_p50 (other agents), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
 differences of consecutive valid frames at 10 Hz), log_collisions (scenarios in which two recorded
 oriented boxes overlap in some frame, separating-axis test), build_wall_s, plus a few extras.
 
@@ -23,13 +27,16 @@ from gpd_jax.data.geometry import boxes_overlap, sample_has_overlap  # noqa: F40
 from gpd_jax.scene import AGENT_TYPES
 
 DT = 0.1
+STATIONARY_MPS = 0.5  # speed under which an agent-frame counts as stationary (as `gpd_jax.metrics.agents`)
 
 
 class _Figures:
-    """Accumulates the agent figures of a group of shards."""
+    """Accumulates the agent figures of a group of shards (`current`: the current frame index)."""
 
-    def __init__(self):
+    def __init__(self, current: int = 20):
+        self.current = current
         self.agents, self.speeds, self.ego_speeds, self.accels = [], [], [], []
+        self.other_speeds, self.ego_current, self.other_current, self.never_moving = [], [], [], []
         self.collisions, self.n = 0, 0
         self.type_hist = np.zeros(len(AGENT_TYPES), np.int64)
 
@@ -41,6 +48,16 @@ class _Figures:
         sp = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / DT
         self.speeds.append(sp[ok1])
         self.ego_speeds.append(sp[..., 0][ok1[..., 0]])
+        self.other_speeds.append(sp[..., 1:][ok1[..., 1:]])
+        c = self.current
+        if 1 <= c < v.shape[1]:
+            okc = ok1[:, c - 1]  # [B, A]: valid at c - 1 and c
+            self.ego_current.append(sp[:, c - 1, 0][okc[:, 0]])
+            self.other_current.append(sp[:, c - 1, 1:][okc[:, 1:]])
+            # agents (not the ego) at the current frame that never reach 0.5 m/s over their valid steps
+            fast = np.any(ok1[..., 1:] & (sp[..., 1:] >= STATIONARY_MPS), axis=1)  # [B, A-1]
+            has = ok1[..., 1:].any(1) & v[:, c, 1:]
+            self.never_moving.append(~fast[has])
         ok2 = ok1[:, 1:] & ok1[:, :-1]
         self.accels.append((np.diff(sp, axis=1) / DT)[ok2])
         for k in range(len(v)):
@@ -55,6 +72,15 @@ class _Figures:
         ego = np.concatenate(self.ego_speeds) if self.ego_speeds else np.zeros(0)
         accels = np.concatenate(self.accels) if self.accels else np.zeros(0)
 
+        def cat(x):
+            return np.concatenate(x) if x else np.zeros(0)
+
+        other, ego_c, other_c, never = (cat(self.other_speeds), cat(self.ego_current), cat(self.other_current),
+                                        cat(self.never_moving))
+
+        def share(x):
+            return float(np.mean(x < STATIONARY_MPS)) if len(x) else None
+
         def pct(x, q):
             return float(np.percentile(x, q)) if len(x) else None
 
@@ -68,6 +94,12 @@ class _Figures:
             "speed_mps_p50": pct(speeds, 50),
             "speed_mps_p95": pct(speeds, 95),
             "ego_speed_mps_p50": pct(ego, 50),
+            "agent_speed_mps_p50": pct(other, 50),
+            "agent_stationary_fraction": share(other),
+            "ego_stationary_fraction": share(ego),
+            "ego_stationary_at_current_fraction": share(ego_c),
+            "agents_stationary_at_current_fraction": share(other_c),
+            "agents_never_moving_fraction": float(np.mean(never)) if len(never) else None,
             "accel_mps2_p1": pct(accels, 1),
             "accel_mps2_p99": pct(accels, 99),
             "log_collisions": int(self.collisions),
@@ -92,7 +124,8 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
     build = man.get("build", {})
     n_per_split = {}
     lane_counts = []
-    total = _Figures()
+    current = int(build.get("sample_config", {}).get("num_history", 21)) - 1
+    total = _Figures(current)
     per_source: dict[str, _Figures] = {}
     per_layout: dict[str, dict[str, int]] = {}  # SUMO shards: network layout -> split -> samples
     with_tokens = 0
@@ -104,7 +137,7 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
             count += sh.num_samples
             with_tokens += sh.num_samples if sh.map_tokens is not None else 0
             total.add(a)
-            per_source.setdefault(shard_source(sh.meta, build.get("source")), _Figures()).add(a)
+            per_source.setdefault(shard_source(sh.meta, build.get("source")), _Figures(current)).add(a)
             if sh.meta.get("layout"):
                 row = per_layout.setdefault(sh.meta["layout"], {})
                 row[split] = row.get(split, 0) + sh.num_samples
@@ -132,6 +165,7 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
         "samples_per_layout": dict(sorted(per_layout.items())),
         "overlap_gate": build.get("overlap_gate"),
         "near_duplicates": build.get("near_duplicates"),
+        "traffic": build.get("traffic"),
     }
     if with_lanes:
         lc = np.concatenate(lane_counts)
@@ -143,10 +177,12 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
 def format_summary(s: dict) -> str:
     lines = [f"{s['scenarios']} scenarios {s['scenarios_per_split']}"]
     for k in ("agents_per_frame_mean", "agents_per_frame_max", "lanes_per_frame_mean", "lanes_per_frame_min",
-              "stationary_fraction", "speed_mps_p5", "speed_mps_p50", "speed_mps_p95", "accel_mps2_p1",
-              "accel_mps2_p99", "log_collisions", "build_wall_s"):
+              "stationary_fraction", "agent_stationary_fraction", "ego_stationary_fraction",
+              "ego_stationary_at_current_fraction", "agents_stationary_at_current_fraction",
+              "agents_never_moving_fraction", "speed_mps_p5", "speed_mps_p50", "agent_speed_mps_p50", "speed_mps_p95",
+              "accel_mps2_p1", "accel_mps2_p99", "log_collisions", "build_wall_s"):
         v = s.get(k)
-        lines.append(f"  {k:24s} {v:.3f}" if isinstance(v, float) else f"  {k:24s} {v}")
+        lines.append(f"  {k:38s} {v:.3f}" if isinstance(v, float) else f"  {k:38s} {v}")
     lines.append(f"  agent types              {s['agent_types']}")
     if s.get("samples_per_layout"):
         lines.append(f"  samples per layout       {s['samples_per_layout']}")
@@ -158,9 +194,10 @@ def format_summary(s: dict) -> str:
         lines.append(f"  near-duplicate networks  {len(s['near_duplicates'])}")
     for src, f in s.get("per_source", {}).items():
         lines.append(f"  [{src}] {f['scenarios']} scenarios")
-        for k in ("agents_per_frame_mean", "agents_per_frame_max", "stationary_fraction", "speed_mps_p50",
-                  "speed_mps_p95", "ego_speed_mps_p50", "accel_mps2_p1", "accel_mps2_p99", "log_collisions",
-                  "log_collision_fraction"):
+        for k in ("agents_per_frame_mean", "agents_per_frame_max", "stationary_fraction", "agent_stationary_fraction",
+                  "ego_stationary_at_current_fraction", "agents_stationary_at_current_fraction",
+                  "agents_never_moving_fraction", "speed_mps_p50", "agent_speed_mps_p50", "speed_mps_p95",
+                  "ego_speed_mps_p50", "accel_mps2_p1", "accel_mps2_p99", "log_collisions", "log_collision_fraction"):
             v = f.get(k)
-            lines.append(f"    {k:22s} {v:.3f}" if isinstance(v, float) else f"    {k:22s} {v}")
+            lines.append(f"    {k:36s} {v:.3f}" if isinstance(v, float) else f"    {k:36s} {v}")
     return "\n".join(lines)

@@ -111,10 +111,25 @@ class NetSpec:
     perturb: float = 0.0  # sigma in metres of the random node perturbation
     jitter: float = 0.0  # grid / spider: relative spread of the gaps between rows / columns / rings and arms
     connectivity: float = 0.95  # random: probability that a road continues at a node
+    lefthand: bool = False  # left-hand traffic (`netconvert --lefthand`; the network's <net lefthand="true">)
+    tls_type: str = "actuated"  # traffic-light programs: "actuated" (gap-based) or "static" (fixed cycles: queues)
 
 
-def random_net_spec(seed: int, layout: str | None = None) -> NetSpec:
-    """A network spec drawn from `seed` (the layout too, unless given: "grid", "spider" or "random")."""
+def random_net_spec(seed: int, layout: str | None = None, lefthand_share: float = 0.0,
+                    static_tls_share: float = 0.0) -> NetSpec:
+    """A network spec drawn from `seed` (the layout too, unless given: "grid", "spider" or "random").
+
+    `lefthand_share` / `static_tls_share`: probabilities that the network has left-hand traffic / fixed-cycle
+    traffic lights, drawn from a stream of their own (with both 0 every spec is the one drawn before they
+    existed)."""
+    spec = _random_net_spec(seed, layout)
+    rng = np.random.default_rng([seed, 19])
+    u_left, u_tls = rng.uniform(size=2)
+    return dataclasses.replace(spec, lefthand=bool(u_left < lefthand_share),
+                               tls_type="static" if u_tls < static_tls_share else "actuated")
+
+
+def _random_net_spec(seed: int, layout: str | None = None) -> NetSpec:
     rng = np.random.default_rng([seed, 7])
     drawn = LAYOUTS[int(rng.integers(3))]
     layout = drawn if layout is None else layout
@@ -145,8 +160,10 @@ def generate_network(spec: NetSpec, out_path: str) -> str:
     """Runs netgenerate for `spec`, writing `out_path` (.net.xml, or .net.xml.gz compressed). Returns the path."""
     flag = {"random": "rand", "rand": "rand"}.get(spec.layout, spec.layout)
     rewrite = flag in ("grid", "spider") and (spec.jitter > 0 or spec.perturb > 0)
+    if spec.tls_type not in ("actuated", "static"):
+        raise ValueError(f"unknown tls_type {spec.tls_type!r}; expected 'actuated' or 'static'")
     common = ["--no-turnarounds", "true", "--junctions.join", "false", "--no-warnings", "true",
-              "--tls.default-type", "actuated"]
+              "--tls.default-type", spec.tls_type] + (["--lefthand", "true"] if spec.lefthand else [])
     plain = tempfile.mkdtemp(prefix="gpd_net_", dir=os.path.dirname(os.path.abspath(out_path))) if rewrite else None
     args = [_bin("netgenerate"), f"--{flag}", "--seed", str(spec.seed), "-o",
             os.path.join(plain, "regular.net.xml") if rewrite else out_path,
@@ -380,6 +397,23 @@ class SimConfig:
     # jumps in the FCD) are removed, never recorded. 0 for generated networks: any teleport rejects.
     tolerated_teleport_fraction: float = 0.0
     extra_sumo_args: tuple[str, ...] = ()
+    # --- real-traffic options (`LEGACY_TRAFFIC` turns them all off: the behaviour of stores built before) ---
+    # Road-side parking: this share of the edges that suit it (normal edges open to cars, >= 40 m, <= 60 km/h)
+    # get a `parkingArea` along their outer lane (spaces of 7 m, 15 m clear of both junctions), and this share
+    # of its spaces are filled by cars, SUVs and vans that drive in during the warm-up and stay parked.
+    parking_edge_share: float = 0.4
+    parking_occupancy: float = 0.6
+    # Of the parked vehicles, this share leaves its space during the recording (and drives off).
+    parked_leave_share: float = 0.1
+    # This share of the moving vehicles makes one short stop (pick-up / drop-off) of `short_stop_s` seconds on
+    # the outer lane of an edge of its route (not the first or the last), then goes on.
+    short_stop_share: float = 0.1
+    short_stop_s: tuple[float, float] = (5.0, 40.0)
+    # "heterogeneous": every size class is a vTypeDistribution of `driver_variants` drivers drawn from the job
+    # seed (speedFactor, sigma, tau, minGap, accel / decel scale, car-following model Krauss / IDM / EIDM,
+    # lcAssertive, lcSpeedGain, lcCooperative, lcKeepRight, lcImpatience); "uniform": one IDM driver per class.
+    drivers: str = "heterogeneous"
+    driver_variants: int = 8
 
 
 # Real (OSM-imported) networks have a few junctions where SUMO's right-of-way model leaves vehicles waiting
@@ -388,6 +422,30 @@ class SimConfig:
 # such teleports (whose tracks are dropped), and lower demand.
 REAL_NETWORK_SIM = SimConfig(insertion_density=150.0, tolerated_teleport_fraction=0.1,
                              extra_sumo_args=("--time-to-impatience", "30", "--ignore-junction-blocker", "20"))
+
+# The traffic options of `SimConfig` as stores were built before they existed: no parked or stopping vehicles,
+# one driver per size class. `dataclasses.replace(cfg, **LEGACY_TRAFFIC)`.
+LEGACY_TRAFFIC = dict(parking_edge_share=0.0, parking_occupancy=0.0, parked_leave_share=0.0, short_stop_share=0.0,
+                      drivers="uniform")
+TRAFFIC_FIELDS = ("parking_edge_share", "parking_occupancy", "parked_leave_share", "short_stop_share",
+                  "short_stop_s", "drivers", "driver_variants")
+DRIVERS = ("heterogeneous", "uniform")
+
+
+def check_sim_config(cfg: SimConfig) -> None:
+    """Raises DataError naming the field when a traffic option of `cfg` is out of range."""
+    for k in ("parking_edge_share", "parking_occupancy", "parked_leave_share", "short_stop_share"):
+        v = getattr(cfg, k)
+        if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+            raise DataError(None, f"SimConfig.{k} must be a share in [0, 1], got {v!r}")
+    lo, hi = cfg.short_stop_s
+    if not 0.0 < lo <= hi:
+        raise DataError(None, f"SimConfig.short_stop_s must be (min, max) seconds with 0 < min <= max, got "
+                              f"{cfg.short_stop_s!r}")
+    if cfg.drivers not in DRIVERS:
+        raise DataError(None, f"SimConfig.drivers must be one of {DRIVERS}, got {cfg.drivers!r}")
+    if cfg.driver_variants < 1:
+        raise DataError(None, f"SimConfig.driver_variants must be >= 1, got {cfg.driver_variants!r}")
 
 
 # ------------------------------------------------------------------------------------ shipped real networks
@@ -464,6 +522,7 @@ def real_networks(scan: bool = False, min_lane_km: float = 1.0, names: list[str]
 
 
 def _vtypes_xml() -> str:
+    """One driver per size class (IDM, sigma 0.3): the vehicle types of stores built before `drivers`."""
     rows = []
     for name, length, width, _, _, vmax, accel, decel in VEHICLE_MIX:
         rows.append(f'  <vType id="{name}" vClass="passenger" length="{length}" width="{width}" '
@@ -472,20 +531,263 @@ def _vtypes_xml() -> str:
     return "<additional>\n" + "\n".join(rows) + "\n</additional>\n"
 
 
+CAR_FOLLOW_MODELS = (("Krauss", 0.4), ("IDM", 0.3), ("EIDM", 0.3))
+
+
+def driver_types_xml(rng: np.random.Generator, variants: int = 8) -> str:
+    """Every size class of `VEHICLE_MIX` as a `vTypeDistribution` (id = the class name) of `variants` drivers,
+    each drawn from `rng`: mean speed factor U(0.85, 1.15) (spread 0.1 around it per vehicle), sigma U(0.05,
+    0.6), tau U(0.6, 1.8) s, minGap U(1.5, 3.5) m, accel x U(0.75, 1.25), decel x U(0.85, 1.15), car-following
+    model Krauss / IDM / EIDM (0.4 / 0.3 / 0.3), lcAssertive U(0.8, 2.5), lcSpeedGain U(0.3, 3), lcCooperative
+    U(0.3, 1), lcKeepRight U(0.3, 2), lcImpatience U(0, 0.8). SUMO draws each vehicle's driver (its --seed)."""
+    names, probs = zip(*CAR_FOLLOW_MODELS)
+    out = ["<additional>"]
+    for name, length, width, _, _, vmax, accel, decel in VEHICLE_MIX:
+        out.append(f'  <vTypeDistribution id="{name}">')
+        for k in range(variants):
+            u = rng.uniform(size=11)
+            model = names[int(rng.choice(len(names), p=np.asarray(probs) / sum(probs)))]
+            mu = 0.85 + 0.3 * u[0]
+            out.append(
+                f'    <vType id="{name}.{k}" vClass="passenger" length="{length}" width="{width}" maxSpeed="{vmax}" '
+                f'accel="{accel * (0.75 + 0.5 * u[1]):.2f}" decel="{decel * (0.85 + 0.3 * u[2]):.2f}" '
+                f'sigma="{0.05 + 0.55 * u[3]:.2f}" tau="{0.6 + 1.2 * u[4]:.2f}" minGap="{1.5 + 2.0 * u[5]:.2f}" '
+                f'speedFactor="normc({mu:.3f},0.1,0.5,1.6)" carFollowModel="{model}" '
+                f'lcAssertive="{0.8 + 1.7 * u[6]:.2f}" lcSpeedGain="{0.3 + 2.7 * u[7]:.2f}" '
+                f'lcCooperative="{0.3 + 0.7 * u[8]:.2f}" lcKeepRight="{0.3 + 1.7 * u[9]:.2f}" '
+                f'lcImpatience="{0.8 * u[10]:.2f}" probability="1"/>')
+        out.append("  </vTypeDistribution>")
+    return "\n".join(out + ["</additional>"]) + "\n"
+
+
+@dataclasses.dataclass(frozen=True)
+class NetEdge:
+    """A normal edge of a network as the traffic planner sees it: its outer lane (index 0)."""
+
+    id: str
+    lane_id: str
+    length: float  # SUMO lane length (positions along the lane are in these metres)
+    speed: float
+    width: float
+    shape: np.ndarray  # f64[P, 2]
+    cars: bool  # the outer lane is open to passenger cars
+    next: tuple[str, ...] = ()  # normal edges this edge connects to
+
+
+def read_network_edges(net_path: str) -> tuple[bool, list[NetEdge]]:
+    """(left-hand traffic?, normal edges with their outer lane and successors) of a SUMO network."""
+    edges: list[NetEdge] = []
+    succ: dict[str, set[str]] = {}
+    lefthand = False
+    try:
+        with _open_xml(net_path) as f:
+            for ev, el in ET.iterparse(f, events=("start", "end")):
+                if ev == "start":
+                    if el.tag == "net":
+                        lefthand = el.get("lefthand", "false").lower() == "true"
+                    continue
+                if el.tag == "edge":
+                    if el.get("function", "normal") == "normal":
+                        lanes = {int(ln.get("index", 0)): ln for ln in el.findall("lane")}
+                        ln = lanes.get(0)
+                        if ln is not None and ln.get("shape"):
+                            edges.append(NetEdge(el.get("id"), ln.get("id"), float(ln.get("length", 0.0)),
+                                                 float(ln.get("speed", 13.89)),
+                                                 float(ln.get("width", DEFAULT_LANE_WIDTH)),
+                                                 _parse_shape(ln.get("shape")), _passenger_allowed(ln.attrib)))
+                    el.clear()
+                elif el.tag == "connection":
+                    a, b = el.get("from", ""), el.get("to", "")
+                    if not a.startswith(":") and not b.startswith(":"):
+                        succ.setdefault(a, set()).add(b)
+                    el.clear()
+    except (ET.ParseError, ValueError, OSError, EOFError) as e:
+        raise DataError(net_path, f"not a readable SUMO network: {e}") from e
+    return lefthand, [dataclasses.replace(e, next=tuple(sorted(succ.get(e.id, ())))) for e in edges]
+
+
+def is_lefthand(net_path: str) -> bool:
+    """Whether a SUMO network drives on the left (`<net lefthand="true">`, netconvert --lefthand)."""
+    with _open_xml(net_path) as f:
+        head = f.read(1 << 14).decode("utf-8", "replace")
+    m = re.search(r"<net\b[^>]*>", head)
+    return bool(m and re.search(r'\blefthand="true"', m.group(0)))
+
+
+def _cut_polyline(pts: np.ndarray, a: float, b: float) -> np.ndarray:
+    """The part of polyline `pts f64[P, 2]` between arc lengths a < b."""
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=-1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    a, b = max(0.0, a), min(float(s[-1]), b)
+    inner = (s > a) & (s < b)
+    t = np.concatenate([[a], s[inner], [b]])
+    return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], -1)
+
+
+PARKING_SPACE_M = 7.0  # length of one road-side space (parked vehicles are at most 6.5 m long: car, SUV, van)
+PARKING_WIDTH_M = 2.5  # width of the parking strip beside the outer lane
+PARKING_MARGIN_M = 15.0  # clear of both ends of the edge (junction approaches)
+PARKING_MAX_SPEED = 16.7  # m/s: edges faster than 60 km/h get no road-side parking and no pick-up stops
+PARKED_ID_BASE = 10_000_000  # FCD ids of parked vehicles (randomTrips numbers its vehicles from 0)
+PARKED_CLASSES = ("g_car", "g_suv", "g_van")
+
+
+def _suits_parking(e: NetEdge) -> bool:
+    return e.cars and e.speed <= PARKING_MAX_SPEED and e.length >= 40.0
+
+
+@dataclasses.dataclass(frozen=True)
+class TrafficPlan:
+    """What `plan_traffic` adds to a run: parking areas (additional XML), parked vehicles (route XML, their
+    ids and size classes) and the parking strips as drivable `Area`s of kind "other"."""
+
+    parking_xml: str
+    parked_xml: str
+    parked_types: dict[str, str]
+    areas: tuple[Area, ...]
+    num_spaces: int
+
+
+def plan_traffic(edges: list[NetEdge], lefthand: bool, cfg: SimConfig, rng: np.random.Generator, end_s: float
+                 ) -> TrafficPlan:
+    """Road-side parking areas and the vehicles parked in them (see `SimConfig.parking_edge_share`).
+
+    Parked vehicles are vehicles with a `<stop parkingArea until>` on a route of their edge (those that leave: plus
+    up to 5 edges of a random walk along the network's connections),
+    inserted at their own space (spaces fill from the end of the area) in the first quarter of the warm-up
+    (checking only for a collision at insertion), so that they are parked when the recording starts;
+    those that leave (`parked_leave_share`) go at a time drawn in the recording, to a random edge.
+    `edges`, `lefthand`: `read_network_edges` of the network."""
+    side = 1.0 if lefthand else -1.0  # the strip lies beyond the outer lane: right (left in left-hand traffic)
+    areas, pa_rows, trips, types = [], [], [], {}
+    by_id = {e.id: e for e in edges}
+
+    def walk(e: NetEdge) -> list[str]:
+        route = [e.id]
+        while len(route) < 6 and by_id[route[-1]].next:
+            nxt = [x for x in by_id[route[-1]].next if x in by_id and by_id[x].cars]
+            if not nxt:
+                break
+            route.append(nxt[int(rng.integers(len(nxt)))])
+        return route
+    probs = np.array([m[3] for m in VEHICLE_MIX if m[0] in PARKED_CLASSES])
+    names = [m[0] for m in VEHICLE_MIX if m[0] in PARKED_CLASSES]
+    n_spaces = 0
+    k = 0
+    for e in edges:
+        if not _suits_parking(e) or rng.uniform() >= cfg.parking_edge_share:
+            continue
+        a, b = PARKING_MARGIN_M, e.length - PARKING_MARGIN_M
+        cap = int((b - a) // PARKING_SPACE_M)
+        if cap < 1:
+            continue
+        b = a + cap * PARKING_SPACE_M
+        pid = f"pa_{e.id}"
+        pa_rows.append(f'  <parkingArea id="{pid}" lane="{e.lane_id}" startPos="{a:.2f}" endPos="{b:.2f}" '
+                       f'roadsideCapacity="{cap}" length="{PARKING_SPACE_M}" width="{PARKING_WIDTH_M}"/>')
+        n_spaces += cap
+        geo_len = float(np.sum(np.linalg.norm(np.diff(e.shape, axis=0), axis=-1)))
+        scale = geo_len / e.length if e.length > 0 else 1.0
+        strip = lane_area(_cut_polyline(e.shape, a * scale, b * scale), PARKING_WIDTH_M, AREA_KIND_ID["other"],
+                          offset=side * (e.width / 2 + PARKING_WIDTH_M / 2))
+        if strip is not None:
+            areas.append(strip)
+        n_park = int(rng.binomial(cap, cfg.parking_occupancy))
+        departs = np.sort(rng.uniform(0.0, 0.25 * cfg.warmup_s, n_park))
+        for i, depart in enumerate(departs):
+            vid = str(PARKED_ID_BASE + k)
+            k += 1
+            cls = names[int(rng.choice(len(names), p=probs / probs.sum()))]
+            types[vid] = cls
+            pos = b - i * PARKING_SPACE_M - 0.3  # the space SUMO gives it: spaces fill from the end of the area
+            if rng.uniform() < cfg.parked_leave_share:
+                until, route = rng.uniform(cfg.warmup_s, end_s), walk(e)
+            else:
+                until, route = end_s + 3600.0, [e.id]
+            trips.append((depart, f'  <vehicle id="{vid}" type="{cls}" depart="{depart:.1f}" departLane="0" '
+                                  f'departPos="{pos:.1f}" departSpeed="0" insertionChecks="collision">'
+                                  f'<route edges="{" ".join(route)}"/><stop parkingArea="{pid}" '
+                                  f'until="{until:.1f}"/></vehicle>'))
+    trips.sort(key=lambda t: t[0])
+    return TrafficPlan("<additional>\n" + "\n".join(pa_rows) + "\n</additional>\n",
+                       "<routes>\n" + "\n".join(t for _, t in trips) + "\n</routes>\n", types, tuple(areas), n_spaces)
+
+
+_VEHICLE_ROUTE = re.compile(r'(<vehicle id="([^"]+)"[^>]*>\s*<route edges="([^"]+)"\s*/>)')
+
+
+def add_short_stops(routes_text: str, edges: list[NetEdge], cfg: SimConfig, rng: np.random.Generator
+                    ) -> tuple[str, int]:
+    """Routes with a pick-up / drop-off stop (`<stop lane endPos duration>` on the outer lane of an inner edge
+    of its route that suits parking) added to `cfg.short_stop_share` of the vehicles. Returns (text, stops)."""
+    by_id = {e.id: e for e in edges}
+    lo, hi = cfg.short_stop_s
+    n = 0
+
+    def add(m):
+        nonlocal n
+        if rng.uniform() >= cfg.short_stop_share:
+            return m.group(1)
+        inner = [by_id[x] for x in m.group(3).split()[1:-1] if x in by_id and _suits_parking(by_id[x])]
+        if not inner:
+            return m.group(1)
+        e = inner[int(rng.integers(len(inner)))]
+        pos = rng.uniform(20.0, e.length - 10.0)
+        n += 1
+        return (m.group(1) + f'\n        <stop lane="{e.lane_id}" endPos="{pos:.1f}" '
+                             f'duration="{rng.uniform(lo, hi):.1f}" friendlyPos="true"/>')
+
+    return _VEHICLE_ROUTE.sub(add, routes_text), n
+
+
+def _read_planned_stops(path: str) -> dict[int, list[tuple[float, float]]]:
+    """SUMO's stop output (CSV): vehicle id -> [(started, ended)] in simulation seconds (unfinished: inf)."""
+    out: dict[int, list[tuple[float, float]]] = {}
+    if not os.path.isfile(path):
+        return out
+    with open(path) as f:
+        rows = [ln.rstrip("\n").split(";") for ln in f if ln.strip()]
+    if not rows:
+        return out
+    col = {k: i for i, k in enumerate(rows[0])}
+    i_id, i_s, i_e = col.get("stopinfo_id"), col.get("stopinfo_started"), col.get("stopinfo_ended")
+    if i_id is None or i_s is None or i_e is None:
+        return out
+    for r in rows[1:]:
+        try:
+            vid, s, e = int(float(r[i_id])), float(r[i_s]), float(r[i_e])
+        except (ValueError, IndexError):
+            continue
+        out.setdefault(vid, []).append((s, np.inf if e < 0 else e))
+    return out
+
+
 def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig = SimConfig(),
              workdir: str | None = None, lanes: tuple[np.ndarray, ...] | None = None,
-             areas: tuple[Area, ...] | None = None) -> RawLog:
+             areas: tuple[Area, ...] | None = None, info: dict | None = None) -> RawLog:
     """Makes demand on `net_path`, runs SUMO and returns the recording as a `RawLog` (10 Hz, box centres).
+
+    With the traffic options of `cfg`: road-side parking areas and parked vehicles (`plan_traffic`; their
+    strips join the drivable areas as kind "other"), short stops (`add_short_stops`) and heterogeneous drivers
+    (`driver_types_xml`). `info`, when given, receives counts of what was added and of the planned stops.
 
     Raises `SumoRunRejected` for runs with teleports, gridlock or too little traffic.
     """
+    check_sim_config(cfg)
     rng = np.random.default_rng([seed, 11])
+    rng_traffic = np.random.default_rng([seed, 23])  # its own stream: the legacy draws stay as they were
+    info = {} if info is None else info
     own_tmp = workdir is None
     wd = tempfile.mkdtemp(prefix="gpd_sumo_") if own_tmp else workdir
     try:
         vt = os.path.join(wd, "vtypes.add.xml")
         with open(vt, "w") as f:
             f.write(_vtypes_xml())
+        vt_sim = vt
+        if cfg.drivers == "heterogeneous":
+            vt_sim = os.path.join(wd, "drivers.add.xml")
+            with open(vt_sim, "w") as f:
+                f.write(driver_types_xml(rng_traffic, cfg.driver_variants))
         trips, routes = os.path.join(wd, "trips.xml"), os.path.join(wd, "routes.xml")
         end = cfg.warmup_s + cfg.record_s
         tools = os.path.join(sumo_home(), "tools")
@@ -504,15 +806,37 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
         it = iter(draws)
         text = re.sub(r'type="g_car"', lambda _: f'type="{VEHICLE_MIX[next(it)][0]}"', text)
         text = re.sub(r"<vType [^>]*/>|<vType [^>]*>.*?</vType>", "", text, flags=re.S)  # ours come via -a
+        adds, route_files, types = [vt_sim], [routes], _vehicle_types(text)
+        extra_areas: tuple[Area, ...] = ()
+        wants_parking = cfg.parking_edge_share > 0 and cfg.parking_occupancy > 0
+        if wants_parking or cfg.short_stop_share > 0:
+            lefthand, edges = read_network_edges(net_path)
+            if cfg.short_stop_share > 0:
+                text, info["short_stops"] = add_short_stops(text, edges, cfg, rng_traffic)
+            if wants_parking:
+                plan = plan_traffic(edges, lefthand, cfg, rng_traffic, end)
+                info.update(parking_spaces=plan.num_spaces, parked_vehicles=len(plan.parked_types))
+                if plan.parked_types:
+                    pa, pr = os.path.join(wd, "parking.add.xml"), os.path.join(wd, "parked.rou.xml")
+                    with open(pa, "w") as f:
+                        f.write(plan.parking_xml)
+                    with open(pr, "w") as f:
+                        f.write(plan.parked_xml)
+                    adds.append(pa)
+                    route_files.append(pr)
+                    types.update(plan.parked_types)
+                    extra_areas = plan.areas
         with open(routes, "w") as f:
             f.write(text)
         fcd, stats = os.path.join(wd, "fcd.csv"), os.path.join(wd, "stats.csv")
-        _run([_bin("sumo"), "-n", net_path, "-r", routes, "-a", vt, "--step-length", "0.1",
+        stops = os.path.join(wd, "stops.csv")
+        _run([_bin("sumo"), "-n", net_path, "-r", ",".join(route_files), "-a", ",".join(adds), "--step-length", "0.1",
               "--lanechange.duration", "3", "--fcd-output", fcd, "--output.format", "csv",
               "--fcd-output.attributes", "x,y,angle,speed", "--device.fcd.begin", f"{cfg.warmup_s:.1f}",
               "-e", f"{end - 0.05:.2f}", "--statistic-output", stats, "--time-to-teleport",
               f"{cfg.time_to_teleport:.0f}", "--no-step-log", "true", "--no-warnings", "true",
               "--seed", str(seed % (2**31)), "--collision.action", "warn", "--precision", "3",
+              "--stop-output", stops, "--stop-output.write-unfinished", "true", "--ignore-route-errors", "true",
               *cfg.extra_sumo_args],
              what=f"sumo on {net_path}")
         st = _read_stats(stats)
@@ -521,8 +845,7 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
         jams = int(float(st.get("teleports_jam", 0) or 0))
         if teleports and (jams or teleports > cfg.tolerated_teleport_fraction * max(inserted, 1)):
             raise SumoRunRejected(f"{name}: {teleports} teleports ({jams} in jams) of {inserted} vehicles")
-        types = _vehicle_types(text)
-        raw = _fcd_to_rawlog(fcd, types, name, location, cfg)
+        raw = _fcd_to_rawlog(fcd, types, name, location, cfg, planned_stops=_read_planned_stops(stops), info=info)
         if teleports:  # a few isolated teleports (deadlocks at odd real junctions): drop those tracks
             raw = drop_discontinuous_tracks(raw)
     finally:
@@ -535,7 +858,7 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
         lanes = read_network_lanes(net_path)
     if areas is None:
         areas = read_network_areas(net_path)
-    return dataclasses.replace(raw, lanes=lanes, areas=areas)
+    return dataclasses.replace(raw, lanes=lanes, areas=tuple(areas) + extra_areas)
 
 
 def drop_discontinuous_tracks(raw: RawLog, max_speed: float = 70.0) -> RawLog:
@@ -584,7 +907,12 @@ def bumper_to_centre(front_xy: np.ndarray, compass_deg: np.ndarray, length: np.n
     return centre, heading
 
 
-def _fcd_to_rawlog(fcd_path: str, types: dict[str, str], name: str, location: str, cfg: SimConfig) -> RawLog:
+def _fcd_to_rawlog(fcd_path: str, types: dict[str, str], name: str, location: str, cfg: SimConfig,
+                   planned_stops: dict[int, list[tuple[float, float]]] | None = None, info: dict | None = None
+                   ) -> RawLog:
+    """FCD CSV -> RawLog. The gridlock gate counts vehicle-frames under 0.5 m/s, leaving out the frames of
+    vehicles at a planned stop (`planned_stops`: SUMO's stop output, parked vehicles and pick-ups): more than
+    `cfg.max_stopped_fraction` of the rest is a jam (`SumoRunRejected`)."""
     try:
         data = np.loadtxt(fcd_path, delimiter=";", skiprows=1, dtype=np.float64, ndmin=2)
     except ValueError as e:
@@ -596,9 +924,23 @@ def _fcd_to_rawlog(fcd_path: str, types: dict[str, str], name: str, location: st
     F = int(frame.max()) + 1
     uids, col = np.unique(vid.astype(np.int64), return_inverse=True)
     N = len(uids)
-    stopped = float(np.mean(spd < 0.5))
+    planned = np.zeros(len(t), bool)
+    for u, spans in (planned_stops or {}).items():
+        j = np.searchsorted(uids, u)
+        if j >= N or uids[j] != u:
+            continue
+        rows = col == j
+        for a, b in spans:
+            planned |= rows & (t >= a - 0.05) & (t <= b + 0.05)
+    still = spd < 0.5
+    counted = ~planned
+    stopped = float(np.mean(still[counted])) if counted.any() else 0.0
+    if info is not None:
+        info.update(stopped_fraction=round(float(np.mean(still)), 4), jam_stopped_fraction=round(stopped, 4),
+                    planned_stop_frames=int(planned.sum()), vehicle_frames=int(len(t)))
     if stopped > cfg.max_stopped_fraction:
-        raise SumoRunRejected(f"{name}: {stopped:.0%} of vehicle-frames stopped (gridlock)")
+        raise SumoRunRejected(f"{name}: {stopped:.0%} of vehicle-frames stopped (gridlock; frames at planned stops, "
+                              f"{planned.mean():.0%} of all, not counted)")
     by_name = {m[0]: m for m in VEHICLE_MIX}
     size = np.zeros((N, 2), np.float32)
     atype = np.zeros((N,), np.int32)
@@ -609,10 +951,42 @@ def _fcd_to_rawlog(fcd_path: str, types: dict[str, str], name: str, location: st
     centre, heading = bumper_to_centre(np.stack([x, y], -1), ang, size[col, 0])
     xy = np.full((F, N, 2), np.nan)
     hd = np.full((F, N), np.nan)
+    sp = np.zeros((F, N))
     valid = np.zeros((F, N), bool)
     xy[frame, col] = centre
     hd[frame, col] = heading
+    sp[frame, col] = spd
     valid[frame, col] = True
+    n_smoothed = smooth_parking_jumps(xy, valid, sp)
+    if info is not None:
+        info["parking_jumps_smoothed"] = n_smoothed
     return RawLog(name=name, location=location, timestamps=np.arange(F) * 0.1 + cfg.warmup_s,
                   agent_ids=tuple(str(u) for u in uids), agent_xy=xy, agent_heading=hd, agent_valid=valid,
                   agent_size=size, agent_type=atype, lanes=(), ego_index=None)
+
+
+def smooth_parking_jumps(xy: np.ndarray, valid: np.ndarray, speed: np.ndarray, span: int = 20,
+                         min_jump: float = 1.0, max_jump: float = 8.0, max_speed: float = 3.0) -> int:
+    """Spreads SUMO's sideways jumps into and out of a road-side parking space (the vehicle moves from the lane
+    to the space, about 3 m, in one 0.1 s step) over `span` frames, in place. A jump: a step between two valid
+    frames of more than `min_jump` (and less than `max_jump`) metres beyond what the reported speed covers, at
+    speeds under `max_speed`. `xy f64[F, N, 2]`, `valid bool[F, N]`, `speed f64[F, N]`. Returns the jumps."""
+    F = xy.shape[0]
+    ok = valid[1:] & valid[:-1]
+    step = np.linalg.norm(np.nan_to_num(xy[1:] - xy[:-1]), axis=-1)
+    covered = 0.1 * np.maximum(speed[1:], speed[:-1])
+    jump = ok & (step - covered > min_jump) & (step < max_jump) & (np.maximum(speed[1:], speed[:-1]) < max_speed)
+    half = span // 2
+    for t, n in zip(*np.nonzero(jump)):
+        d = xy[t + 1, n] - xy[t, n]
+        lo, hi = max(0, t - half + 1), min(F - 1, t + half)
+        while lo < t and not valid[lo:t + 1, n].all():
+            lo += 1
+        while hi > t + 1 and not valid[t + 1:hi + 1, n].all():
+            hi -= 1
+        k = np.arange(lo, hi + 1)
+        w = (k - (t - half)) / (2.0 * half)  # 0 -> 1 across the span
+        before = k <= t
+        xy[k[before], n] += d * w[before, None]
+        xy[k[~before], n] -= d * (1.0 - w[~before, None])
+    return int(jump.sum())

@@ -1,0 +1,235 @@
+"""Real-traffic options of the SUMO build: parked and stopping vehicles, heterogeneous drivers, stationary egos,
+left-hand networks and the gridlock gate that tells parked vehicles from jams."""
+
+import dataclasses
+import json
+import os
+import re
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from gpd_jax.data import build, preprocess, store, sumo
+from gpd_jax.data.__main__ import main, traffic_options
+from gpd_jax.data.errors import DataError
+from gpd_jax.data.raw import RawLog
+from gpd_jax.geometry import AREA_KIND_ID
+from gpd_jax.scene import TYPE_ID
+
+TINY_SIM = sumo.SimConfig(warmup_s=60.0, record_s=12.0)
+
+
+@pytest.fixture(scope="module")
+def lefthand_store(tmp_path_factory):
+    """A one-network build (2 samples) with the default traffic options on a left-hand generated network."""
+    out = str(tmp_path_factory.mktemp("traffic") / "lh")
+    man = build.build_sumo(out, 2, seed=6, workers=1, per_job=2, split="train", sim_cfg=TINY_SIM,
+                           lefthand_share=1.0)
+    return out, man
+
+
+def test_lefthand_build_with_parked_vehicles(lefthand_store):
+    out, man = lefthand_store
+    assert man["num_samples"] == 2, man["build"]["rejections"]
+    (loc, net), = man["build"]["networks"].items()
+    assert net["lefthand"] is True
+    # netconvert's output is marked left-hand, and the recorded spec says so
+    idx = json.load(open(os.path.join(out, "_networks", "index.json")))
+    path = os.path.join(out, idx[loc]["net"])
+    assert sumo.is_lefthand(path) and idx[loc]["spec"]["lefthand"] is True
+    lefthand, edges = sumo.read_network_edges(path)
+    assert lefthand and edges
+    tr = man["build"]["traffic"]
+    assert tr["ego_rule"] == "mixed" and tr["drivers"] == "heterogeneous" and tr["parking_edge_share"] > 0
+    assert man["build"]["sample_config"]["min_ego_travel"] == 0.0  # the mixed rule has no travel minimum
+    assert man["build"]["stats"]["sim_parked_vehicles"] > 0
+    sh = store.Shard(store.list_shards(out, "train")[0])
+    assert sh.meta["lefthand"] is True and sh.meta["traffic"] == tr
+    a = {k: np.asarray(v) for k, v in sh.arrays.items()}
+    valid, xy = a["valid"], a["xy"].astype(np.float64)
+    whole = valid.all(1)  # [B, A] agents present in every frame
+    spread = np.linalg.norm(xy - xy[:, :1], axis=-1).max(1)  # [B, A] furthest from the first frame
+    parked = whole & (spread < 0.05)
+    parked[:, 0] = False
+    assert parked.sum() >= 2, "no recorded agent stands still across the window"
+    # parked vehicles stand on the parking strips (drivable kind "other") left of their lane: left-hand traffic
+    import jax
+    import jax.numpy as jnp
+
+    from gpd_jax import geometry as geo
+    from gpd_jax.data import loader
+    scene, _ = loader.load_split(out, "train", with_polylines=True)
+    on_strip = 0
+    for b, j in zip(*np.nonzero(parked)):  # never moving: parked, or waiting at a light the whole window
+        road = jax.tree.map(lambda x: jnp.asarray(x[b]), scene.road)
+        kinds = np.asarray(geo.area_kinds(road, jnp.asarray(xy[b, 20, j], jnp.float32)))
+        if not kinds[AREA_KIND_ID["other"]]:
+            continue
+        on_strip += 1
+        # the nearest lane point: the parked box lies to its left (counter-clockwise of the heading)
+        lanes = np.asarray(scene.polylines)[b][np.asarray(scene.polyline_valid)[b]]
+        k = np.argmin(np.linalg.norm(lanes - xy[b, 20, j], axis=-1))
+        h = float(a["heading"][b, 20, j])
+        d = xy[b, 20, j] - lanes[k]
+        assert np.cos(h) * d[1] - np.sin(h) * d[0] > 0.5
+    assert on_strip >= 2
+    # an old-style call of the loader still works on this store, and inspect reports the new figures
+    from gpd_jax.data import inspection
+    s = inspection.inspect(out, with_lanes=False)
+    assert 0.0 < s["agents_never_moving_fraction"] <= 1.0 and s["agent_stationary_fraction"] > 0.0
+    assert s["ego_stationary_at_current_fraction"] is not None and s["traffic"] == tr
+
+
+def test_heterogeneous_drivers_short_stops_and_parking_files(tmp_path):
+    spec = dataclasses.replace(sumo.random_net_spec(3, "grid"), size=3, size2=3, lanes=1)
+    net = sumo.generate_network(spec, str(tmp_path / "g.net.xml"))
+    wd = tmp_path / "wd"
+    wd.mkdir()
+    info = {}
+    cfg = dataclasses.replace(TINY_SIM, record_s=2.0, short_stop_share=0.5, min_vehicles=1)
+    raw = sumo.simulate(net, "x", "loc", 7, cfg, workdir=str(wd), info=info)
+    drivers = (wd / "drivers.add.xml").read_text()
+    assert len(re.findall(r"<vTypeDistribution ", drivers)) == len(sumo.VEHICLE_MIX)
+    variants = re.findall(r'<vType id="g_car\.\d+"[^>]*>', drivers)
+    assert len(variants) == cfg.driver_variants
+    assert len(set(re.findall(r'carFollowModel="(\w+)"', drivers))) >= 2
+    for attr in ("sigma", "tau", "lcAssertive", "lcSpeedGain"):
+        assert len(set(re.findall(rf'{attr}="([\d.]+)"', drivers))) >= 4, attr
+    routes = (wd / "routes.xml").read_text()
+    # the vehicles name the size classes, which are the distributions: SUMO draws each vehicle's driver
+    assert set(re.findall(r'<vehicle id="\d+" type="(\w+)"', routes)) <= {m[0] for m in sumo.VEHICLE_MIX}
+    assert info["short_stops"] > 0 and routes.count("<stop lane=") == info["short_stops"]
+    assert info["parked_vehicles"] > 0 and "parkingArea" in (wd / "parking.add.xml").read_text()
+    assert info["planned_stop_frames"] > 0
+    assert any(a.kind == AREA_KIND_ID["other"] for a in raw.areas)
+    # uniform drivers: one IDM type per class (the stores built before), no distribution file
+    wd2 = tmp_path / "wd2"
+    wd2.mkdir()
+    sumo.simulate(net, "x", "loc", 7, dataclasses.replace(cfg, **sumo.LEGACY_TRAFFIC), workdir=str(wd2))
+    assert not (wd2 / "drivers.add.xml").exists() and not (wd2 / "parked.rou.xml").exists()
+    assert "<stop" not in (wd2 / "routes.xml").read_text()
+
+
+def _stop_and_go_log() -> RawLog:
+    """12 vehicles in a row on a straight road, 10 m apart: track 0 stands until frame 60 then drives off at
+    5 m/s; track 1 is parked (never moves); the others drive at 8 m/s."""
+    F, N = 140, 12
+    t = np.arange(F) * 0.1
+    x = np.zeros((F, N))
+    x[:, 0] = np.where(t < 6.0, 0.0, 5.0 * (t - 6.0))
+    x[:, 1] = 30.0
+    for j in range(2, N):
+        x[:, j] = 10.0 * j + 20.0 + 8.0 * t
+    y = np.zeros((F, N))
+    y[:, 1] = 3.5  # beside the lane
+    xy = np.stack([x, y], -1)
+    s = np.linspace(-50, 400, 451)
+    return RawLog("stopgo", "loc", t, tuple(str(i) for i in range(N)), xy, np.zeros((F, N)), np.ones((F, N), bool),
+                  np.tile(np.array([[4.6, 1.85]], np.float32), (N, 1)), np.full((N,), TYPE_ID["car"], np.int32),
+                  (np.stack([s, np.zeros_like(s)], -1),))
+
+
+def test_stationary_ego_rule():
+    raw = _stop_and_go_log()
+    cfg = preprocess.SampleConfig(min_neighbours=3, min_ego_travel=30.0)
+    still = build.EgoChoice("mixed", 1.0)
+    wins = build.sumo_windows(raw, cfg, 10, np.random.default_rng(0), still)
+    assert wins, "no window with a stationary ego"
+    c = cfg.current
+    for s, e in wins:
+        speed = np.linalg.norm(raw.agent_xy[s + c, e] - raw.agent_xy[s + c - 1, e]) / 0.1
+        assert speed < 0.5 and e == 0  # track 0 waits and then goes; the parked track 1 is never an ego
+    # the samples themselves: ego stopped at the current frame, then moving
+    stats = Counter()
+    samples = list(build.iter_sumo_samples(raw, cfg, 3, 0, stats, still))
+    assert len(samples) == 3 and stats["ego_stationary_at_current"] == 3
+    xy0 = samples[0][1]["xy"][:, 0]
+    assert np.linalg.norm(xy0[c] - xy0[c - 1]) < 0.05 and np.linalg.norm(xy0[-1] - xy0[c]) > 2.0
+    # the default mix: about a quarter stationary; the legacy travel rule: never this waiting ego
+    mixed = build.sumo_windows(raw, cfg, 8, np.random.default_rng(1), build.EgoChoice())
+    n_still = sum(np.linalg.norm(raw.agent_xy[s + c, e] - raw.agent_xy[s + c - 1, e]) < 0.05 for s, e in mixed)
+    assert len(mixed) == 8 and n_still == 2
+    legacy = build.sumo_windows(raw, cfg, 20, np.random.default_rng(0), build.LEGACY_EGO)
+    assert legacy and all(np.linalg.norm(raw.agent_xy[s + c, e] - raw.agent_xy[s + c - 1, e]) > 0.05
+                          for s, e in legacy)
+    with pytest.raises(DataError, match="ego rule"):
+        build.EgoChoice("random")
+
+
+def _write_fcd(path, speeds):
+    """An FCD CSV of vehicles on a line: `speeds f[F, N]` (a stopped vehicle stays where it is)."""
+    F, N = speeds.shape
+    x = np.cumsum(speeds * 0.1, axis=0) + 20.0 * np.arange(N)
+    rows = ["timestep_time;vehicle_id;vehicle_x;vehicle_y;vehicle_angle;vehicle_speed"]
+    for f in range(F):
+        for n in range(N):
+            rows.append(f"{120 + 0.1 * f:.2f};{n};{x[f, n]:.3f};0.0;90.0;{speeds[f, n]:.3f}")
+    path.write_text("\n".join(rows) + "\n")
+
+
+def test_gridlock_gate_tells_parked_from_jammed(tmp_path):
+    F, N = 50, 10
+    sp = np.full((F, N), 8.0)
+    sp[:, :7] = 0.0  # 7 of 10 vehicles stand for the whole recording
+    f = tmp_path / "fcd.csv"
+    _write_fcd(f, sp)
+    cfg = sumo.SimConfig()
+    with pytest.raises(sumo.SumoRunRejected, match="gridlock"):  # a jam: nothing planned
+        sumo._fcd_to_rawlog(str(f), {}, "x", "loc", cfg)
+    planned = {n: [(0.0, np.inf)] for n in range(7)}  # parked (their stops never end)
+    info = {}
+    raw = sumo._fcd_to_rawlog(str(f), {}, "x", "loc", cfg, planned_stops=planned, info=info)
+    assert raw.num_agents == N and info["jam_stopped_fraction"] == 0.0 and info["stopped_fraction"] == 0.7
+    # parked vehicles do not hide a jam among the others
+    sp[:, 7:9] = 0.0
+    _write_fcd(f, sp)
+    with pytest.raises(sumo.SumoRunRejected, match="gridlock"):
+        sumo._fcd_to_rawlog(str(f), {}, "x", "loc", cfg, planned_stops={n: [(0.0, np.inf)] for n in range(5)})
+    # stop output as SUMO writes it (CSV, unfinished stops end at -1)
+    so = tmp_path / "stops.csv"
+    so.write_text("stopinfo_id;stopinfo_type;stopinfo_started;stopinfo_ended\n3;g_car.1;10.0;-1\n4;g_car;5;25.5\n")
+    assert sumo._read_planned_stops(str(so)) == {3: [(10.0, np.inf)], 4: [(5.0, 25.5)]}
+
+
+def test_parking_jumps_are_smoothed():
+    F = 60
+    xy = np.zeros((F, 1, 2))
+    xy[:, 0, 0] = 10.0
+    xy[30:, 0, 1] = 3.2  # the step from the space onto the lane in one frame
+    n = sumo.smooth_parking_jumps(xy, np.ones((F, 1), bool), np.zeros((F, 1)))
+    steps = np.linalg.norm(np.diff(xy[:, 0], axis=0), axis=-1)
+    assert n == 1 and steps.max() < 0.25 and abs(xy[0, 0, 1]) < 1e-9 and abs(xy[-1, 0, 1] - 3.2) < 1e-9
+
+
+def test_options_cli_and_old_settings(tmp_path):
+    class A:
+        traffic, parking_edge_share, parking_occupancy, parked_leave_share = "legacy", None, None, None
+        short_stop_share, drivers, ego_rule, ego_stationary_share = None, None, None, None
+        lefthand_share, static_tls_share = None, None
+
+    o = traffic_options(A)
+    assert o["ego"] == build.LEGACY_EGO and o["lefthand_share"] == 0.0 and o["static_tls_share"] == 0.0
+    assert o["traffic"] == sumo.LEGACY_TRAFFIC
+    A.traffic, A.parking_occupancy = "realistic", 0.9
+    o = traffic_options(A)
+    assert o["traffic"] == {"parking_occupancy": 0.9} and o["ego"] == build.EgoChoice()
+    with pytest.raises(SystemExit) as e:
+        main(["build", "--out", str(tmp_path / "o"), "--parking-occupancy", "1.5"])
+    assert e.value.code == 2
+    assert main(["build", "--out", str(tmp_path / "o"), "--scenarios", "1", "--ego-stationary-share", "0.5",
+                 "--ego-rule", "mixed", "--drivers", "uniform", "--net", str(tmp_path / "missing.net.xml")]) == 2
+    with pytest.raises(DataError, match="driver"):
+        sumo.check_sim_config(dataclasses.replace(sumo.SimConfig(), drivers="crazy"))
+    # a store built before the traffic options: the error says how to resume it
+    out = tmp_path / "old"
+    (out / "_jobs").mkdir(parents=True)
+    (out / "_jobs" / "settings.json").write_text(json.dumps({"source": "sumo", "seed": 0}))
+    (out / "_jobs" / "job_00000.json").write_text("{}")
+    assert build._built_before_traffic_options(str(out))
+    with pytest.raises(DataError, match="--traffic legacy"):
+        build._check_settings(str(out), {"source": "sumo", "seed": 0, "traffic": {}})
+    # specs without the options are those drawn before them; the shares draw from their own stream
+    assert sumo.random_net_spec(9) == dataclasses.replace(sumo.random_net_spec(9, None, 1.0, 1.0), lefthand=False,
+                                                         tls_type="actuated")
+    assert sum(sumo.random_net_spec(s, None, 0.25).lefthand for s in range(200)) in range(30, 71)
