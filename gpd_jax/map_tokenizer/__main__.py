@@ -1,15 +1,22 @@
 """Command line of the map tokenizer.
 
   python -m gpd_jax.map_tokenizer evaluate [--checkpoint DIR] --data DIR [--split test] [--json PATH]
+  python -m gpd_jax.map_tokenizer diagnose --data DIR [--split test] [--json PATH]
   python -m gpd_jax.map_tokenizer encode [--checkpoint DIR] --data DIR [--splits train val test] [--force]
   python -m gpd_jax.map_tokenizer export --workdir WORKDIR [--out checkpoints/map_tokenizer]
   python -m gpd_jax.map_tokenizer bench [--batch 64]
 
 `evaluate` reconstructs frames (raster -> tokens -> lanes) and reports the map metrics of
 `gpd_jax.metrics.map` against the frames' SLEDGE vector lanes: f1 (paper-faithful, 1.5 m), precision, recall,
-lateral, chamfer (paper-faithful, m^2), chamfer_corrected (set-based, metres), plus codebook_usage (fraction
+lateral, chamfer (paper-faithful, m^2), chamfer_corrected (set-based, metres), the cut-invariant
+f1/precision/recall/chamfer/chamfer_within_cutfree (lengths of line within 1.5 m of the other set, whatever
+the cut into lines), the raster-level reconstruction raster_iou and raster_precision/recall/f1 (decoded lines
+drawn with the tokenizer's rasterizer against its input raster, 1.5 m tolerance), plus codebook_usage (fraction
 of codes used by the evaluated tokens) and perplexity. Frames 0, s, 2s, ... (`--frame-stride s`) of every
-sample are evaluated. `encode` writes every frame's 64 tokens next to the samples (`save_map_tokens`) and
+sample are evaluated. `diagnose` (no tokenizer) describes the GT cut of the same frames: lines per frame before and after the 50-line cap,
+line lengths, what 20 points per line lose, and the learnability probe: the paper's F1 of the GT re-cut
+(`recut_polylines`: lines split at their middle, or joined where one-to-one) against the GT, beside the cut-invariant
+F1. `encode` writes every frame's 64 tokens next to the samples (`save_map_tokens`) and
 records the tokenizer's fingerprint with them; shards this tokenizer already encoded (at the same frames or
 more) are skipped, so an interrupted run resumes (`--force` re-encodes). `--frame-stride S` encodes only
 frames 0, S, 2S, ... (S times faster): enough for a model that reads every S-th frame
@@ -40,13 +47,30 @@ def cmd_evaluate(args) -> dict:
     batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
                             frame_stride=args.frame_stride, max_batches=args.max_batches)
     t0 = time.perf_counter()
-    m = evaluate(tok.graphdef, tok.params, tok.config, batches, jax.jit(make_eval_step(tok.graphdef)))
+    m = evaluate(tok.graphdef, tok.params, tok.config, batches, jax.jit(make_eval_step(tok.graphdef, tok.config)))
     m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=os.path.abspath(args.checkpoint),
              frame_stride=args.frame_stride, f1_threshold_m=1.5, wall_s=round(time.perf_counter() - t0, 1))
     print(json.dumps(m, indent=2))
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(m, f, indent=2)
+        from gpd_jax.fsutil import atomic_write_json
+        atomic_write_json(args.json, m, indent=2)
+    return m
+
+
+def cmd_diagnose(args) -> dict:
+    from gpd_jax.map_tokenizer.evaluation import cut_diagnostics
+    from gpd_jax.map_tokenizer.store import frame_batches
+
+    batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
+                            frame_stride=args.frame_stride, max_batches=args.max_batches)
+    t0 = time.perf_counter()
+    m = cut_diagnostics(batches)
+    m.update(split=args.split, data=os.path.abspath(args.data), frame_stride=args.frame_stride,
+             wall_s=round(time.perf_counter() - t0, 1))
+    print(json.dumps(m, indent=2))
+    if args.json:
+        from gpd_jax.fsutil import atomic_write_json
+        atomic_write_json(args.json, m, indent=2)
     return m
 
 
@@ -116,6 +140,13 @@ def main(argv=None) -> int:
     e.add_argument("--batch-size", type=int, default=32)
     e.add_argument("--frame-stride", type=int, default=10)
     e.add_argument("--max-batches", type=int, default=None)
+    g = sub.add_parser("diagnose", help="how the GT vector lanes cut the road; the paper F1 of the GT re-cut")
+    g.add_argument("--data", required=True)
+    g.add_argument("--split", default="test")
+    g.add_argument("--json", default=None)
+    g.add_argument("--batch-size", type=int, default=32)
+    g.add_argument("--frame-stride", type=int, default=10)
+    g.add_argument("--max-batches", type=int, default=None)
     c = sub.add_parser("encode", help="write map tokens of every frame next to the samples")
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     c.add_argument("--data", required=True)
@@ -132,7 +163,7 @@ def main(argv=None) -> int:
     b = sub.add_parser("bench", help="rasterizer and matching throughput")
     b.add_argument("--batch", type=int, default=64)
     args = p.parse_args(argv)
-    {"evaluate": cmd_evaluate, "encode": cmd_encode, "export": cmd_export, "bench": cmd_bench}[args.cmd](args)
+    {"evaluate": cmd_evaluate, "diagnose": cmd_diagnose, "encode": cmd_encode, "export": cmd_export, "bench": cmd_bench}[args.cmd](args)
     return 0
 
 

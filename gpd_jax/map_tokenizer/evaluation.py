@@ -1,18 +1,25 @@
 """Scoring a map tokenizer: raster -> tokens -> lanes against the frames' SLEDGE vector lanes.
 
 `evaluate` reports the map metrics of `gpd_jax.metrics.map` (paper-faithful F1 at 1.5 m, precision, recall,
-lateral distance, Chamfer; the corrected set-based Chamfer) plus the codebook usage and perplexity of the
-tokens; `python -m gpd_jax.map_tokenizer evaluate` and stage-1 training's validation both use it.
+lateral distance, Chamfer; the corrected set-based Chamfer; the cut-invariant `*_cutfree` score beside them) plus
+the codebook usage and perplexity of the tokens, and the raster-level reconstruction (`raster_sums`: the decoded
+lines drawn with the tokenizer's own rasterizer against its input raster); `python -m gpd_jax.map_tokenizer
+evaluate` and stage-1 training's validation both use it.
 """
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import numpy as np
 
+import jax.numpy as jnp
+
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.raster import rasterize
-from gpd_jax.metrics.map import LENGTH_EDGES_M, length_labels, map_metric_sums, reduce_map_metrics
+from gpd_jax.metrics.map import (LENGTH_EDGES_M, cutfree_frame_sums, length_labels, map_metric_sums,
+                                 reduce_map_metrics)
 
 
 def rasterize_batch(config, batch):
@@ -22,19 +29,74 @@ def rasterize_batch(config, batch):
                      pixel_size=r.pixel_size, max_segment_length=r.max_segment_length)
 
 
-def make_eval_step(graphdef):
+RASTER_TOLERANCE_PX = 6  # 1.5 m at 0.25 m per pixel: the raster F1's tolerance, the map F1's threshold
+
+
+def dilate(raster: jax.Array, radius: int) -> jax.Array:
+    """f32[..., H, W] binary raster -> the same with every pixel within `radius` pixels (Chebyshev: a
+    (2 radius + 1)^2 square) of a set pixel set."""
+    if radius <= 0:
+        return raster
+    lead = raster.shape[:-2]
+    r = raster.reshape((-1,) + raster.shape[-2:])
+    k = 2 * radius + 1
+    out = jax.lax.reduce_window(r, -jnp.inf, jax.lax.max, (1, k, k), (1, 1, 1), "SAME")
+    return out.reshape(lead + raster.shape[-2:])
+
+
+def raster_sums(decoded: jax.Array, target: jax.Array, tolerance_px: int = RASTER_TOLERANCE_PX
+                ) -> dict[str, jax.Array]:
+    """Pixel counts comparing rasters f32[B, H, W] (binary) of decoded lines with the input rasters, summed over B.
+
+    Keys: raster_inter / raster_union (exact pixels, IoU = inter / union), raster_dec / raster_tgt (set pixels),
+    raster_dec_near (decoded pixels within `tolerance_px` of a target pixel) and raster_tgt_near (target pixels
+    within it of a decoded pixel): raster precision / recall at that tolerance.
+    """
+    d, t = decoded > 0.5, target > 0.5
+    dn = dilate(decoded, tolerance_px) > 0.5
+    tn = dilate(target, tolerance_px) > 0.5
+    s = lambda x: jnp.sum(x.astype(jnp.float32))
+    return {"raster_inter": s(d & t), "raster_union": s(d | t), "raster_dec": s(d), "raster_tgt": s(t),
+            "raster_dec_near": s(d & tn), "raster_tgt_near": s(t & dn)}
+
+
+def decoded_raster(config, points: jax.Array, logits: jax.Array) -> jax.Array:
+    """Decoded lines f32[B, Q, P, 2] (ego frame) with logits f32[B, Q] drawn by the tokenizer's rasterizer (lines
+    with logit > 0) -> f32[B, H, W], the same pixels an input raster of those lines would have."""
+    r = config.raster
+    valid = jnp.broadcast_to((logits > 0)[..., None], points.shape[:-1])
+    return rasterize(points, valid, jnp.zeros(points.shape[:-3] + (3,), points.dtype), size=r.size,
+                     pixel_size=r.pixel_size, max_segment_length=r.max_segment_length)
+
+
+def reduce_raster(s: dict) -> dict[str, float]:
+    """`raster_sums` totals -> raster_iou, raster_precision / raster_recall / raster_f1 at the tolerance."""
+    f = lambda k: float(np.asarray(s[k]))
+    div = lambda a, b: a / b if b > 0 else float("nan")
+    p, r = div(f("raster_dec_near"), f("raster_dec")), div(f("raster_tgt_near"), f("raster_tgt"))
+    return {"raster_iou": div(f("raster_inter"), f("raster_union")), "raster_precision": p, "raster_recall": r,
+            "raster_f1": (2 * p * r / (p + r)) if p + r > 0 else 0.0}
+
+
+def make_eval_step(graphdef, config=None):
+    """eval_step(params, raster, lanes, lanes_valid) -> (map metric sums, token indices); with `config` (the
+    tokenizer's), the sums also hold the raster-level reconstruction (`raster_sums` of the decoded lines drawn
+    with `config.raster` against the input raster)."""
     def eval_step(params, raster, lanes, lanes_valid):
         out = core.forward(graphdef, params, raster)
         sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M)
+        if config is not None:
+            sums.update(raster_sums(decoded_raster(config, out["points"], out["logits"]), raster))
         return sums, out["idx"]
 
     return eval_step
 
 
 def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, float]:
-    """Map metrics (paper-faithful F1 @1.5 m, lateral, Chamfer; corrected Chamfer) plus codebook usage and
-    perplexity of the tokens, over an iterable of batch dicts."""
-    eval_step = eval_step or jax.jit(make_eval_step(graphdef))
+    """Map metrics (paper-faithful F1 @1.5 m, lateral, Chamfer; corrected Chamfer; the cut-invariant score) plus
+    codebook usage and perplexity of the tokens, over an iterable of batch dicts; plus the raster-level
+    reconstruction (raster_iou, raster_f1 at 1.5 m, ...) when `eval_step` makes it (the default one does)."""
+    eval_step = eval_step or jax.jit(make_eval_step(graphdef, config))
     raster_fn = jax.jit(lambda b: rasterize_batch(config, b))
     total = None
     counts = np.zeros((config.model.num_codes,), np.float64)
@@ -56,6 +118,10 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
         "lateral": m["map_lateral"], "chamfer": m["map_chamfer"],
         "chamfer_corrected": m["map_chamfer_corrected"],
         "chamfer_corrected_skipped": m["map_chamfer_corrected_skipped"],
+        "f1_cutfree": m["map_f1_cutfree"], "precision_cutfree": m["map_precision_cutfree"],
+        "recall_cutfree": m["map_recall_cutfree"], "chamfer_cutfree": m["map_chamfer_cutfree"],
+        "chamfer_within_cutfree": m["map_chamfer_within_cutfree"],
+        **(reduce_raster(total) if "raster_inter" in total else {}),
         "codebook_usage": float(np.mean(counts > 0)), "perplexity": float(np.exp(-np.sum(nz * np.log(nz)))),
         "frames": frames,
         # diagnostic: the per-point recall for GT lines of each length, and how many GT lines each group has
@@ -63,3 +129,142 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
         "gt_lines_by_length": dict(zip(length_labels(), (int(round(x / lanes_points)) for x in
                                                          m["map_gt_points_by_length"]))),
     }
+
+
+# ------------------------------------------------------------------------------------------ GT cut diagnostics
+RECUT_MODES = ("split_mid", "join_ends")
+
+
+def recut_polylines(polylines: np.ndarray, valid: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """The same road geometry cut into lines differently (for the learnability probe of `cut_diagnostics`).
+
+    Args:
+      polylines: f32[L, P, 2] a sample's stored polylines (valid points a prefix); valid: bool[L, P].
+      mode: "split_mid" cuts every polyline of >= 4 points in two at its middle point (both halves keep it);
+        "join_ends" joins polylines where one's last point is another's first (within 1 mm) and the pair is
+        one-to-one there (the stored chunks of a long lane, chains the network cut at a one-to-one point).
+
+    Returns:
+      (f32[L', P', 2], bool[L', P']) the re-cut polylines, same geometry.
+    """
+    lines = [np.asarray(polylines[i][valid[i]], np.float64) for i in range(polylines.shape[0]) if valid[i].sum() >= 2]
+    if mode == "split_mid":
+        out = []
+        for ln in lines:
+            if len(ln) >= 4:
+                k = len(ln) // 2
+                out += [ln[:k + 1], ln[k:]]
+            else:
+                out.append(ln)
+    elif mode == "join_ends":
+        starts = np.array([ln[0] for ln in lines]).reshape(-1, 2)
+        ends = np.array([ln[-1] for ln in lines]).reshape(-1, 2)
+        close = np.linalg.norm(ends[:, None] - starts[None], axis=-1) < 1e-3  # [i end, j start]
+        np.fill_diagonal(close, False)
+        nxt = {i: int(np.argmax(close[i])) for i in range(len(lines))
+               if close[i].sum() == 1 and close[:, int(np.argmax(close[i]))].sum() == 1}
+        has_prev = set(nxt.values())
+        out, done = [], set()
+        heads = [i for i in range(len(lines)) if i not in has_prev]
+        for i in heads + list(range(len(lines))):  # chain heads first, then what is left (pure cycles)
+            if i in done:
+                continue
+            chain, cur = [lines[i]], i
+            done.add(i)
+            while cur in nxt and nxt[cur] not in done:
+                cur = nxt[cur]
+                done.add(cur)
+                chain.append(lines[cur][1:])
+            out.append(np.concatenate(chain))
+    else:
+        raise ValueError(f"recut mode must be one of {RECUT_MODES}, got {mode!r}")
+    p = max(len(ln) for ln in out) if out else 2
+    pts = np.zeros((max(len(out), 1), p, 2), np.float32)
+    ok = np.zeros((max(len(out), 1), p), bool)
+    for i, ln in enumerate(out):
+        pts[i, :len(ln)] = ln
+        ok[i, :len(ln)] = True
+    return pts, ok
+
+
+def cut_diagnostics(batches, threshold: float = 1.5, dense_points: int = 80) -> dict:
+    """How the GT vector lanes cut the road, and how much the paper's F1 punishes the cut alone.
+
+    Over an iterable of `frame_batches` dicts (polylines, polyline_valid, pose, lanes, lanes_valid):
+      * runs_per_frame (lines before the 50 nearest are kept), share of frames with more than 50, share of runs
+        dropped by that cap; GT line lengths (quantiles, share < 5 m);
+      * the 20-point representation: the cut-invariant score of the 20-point GT against the same runs at
+        `dense_points` points (what resampling each line to 20 points loses on curves);
+      * the learnability probe: for each `RECUT_MODES` mode, the same road re-cut (`recut_polylines`) and
+        turned into vector lanes by the same rules, scored as a perfect prediction (logit +10) against the GT:
+        the paper's F1 (and with exact hits counted), the cut-invariant F1, and the share of frames whose lines
+        changed.
+    """
+    from gpd_jax.data.lanes import NUM_LINES, NUM_POINTS, vector_lanes
+    from gpd_jax.metrics.map import map_metric_sums, reduce_cutfree, reduce_map_metrics
+
+    sums_fn = jax.jit(map_metric_sums, static_argnames=("threshold", "count_exact_hits", "length_edges"))
+    acc: dict = {}
+    runs, lengths, frames = [], [], 0
+    changed = {m: 0 for m in RECUT_MODES}
+
+    def add(name, s):
+        s = jax.device_get(s)
+        acc[name] = s if name not in acc else {k: acc[name][k] + s[k] for k in s}
+
+    for b in batches:
+        n = b["pose"].shape[0]
+        frames += n
+        dense, dense_ok = [], []
+        for i in range(n):
+            many, many_ok = vector_lanes(b["polylines"][i], b["polyline_valid"][i], b["pose"][i], num_lines=1000)
+            runs.append(int(many_ok.sum()))
+            d, dok = vector_lanes(b["polylines"][i], b["polyline_valid"][i], b["pose"][i],
+                                  num_points=dense_points)
+            dense.append(d), dense_ok.append(dok)
+        gt, gv = b["lanes"], b["lanes_valid"]
+        seg = np.linalg.norm(np.diff(gt, axis=-2), axis=-1).sum(-1)
+        lengths.extend(seg[gv].tolist())
+        # 20 points against the same runs at dense_points points: resample both to the dense count's line set
+        dense, dense_ok = np.stack(dense), np.stack(dense_ok)
+        add("dense", _cutfree_only(gt, gv, dense, dense_ok, 0.25))
+        for mode in RECUT_MODES:
+            rl, rok = [], []
+            for i in range(n):
+                pp, pv = recut_polylines(b["polylines"][i], b["polyline_valid"][i], mode)
+                lz, lok = vector_lanes(pp, pv, b["pose"][i])
+                rl.append(lz), rok.append(lok)
+                changed[mode] += int(not (np.array_equal(lok, gv[i]) and np.allclose(lz, gt[i], atol=1e-4)))
+            rl, rok = np.stack(rl).astype(np.float32), np.stack(rok)
+            logits = np.where(rok, 10.0, -10.0).astype(np.float32)
+            add(mode, sums_fn(rl, logits, gt, gv, threshold=threshold))
+            add(mode + "_exact", sums_fn(rl, logits, gt, gv, threshold=threshold, count_exact_hits=True))
+    if not frames:
+        raise ValueError("cut_diagnostics got no batches")
+    runs_a, len_a = np.asarray(runs), np.asarray(lengths)
+    out = {"frames": frames, "runs_per_frame_mean": float(runs_a.mean()),
+           "runs_per_frame_p90": float(np.percentile(runs_a, 90)), "runs_per_frame_max": int(runs_a.max()),
+           "frames_over_cap_share": float(np.mean(runs_a > NUM_LINES)),
+           "runs_dropped_by_cap_share": float(np.maximum(runs_a - NUM_LINES, 0).sum() / max(runs_a.sum(), 1)),
+           "gt_lines_per_frame_mean": float(len(len_a) / frames),
+           "gt_line_length_m": {q: float(np.percentile(len_a, int(q[1:]))) for q in ("p10", "p50", "p90")},
+           "gt_line_length_mean_m": float(len_a.mean()),
+           "gt_lines_under_5m_share": float(np.mean(len_a < 5.0)),
+           "gt_point_spacing_median_m": float(np.median(len_a) / (NUM_POINTS - 1))}
+    d = reduce_cutfree(acc["dense"])
+    out[f"gt{NUM_POINTS}_vs_{dense_points}pts"] = {"f1_cutfree_at_0.25m": d["map_f1_cutfree"],
+                                                   "chamfer_cutfree_m": d["map_chamfer_cutfree"]}
+    for mode in RECUT_MODES:
+        r, rx = reduce_map_metrics(acc[mode]), reduce_map_metrics(acc[mode + "_exact"])
+        out[f"recut_{mode}"] = {"paper_f1": r["map_f1"], "paper_f1_exact_hits": rx["map_f1"],
+                                "f1_cutfree": r["map_f1_cutfree"], "chamfer_cutfree_m": r["map_chamfer_cutfree"],
+                                "frames_changed_share": changed[mode] / frames}
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("threshold",))
+def _cutfree_only(pred, pred_ok, gt, gt_ok, threshold):
+    """Cut-invariant sums f32[1] of lines f32[B, L, P, 2] (existing where pred_ok) against f32[B, L', P', 2]."""
+    s = jax.vmap(lambda a, b, c, d: cutfree_frame_sums(a, b, c, d, threshold=threshold))(
+        jnp.asarray(pred, jnp.float32), pred_ok, jnp.asarray(gt, jnp.float32), gt_ok)
+    return {k: jnp.sum(v)[None] for k, v in s.items()}

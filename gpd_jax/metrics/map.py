@@ -24,6 +24,15 @@ Diagnostic ("map_recall_by_length", with `length_edges`): the paper's per-point 
 separately for GT lines grouped by arc length (e.g. short junction connectors against long through lanes),
 pooled over all frames and steps.
 
+Cut-invariant score ("map_f1_cutfree", "map_precision_cutfree", "map_recall_cutfree", "map_chamfer_cutfree",
+"map_chamfer_within_cutfree"; not in the paper, reported beside its F1, never instead): the paper's F1 compares
+points by index inside Hungarian-matched lines, so the same road cut into lines differently (a chain merged or
+not, a line split at another point) scores near zero. Here both line sets are the union of their segments,
+sampled along their arc length (`cutfree_frame_sums`); precision is the share of predicted length within the
+threshold (1.5 m) of any GT segment, recall the share of GT length within it of any predicted segment, F1 their
+harmonic mean; the Chamfer is the symmetric length-weighted mean point-to-segment distance (metres), and
+chamfer_within the same mean over the length within the threshold only. Lengths are pooled per step like TP.
+
 Aggregation: `map_metric_sums` sums over every leading batch dim except an optional step axis (the future frame,
 kept when `step_axis` is given); `reduce_map_metrics` forms the ratios per step (TP/FP/FN and lateral / Chamfer
 sums pooled over the data set, as the official code does per step) and averages the per-step values over steps.
@@ -102,7 +111,9 @@ def set_chamfer(a: jax.Array, a_valid: jax.Array, b: jax.Array, b_valid: jax.Arr
       (f32[...] 0.5 * (mean_{a} min_{b} |a - b| + mean_{b} min_{a} |a - b|) over valid points,
        bool[...] whether both sets are non-empty; the distance is 0 where they are not).
     """
-    d = jnp.linalg.norm(a[..., :, None, :] - b[..., None, :, :], axis=-1)  # [..., N, M]
+    dx = a[..., :, None, 0] - b[..., None, :, 0]  # x and y planes: fused, much faster than a trailing axis of 2
+    dy = a[..., :, None, 1] - b[..., None, :, 1]
+    d = jnp.sqrt(dx * dx + dy * dy)  # [..., N, M]
     big = jnp.asarray(jnp.inf, d.dtype)
     d = jnp.where(a_valid[..., :, None] & b_valid[..., None, :], d, big)
     na = jnp.sum(a_valid, -1)
@@ -113,10 +124,121 @@ def set_chamfer(a: jax.Array, a_valid: jax.Array, b: jax.Array, b_valid: jax.Arr
     return jnp.where(ok, 0.5 * (a2b + b2a), 0.0), ok
 
 
+# ------------------------------------------------------------------------------------------ cut-invariant score
+CUTFREE_SAMPLES = 2  # samples per polyline segment of the cut-invariant score (at (k + 0.5) / S of its length)
+_CUTFREE_KEYS = ("cf_pred_len", "cf_pred_hit_len", "cf_gt_len", "cf_gt_hit_len", "cf_pred_dist_sum",
+                 "cf_pred_dist_len", "cf_gt_dist_sum", "cf_gt_dist_len", "cf_pred_hit_dist_sum",
+                 "cf_gt_hit_dist_sum")
+
+
+def point_to_segments_distance(p: jax.Array, a: jax.Array, b: jax.Array, seg_valid: jax.Array) -> jax.Array:
+    """Distance from each point to the nearest of a set of segments.
+
+    Args:
+      p: f32[N, 2] points; a, b: f32[M, 2] segment end points; seg_valid: bool[M].
+
+    Returns:
+      f32[N] min over valid segments of the distance from p to the closed segment [a, b] (inf if none is valid).
+    """
+    # x and y as separate [N, M] planes (not a trailing axis of 2): XLA fuses them into one loop, ~8x faster on CPU
+    px, py = p[:, 0:1], p[:, 1:2]
+    ax, ay = a[None, :, 0], a[None, :, 1]
+    abx, aby = b[None, :, 0] - ax, b[None, :, 1] - ay
+    den = abx * abx + aby * aby
+    apx, apy = px - ax, py - ay
+    t = jnp.clip((apx * abx + apy * aby) / jnp.where(den > 0, den, 1.0), 0.0, 1.0)
+    dx, dy = apx - t * abx, apy - t * aby
+    d2 = jnp.where(seg_valid[None], dx * dx + dy * dy, jnp.inf)
+    return jnp.sqrt(jnp.min(d2, -1))
+
+
+def _segment_samples(lines: jax.Array, line_valid: jax.Array, samples: int):
+    """lines f32[L, P, 2], line_valid bool[L] -> (segment starts f32[L*(P-1), 2], ends, valid bool[L*(P-1)],
+    sample points f32[L*(P-1)*S, 2], their weights f32[L*(P-1)*S] = segment length / S (0 where invalid))."""
+    a, b = lines[:, :-1], lines[:, 1:]  # [L, P-1, 2]
+    seg_len = jnp.linalg.norm(b - a, axis=-1)
+    sv = jnp.broadcast_to(line_valid[:, None], seg_len.shape)
+    t = (jnp.arange(samples, dtype=lines.dtype) + 0.5) / samples  # [S]
+    pts = a[..., None, :] + t[:, None] * (b - a)[..., None, :]  # [L, P-1, S, 2]
+    w = jnp.where(sv, seg_len, 0.0)[..., None] / samples * jnp.ones((samples,), lines.dtype)
+    return a.reshape(-1, 2), b.reshape(-1, 2), sv.reshape(-1), pts.reshape(-1, 2), w.reshape(-1)
+
+
+def cutfree_frame_sums(pred: jax.Array, pred_exists: jax.Array, gt: jax.Array, gt_valid: jax.Array, *,
+                       threshold: float = 1.5, samples: int = CUTFREE_SAMPLES) -> dict[str, jax.Array]:
+    """Sums of the cut-invariant map score of one frame (no matching, no point order).
+
+    Both line sets are taken as the union of their segments. Every segment is sampled at `samples` evenly spaced
+    points, each weighted by the arc length it stands for (segment length / samples), so the sums are lengths:
+    how a road is cut into lines (where lines start and end, how many) does not change them, only the geometry.
+
+    Args:
+      pred: f32[Q, P, 2] decoded lines; pred_exists: bool[Q] (logit > 0).
+      gt: f32[L, P, 2] GT lines; gt_valid: bool[L].
+      threshold: metres; a sample counts as a hit when its distance to the other set's segments is <= threshold
+        (a point exactly on the other set is a hit, unlike the paper's F1).
+
+    Returns:
+      {key: f32[]} for `_CUTFREE_KEYS`: predicted / GT length, the length within the threshold of the other set,
+      length-weighted distance sums to the other set (counted only when both sets are non-empty, with the length
+      they cover in *_dist_len), and the same distance sums restricted to the hits.
+    """
+    pa, pb, psv, pp, pw = _segment_samples(pred, pred_exists, samples)
+    ga, gb, gsv, gp, gw = _segment_samples(gt, gt_valid, samples)
+    d_pred = point_to_segments_distance(pp, ga, gb, gsv)  # predicted samples -> GT segments
+    d_gt = point_to_segments_distance(gp, pa, pb, psv)  # GT samples -> predicted segments
+    both = jnp.any(pred_exists) & jnp.any(gt_valid)
+    hit_p, hit_g = d_pred <= threshold, d_gt <= threshold
+    fin_p = jnp.where(both, d_pred, 0.0)
+    fin_g = jnp.where(both, d_gt, 0.0)
+    return {
+        "cf_pred_len": jnp.sum(pw), "cf_pred_hit_len": jnp.sum(jnp.where(hit_p, pw, 0.0)),
+        "cf_gt_len": jnp.sum(gw), "cf_gt_hit_len": jnp.sum(jnp.where(hit_g, gw, 0.0)),
+        "cf_pred_dist_sum": jnp.sum(pw * fin_p), "cf_pred_dist_len": jnp.where(both, jnp.sum(pw), 0.0),
+        "cf_gt_dist_sum": jnp.sum(gw * fin_g), "cf_gt_dist_len": jnp.where(both, jnp.sum(gw), 0.0),
+        "cf_pred_hit_dist_sum": jnp.sum(jnp.where(hit_p, pw * fin_p, 0.0)),
+        "cf_gt_hit_dist_sum": jnp.sum(jnp.where(hit_g, gw * fin_g, 0.0)),
+    }
+
+
+def reduce_cutfree(s: dict[str, np.ndarray]) -> dict[str, float]:
+    """Cut-invariant sums (f32[S] per key, S steps) -> {map_f1_cutfree, map_precision_cutfree, map_recall_cutfree,
+    map_chamfer_cutfree, map_chamfer_within_cutfree}, each the mean over the steps where it is defined (NaN if
+    none).
+
+    precision = predicted length within the threshold of the GT / predicted length; recall = GT length within
+    the threshold of the prediction / GT length; F1 = 2PR/(P+R) (0 when one of them is 0);
+    chamfer = 0.5 (mean distance of predicted arc length to the GT + mean distance of GT arc length to the
+    prediction), metres, over frames with both sets non-empty; chamfer_within = the same means over the arc
+    length within the threshold only (how close what is found is).
+    """
+    s = {k: np.asarray(v, np.float64) for k, v in s.items()}
+
+    def ratio(num, den):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+
+    prec = ratio(s["cf_pred_hit_len"], s["cf_pred_len"])
+    rec = ratio(s["cf_gt_hit_len"], s["cf_gt_len"])
+    p0, r0 = np.nan_to_num(prec), np.nan_to_num(rec)
+    f1 = np.where(np.isnan(prec) & np.isnan(rec), np.nan, np.nan_to_num(ratio(2 * p0 * r0, p0 + r0)))
+    cham = 0.5 * (ratio(s["cf_pred_dist_sum"], s["cf_pred_dist_len"]) + ratio(s["cf_gt_dist_sum"], s["cf_gt_dist_len"]))
+    within = 0.5 * (ratio(s["cf_pred_hit_dist_sum"], s["cf_pred_hit_len"])
+                    + ratio(s["cf_gt_hit_dist_sum"], s["cf_gt_hit_len"]))
+
+    def mean(x):
+        x = x[~np.isnan(x)]
+        return float(x.mean()) if x.size else float("nan")
+
+    return {"map_f1_cutfree": mean(f1), "map_precision_cutfree": mean(prec), "map_recall_cutfree": mean(rec),
+            "map_chamfer_cutfree": mean(cham), "map_chamfer_within_cutfree": mean(within)}
+
+
 def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: jax.Array, gt_valid: jax.Array, *,
                     threshold: float = 1.5, step_axis: int | None = None,
                     count_exact_hits: bool = False,
-                    length_edges: tuple[float, ...] | None = None) -> dict[str, jax.Array]:
+                    length_edges: tuple[float, ...] | None = None, cutfree: bool = True,
+                    cutfree_samples: int = CUTFREE_SAMPLES) -> dict[str, jax.Array]:
     """Sums and counts of the map metrics for a batch of decoded frames.
 
     Args:
@@ -131,6 +253,8 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         every frame as one step.
       length_edges: ascending GT line lengths (metres, e.g. `LENGTH_EDGES_M`) that split the GT lines into
         len + 1 groups; adds the sums of the recall-by-length diagnostic ("length_tp", "length_gt": f32[S, G]).
+      cutfree: also the sums of the cut-invariant score (`cutfree_frame_sums` at the same threshold, keys "cf_*"),
+        reported beside the paper's F1 as map_f1_cutfree etc.; cutfree_samples: its samples per segment.
 
     Returns:
       {key: f32[S]} with S the step-axis length (1 if None); feed to `reduce_map_metrics`.
@@ -182,6 +306,11 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         x = jnp.moveaxis(x, step_axis % lead if lead else 0, 0)
         return jnp.sum(x.reshape((x.shape[0], -1) + tail), 1)
 
+    if cutfree:
+        cf = jax.lax.map(lambda a: cutfree_frame_sums(*a, threshold=threshold, samples=cutfree_samples),
+                         (frames(pred_points, 3), frames(pred_exists, 1), frames(gt_points, 3), frames(gv, 1)),
+                         batch_size=min(n, 4))
+        per_frame.update({k: v.reshape(lead_shape) for k, v in cf.items()})
     out = {k: reduce(v) for k, v in per_frame.items()}
     if length_edges is not None:
         glen = jnp.sum(jnp.linalg.norm(jnp.diff(gt_points, axis=-2), axis=-1), -1)  # [..., L]
@@ -195,7 +324,8 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
 def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
     """Sums -> {map_f1, map_precision, map_recall, map_lateral, map_chamfer, map_chamfer_corrected,
     map_chamfer_corrected_skipped} (+ map_recall_by_length and map_gt_points_by_length, lists over the length
-    groups, when the sums have them).
+    groups, when the sums have them; + the cut-invariant map_*_cutfree of `reduce_cutfree` when they have its
+    "cf_*" sums).
 
     Per step: precision = TP/(TP+FP), recall = TP/(TP+FN), F1 = 2TP/(2TP+FP+FN) (= 2PR/(P+R)), lateral = sum/TP,
     Chamfer = sum/(2 P #GT lines), corrected Chamfer = mean over frames with both sets non-empty. Each is then the
@@ -226,11 +356,12 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         "map_chamfer_corrected_skipped": float(s["chamfer_corrected_skipped"].sum()),
         **({"map_recall_by_length": [float(x) for x in ratio(s["length_tp"].sum(0), s["length_gt"].sum(0))],
             "map_gt_points_by_length": [float(x) for x in s["length_gt"].sum(0)]} if "length_tp" in s else {}),
+        **(reduce_cutfree({k: s[k] for k in _CUTFREE_KEYS}) if "cf_pred_len" in s else {}),
     }
 
 
 _map_metric_sums_jit = jax.jit(map_metric_sums, static_argnames=("threshold", "step_axis", "count_exact_hits",
-                                                                 "length_edges"))
+                                                                 "length_edges", "cutfree", "cutfree_samples"))
 
 
 def map_metrics(*args, **kwargs) -> dict[str, float]:

@@ -1,0 +1,76 @@
+"""Real-road training / development tiles: disjoint from the test networks and from each other, cached."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from gpd_jax.data import realnets, sumo
+from gpd_jax.data.errors import DataError
+
+
+def _boxes_intersect(a, b):
+    return not (a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1])
+
+
+def test_catalogue_splits_and_boxes():
+    cat = realnets.catalogue()
+    names = [t["name"] for t in cat["tiles"]]
+    assert len(names) == len(set(names))
+    assert {t["split"] for t in cat["tiles"]} == {"train", "dev"}
+    test_refs = set(realnets.TEST_ONLY)
+    for t in cat["tiles"]:
+        src = cat["sources"][t["source"]]
+        assert src["ref"] not in test_refs  # no test network is a source of tiles
+        assert src["licence"] and "OpenStreetMap" in src["attribution"]
+    for i, a in enumerate(realnets.TILES):  # tiles of one source: disjoint boxes, so no shared edge
+        for b in realnets.TILES[i + 1:]:
+            if a.source == b.source:
+                assert not _boxes_intersect(a.box, b.box), (a.name, b.name)
+    # every split has tiles, and dev tiles are not train tiles
+    assert {t.name for t in realnets.TILES if t.split == "dev"}.isdisjoint(
+        {t.name for t in realnets.TILES if t.split == "train"})
+
+
+def test_edges_inside_boxes_are_disjoint():
+    net = os.path.join(sumo.sumo_home(), "tools", "game", "DRT", "osm.net.xml")
+    a = realnets.edges_inside(net, (400.0, -10.0, 1330.0, 700.0))
+    b = realnets.edges_inside(net, (1430.0, -10.0, 2400.0, 700.0))
+    wide = realnets.edges_inside(net, (400.0, -10.0, 2400.0, 700.0))
+    assert a and b and set(a).isdisjoint(b) and set(a) | set(b) <= set(wide)
+
+
+def test_prepare_tile_cached_inside_its_box_and_clear_of_test_networks(tmp_path):
+    out = realnets.prepare_real_networks(str(tmp_path), splits=("dev",), names=["drt_ne"])
+    assert list(out) == ["dev"] and len(out["dev"]) == 1
+    path = out["dev"][0]
+    tile = next(t for t in realnets.TILES if t.name == "drt_ne")
+    pts = np.concatenate(sumo.read_network_lanes(path, merge_chains=False))
+    x0, y0, x1, y1 = tile.box
+    tol = 5.0  # netconvert rebuilds junction shapes and connectors (a few cm past the box here); boxes are 100 m apart
+    assert np.all((pts[:, 0] >= x0 - tol) & (pts[:, 0] <= x1 + tol) & (pts[:, 1] >= y0 - tol)
+                  & (pts[:, 1] <= y1 + tol))
+    man = json.load(open(tmp_path / "manifest.json"))
+    rec = man["tiles"]["drt_ne"]
+    assert rec["split"] == "dev" and rec["licence"] == "ODbL-1.0" and rec["lane_km"] > 5.0
+    assert len(rec["source_sha256"]) == 64
+    mtime = os.path.getmtime(path)
+    again = realnets.prepare_real_networks(str(tmp_path), splits=("dev",), names=["drt_ne"])
+    assert again == out and os.path.getmtime(path) == mtime  # reused, not rebuilt
+    realnets.check_disjoint([path], realnets.test_networks())  # no exception
+
+
+def test_overlap_with_a_test_network_is_caught():
+    # SUMO's bs3d (Braunschweig centre) contains the test network fokr_bs_demo: the check must say so
+    game = os.path.join(sumo.sumo_home(), "tools", "game")
+    with pytest.raises(DataError, match="overlaps"):
+        realnets.check_disjoint([os.path.join(game, "bs3d", "bs.net.xml")],
+                                [os.path.join(game, "fokr_bs_demo", "fokr_bs.net.xml.gz")])
+
+
+def test_bad_requests(tmp_path):
+    with pytest.raises(DataError, match="TEST_ONLY"):
+        realnets.prepare_real_networks(str(tmp_path), splits=("test",))
+    with pytest.raises(DataError, match="unknown tile"):
+        realnets.prepare_real_networks(str(tmp_path), names=["A10KW"])
