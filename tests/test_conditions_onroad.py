@@ -84,12 +84,18 @@ def test_store_geometry_replaces_the_lane_distance_and_keeps_it_under_its_own_na
     # slot 3 stands in the junction, 10 m from every lane centreline: on the road by the drivable area
     out = rollout([0.0, 3.5, 1.0, 15.0])
     r = cond.lane_offroad(out, PROMPT, H, lanes, ok, road)
-    assert r["offroad_source"] == "store"
+    assert r["offroad_source"] == "store" and r["offroad_outside_geometry_share"] == 0.0
     assert r["offroad_share"] == 0.0 and r["offroad_corner_share"] == 0.0
     assert r["offroad_share_lane_distance"] == pytest.approx(1 / 4)
     # outside both the strip and the junction: off by both figures
     r = cond.lane_offroad(rollout([0.0, 3.5, 1.0, 15.0], x=70.0), PROMPT, H, lanes, ok, road)
     assert r["offroad_share"] == pytest.approx(1 / 4) and r["offroad_share_lane_distance"] == pytest.approx(1 / 4)
+    # beyond the stored geometry's extent (x > 100 m): not judged by the area, counted as outside it
+    r = cond.lane_offroad(rollout([0.0, 3.5, 1.0, 15.0], x=130.0), PROMPT, H, lanes, ok, road)
+    assert np.isnan(r["offroad_share"]) and r["offroad_outside_geometry_share"] == 1.0
+    # ...whereas a hand-drawn road's area is complete: past its end is off the road
+    r = cond.lane_offroad(rollout([0.0, 3.5, 1.0, 15.0], x=130.0), PROMPT, H, lanes, ok)
+    assert r["offroad_share"] == 1.0 and "offroad_outside_geometry_share" not in r
     # the jitted query compiles once for a road shape, whatever the positions
     before = cond._on_road._cache_size()
     cond.lane_offroad(rollout([1.0, 2.0, 3.0, 30.0], x=20.0), PROMPT, H, lanes, ok, road)

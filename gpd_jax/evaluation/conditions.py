@@ -174,7 +174,11 @@ def lane_offroad(out: Any, prompt: Prompt, num_history: int, lanes: np.ndarray, 
     Returns:
       {"offroad_share": share of box centres outside the drivable area, "offroad_corner_share": share of boxes
        with a corner outside it, "offroad_source", "offroad_share_lane_distance": share farther than
-       `half_width` from every centreline, "mean_lane_distance_m", "positions": how many positions}.
+       `half_width` from every centreline, "mean_lane_distance_m", "positions": how many positions}. With the
+      store's geometry, which covers only a box around the logged ego and agents, the two area shares are over
+      the positions inside that box (`_within_extent`) and "offroad_outside_geometry_share" says how many were
+      beyond it; a hand-drawn road's area is complete (everything else is off the road), so every position is
+      judged there.
     """
     source = source or ("store" if road is not None else "given_lanes")
     if source not in OFFROAD_SOURCES:
@@ -199,8 +203,25 @@ def lane_offroad(out: Any, prompt: Prompt, num_history: int, lanes: np.ndarray, 
     corners = np.asarray(box_corners(jnp.asarray(xy), jnp.asarray(hd), jnp.asarray(box)))  # [T, A, 4, 2]
     pts = np.concatenate([xy[..., None, :], corners], -2)  # [T, A, 5, 2]: centre and corners, every slot-frame
     inside = np.asarray(_on_road(jax.tree.map(jnp.asarray, road), jnp.asarray(pts)))[sel]  # [N, 5]
-    res.update(offroad_share=float((~inside[:, 0]).mean()), offroad_corner_share=float((~inside[:, 1:]).any(-1).mean()))
+    judged = np.ones(len(inside), bool)
+    if source == "store":
+        # a store's geometry covers a region around the logged ego and agents; beyond it nothing is known
+        judged = _within_extent(road, xy[sel])
+        res["offroad_outside_geometry_share"] = float((~judged).mean())
+    if judged.any():
+        res.update(offroad_share=float((~inside[judged, 0]).mean()),
+                   offroad_corner_share=float((~inside[judged, 1:]).any(-1).mean()))
     return res
+
+
+def _within_extent(road: RoadGeometry, xy: np.ndarray) -> np.ndarray:
+    """bool[N]: points f32[N, 2] inside the axis-aligned box (scene frame) of the road's valid ring vertices: the
+    part of the scene a store's clipped geometry describes (stores clip it to such a box)."""
+    pv = np.asarray(road.polygon_valid, bool)
+    if not pv.any():
+        return np.zeros(len(xy), bool)
+    v = np.asarray(road.polygons)[pv]
+    return np.all((xy >= v.min(0)) & (xy <= v.max(0)), axis=-1)
 
 
 def lane_map_sums(tokenizer, out_map_tokens: np.ndarray, ego_poses: np.ndarray, lanes: np.ndarray,
@@ -314,7 +335,10 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
                        **{f"cap_{k_}": v for k_, v in cap_violations(o, p, h).items()}}
                 own = p.lanes is not None and bool(p.use_lanes)
                 ln, lv = (p.lanes, p.lanes_valid) if own else (sc.polylines, sc.polyline_valid)
-                if own:  # a hand-drawn road: the area its lanes cover (built once per prompt and scenario)
+                # a hand-drawn road: the area its lanes cover; the log's own lanes given as a vector map
+                # ("lanes": "log") are the store's road, whose drivable area is stored
+                drawn = own and (name not in prompt_files or prompt_files[name].get("lanes") != "log")
+                if drawn:
                     road, source = None, "given_lanes"
                 else:
                     road, source = sc.road, "store" if sc.road is not None else "none"
@@ -354,6 +378,7 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
             "offroad_share": agg("lanes_offroad_share", np.nanmean),
             "offroad_corner_share": agg("lanes_offroad_corner_share", np.nanmean),
             "offroad_source": "; ".join(OFFROAD_SOURCES[x] for x in sorted(sources[name])),
+            "offroad_outside_geometry_share": agg("lanes_offroad_outside_geometry_share", np.nanmean),
             "offroad_share_lane_distance": agg("lanes_offroad_share_lane_distance", np.nanmean),
             "agent_ade_m": agg("agents_ade_m", np.nanmean),
             "agent_collision_share": agg("agents_collision_share", np.nanmean),
