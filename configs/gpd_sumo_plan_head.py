@@ -41,6 +41,7 @@ def get_config():
     t.init_from = "checkpoints/gpd_sumo"
     t.backbone_lr_scale = 0.1
     t.gpd_loss_weight = 0.0
+    t.cache_features = False       # True (frozen backbone only): run the backbone once per scene, train the head alone
     t.batch_size = 8
     t.steps = 300
     t.learning_rate = 1e-3

@@ -195,18 +195,21 @@ def prepare_run(config: ml_collections.ConfigDict) -> tuple[str, int, Any, int]:
 def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, data_dir: str, workdir: str, mesh,
               spec, mgr, log: MetricsLog, start: int, stop_after: int | None, lead: bool, quiet: bool, desc: str,
               validate: Callable[[Any, int], dict[str, float]] | None, postfix: Callable[[dict], dict],
-              summary: Callable[[dict], str]) -> dict[str, Any]:
+              summary: Callable[[dict], str],
+              next_batch: Callable[[int], Any] | None = None) -> dict[str, Any]:
     """The training steps of a run (stage 2 and the planning head's), from `start` to `train.steps` (or
-    `stop_after` more): batches from the seeded loader at the resumed step, a jitted `trainer.train_step` on the
-    device mesh, metrics every `log_every`, `validate(params, step)` every `eval_every`, checkpoints every
-    `checkpoint_every` and on a stop (Ctrl-C, SIGTERM), the export when the run is complete.
+    `stop_after` more): batches from the seeded loader at the resumed step (or `next_batch(step)`, the batch of
+    step `step` + 1, e.g. of cached features: a pure function of the step, so a resumed run sees the same
+    batches), a jitted `trainer.train_step` on the device mesh, metrics every `log_every`, `validate(params,
+    step)` every `eval_every`, checkpoints every `checkpoint_every` and on a stop (Ctrl-C, SIGTERM), the export
+    when the run is complete.
 
     Returns {"step", "train": last logged train metrics, "eval": last evaluation, "export": dir or None}."""
     tc = config.train
     bs, pcount, pindex = int(tc.batch_size), jax.process_count(), jax.process_index()
-    it = data_loader.make_loader(data_dir, config.data.train_split, bs // pcount, seed=int(config.seed),
-                                 process_index=pindex, process_count=pcount, start_step=start,
-                                 num_threads=int(tc.loader_threads))
+    it = None if next_batch is not None else data_loader.make_loader(
+        data_dir, config.data.train_split, bs // pcount, seed=int(config.seed), process_index=pindex,
+        process_count=pcount, start_step=start, num_threads=int(tc.loader_threads))
     total = int(tc.steps)
     end = total if stop_after is None else min(total, start + int(stop_after))
     last_train: dict[str, float] = {}
@@ -218,12 +221,15 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     with StopOnSigterm() as stop:
         try:
             while step < end and not stop.requested:
-                view = spec.view(next(it))
-                if not np.all(view.map_valid):
-                    raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step {step + 1} "
-                                    "has model frames without map tokens; encode every shard: python -m "
-                                    f"gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
-                                    f"{config.data.frame_stride}")
+                if next_batch is not None:
+                    view = next_batch(step)
+                else:
+                    view = spec.view(next(it))
+                    if not np.all(view.map_valid):
+                        raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step "
+                                        f"{step + 1} has model frames without map tokens; encode every shard: "
+                                        f"python -m gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
+                                        f"{config.data.frame_stride}")
                 state, parts = trainer.train_step(state, _global_batch(view, mesh))
                 step += 1
                 window_n += bs
@@ -247,7 +253,8 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
             stop.requested = True
         finally:
             bar.close()
-            it.close()
+            if it is not None:
+                it.close()
             if mgr.latest_step() != step:
                 save_state(mgr, step, state._asdict(), force=True)
             mgr.wait_until_finished()

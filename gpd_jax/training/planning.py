@@ -34,14 +34,15 @@ import json
 import os
 import sys
 import time
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import optax
-from flax import nnx
+import tqdm
+from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
 from gpd_jax.checkpoint import Model, build_model, load_model, model_spec, resolve_tokenizer_path
@@ -97,30 +98,44 @@ def backbone_hidden(model, scene: Scene):
     return forward(model, tokens)
 
 
-def plan_loss_terms(model, scene: Scene, first_frame: int) -> dict[str, jax.Array]:
-    """Sums and counts of the planning loss over one unbatched scene (model view), and the current-frame ADE."""
-    head: PlanningHead = model.plan_head
-    plan = head(backbone_hidden(model, scene))                        # [T-1, F, 3]
-    target, mask = plan_targets(scene, head.num_future, first_frame)
+def plan_terms(head: PlanningHead, hidden: jax.Array, target: jax.Array, mask: jax.Array,
+               current: int) -> dict[str, jax.Array]:
+    """Sums and counts of the planning loss of one scene's plans, and the current frame's ADE.
+
+    hidden f32[K, N, d] output tokens of K source frames; target f32[K, F, 3] and mask bool[K, F] their logged
+    ego futures (`plan_targets`); `current`: the index among the K frames of the scene's current frame."""
+    plan = head(hidden)                                               # [K, F, 3]
     m = mask.astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(plan[..., :2] - target[..., :2]), axis=-1)
     hd = _smooth_l1(wrap_angle(plan[..., 2] - target[..., 2]))
     err = jnp.linalg.norm(plan[..., :2] - target[..., :2], axis=-1)
-    cur = m[first_frame]
+    cur = m[current]
     return {"position_sum": jnp.sum(pos * m), "heading_sum": jnp.sum(hd * m), "count": jnp.sum(m),
-            "ade_sum": jnp.sum(err[first_frame] * cur), "ade_count": jnp.sum(cur)}
+            "ade_sum": jnp.sum(err[current] * cur), "ade_count": jnp.sum(cur)}
+
+
+def plan_loss_terms(model, scene: Scene, first_frame: int) -> dict[str, jax.Array]:
+    """`plan_terms` of one unbatched scene (model view) through the teacher-forced backbone."""
+    head: PlanningHead = model.plan_head
+    target, mask = plan_targets(scene, head.num_future, first_frame)
+    return plan_terms(head, backbone_hidden(model, scene), target, mask, first_frame)
+
+
+def _weighted(terms: dict[str, jax.Array], config) -> tuple[jax.Array, dict[str, jax.Array]]:
+    ph = config.plan_head
+    n = jnp.maximum(terms["count"], 1.0)
+    parts = {"plan_position": terms["position_sum"] / n, "plan_heading": terms["heading_sum"] / n,
+             "plan_ade_current": terms["ade_sum"] / jnp.maximum(terms["ade_count"], 1.0)}
+    total = float(ph.position_weight) * parts["plan_position"] + float(ph.heading_weight) * parts["plan_heading"]
+    return total, parts
 
 
 def plan_batch_loss(model, scenes: Scene, config) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Weighted planning loss over a batch (leading dim B) and its parts (plus the GPD's own loss with
     `train.gpd_loss_weight` > 0)."""
-    ph = config.plan_head
     first = first_frame(config)
     terms = jax.tree.map(jnp.sum, jax.vmap(lambda s: plan_loss_terms(model, s, first))(scenes))
-    n = jnp.maximum(terms["count"], 1.0)
-    parts = {"plan_position": terms["position_sum"] / n, "plan_heading": terms["heading_sum"] / n,
-             "plan_ade_current": terms["ade_sum"] / jnp.maximum(terms["ade_count"], 1.0)}
-    total = float(ph.position_weight) * parts["plan_position"] + float(ph.heading_weight) * parts["plan_heading"]
+    total, parts = _weighted(terms, config)
     gw = float(config.train.gpd_loss_weight)
     if gw > 0:
         gpd_total, gpd_parts = batch_loss(model, scenes, config.loss, int(config.model.num_history))
@@ -128,6 +143,68 @@ def plan_batch_loss(model, scenes: Scene, config) -> tuple[jax.Array, dict[str, 
         total = total + gw * gpd_total
     parts["loss"] = total
     return total, parts
+
+
+@struct.dataclass
+class PlanFeatures:
+    """A frozen backbone's teacher-forced output tokens, cached with the plan targets read from them
+    (`train.cache_features`: the head trains on these, never running the backbone again).
+
+    Attributes:
+      hidden: f32[..., K, N, d] output tokens of source frames first_frame .. T-2 (K = T-1-first_frame).
+      target: f32[..., K, F, 3] the logged ego's next F poses in each source frame's ego frame.
+      mask: bool[..., K, F] valid targets (`plan_targets`).
+    """
+
+    hidden: jax.Array
+    target: jax.Array
+    mask: jax.Array
+
+
+def feature_batch_loss(model, feats: PlanFeatures, config) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """`plan_batch_loss` of cached features (leading dim B): the head alone runs."""
+    terms = jax.tree.map(jnp.sum, jax.vmap(lambda h, t, m: plan_terms(model.plan_head, h, t, m, 0))(
+        feats.hidden, feats.target, feats.mask))
+    total, parts = _weighted(terms, config)
+    parts["loss"] = total
+    return total, parts
+
+
+@jax.jit
+def _features_jit(graphdef, params, rest, scenes: Scene):
+    """Teacher-forced output tokens, plan targets and masks of every source frame: Scene [B, T, ...] ->
+    (f32[B, T-1, N, d], f32[B, T-1, F, 3], bool[B, T-1, F])."""
+    module = nnx.merge(graphdef, params, rest)
+    num_future = module.plan_head.num_future
+
+    def one(s):
+        target, mask = plan_targets(s, num_future, 0)
+        return backbone_hidden(module, s), target, mask
+
+    return jax.vmap(one)(scenes)
+
+
+def cache_features(model, config, data_dir: str, split: str, batch_size: int = 32,
+                   quiet: bool = False) -> PlanFeatures:
+    """Teacher-forced backbone outputs and plan targets of every scene of `data_dir/split` (numpy, host memory:
+    S x K x N x d floats, 0.33 MB per scene for configs/gpd_sumo.py), for a frozen backbone."""
+    first = first_frame(config)
+    spec = model_spec(config)
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    n = len(data_loader.SplitSource(data_dir, split))
+    out: list[tuple[np.ndarray, ...]] = []
+    bar = tqdm.tqdm(total=n, disable=quiet, desc=f"features {split}", dynamic_ncols=True, mininterval=2.0)
+    for lo in range(0, n, batch_size):
+        view = spec.view(data_loader.load_split(data_dir, split, indices=range(lo, min(n, lo + batch_size))))
+        if not np.all(view.map_valid):
+            raise DataError(os.path.join(data_dir, split), "no map tokens at some of the model's frames; encode "
+                            f"them: python -m gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
+                            f"{config.data.frame_stride}")
+        h, t, m = jax.device_get(_features_jit(graphdef, params, rest, jax.tree.map(jnp.asarray, view)))
+        out.append((h[:, first:], t[:, first:], m[:, first:]))
+        bar.update(view.xy.shape[0])
+    bar.close()
+    return PlanFeatures(*(np.concatenate([o[i] for o in out]) for i in range(3)))
 
 
 def first_frame(config) -> int:
@@ -159,10 +236,11 @@ def make_plan_optimizer(config) -> optax.GradientTransformation:
 
 
 class PlanTrainer:
-    """The jitted planning train / eval steps of a GPD-with-head (`train_step(state, scenes)`,
-    `eval_step(params, scenes)`), pure functions of (params, opt_state, batch)."""
+    """The jitted planning train / eval steps of a GPD-with-head (`train_step(state, batch)`,
+    `eval_step(params, batch)`), pure functions of (params, opt_state, batch). The batch is a Scene [B, ...] in the
+    model's view, or with `features` (frozen backbone only) `PlanFeatures` [B, ...] of `cache_features`."""
 
-    def __init__(self, model, config, donate: bool = True):
+    def __init__(self, model, config, donate: bool = True, features: bool = False):
         if not isinstance(getattr(model, HEAD, None), PlanningHead):
             raise ValueError("the model has no planning head: the config needs a `plan_head` section")
         self.graphdef, params, self.rest = nnx.split(model, nnx.Param, ...)
@@ -171,13 +249,17 @@ class PlanTrainer:
         if frozen and float(config.train.gpd_loss_weight) > 0:
             raise ValueError("train.gpd_loss_weight keeps the backbone's own predictions while it moves; with a "
                              "frozen backbone (train.backbone_lr_scale = 0) it does nothing: set it to 0")
+        if features and not frozen:
+            raise ValueError("train.cache_features needs a frozen backbone (train.backbone_lr_scale = 0): cached "
+                             "backbone outputs go stale when the backbone moves")
         graphdef, rest = self.graphdef, self.rest
+        batch_loss_fn = feature_batch_loss if features else plan_batch_loss
 
-        def loss_of(p, scenes):
+        def loss_of(p, batch):
             if frozen:  # no gradient into the backbone: XLA drops its backward pass
                 p = jax.tree_util.tree_map_with_path(lambda k, x: x if is_head_path(k) else
                                                      jax.lax.stop_gradient(x), p)
-            return plan_batch_loss(nnx.merge(graphdef, p, rest), scenes, config)
+            return batch_loss_fn(nnx.merge(graphdef, p, rest), batch, config)
 
         def train_step(state: TrainState, scenes: Scene):
             (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)
@@ -239,12 +321,36 @@ class PlanValidator:
             self.batches = [jax.tree.map(jnp.asarray, spec.view(next(it))) for _ in range(n)]
             it.close()
 
+    @classmethod
+    def of_features(cls, trainer: PlanTrainer, feats: PlanFeatures, batch_size: int) -> "PlanValidator":
+        """A validator over every scene of cached features (the last partial batch dropped)."""
+        self = cls.__new__(cls)
+        n = feats.hidden.shape[0] // batch_size
+        self.trainer = trainer
+        self.batches = [jax.tree.map(lambda x: jnp.asarray(x[i * batch_size:(i + 1) * batch_size]), feats)
+                        for i in range(n)]
+        return self
+
     def __call__(self, params) -> dict[str, float]:
         acc: dict[str, float] = {}
         for b in self.batches:
             for k, v in jax.device_get(self.trainer.eval_step(params, b)).items():
                 acc[k] = acc.get(k, 0.0) + float(v) / len(self.batches)
         return acc
+
+
+def feature_batches(feats: PlanFeatures, batch_size: int, seed: int) -> Callable[[int], PlanFeatures]:
+    """`next_batch(step)` for `run_steps`: `batch_size` scenes of `feats` drawn without replacement by a
+    generator seeded with (seed, step), so a resumed run draws exactly the batches it would have."""
+    n = feats.hidden.shape[0]
+    if n < batch_size:
+        raise ValueError(f"train.batch_size {batch_size} is larger than the {n} training scenes")
+
+    def next_batch(step: int) -> PlanFeatures:
+        idx = np.sort(np.random.default_rng([int(seed), int(step)]).choice(n, batch_size, replace=False))
+        return jax.tree.map(lambda x: x[idx], feats)
+
+    return next_batch
 
 
 # ----------------------------------------------------------------------------------------------- training
@@ -279,7 +385,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
 
     spec = model_spec(config)
     model = build_model(config)
-    trainer = PlanTrainer(model, config)
+    use_features = bool(tc.get("cache_features", False))
+    trainer = PlanTrainer(model, config, features=use_features)
     state = trainer.init_state(trainer.initial_params)
     mgr = checkpoint_manager(workdir, int(tc.keep_checkpoints))
     if mgr.latest_step() is not None:
@@ -287,6 +394,19 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     elif tc.init_from:
         state = trainer.init_state(pretrained_params(str(tc.init_from), config, trainer.initial_params))
     start = int(state.step)
+    next_batch, validator = None, None
+    if use_features:  # the frozen backbone runs once per scene, here; the steps run the head alone
+        backbone = nnx.merge(trainer.graphdef, state.params, trainer.rest)
+        t0 = time.perf_counter()
+        feats = cache_features(backbone, config, data_dir, config.data.train_split, quiet=quiet or not lead)
+        next_batch = feature_batches(feats, int(tc.batch_size), int(config.seed))
+        if int(tc.eval_every) > 0:
+            validator = PlanValidator.of_features(
+                trainer, cache_features(backbone, config, val_dir, config.data.val_split, quiet=quiet or not lead),
+                int(tc.batch_size))
+        if lead and not quiet:
+            print(f"cached the frozen backbone's outputs in {time.perf_counter() - t0:.0f} s "
+                  f"({feats.hidden.nbytes / 2**20:.0f} MiB for {feats.hidden.shape[0]} training scenes)")
     state = jax.device_put(state, NamedSharding(mesh, PartitionSpec()))
     log = MetricsLog(workdir, enabled=lead)
     if lead:
@@ -296,13 +416,15 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
               f"({'frozen' if float(tc.backbone_lr_scale) == 0 else f'lr x {float(tc.backbone_lr_scale):g}'}, "
               f"{'pre-trained: ' + str(tc.init_from) if tc.init_from else 'from scratch'}) on {n_train} scenes")
 
-    validator = PlanValidator(config, trainer, val_dir) if int(tc.eval_every) > 0 else None
+    if not use_features and int(tc.eval_every) > 0:
+        validator = PlanValidator(config, trainer, val_dir)
     return run_steps(config, trainer, state, data_dir=data_dir, workdir=workdir, mesh=mesh, spec=spec, mgr=mgr,
                      log=log, start=start, stop_after=stop_after, lead=lead, quiet=quiet, desc="plan head",
                      validate=None if validator is None else (lambda params, _step: validator(params)),
                      postfix=lambda parts: {"ade": f"{parts['plan_ade_current']:.2f}"},
                      summary=lambda ev: (f"loss={ev.get('loss', float('nan')):.4g} "
-                                         f"plan_ade_current={ev.get('plan_ade_current', float('nan')):.3f} m"))
+                                         f"plan_ade_current={ev.get('plan_ade_current', float('nan')):.3f} m"),
+                     next_batch=next_batch)
 
 
 # ----------------------------------------------------------------------------------------------- evaluation
