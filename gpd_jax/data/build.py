@@ -13,6 +13,11 @@ via `store.sample_layouts`), in the manifest's shard list and in `build.layouts`
 named `gen_<seed>_<jjjj>_<layout>`, and scenario ids start with the location. `build.overlap_gate` says
 how many candidate windows had two overlapping recorded boxes and whether the gate removed them.
 Settings are recorded in `DIR/_jobs/settings.json` only once the inputs are validated.
+
+SUMO builds simulate real traffic by default (`sumo.SimConfig` traffic options: parked and stopping vehicles,
+heterogeneous drivers; left-hand and fixed-cycle generated networks) and choose egos as a recording car would
+be (`EgoChoice`: 25 % stationary at the current frame); the options are recorded as `build.traffic` and in every
+shard's meta. `sumo.LEGACY_TRAFFIC` + `LEGACY_EGO` (CLI `--traffic legacy`) give the stores built before.
 """
 
 from __future__ import annotations

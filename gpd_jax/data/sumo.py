@@ -9,12 +9,18 @@ One *job* = one network + one demand seed + one SUMO run. The pipeline of a job:
 2. demand: `randomTrips.py --insertion-density` (vehicles per hour and km of lane, so that big and small
    networks get comparable traffic) with `departLane="best" departSpeed="max"`; each vehicle's type is drawn
    by us from a size mix (car, SUV, van, truck, bus) with the job's RNG, so the FCD needs no string columns;
+   real traffic (`SimConfig` traffic options, on by default; `LEGACY_TRAFFIC` turns them off): road-side
+   parking areas with parked vehicles, some of which leave during the recording (`plan_traffic`), pick-up /
+   drop-off stops (`add_short_stops`) and heterogeneous drivers (`driver_types_xml`: a vTypeDistribution of
+   Krauss / IDM / EIDM drivers per size class); generated networks may drive on the left (`netconvert
+   --lefthand`) and have fixed-cycle traffic lights (`NetSpec.lefthand`, `NetSpec.tls_type`);
 3. `sumo --step-length 0.1 --lanechange.duration 3` (continuous lane changes), FCD written as CSV from
    the C++ side every step (10 Hz), after a warm-up. This measured faster than recording through TraCI:
    on one generated network (270 simulated s, ~240 vehicles) trips + SUMO + FCD parsing took 2.8 s, the
    same simulation stepped through TraCI with subscriptions 5.6 s; it also needs no libsumo;
 4. quality gate: runs with teleports (SUMO's jam resolution) or where more than `max_stopped_fraction` of
-   recorded vehicle-frames stand still (gridlock) are rejected (`SumoRunRejected`), and the caller
+   recorded vehicle-frames stand still (gridlock; frames of vehicles at a planned stop, from SUMO's stop
+   output, are not counted: parked cars are no jam) are rejected (`SumoRunRejected`), and the caller
    retries with lower demand and another seed;
 5. conversion: SUMO reports the *front bumper* position and a *compass* angle (degrees, 0 = north,
    clockwise). heading = radians(90 - angle) (counter-clockwise from +x / east), box centre =
@@ -652,12 +658,11 @@ def plan_traffic(edges: list[NetEdge], lefthand: bool, cfg: SimConfig, rng: np.r
                  ) -> TrafficPlan:
     """Road-side parking areas and the vehicles parked in them (see `SimConfig.parking_edge_share`).
 
-    Parked vehicles are vehicles with a `<stop parkingArea until>` on a route of their edge (those that leave: plus
-    up to 5 edges of a random walk along the network's connections),
+    Parked vehicles are cars, SUVs and vans with a `<stop parkingArea until>` on a route of their own edge,
     inserted at their own space (spaces fill from the end of the area) in the first quarter of the warm-up
-    (checking only for a collision at insertion), so that they are parked when the recording starts;
-    those that leave (`parked_leave_share`) go at a time drawn in the recording, to a random edge.
-    `edges`, `lefthand`: `read_network_edges` of the network."""
+    (checking only for a collision at insertion), so that they are parked when the recording starts. Those that
+    leave (`parked_leave_share`) go at a time drawn in the recording, along a random walk of up to 5 more
+    connected edges. `edges`, `lefthand`: `read_network_edges` of the network."""
     side = 1.0 if lefthand else -1.0  # the strip lies beyond the outer lane: right (left in left-hand traffic)
     areas, pa_rows, trips, types = [], [], [], {}
     by_id = {e.id: e for e in edges}
@@ -670,6 +675,7 @@ def plan_traffic(edges: list[NetEdge], lefthand: bool, cfg: SimConfig, rng: np.r
                 break
             route.append(nxt[int(rng.integers(len(nxt)))])
         return route
+
     probs = np.array([m[3] for m in VEHICLE_MIX if m[0] in PARKED_CLASSES])
     names = [m[0] for m in VEHICLE_MIX if m[0] in PARKED_CLASSES]
     n_spaces = 0
