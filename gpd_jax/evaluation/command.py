@@ -15,7 +15,7 @@ from gpd_jax.config import apply_overrides, config_from_json, split_config_args
 from gpd_jax.evaluation.driver import evaluate
 from gpd_jax.evaluation.outputs import write_evaluation
 from gpd_jax.evaluation.preflight import preflight
-from gpd_jax.evaluation.report import format_tables
+from gpd_jax.evaluation.report import format_tables, to_json_compatible
 from gpd_jax.spec import EvalError
 from gpd_jax.tasks import resolve_task_names
 
@@ -144,7 +144,8 @@ def run_prompts(args: argparse.Namespace) -> int:
     except (PromptError, EvalError) as e:
         raise UsageError(str(e)) from None
     os.makedirs(args.out, exist_ok=True)
-    atomic_write_json(os.path.join(args.out, "conditions.json"), res)
+    # strict JSON: NaN (nothing to score, or no drivable area in the store) written as null
+    atomic_write_json(os.path.join(args.out, "conditions.json"), to_json_compatible(res), allow_nan=False)
     keys = ("given_max_xy_m", "cap_violations", "max_valid_slots", "offroad_share", "offroad_corner_share",
             "offroad_share_lane_distance", "mean_lane_distance_m", "map_f1", "agent_ade_m", "agent_collision_share")
     print("prompt".ljust(30) + "".join(k.rjust(29) for k in keys))

@@ -13,9 +13,11 @@ Per rolled-out scenario (host numpy, model-rate arrays):
   centreline (`offroad_share_lane_distance`: the distance to the polylines, which needs no area). The drivable
   area is the store's (`Scene.road`) for a prompt on the log's map, and, for a prompt with lanes of its own (a
   hand-drawn road), the area those lanes cover at `LANE_WIDTH_M` (`road_from_lanes`: each lane buffered by half
-  the width on either side, the lanes' union). A store built before road geometry was stored has no drivable
-  area: `offroad_share` is then null (NaN) with `offroad_source` saying so and naming the rebuild, and
-  `offroad_share_lane_distance` is the figure there is (no error: the other scores do not need the area);
+  the width on either side, the lanes' union). A store's geometry covers a clipped box around the logged ego
+  (and agents): positions beyond it are not judged (`offroad_outside_geometry_share`). A store built before
+  road geometry was stored has no drivable area: `offroad_share` is then null (NaN) with `offroad_source` saying
+  so and naming the rebuild, and `offroad_share_lane_distance` is the figure there is (no error: the other scores
+  do not need the area);
 * `agent_figures`: beside them, the usual ADE against the log and collision share of the generated agents;
 * `lane_map_f1`: map F1 (the paper's, `gpd_jax.metrics.map`) of the lanes decoded from the rollout's map tokens
   of future frames against the given lanes seen from each frame's rolled-out ego (SLEDGE vector lanes,
@@ -25,6 +27,7 @@ Per rolled-out scenario (host numpy, model-rate arrays):
 from __future__ import annotations
 
 import os
+from collections import Counter
 from typing import Any
 
 import jax
@@ -32,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.data.lanes import vector_lanes_frames
+from gpd_jax.data.roadgeom import RoadIndex, clip_road, lane_area
 from gpd_jax.evaluation.maps import decode_map_tokens
 from gpd_jax.geometry import RoadGeometry, on_road, road_from_arrays
 from gpd_jax.metrics.agents import box_corners
@@ -132,10 +136,6 @@ def road_from_lanes(lanes: np.ndarray, lanes_valid: np.ndarray, width: float = L
     union of all lanes (`RoadIndex`), as a `RoadGeometry` of fixed shape (rings [num_rings, ring_vertices], edges
     [num_edges, edge_points]) around the lanes. Raises ValueError when the union needs more rings than
     `num_rings` (never silently smaller)."""
-    from collections import Counter
-
-    from gpd_jax.data.roadgeom import RoadIndex, clip_road, lane_area
-
     lanes, lanes_valid = np.asarray(lanes, np.float64), np.asarray(lanes_valid, bool)
     areas = [lane_area(ln[ok], width) for ln, ok in zip(lanes, lanes_valid) if ok.sum() >= 2]
     areas = [x for x in areas if x is not None]
@@ -283,8 +283,9 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
     names = ["reference_traffic_simulation"] + list(prompt_files)
     sources: dict[str, set] = {k: set() for k in names}
     if not src.has_road:
-        log(f"note: offroad_share needs drivable-area geometry and {data}/{split} has none: "
-            f"{OFFROAD_SOURCES['none']}")
+        log(f"note: {data}/{split} has no drivable-area geometry (built before it was stored), so offroad_share "
+            "is null and offroad_share_lane_distance (distance to the lane centrelines) is the off-road figure; "
+            "rebuild the store with `python -m gpd_jax.data build ...` for the drivable-area one")
     bs = max(1, min(batch_size, n))
     acc: dict[str, dict[str, list]] = {k: {} for k in names}
     maps: dict[str, Any] = {k: None for k in names}

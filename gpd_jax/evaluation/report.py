@@ -101,8 +101,8 @@ def format_motion_table(results: dict[str, Any], variant: str = "paper", task: s
                                       for lb in labels)
     lines = [f"Motion at the current frame ({_title(task)} against constant velocity, {variant} ADE; speed: the "
              f"stored-rate difference of the last two frames, stationary below {ms['stationary_below_mps']:g} m/s)",
-             f"| | n at {labels[0].rstrip('s')} s | model {secs} (m) | constant velocity (m) | model / CV | CV model rate (m) | "
-             "model / CV model rate |",
+             f"| | n at {labels[0].rstrip('s')} s | model {secs} (m) | constant velocity (m) | model / CV | "
+             "CV model rate (m) | model / CV model rate |",
              "|---|---|---|---|---|---|---|"]
     for g, gname in (("agent", "agents"), ("ego", "ego")):
         for k in ms["classes"]:
