@@ -233,3 +233,13 @@ def test_options_cli_and_old_settings(tmp_path):
     assert sumo.random_net_spec(9) == dataclasses.replace(sumo.random_net_spec(9, None, 1.0, 1.0), lefthand=False,
                                                          tls_type="actuated")
     assert sum(sumo.random_net_spec(s, None, 0.25).lefthand for s in range(200)) in range(30, 71)
+
+
+def test_static_lights_and_lefthand_in_the_network_file(tmp_path):
+    spec = dataclasses.replace(sumo.random_net_spec(2, "grid"), size=3, size2=3, junction="traffic_light",
+                               tls_type="static", lefthand=True)
+    text = sumo._open_xml(sumo.generate_network(spec, str(tmp_path / "s.net.xml"))).read().decode()
+    types = set(re.findall(r'<tlLogic [^>]*type="(\w+)"', text))
+    assert types == {"static"} and re.search(r'<net [^>]*lefthand="true"', text)
+    with pytest.raises(ValueError, match="tls_type"):
+        sumo.generate_network(dataclasses.replace(spec, tls_type="smart"), str(tmp_path / "x.net.xml"))
