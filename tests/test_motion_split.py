@@ -129,11 +129,22 @@ def test_rows_add_up_to_the_overall_sums_and_layouts_reduce_alike(batch_sums):
     total = flat(jax.tree.map(lambda x: x.sum(0), per))
     whole = flat(jax.device_get(sums))
     np.testing.assert_allclose([total[k] for k in whole], [whole[k] for k in whole], rtol=1e-6, atol=1e-6)
-    for i, row in enumerate(("ego_n_moving", "ego_n_stationary")):
-        part = reduce_results(add_sums(None, jax.tree.map(lambda x: x[i], per)), SPEC, TASKS)["motion_split"]
-        d = part["tasks"]["traffic_simulation"]["3s"]
+    layouts = {}
+    for i, (row, layout) in enumerate((("ego_n_moving", "grid"), ("ego_n_stationary", "real"))):
+        layouts[layout] = {"scenarios": 1, **reduce_results(add_sums(None, jax.tree.map(lambda x: x[i], per)),
+                                                            SPEC, TASKS)}
+        d = layouts[layout]["motion_split"]["tasks"]["traffic_simulation"]["3s"]
         assert d[row] == 1 and d["ego_n_moving"] + d["ego_n_stationary"] == 1 and d["agent_n_moving"] == 1
         assert d["agent_ade_stationary"] == pytest.approx(1.0, rel=1e-5)
+    # the layout table carries the stationary and moving ratios at the longest horizon (constant velocity is
+    # exact for the moving agent: no ratio, "-")
+    res = {"scenarios": 2, **reduce_results(add_sums(None, sums), SPEC, TASKS), "by_layout": layouts}
+    table = format_tables(res).split("Per road-network layout")[1].splitlines()
+    assert "stat/CV 3s" in table[1] and "mov/CV 3s" in table[1]
+    for line, r in zip(table[3:6], (res, layouts["grid"], layouts["real"])):
+        cells = line.split()  # name, scenarios, TS ADE, CV ADE, TS/CV, stat/CV, mov/CV, ...
+        want = r["motion_split"]["ratios"]["traffic_simulation_over_constant_velocity"]["agent_stationary"]["3s"]
+        assert float(cells[5]) == pytest.approx(want, rel=1e-3) and cells[6] == "-", line
 
 
 def flat(d, prefix=""):

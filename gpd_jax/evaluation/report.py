@@ -8,8 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from gpd_jax.evaluation.keys import (BASELINE_NAMES, MAP_PERSISTENCE, MOTION_SPLIT, RATIO_KEY, RATIO_KEY_MODEL_RATE,
-                                     RATIO_TARGETS, TOKENIZER_CEILING)
+from gpd_jax.evaluation.keys import (BASELINE_NAMES, MAP_PERSISTENCE, MOTION_RATIOS, MOTION_SPLIT, RATIO_KEY,
+                                     RATIO_KEY_MODEL_RATE, RATIO_TARGETS, TOKENIZER_CEILING)
+
+MOTION_RATIO_KEY = MOTION_RATIOS[0][0]  # traffic simulation over constant velocity (stored rate)
 from gpd_jax.evaluation.reduce import other_variant
 from gpd_jax.tasks import generated
 
@@ -124,9 +126,10 @@ def _finite(v) -> bool:
 
 
 def format_layout_table(results: dict[str, Any]) -> list[str]:
-    """Per road-network layout (and overall): the traffic-simulation agents against constant velocity, the paper's
-    collision rate of the generated agents and of the log itself, and scene generation's map F1 against map
-    persistence, at the longest horizon (the map at the shortest)."""
+    """Per road-network layout (and overall): the traffic-simulation agents against constant velocity (all, and
+    stationary / moving at the current frame), the paper's collision rate of the generated agents and of the log
+    itself, and scene generation's map F1 against map persistence, at the longest horizon (the map at the
+    shortest)."""
     rows = [("all", results)] + list(results["by_layout"].items())
     labels = list(results["baselines"]["constant_velocity"])
     lo, hi = labels[0], labels[-1]
@@ -135,6 +138,8 @@ def format_layout_table(results: dict[str, Any]) -> list[str]:
             (f"TS ADE {hi}", lambda r: get(r, "tasks", "traffic_simulation", hi, "agent_ade")),
             (f"CV ADE {hi}", lambda r: get(r, "baselines", "constant_velocity", hi, "agent_ade")),
             (f"TS/CV {hi}", lambda r: get(r, "ratios", RATIO_KEY, hi)),
+            (f"stat/CV {hi}", lambda r: get(r, MOTION_SPLIT, "ratios", MOTION_RATIO_KEY, "agent_stationary", hi)),
+            (f"mov/CV {hi}", lambda r: get(r, MOTION_SPLIT, "ratios", MOTION_RATIO_KEY, "agent_moving", hi)),
             (f"TS Col% {hi}", lambda r: get(r, "tasks", "traffic_simulation", hi, "agent_collision")),
             (f"log Col% {hi}", lambda r: get(r, "baselines", "log_replay", hi, "agent_collision")),
             (f"SG F1 {lo}", lambda r: get(r, "tasks", "scene_generation", lo, "map_f1")),
@@ -142,7 +147,8 @@ def format_layout_table(results: dict[str, Any]) -> list[str]:
     w0 = max(8, *(len(n) for n, _ in rows)) + 2
     head = "".join(f"{c:>13}" for c, _ in cols)
     lines = ["Per road-network layout (TS: traffic simulation agents, CV: constant velocity, log: log replay, "
-             "SG: scene generation, keep: map persistence; Col% = share of agents with a collision)",
+             "SG: scene generation, keep: map persistence; Col% = share of agents with a collision; stat / mov: "
+             "TS / CV for agents stationary / moving at the current frame)",
              f"{'':<{w0}}{head}", "-" * (w0 + len(head))]
     for name, r in rows:
         lines.append(f"{name:<{w0}}" + "".join(f"{_fmt(f(r)):>13}" for _, f in cols))
