@@ -23,15 +23,15 @@ Two variants, selected by `variant`:
   - collision_frames@H = colliding (entity, t) pairs / present (entity, t) pairs, t < H, in percent.
 
 Both variants are computed as sums and counts (`agent_metric_sums`, summed over every leading batch dim), which add
-up exactly across batches (`accumulate`) and are turned into the numbers by `reduce_agent_metrics`.
+up exactly across batches (`accumulate`) and are turned into the numbers by `reduce_agent_metrics`. Positions are
+box centres for every slot (the official code puts the ego box at the rear axle; our scenes store box centres).
 
 **Split by motion at the current frame** (optional, `current_speed=`): ADE and FDE are also summed separately for
 entities *stationary* (speed < `STATIONARY_MPS` = 0.5 m/s), *moving* (>= 0.5 m/s) and of unknown speed (NaN: no
 velocity measured, e.g. first seen at the current frame), with the same numerators and denominators as the
 unsplit metric restricted to each class (the paper variant's N_exist too), so the three classes' sums add up to
 the unsplit sums exactly; `{g}_n_{class}` counts the entities of a class with a valid log frame within the
-horizon. Positions are
-box centres for every slot (the official code puts the ego box at the rear axle; our scenes store box centres).
+horizon.
 """
 
 from __future__ import annotations
