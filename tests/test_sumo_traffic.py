@@ -243,3 +243,22 @@ def test_static_lights_and_lefthand_in_the_network_file(tmp_path):
     assert types == {"static"} and re.search(r'<net [^>]*lefthand="true"', text)
     with pytest.raises(ValueError, match="tls_type"):
         sumo.generate_network(dataclasses.replace(spec, tls_type="smart"), str(tmp_path / "x.net.xml"))
+
+
+def test_given_network_as_a_lefthand_copy(tmp_path):
+    spec = dataclasses.replace(sumo.random_net_spec(6, "grid"), size=3, size2=3)
+    net = sumo.generate_network(spec, str(tmp_path / "given" / "town.net.xml"))
+    assert not sumo.is_lefthand(net)
+    jobs = build.plan_sumo_jobs(4, 0, [net], per_job=2, split="train", lefthand_share=1.0)
+    assert all(j.lefthand_net and j.location == "given_town_lh" for j in jobs)
+    assert not any(j.lefthand_net for j in build.plan_sumo_jobs(4, 0, [net], per_job=2, split="train"))
+    out = str(tmp_path / "store")
+    man = build.build_sumo(out, 2, seed=0, nets=[net], workers=1, per_job=2, split="train", sim_cfg=TINY_SIM,
+                           lefthand_share=1.0)
+    assert man["num_samples"] == 2, man["build"]["rejections"]
+    idx = json.load(open(os.path.join(out, "_networks", "index.json")))
+    rec = idx["given_town_lh"]
+    assert rec["lefthand"] and rec["source_net"] == os.path.abspath(net)
+    assert sumo.is_lefthand(os.path.join(out, rec["net"])) and not sumo.is_lefthand(net)
+    sh = store.Shard(store.list_shards(out, "train")[0])
+    assert sh.meta["lefthand"] is True and sh.meta["net"] == net and sh.meta["traffic"]["lefthand_share"] == 1.0

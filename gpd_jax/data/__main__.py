@@ -60,7 +60,7 @@ def traffic_options(args) -> dict:
     if ego.rule == "travel" and args.ego_stationary_share is None:
         ego = build.EgoChoice("travel", 0.0)
     return {"traffic": traffic or None, "ego": ego,
-            "lefthand_share": args.lefthand_share if args.lefthand_share is not None else (0.0 if legacy else 0.25),
+            "lefthand_share": args.lefthand_share if args.lefthand_share is not None else (0.0 if legacy else None),
             "static_tls_share": (args.static_tls_share if args.static_tls_share is not None
                                  else (0.0 if legacy else 0.5))}
 
@@ -115,7 +115,8 @@ def main(argv=None) -> int:
     t.add_argument("--ego-stationary-share", type=_share, default=None,
                    help="mixed rule: share of windows whose ego stands at the current frame (0.25)")
     t.add_argument("--lefthand-share", type=_share, default=None,
-                   help="generated networks: share with left-hand traffic, netconvert --lefthand (0.25)")
+                   help="share of networks with left-hand traffic, netconvert --lefthand (generated: 0.25; "
+                        "--net / --real-networks: 0, else a left-hand copy of each network drawn, location <name>_lh)")
     t.add_argument("--static-tls-share", type=_share, default=None,
                    help="generated networks: share whose traffic lights run fixed cycles (0.5)")
     i = sub.add_parser("inspect", help="summary statistics of a dataset")

@@ -76,6 +76,7 @@ class SumoJob:
     layout: str = ""  # "grid" | "spider" | "random" (generated), "real" (--real-networks) or "given" (--net)
     lefthand_share: float = 0.0  # generated networks: probability of left-hand traffic (`sumo.random_net_spec`)
     static_tls_share: float = 0.0  # generated networks: probability of fixed-cycle traffic lights
+    lefthand_net: bool = False  # given networks: simulate a left-hand copy (`sumo.make_lefthand`, in DIR/_networks)
 
     def net_spec(self):
         """The `sumo.NetSpec` of a generated network (None for given networks)."""
@@ -151,6 +152,9 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
 
     Generated networks take turns over the layouts grid / spider / random (in a seeded order), and their
     location names end in the layout (`gen_<seed>_<jjjj>_<layout>`); given networks get `net_layout`.
+    `lefthand_share`: generated networks: probability of left-hand traffic (drawn from each network's seed);
+    given networks: probability that a network is simulated as a left-hand copy (every job of it; its location
+    gets the suffix "_lh"), drawn from `seed` and the network's name.
     """
     from gpd_jax.data.sumo import LAYOUTS
 
@@ -163,8 +167,16 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
     else:
         counts = [per_job] * n_jobs
         counts[-1] = num_scenarios - per_job * (n_jobs - 1)
+    lh_net = [False] * n_jobs
     if nets:
-        locs = [_net_location(nets[i % len(nets)]) for i in range(n_jobs)]
+        import zlib
+
+        def lefthand_copy(path):
+            key = zlib.crc32(_net_location(path).encode())
+            return bool(np.random.default_rng([seed, 29, key]).uniform() < lefthand_share)
+
+        lh_net = [lefthand_copy(nets[i % len(nets)]) for i in range(n_jobs)]
+        locs = [_net_location(nets[i % len(nets)]) + ("_lh" if lh_net[i] else "") for i in range(n_jobs)]
         layouts = [net_layout] * n_jobs
     else:
         turn = np.random.default_rng([seed, 5]).permutation(n_jobs)
@@ -174,8 +186,8 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
     ss = np.random.SeedSequence([seed, 1234])
     seeds = [int(s.generate_state(1)[0]) for s in ss.spawn(n_jobs)]
     return [SumoJob(i, seeds[i], counts[i], locs[i], splits[locs[i]],
-                    nets[i % len(nets)] if nets else None, layouts[i], lefthand_share, static_tls_share)
-            for i in range(n_jobs)]
+                    nets[i % len(nets)] if nets else None, layouts[i], 0.0 if nets else lefthand_share,
+                    0.0 if nets else static_tls_share, lh_net[i]) for i in range(n_jobs)]
 
 
 def _net_location(path: str) -> str:
@@ -228,6 +240,9 @@ def _prepare_network(args) -> tuple[str, dict]:
                 if os.path.exists(tmp):
                     os.remove(tmp)
         rec.update(net=os.path.relpath(net, out_dir), spec=dataclasses.asdict(spec))
+    elif job.lefthand_net:
+        net = _lefthand_net(out_dir, job)
+        rec.update(net=os.path.relpath(net, out_dir), spec=None, source_net=os.path.abspath(job.net_path))
     else:
         net = job.net_path
         rec.update(net=os.path.abspath(net), spec=None)
@@ -239,6 +254,16 @@ def _prepare_network(args) -> tuple[str, dict]:
     rec["lane_km"] = round(fp.length / 1000.0, 3)
     rec["lefthand"] = sumo.is_lefthand(net)
     return job.location, rec
+
+
+def _lefthand_net(out_dir: str, job: SumoJob) -> str:
+    """The left-hand copy of a given network (made once, beside the store in DIR/_networks)."""
+    from gpd_jax.data import sumo
+
+    net = _generated_net_path(out_dir, job.location)
+    if not os.path.isfile(net):
+        sumo.make_lefthand(job.net_path, net)
+    return net
 
 
 def prepare_networks(jobs: list[SumoJob], out_dir: str, workers: int = 1) -> dict[str, dict]:
@@ -415,12 +440,13 @@ def traffic_settings(sim_cfg, ego: EgoChoice, lefthand_share: float, static_tls_
 
 
 def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
-                 sim_cfg=None, max_tries: int = 4, ego: EgoChoice = EgoChoice(), traffic: dict | None = None) -> dict:
+                 sim_cfg=None, max_tries: int = 4, ego: EgoChoice = EgoChoice(), traffic: dict | None = None,
+                 record: dict | None = None) -> dict:
     """Runs one SUMO job (demand, simulation, samples, shard) on its network (prepared by
     `prepare_networks`). A rejected run is retried on the same network with another demand seed and 30 %
     less demand, up to `max_tries` runs. `traffic`: `SimConfig` traffic fields set over the simulation
-    config (REAL_NETWORK_SIM for given networks, SimConfig() for generated ones, unless `sim_cfg`). Returns the
-    job summary."""
+    config (REAL_NETWORK_SIM for given networks, SimConfig() for generated ones, unless `sim_cfg`). `record`:
+    the build's traffic settings, written into the shard's meta (default: this job's). Returns the job summary."""
     from gpd_jax.data import sumo
     from gpd_jax.data.geometry import sample_has_overlap
 
@@ -443,7 +469,8 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
         # unsignalized networks saturate earlier
         density = sim_cfg.insertion_density * (0.6 if spec.junction == "priority" else 1.0)
     else:
-        spec, net, density = None, job.net_path, sim_cfg.insertion_density
+        spec, density = None, sim_cfg.insertion_density
+        net = _lefthand_net(out_dir, job) if job.lefthand_net else job.net_path
     try:
         lanes = sumo.read_network_lanes(net)
         areas = sumo.read_network_areas(net)
@@ -482,8 +509,8 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
                               extra={"source": "sumo", "job_seed": job.seed, "layout": job.layout,
                                      "net": job.net_path or dataclasses.asdict(spec),
                                      "lefthand": sumo.is_lefthand(net),
-                                     "traffic": traffic_settings(sim_cfg, ego, job.lefthand_share,
-                                                                 job.static_tls_share)})
+                                     "traffic": record or traffic_settings(sim_cfg, ego, job.lefthand_share,
+                                                                           job.static_tls_share)})
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary = {"index": job.index, "split": job.split, "location": job.location, "layout": job.layout,
@@ -534,11 +561,13 @@ def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str) -> list[dict]:
 class _Bound:
     """Picklable job runner bound to its settings."""
 
-    def __init__(self, out_dir, sample_cfg, sim_cfg, ego=EgoChoice(), traffic=None):
+    def __init__(self, out_dir, sample_cfg, sim_cfg, ego=EgoChoice(), traffic=None, record=None):
         self.out_dir, self.sample_cfg, self.sim_cfg, self.ego, self.traffic = out_dir, sample_cfg, sim_cfg, ego, traffic
+        self.record = record
 
     def __call__(self, job):
-        return run_sumo_job(job, self.out_dir, self.sample_cfg, self.sim_cfg, ego=self.ego, traffic=self.traffic)
+        return run_sumo_job(job, self.out_dir, self.sample_cfg, self.sim_cfg, ego=self.ego, traffic=self.traffic,
+                            record=self.record)
 
 
 NETGEN_VERSION = 2  # 2: seed-drawn shapes + node perturbation, networks generated before the runs
@@ -549,7 +578,7 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                sample_cfg: preprocess.SampleConfig | None = None, sim_cfg=None, *, net_layout: str = "given",
                keep_overlaps: bool = False, refuse_near_duplicates: bool = True,
                near_duplicate_tol: float | None = None, against: list[str] | tuple = (),
-               traffic: dict | None = None, ego: EgoChoice = EgoChoice(), lefthand_share: float = 0.25,
+               traffic: dict | None = None, ego: EgoChoice = EgoChoice(), lefthand_share: float | None = None,
                static_tls_share: float = 0.5) -> dict:
     """Builds (or resumes) a SUMO dataset in `out_dir`. Returns the manifest.
 
@@ -566,8 +595,11 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
         the simulation config; None keeps those of `sim_cfg` (default: `SimConfig`'s, parked vehicles, stops
         and heterogeneous drivers on); `sumo.LEGACY_TRAFFIC` = the behaviour of stores built before them.
       ego: how egos are chosen (`EgoChoice`; `LEGACY_EGO` = the 30 m travel rule of stores built before).
-      lefthand_share / static_tls_share: generated networks: probability of left-hand traffic
-        (`netconvert --lefthand`) / of fixed-cycle traffic lights (queues), drawn per network from its seed.
+      lefthand_share: probability of left-hand traffic (`netconvert --lefthand`) per network: generated ones
+        are built so, given ones simulated as a left-hand copy (`plan_sumo_jobs`). None: 0.25 for generated
+        networks, 0 for given ones (a test store of given networks stays as it was unless asked).
+      static_tls_share: generated networks: probability of fixed-cycle traffic lights (queues), drawn per
+        network from its seed.
     All of them are recorded in the settings (`build.traffic` in the manifest) and in every shard's meta.
     """
     from gpd_jax.data import netgeom, sumo
@@ -578,6 +610,8 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
     check_count("per_job", per_job)
     check_count("workers", workers)
     sample_cfg = sample_cfg or default_sumo_sample_config()
+    if lefthand_share is None:
+        lefthand_share = 0.0 if nets else 0.25
     for name, v in (("lefthand_share", lefthand_share), ("static_tls_share", static_tls_share)):
         if not 0.0 <= v <= 1.0:
             raise DataError(None, f"{name} must be a share in [0, 1], got {v!r}")
@@ -605,15 +639,14 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                 "per_job": per_job, "sample_config": dataclasses.asdict(sample_cfg),
                 "sim_config": dataclasses.asdict(sim_cfg) if sim_cfg else None,
                 "netgen_version": None if nets else NETGEN_VERSION, "net_layout": net_layout if nets else None,
-                "traffic": traffic_settings(eff_sim, ego, 0.0 if nets else lefthand_share,
-                                            0.0 if nets else static_tls_share)}
+                "traffic": traffic_settings(eff_sim, ego, lefthand_share, 0.0 if nets else static_tls_share)}
     if _built_before_traffic_options(out_dir) and settings["traffic"] == traffic_settings(
             dataclasses.replace(eff_sim, **sumo.LEGACY_TRAFFIC), LEGACY_EGO, 0.0, 0.0):
         settings.pop("traffic")  # resuming a build from before the traffic options, with --traffic legacy
     if _check_settings(out_dir, settings):  # an abandoned start with other settings: its networks go too
         shutil.rmtree(netgeom.networks_dir(out_dir), ignore_errors=True)
-    jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout,
-                          0.0 if nets else lefthand_share, 0.0 if nets else static_tls_share)
+    jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout, lefthand_share,
+                          0.0 if nets else static_tls_share)
     index = prepare_networks(jobs, out_dir, workers)
     dups, dup_summary = check_near_duplicates(out_dir, index, against, near_duplicate_tol)
     if dups:
@@ -625,7 +658,8 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                                      f"distance < {dup_summary['tol_m']} m after rigid alignment): {lines}. Use other "
                                      f"networks, or build with --allow-near-duplicates to record them and go on")
         log.warning("%d evaluation network(s) nearly match training networks: %s", len(dups), lines)
-    results = run_jobs(jobs, _Bound(out_dir, sample_cfg, sim_cfg, ego, traffic), out_dir, workers, "sumo build")
+    results = run_jobs(jobs, _Bound(out_dir, sample_cfg, sim_cfg, ego, traffic, settings.get("traffic")), out_dir,
+                       workers, "sumo build")
     extra = {"near_duplicates": dups, "near_duplicate_check": dup_summary,
              "networks": {loc: {k: r.get(k) for k in ("layout", "split", "lane_km", "lefthand")}
                           for loc, r in index.items()}}

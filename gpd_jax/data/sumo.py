@@ -170,6 +170,7 @@ def generate_network(spec: NetSpec, out_path: str) -> str:
         raise ValueError(f"unknown tls_type {spec.tls_type!r}; expected 'actuated' or 'static'")
     common = ["--no-turnarounds", "true", "--junctions.join", "false", "--no-warnings", "true",
               "--tls.default-type", spec.tls_type] + (["--lefthand", "true"] if spec.lefthand else [])
+    os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
     plain = tempfile.mkdtemp(prefix="gpd_net_", dir=os.path.dirname(os.path.abspath(out_path))) if rewrite else None
     args = [_bin("netgenerate"), f"--{flag}", "--seed", str(spec.seed), "-o",
             os.path.join(plain, "regular.net.xml") if rewrite else out_path,
@@ -618,6 +619,25 @@ def is_lefthand(net_path: str) -> bool:
         head = f.read(1 << 14).decode("utf-8", "replace")
     m = re.search(r"<net\b[^>]*>", head)
     return bool(m and re.search(r'\blefthand="true"', m.group(0)))
+
+
+def make_lefthand(src: str, out_path: str) -> str:
+    """A given network rebuilt for left-hand traffic (`netconvert -s SRC --lefthand`: every edge keeps its
+    geometry, its lanes move to the other side of it, traffic lights and right of way follow). Writes `out_path`
+    atomically; returns it."""
+    if not os.path.isfile(src):
+        raise DataError(src, "network file not found")
+    d = os.path.dirname(os.path.abspath(out_path))
+    os.makedirs(d, exist_ok=True)
+    tmp = os.path.join(d, f".tmp-{os.getpid()}-{os.path.basename(out_path)}")
+    try:
+        _run([_bin("netconvert"), "-s", src, "--lefthand", "true", "--no-warnings", "true", "-o", tmp],
+             what=f"netconvert --lefthand {src}", env=dict(os.environ, SUMO_HOME=sumo_home()))
+        os.replace(tmp, out_path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return out_path
 
 
 def _cut_polyline(pts: np.ndarray, a: float, b: float) -> np.ndarray:
