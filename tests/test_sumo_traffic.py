@@ -214,9 +214,10 @@ def test_options_cli_and_old_settings(tmp_path):
     A.traffic, A.parking_occupancy = "realistic", 0.9
     o = traffic_options(A)
     assert o["traffic"] == {"parking_occupancy": 0.9} and o["ego"] == build.EgoChoice()
-    with pytest.raises(SystemExit) as e:
-        main(["build", "--out", str(tmp_path / "o"), "--parking-occupancy", "1.5"])
-    assert e.value.code == 2
+    for bad in (["--parking-occupancy", "1.5"], ["--source", "nuplan", "--drivers", "uniform"]):
+        with pytest.raises(SystemExit) as e:
+            main(["build", "--out", str(tmp_path / "o"), *bad])
+        assert e.value.code == 2
     assert main(["build", "--out", str(tmp_path / "o"), "--scenarios", "1", "--ego-stationary-share", "0.5",
                  "--ego-rule", "mixed", "--drivers", "uniform", "--net", str(tmp_path / "missing.net.xml")]) == 2
     with pytest.raises(DataError, match="driver"):

@@ -44,6 +44,10 @@ def _share(text: str) -> float:
     return v
 
 
+TRAFFIC_FLAGS = ("parking_edge_share", "parking_occupancy", "parked_leave_share", "short_stop_share", "drivers",
+                 "ego_rule", "ego_stationary_share", "lefthand_share", "static_tls_share")
+
+
 def traffic_options(args) -> dict:
     """The keyword arguments of `build.build_sumo` for the traffic flags (the preset, then each flag given)."""
     from gpd_jax.data import build, sumo
@@ -148,6 +152,9 @@ def main(argv=None) -> int:
 
             if args.source != "sumo" and (args.real_networks is not None or args.keep_overlaps or args.against):
                 p.error("--real-networks, --keep-overlaps and --against are for --source sumo")
+            traffic_flags = [f"--{k.replace('_', '-')}" for k in TRAFFIC_FLAGS if getattr(args, k) is not None]
+            if args.source != "sumo" and (traffic_flags or args.traffic != "realistic"):
+                p.error(f"the SUMO traffic options ({', '.join(traffic_flags) or '--traffic'}) are for --source sumo")
             if args.source == "sumo":
                 nets, layout = args.net, args.net_layout
                 if args.real_networks is not None:
