@@ -78,6 +78,7 @@ def test_lefthand_build_with_parked_vehicles(lefthand_store):
     from gpd_jax.data import inspection
     s = inspection.inspect(out, with_lanes=False)
     assert 0.0 < s["agents_never_moving_fraction"] <= 1.0 and s["agent_stationary_fraction"] > 0.0
+    assert 0.0 <= s["stationary_agents_that_go_fraction"] < 1.0
     assert s["ego_stationary_at_current_fraction"] is not None and s["traffic"] == tr
 
 

@@ -6,7 +6,8 @@ agent-frames, ego included, under 0.5 m/s), agent_stationary_fraction / ego_stat
 the other agents / the ego alone), ego_stationary_at_current_fraction (scenarios whose ego is under 0.5 m/s at
 the current frame), agents_stationary_at_current_fraction (other agents valid there, under 0.5 m/s),
 agents_never_moving_fraction (other agents valid at the current frame that never reach 0.5 m/s in the window:
-parked), agent_speed_mps_p50 (other agents), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
+parked), stationary_agents_that_go_fraction (of the other agents stationary at the current frame, those that
+later move more than 2 m from where they stand), agent_speed_mps_p50 (other agents), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
 differences of consecutive valid frames at 10 Hz), log_collisions (scenarios in which two recorded
 oriented boxes overlap in some frame, separating-axis test), build_wall_s, plus a few extras.
 
@@ -37,6 +38,7 @@ class _Figures:
         self.current = current
         self.agents, self.speeds, self.ego_speeds, self.accels = [], [], [], []
         self.other_speeds, self.ego_current, self.other_current, self.never_moving = [], [], [], []
+        self.still_then_go = []
         self.collisions, self.n = 0, 0
         self.type_hist = np.zeros(len(AGENT_TYPES), np.int64)
 
@@ -58,6 +60,11 @@ class _Figures:
             fast = np.any(ok1[..., 1:] & (sp[..., 1:] >= STATIONARY_MPS), axis=1)  # [B, A-1]
             has = ok1[..., 1:].any(1) & v[:, c, 1:]
             self.never_moving.append(~fast[has])
+            # agents (not the ego) stationary at the current frame: do they later move > 2 m from where they stand?
+            still = okc[:, 1:] & (sp[:, c - 1, 1:] < STATIONARY_MPS)  # [B, A-1]
+            away = np.linalg.norm(xy[:, c:, 1:] - xy[:, c:c + 1, 1:], axis=-1)  # [B, T-c, A-1]
+            moved = np.any(v[:, c:, 1:] & (away > 2.0), axis=1)
+            self.still_then_go.append(moved[still])
         ok2 = ok1[:, 1:] & ok1[:, :-1]
         self.accels.append((np.diff(sp, axis=1) / DT)[ok2])
         for k in range(len(v)):
@@ -77,6 +84,7 @@ class _Figures:
 
         other, ego_c, other_c, never = (cat(self.other_speeds), cat(self.ego_current), cat(self.other_current),
                                         cat(self.never_moving))
+        go = cat(self.still_then_go)
 
         def share(x):
             return float(np.mean(x < STATIONARY_MPS)) if len(x) else None
@@ -100,6 +108,7 @@ class _Figures:
             "ego_stationary_at_current_fraction": share(ego_c),
             "agents_stationary_at_current_fraction": share(other_c),
             "agents_never_moving_fraction": float(np.mean(never)) if len(never) else None,
+            "stationary_agents_that_go_fraction": float(np.mean(go)) if len(go) else None,
             "accel_mps2_p1": pct(accels, 1),
             "accel_mps2_p99": pct(accels, 99),
             "log_collisions": int(self.collisions),
@@ -179,7 +188,7 @@ def format_summary(s: dict) -> str:
     for k in ("agents_per_frame_mean", "agents_per_frame_max", "lanes_per_frame_mean", "lanes_per_frame_min",
               "stationary_fraction", "agent_stationary_fraction", "ego_stationary_fraction",
               "ego_stationary_at_current_fraction", "agents_stationary_at_current_fraction",
-              "agents_never_moving_fraction", "speed_mps_p5", "speed_mps_p50", "agent_speed_mps_p50", "speed_mps_p95",
+              "agents_never_moving_fraction", "stationary_agents_that_go_fraction", "speed_mps_p5", "speed_mps_p50", "agent_speed_mps_p50", "speed_mps_p95",
               "accel_mps2_p1", "accel_mps2_p99", "log_collisions", "build_wall_s"):
         v = s.get(k)
         lines.append(f"  {k:38s} {v:.3f}" if isinstance(v, float) else f"  {k:38s} {v}")
