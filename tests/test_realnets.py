@@ -74,3 +74,12 @@ def test_bad_requests(tmp_path):
         realnets.prepare_real_networks(str(tmp_path), splits=("test",))
     with pytest.raises(DataError, match="unknown tile"):
         realnets.prepare_real_networks(str(tmp_path), names=["A10KW"])
+
+
+def test_chain_statistics_matches_the_data_layer_and_turnarounds_cut():
+    net = os.path.join(sumo.sumo_home(), "tools", "game", "fkk_in", "ingolstadt.net.xml.gz")
+    s = realnets.chain_statistics(net)
+    assert s["chains"] == len(sumo.read_network_lanes(net))  # the same one-to-one merge rule
+    t = realnets.chain_statistics(net, ignore_turnarounds=True)
+    assert s["turnaround_connections"] > 0 and t["chains"] < s["chains"]
+    assert t["chain_length_m"]["p10"] > s["chain_length_m"]["p10"]

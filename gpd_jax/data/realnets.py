@@ -322,3 +322,67 @@ def prepare_real_networks(cache_dir: str, splits=SPLITS, names: list[str] | None
     atomic_write_json(man_path, {"tiles": manifest, "test_only": list(TEST_ONLY),
                                  "licence_note": "OpenStreetMap data: " + OSM_ATTRIBUTION}, indent=1)
     return out
+
+
+# ------------------------------------------------------------------------------------------ GT cut statistics
+def chain_statistics(net_path: str, ignore_turnarounds: bool = False) -> dict:
+    """How the lanes of a SUMO network chain into the polylines of the ground truth (the one-to-one merge rule of
+    `sumo.read_network_lanes`: a lane and its only successor, if that successor has only this predecessor, are one
+    line), here counted per network.
+
+    With `ignore_turnarounds`, connections with dir="t" (SUMO's turnaround connectors, which it adds at most
+    junctions of OSM imports, including where an OSM way is merely split) are left out of the successor and
+    predecessor counts and their internal lanes out of the lanes: the cut that rule would give.
+
+    Returns {"lanes", "chains", "chain_km", "chain_length_m": {p10, p50, p90}, "chains_per_km",
+    "turnaround_connections"} over the lanes open to passenger cars.
+    """
+    shapes: dict[str, np.ndarray] = {}
+    links: list[tuple[str, str, str]] = []
+    opener = gzip.open if net_path.endswith(".gz") else open
+    with opener(net_path, "rb") as f:
+        for _, el in ET.iterparse(f, events=("end",)):
+            if el.tag == "edge":
+                if el.get("function", "normal") in ("normal", "internal"):
+                    for ln in el.findall("lane"):
+                        if sumo._passenger_allowed(ln.attrib) and ln.get("shape"):
+                            s = sumo._parse_shape(ln.get("shape"))
+                            if len(s) >= 2:
+                                shapes[ln.get("id")] = s
+                el.clear()
+            elif el.tag == "connection":
+                a = f"{el.get('from')}_{el.get('fromLane')}"
+                b = el.get("via") or f"{el.get('to')}_{el.get('toLane')}"
+                links.append((a, b, el.get("dir", "")))
+                el.clear()
+    n_turn = sum(d == "t" for _, _, d in links)
+    if ignore_turnarounds:
+        turn_internal = {b for a, b, d in links if d == "t" and b.startswith(":")}
+        shapes = {k: v for k, v in shapes.items() if k not in turn_internal}
+        links = [(a, b, d) for a, b, d in links if d != "t"]
+    succ: dict[str, set] = {k: set() for k in shapes}
+    pred: dict[str, set] = {k: set() for k in shapes}
+    for a, b, _ in links:
+        if a in shapes and b in shapes and a != b:
+            succ[a].add(b)
+            pred[b].add(a)
+    nxt = {a: next(iter(s)) for a, s in succ.items() if len(s) == 1 and len(pred[next(iter(s))]) == 1}
+    has_prev = set(nxt.values())
+    done: set = set()
+    lengths = []
+    seg = {k: float(np.linalg.norm(np.diff(v, axis=0), axis=-1).sum()) for k, v in shapes.items()}
+    for k in sorted(shapes, key=lambda k: (k in has_prev, k)):  # chain heads first, then pure cycles
+        if k in done:
+            continue
+        total, cur = seg[k], k
+        done.add(k)
+        while cur in nxt and nxt[cur] not in done:
+            cur = nxt[cur]
+            done.add(cur)
+            total += seg[cur]
+        lengths.append(total)
+    arr = np.asarray(lengths)
+    km = float(arr.sum() / 1000.0)
+    return {"lanes": len(shapes), "chains": len(arr), "chain_km": round(km, 3),
+            "chain_length_m": {q: round(float(np.percentile(arr, int(q[1:]))), 1) for q in ("p10", "p50", "p90")},
+            "chains_per_km": round(len(arr) / max(km, 1e-9), 2), "turnaround_connections": n_turn}

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.raster import rasterize
+from gpd_jax.metrics.matching import match_lines
 from gpd_jax.metrics.map import (LENGTH_EDGES_M, cutfree_frame_sums, length_labels, map_metric_sums,
                                  reduce_map_metrics)
 
@@ -78,15 +79,46 @@ def reduce_raster(s: dict) -> dict[str, float]:
             "raster_f1": (2 * p * r / (p + r)) if p + r > 0 else 0.0}
 
 
+def pair_sums(points, logits, lanes, lanes_valid, threshold: float = 1.5) -> dict[str, jax.Array]:
+    """Where the decoded lines differ from their Hungarian-matched GT lines (the paper's matching), summed over
+    the batch: pairs (GT line valid, matched prediction with logit > 0), those whose reversed prediction is closer
+    (mean index-aligned distance), those with both end points within `threshold` of the GT's, and those whose
+    predicted length is over 1.5x / under 1/1.5 of the GT's (the line is cut elsewhere).
+
+    Args: points f32[B, Q, P, 2], logits f32[B, Q], lanes f32[B, L, P, 2], lanes_valid bool[B, L].
+    """
+    m, ml, _ = match_lines(points, logits, lanes, lanes_valid)
+    ok = lanes_valid & (ml > 0)
+    d_fwd = jnp.mean(jnp.linalg.norm(m - lanes, axis=-1), -1)
+    d_rev = jnp.mean(jnp.linalg.norm(m[..., ::-1, :] - lanes, axis=-1), -1)
+    ends = ((jnp.linalg.norm(m[..., 0, :] - lanes[..., 0, :], axis=-1) <= threshold)
+            & (jnp.linalg.norm(m[..., -1, :] - lanes[..., -1, :], axis=-1) <= threshold))
+    length = lambda x: jnp.sum(jnp.linalg.norm(jnp.diff(x, axis=-2), axis=-1), -1)
+    ratio = length(m) / jnp.maximum(length(lanes), 1e-3)
+    s = lambda x: jnp.sum((x & ok).astype(jnp.float32))
+    return {"pair_n": s(ok), "pair_reversed": s(d_rev < d_fwd), "pair_ends_ok": s(ends),
+            "pair_longer": s(ratio > 1.5), "pair_shorter": s(ratio < 1 / 1.5)}
+
+
+def reduce_pairs(t: dict) -> dict[str, float]:
+    """`pair_sums` totals -> shares of the matched pairs."""
+    n = float(np.asarray(t["pair_n"]))
+    f = lambda k: float(np.asarray(t[k])) / n if n > 0 else float("nan")
+    return {"matched_pairs": int(n), "pairs_reversed_share": f("pair_reversed"),
+            "pairs_both_ends_within_share": f("pair_ends_ok"), "pairs_pred_longer_1.5x_share": f("pair_longer"),
+            "pairs_pred_shorter_1.5x_share": f("pair_shorter")}
+
+
 def make_eval_step(graphdef, config=None):
     """eval_step(params, raster, lanes, lanes_valid) -> (map metric sums, token indices); with `config` (the
     tokenizer's), the sums also hold the raster-level reconstruction (`raster_sums` of the decoded lines drawn
-    with `config.raster` against the input raster)."""
+    with `config.raster` against the input raster) and the matched-pair diagnostics (`pair_sums`)."""
     def eval_step(params, raster, lanes, lanes_valid):
         out = core.forward(graphdef, params, raster)
         sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M)
         if config is not None:
             sums.update(raster_sums(decoded_raster(config, out["points"], out["logits"]), raster))
+            sums.update(pair_sums(out["points"], out["logits"], lanes, lanes_valid))
         return sums, out["idx"]
 
     return eval_step
@@ -122,6 +154,7 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
         "recall_cutfree": m["map_recall_cutfree"], "chamfer_cutfree": m["map_chamfer_cutfree"],
         "chamfer_within_cutfree": m["map_chamfer_within_cutfree"],
         **(reduce_raster(total) if "raster_inter" in total else {}),
+        **(reduce_pairs(total) if "pair_n" in total else {}),
         "codebook_usage": float(np.mean(counts > 0)), "perplexity": float(np.exp(-np.sum(nz * np.log(nz)))),
         "frames": frames,
         # diagnostic: the per-point recall for GT lines of each length, and how many GT lines each group has
