@@ -569,7 +569,8 @@ def driver_types_xml(rng: np.random.Generator, variants: int = 8) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class NetEdge:
-    """A normal edge of a network as the traffic planner sees it: its outer lane (index 0)."""
+    """A normal edge of a network as the traffic planner sees it: its outermost lane open to passenger cars
+    (lane 0 where it is; OSM-imported roads often have a sidewalk or bike lane at index 0), else lane 0."""
 
     id: str
     lane_id: str
@@ -577,7 +578,7 @@ class NetEdge:
     speed: float
     width: float
     shape: np.ndarray  # f64[P, 2]
-    cars: bool  # the outer lane is open to passenger cars
+    cars: bool  # that lane is open to passenger cars
     next: tuple[str, ...] = ()  # normal edges this edge connects to
 
 
@@ -595,8 +596,9 @@ def read_network_edges(net_path: str) -> tuple[bool, list[NetEdge]]:
                     continue
                 if el.tag == "edge":
                     if el.get("function", "normal") == "normal":
-                        lanes = {int(ln.get("index", 0)): ln for ln in el.findall("lane")}
-                        ln = lanes.get(0)
+                        lanes = sorted(el.findall("lane"), key=lambda x: int(x.get("index", 0)))
+                        car = [x for x in lanes if _passenger_allowed(x.attrib) and x.get("shape")]
+                        ln = car[0] if car else (lanes[0] if lanes else None)
                         if ln is not None and ln.get("shape"):
                             edges.append(NetEdge(el.get("id"), ln.get("id"), float(ln.get("length", 0.0)),
                                                  float(ln.get("speed", 13.89)),
@@ -730,8 +732,9 @@ def plan_traffic(edges: list[NetEdge], lefthand: bool, cfg: SimConfig, rng: np.r
                 until, route = rng.uniform(cfg.warmup_s, end_s), walk(e)
             else:
                 until, route = end_s + 3600.0, [e.id]
-            trips.append((depart, f'  <vehicle id="{vid}" type="{cls}" depart="{depart:.1f}" departLane="0" '
-                                  f'departPos="{pos:.1f}" departSpeed="0" insertionChecks="collision">'
+            trips.append((depart, f'  <vehicle id="{vid}" type="{cls}" depart="{depart:.1f}" '
+                                  f'departLane="{e.lane_id.rsplit("_", 1)[1]}" departPos="{pos:.1f}" departSpeed="0" '
+                                  f'insertionChecks="collision">'
                                   f'<route edges="{" ".join(route)}"/><stop parkingArea="{pid}" '
                                   f'until="{until:.1f}"/></vehicle>'))
     trips.sort(key=lambda t: t[0])
