@@ -74,6 +74,7 @@ def test_bad_requests(tmp_path):
         realnets.prepare_real_networks(str(tmp_path), splits=("test",))
     with pytest.raises(DataError, match="unknown tile"):
         realnets.prepare_real_networks(str(tmp_path), names=["A10KW"])
+    assert realnets.main(["--cache", str(tmp_path), "--splits", "test"]) == 2
 
 
 def test_chain_statistics_matches_the_data_layer_and_turnarounds_cut():

@@ -312,7 +312,7 @@ def prepare_real_networks(cache_dir: str, splits=SPLITS, names: list[str] | None
     manifest = {}
     if os.path.isfile(man_path):
         with open(man_path) as f:
-            manifest = json.load(f).get("tiles", {})
+            manifest = {k: v for k, v in json.load(f).get("tiles", {}).items() if k in known}
     for t in tiles:
         path, rec = prepare_tile(t, cache_dir)
         out[t.split].append(path)
@@ -386,3 +386,26 @@ def chain_statistics(net_path: str, ignore_turnarounds: bool = False) -> dict:
     return {"lanes": len(shapes), "chains": len(arr), "chain_km": round(km, 3),
             "chain_length_m": {q: round(float(np.percentile(arr, int(q[1:]))), 1) for q in ("p10", "p50", "p90")},
             "chains_per_km": round(len(arr) / max(km, 1e-9), 2), "turnaround_connections": n_turn}
+
+
+def main(argv=None) -> int:
+    """python -m gpd_jax.data.realnets --cache DIR [--splits train dev] [--tiles NAME ...]: prepares the tiles
+    and prints {split: [paths]} as JSON (exit 2 with the reason on bad input or a failed conversion)."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m gpd_jax.data.realnets", description=main.__doc__)
+    p.add_argument("--cache", required=True, help="directory for sources, tiles and manifest.json")
+    p.add_argument("--splits", nargs="+", default=list(SPLITS))
+    p.add_argument("--tiles", nargs="+", default=None, help="only these tiles (names in TILES)")
+    args = p.parse_args(argv)
+    try:
+        out = prepare_real_networks(args.cache, splits=tuple(args.splits), names=args.tiles)
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
