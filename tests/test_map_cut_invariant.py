@@ -136,6 +136,17 @@ def test_recut_keeps_geometry_and_changes_the_cut():
     assert jv.sum(-1).tolist() == [19]
     with pytest.raises(ValueError, match="recut mode"):
         recut_polylines(a, v, "nope")
+    # no_turnarounds: a U-turn arc leaving the end of the first line is dropped, then the lines join
+    b = np.zeros((3, 128, 2), np.float32)
+    w = np.zeros((3, 128), bool)
+    b[:2], w[:2] = a, v
+    t = np.linspace(0.0, np.pi, 8)
+    b[2, :8] = np.stack([9.0 + 1.6 * np.sin(t), 1.6 - 1.6 * np.cos(t)], -1)  # starts at (9, 0), ends heading back
+    w[2, :8] = True
+    j, jv = recut_polylines(b, w, "join_ends")
+    assert sorted(jv.sum(-1).tolist()) == [8, 10, 10]  # three lines meet at (9, 0): nothing is one-to-one
+    j, jv = recut_polylines(b, w, "no_turnarounds")
+    assert jv.sum(-1).tolist() == [19]
 
 
 def test_raster_reconstruction_frames_agree():

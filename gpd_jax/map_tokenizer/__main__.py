@@ -41,15 +41,18 @@ def cmd_evaluate(args) -> dict:
 
     from gpd_jax.map_tokenizer.store import frame_batches
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
-    from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step
+    from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step, recut_batches
 
     tok = load_tokenizer(args.checkpoint)
     batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
                             frame_stride=args.frame_stride, max_batches=args.max_batches)
+    if args.gt_recut:
+        batches = recut_batches(batches, args.gt_recut)
     t0 = time.perf_counter()
     m = evaluate(tok.graphdef, tok.params, tok.config, batches, jax.jit(make_eval_step(tok.graphdef, tok.config)))
     m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=os.path.abspath(args.checkpoint),
-             frame_stride=args.frame_stride, f1_threshold_m=1.5, wall_s=round(time.perf_counter() - t0, 1))
+             frame_stride=args.frame_stride, f1_threshold_m=1.5, gt_recut=args.gt_recut,
+             wall_s=round(time.perf_counter() - t0, 1))
     print(json.dumps(m, indent=2))
     if args.json:
         from gpd_jax.fsutil import atomic_write_json
@@ -140,6 +143,9 @@ def main(argv=None) -> int:
     e.add_argument("--batch-size", type=int, default=32)
     e.add_argument("--frame-stride", type=int, default=10)
     e.add_argument("--max-batches", type=int, default=None)
+    e.add_argument("--gt-recut", default=None, choices=("split_mid", "join_ends", "no_turnarounds"),
+                   help="score against the GT of the polylines re-cut this way (the raster stays as stored): a "
+                        "probe of how much the GT's cut costs, never the tokenizer's figure")
     g = sub.add_parser("diagnose", help="how the GT vector lanes cut the road; the paper F1 of the GT re-cut")
     g.add_argument("--data", required=True)
     g.add_argument("--split", default="test")
