@@ -79,6 +79,7 @@ def test_lefthand_build_with_parked_vehicles(lefthand_store):
     s = inspection.inspect(out, with_lanes=False)
     assert 0.0 < s["agents_never_moving_fraction"] <= 1.0 and s["agent_stationary_fraction"] > 0.0
     assert 0.0 <= s["stationary_agents_that_go_fraction"] < 1.0
+    assert s["agents_stationary_on_other_area_fraction"] > 0.0 and s["agents_stationary_in_lanes_fraction"] >= 0.0
     assert s["ego_stationary_at_current_fraction"] is not None and s["traffic"] == tr
 
 
@@ -264,3 +265,20 @@ def test_given_network_as_a_lefthand_copy(tmp_path):
     assert sumo.is_lefthand(os.path.join(out, rec["net"])) and not sumo.is_lefthand(net)
     sh = store.Shard(store.list_shards(out, "train")[0])
     assert sh.meta["lefthand"] is True and sh.meta["net"] == net and sh.meta["traffic"]["lefthand_share"] == 1.0
+
+
+def test_point_in_kind_even_odd():
+    from gpd_jax.data.inspection import point_in_kind
+
+    sq = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], np.float32)
+    hole = np.array([[4, 4], [6, 4], [6, 6], [4, 6]], np.float32)
+    rings = np.zeros((3, 6, 2), np.float32)
+    valid = np.zeros((3, 6), bool)
+    rings[0, :4], valid[0, :4] = sq, True
+    rings[1, :4], valid[1, :4] = hole, True
+    rings[2, :4], valid[2, :4] = sq + 20, True  # another kind
+    kind = np.array([AREA_KIND_ID["other"], AREA_KIND_ID["other"], AREA_KIND_ID["lane"]])
+    pts = np.array([[1, 1], [5, 5], [11, 5], [25, 25], [9.5, 0.5]])
+    assert point_in_kind(pts, rings, valid, kind, AREA_KIND_ID["other"]).tolist() == [True, False, False, False, True]
+    assert point_in_kind(pts, rings, valid, kind, AREA_KIND_ID["lane"]).tolist() == [False, False, False, True, False]
+    assert point_in_kind(np.zeros((0, 2)), rings, valid, kind, 0).shape == (0,)

@@ -7,7 +7,10 @@ the other agents / the ego alone), ego_stationary_at_current_fraction (scenarios
 the current frame), agents_stationary_at_current_fraction (other agents valid there, under 0.5 m/s),
 agents_never_moving_fraction (other agents valid at the current frame that never reach 0.5 m/s in the window:
 parked), stationary_agents_that_go_fraction (of the other agents stationary at the current frame, those that
-later move more than 2 m from where they stand), agent_speed_mps_p50 (other agents), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
+later move more than 2 m from where they stand), agents_stationary_on_other_area_fraction /
+agents_stationary_in_lanes_fraction (other agents at the current frame that stand on a drivable area of kind
+"other", such as SUMO's parking strips / elsewhere: in lanes and junctions, queues and stops; samples with road
+geometry only), agent_speed_mps_p50 (other agents), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
 differences of consecutive valid frames at 10 Hz), log_collisions (scenarios in which two recorded
 oriented boxes overlap in some frame, separating-axis test), build_wall_s, plus a few extras.
 
@@ -25,10 +28,32 @@ import numpy as np
 from gpd_jax.data import lanes as lanes_lib
 from gpd_jax.data import store
 from gpd_jax.data.geometry import boxes_overlap, sample_has_overlap  # noqa: F401 (re-exported)
+from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import AGENT_TYPES
 
 DT = 0.1
 STATIONARY_MPS = 0.5  # speed under which an agent-frame counts as stationary (as `gpd_jax.metrics.agents`)
+
+
+def point_in_kind(points: np.ndarray, rings: np.ndarray, ring_valid: np.ndarray, ring_kind: np.ndarray,
+                  kind: int) -> np.ndarray:
+    """bool[P]: whether `points f[P, 2]` lie in the drivable area of `kind` (even-odd over that kind's rings, as
+    `gpd_jax.geometry.area_kinds`). `rings f[G, V, 2]` with `ring_valid bool[G, V]` (a prefix), `ring_kind i[G]`."""
+    sel = (np.asarray(ring_kind) == kind) & ring_valid.any(-1)
+    if len(points) == 0 or not sel.any():
+        return np.zeros(len(points), bool)
+    r, ok = rings[sel].astype(np.float64), ring_valid[sel]
+    nxt = np.roll(r, -1, axis=1)
+    n = ok.sum(-1)  # the closing segment runs from the last valid vertex back to the first
+    last = np.arange(r.shape[1])[None] == (n - 1)[:, None]
+    nxt = np.where(last[..., None], r[:, :1], nxt)
+    a, b = r[None], nxt[None]  # [1, G, V, 2]
+    p = np.asarray(points, np.float64)[:, None, None]  # [P, 1, 1, 2]
+    straddle = (a[..., 1] > p[..., 1]) != (b[..., 1] > p[..., 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = a[..., 0] + (p[..., 1] - a[..., 1]) * (b[..., 0] - a[..., 0]) / (b[..., 1] - a[..., 1])
+    cross = straddle & (p[..., 0] < x) & ok[None]
+    return cross.sum((-2, -1)) % 2 == 1  # over all rings of the kind: holes are rings too
 
 
 class _Figures:
@@ -39,6 +64,8 @@ class _Figures:
         self.agents, self.speeds, self.ego_speeds, self.accels = [], [], [], []
         self.other_speeds, self.ego_current, self.other_current, self.never_moving = [], [], [], []
         self.still_then_go = []
+        self.still_place = np.zeros(3, np.int64)  # agents at the current frame: stationary on "other" areas,
+        # stationary elsewhere (lanes, junctions: queues, stops), all (with road geometry)
         self.collisions, self.n = 0, 0
         self.type_hist = np.zeros(len(AGENT_TYPES), np.int64)
 
@@ -65,6 +92,15 @@ class _Figures:
             away = np.linalg.norm(xy[:, c:, 1:] - xy[:, c:c + 1, 1:], axis=-1)  # [B, T-c, A-1]
             moved = np.any(v[:, c:, 1:] & (away > 2.0), axis=1)
             self.still_then_go.append(moved[still])
+            if "road_polygons" in a:
+                other = AREA_KIND_ID["other"]
+                for k in range(len(v)):
+                    if not a["road_polygon_valid"][k].any():
+                        continue
+                    pts = xy[k, c, 1:][still[k]]
+                    on = point_in_kind(pts, a["road_polygons"][k], a["road_polygon_valid"][k],
+                                       a["road_polygon_kind"][k], other)
+                    self.still_place += (int(on.sum()), int((~on).sum()), int(okc[k, 1:].sum()))
         ok2 = ok1[:, 1:] & ok1[:, :-1]
         self.accels.append((np.diff(sp, axis=1) / DT)[ok2])
         for k in range(len(v)):
@@ -109,6 +145,10 @@ class _Figures:
             "agents_stationary_at_current_fraction": share(other_c),
             "agents_never_moving_fraction": float(np.mean(never)) if len(never) else None,
             "stationary_agents_that_go_fraction": float(np.mean(go)) if len(go) else None,
+            "agents_stationary_on_other_area_fraction": (float(self.still_place[0] / self.still_place[2])
+                                                         if self.still_place[2] else None),
+            "agents_stationary_in_lanes_fraction": (float(self.still_place[1] / self.still_place[2])
+                                                    if self.still_place[2] else None),
             "accel_mps2_p1": pct(accels, 1),
             "accel_mps2_p99": pct(accels, 99),
             "log_collisions": int(self.collisions),
@@ -188,7 +228,8 @@ def format_summary(s: dict) -> str:
     for k in ("agents_per_frame_mean", "agents_per_frame_max", "lanes_per_frame_mean", "lanes_per_frame_min",
               "stationary_fraction", "agent_stationary_fraction", "ego_stationary_fraction",
               "ego_stationary_at_current_fraction", "agents_stationary_at_current_fraction",
-              "agents_never_moving_fraction", "stationary_agents_that_go_fraction", "speed_mps_p5", "speed_mps_p50", "agent_speed_mps_p50", "speed_mps_p95",
+              "agents_never_moving_fraction", "stationary_agents_that_go_fraction",
+              "agents_stationary_on_other_area_fraction", "agents_stationary_in_lanes_fraction", "speed_mps_p5", "speed_mps_p50", "agent_speed_mps_p50", "speed_mps_p95",
               "accel_mps2_p1", "accel_mps2_p99", "log_collisions", "build_wall_s"):
         v = s.get(k)
         lines.append(f"  {k:38s} {v:.3f}" if isinstance(v, float) else f"  {k:38s} {v}")
