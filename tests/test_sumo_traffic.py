@@ -202,6 +202,15 @@ def test_parking_jumps_are_smoothed():
     n = sumo.smooth_parking_jumps(xy, np.ones((F, 1), bool), np.zeros((F, 1)))
     steps = np.linalg.norm(np.diff(xy[:, 0], axis=0), axis=-1)
     assert n == 1 and steps.max() < 0.25 and abs(xy[0, 0, 1]) < 1e-9 and abs(xy[-1, 0, 1] - 3.2) < 1e-9
+    assert np.all(xy[30:, 0, 1] == 3.2)  # parking: only the frames on the lane (before the jump) move
+    # leaving: stationary in the space (y = 0), then on the lane (y = 3.2) and moving: only the lane side moves
+    xy = np.zeros((F, 1, 2))
+    xy[30:, 0, 1] = 3.2
+    xy[31:, 0, 0] = np.cumsum(np.full(F - 31, 0.2))
+    speed = np.zeros((F, 1))
+    speed[30:] = 2.0
+    assert sumo.smooth_parking_jumps(xy, np.ones((F, 1), bool), speed) == 1
+    assert np.all(xy[:30, 0, 1] == 0.0) and np.diff(xy[29:, 0, 1]).max() < 0.6 and abs(xy[-1, 0, 1] - 3.2) < 1e-9
 
 
 def test_options_cli_and_old_settings(tmp_path):

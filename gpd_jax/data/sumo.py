@@ -994,28 +994,34 @@ def _fcd_to_rawlog(fcd_path: str, types: dict[str, str], name: str, location: st
                   agent_size=size, agent_type=atype, lanes=(), ego_index=None)
 
 
-def smooth_parking_jumps(xy: np.ndarray, valid: np.ndarray, speed: np.ndarray, span: int = 20,
+def smooth_parking_jumps(xy: np.ndarray, valid: np.ndarray, speed: np.ndarray, span: int = 20, leave_span: int = 6,
                          min_jump: float = 1.0, max_jump: float = 8.0, max_speed: float = 3.0) -> int:
-    """Spreads SUMO's sideways jumps into and out of a road-side parking space (the vehicle moves from the lane
-    to the space, about 3 m, in one 0.1 s step) over `span` frames, in place. A jump: a step between two valid
-    frames of more than `min_jump` (and less than `max_jump`) metres beyond what the reported speed covers, at
-    speeds under `max_speed`. `xy f64[F, N, 2]`, `valid bool[F, N]`, `speed f64[F, N]`. Returns the jumps."""
+    """Spreads SUMO's sideways jumps into and out of a road-side parking space (the vehicle moves between the
+    lane and the space, about 3 m, in one 0.1 s step) over `span` frames, in place. A jump: a step between two
+    valid frames of more than `min_jump` (and less than `max_jump`) metres beyond what the reported speed covers,
+    at speeds under `max_speed`. Only the frames on the lane side move, so the parked side never reaches into
+    the lane where other vehicles pass: before the jump when the vehicle parks (over `span` frames), after it
+    when it leaves (by the mean speeds on each side; over `leave_span` frames: 0.6 s, in which a car pulling out
+    moves well under the 0.5 m to the car parked ahead, whose box it would otherwise cross). `xy f64[F, N, 2]`, `valid bool[F, N]`, `speed f64[F, N]`.
+    Returns the number of jumps."""
     F = xy.shape[0]
     ok = valid[1:] & valid[:-1]
     step = np.linalg.norm(np.nan_to_num(xy[1:] - xy[:-1]), axis=-1)
     covered = 0.1 * np.maximum(speed[1:], speed[:-1])
     jump = ok & (step - covered > min_jump) & (step < max_jump) & (np.maximum(speed[1:], speed[:-1]) < max_speed)
-    half = span // 2
     for t, n in zip(*np.nonzero(jump)):
         d = xy[t + 1, n] - xy[t, n]
-        lo, hi = max(0, t - half + 1), min(F - 1, t + half)
+        lo = max(0, t - span + 1)
         while lo < t and not valid[lo:t + 1, n].all():
             lo += 1
+        hi = min(F - 1, t + max(span, leave_span))
         while hi > t + 1 and not valid[t + 1:hi + 1, n].all():
             hi -= 1
-        k = np.arange(lo, hi + 1)
-        w = (k - (t - half)) / (2.0 * half)  # 0 -> 1 across the span
-        before = k <= t
-        xy[k[before], n] += d * w[before, None]
-        xy[k[~before], n] -= d * (1.0 - w[~before, None])
+        leaving = speed[t + 1:hi + 1, n].mean() > speed[lo:t + 1, n].mean()
+        if leaving:  # on the lane after the jump: start from the space, reach the lane after `leave_span` frames
+            k = np.arange(t + 1, min(hi, t + leave_span) + 1)
+            xy[k, n] -= d * np.maximum(0.0, 1.0 - (k - t) / leave_span)[:, None]
+        else:  # on the lane before the jump: drift into the space over the `span` frames before it
+            k = np.arange(lo, t + 1)
+            xy[k, n] += d * (1.0 - (t + 1 - k) / span)[:, None]
     return int(jump.sum())
