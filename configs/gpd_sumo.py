@@ -14,7 +14,7 @@ velocity at the stored 10 Hz rate and a head predicts the next one (`velocity_in
 over the current velocity rather than the last 1 s displacement: the validation ADE ratio to 10 Hz constant
 velocity at step 500 went from 1.57 / 1.37 / 1.27 (without) to 0.99 / 0.99 / 0.99.
 
-    python -m gpd_jax.data build --source sumo --out data/sumo6k --scenarios 6000 --seed 11 --per-job 25
+    python -m gpd_jax.data build --source sumo --traffic legacy --out data/sumo6k --scenarios 6000 --seed 11 --per-job 25
     python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data data/sumo6k --frame-stride 10
     python train.py --config configs/gpd_sumo.py --workdir runs/gpd_sumo
 

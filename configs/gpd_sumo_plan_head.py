@@ -3,8 +3,8 @@
 checkpoints/gpd_sumo and fine-tuned at a tenth of the head's learning rate. The no-pre-training ablation is
 configs/gpd_sumo_plan_head_scratch.py (same head, data and budget; the backbone from a random initialisation).
 
-    python -m gpd_jax.data build --source sumo --out /work/data/plan_train --scenarios 400 --seed 31 --per-job 25 --split train
-    python -m gpd_jax.data build --source sumo --out /work/data/plan_dev --scenarios 150 --seed 37 --per-job 25 --split val --against /work/data/plan_train
+    python -m gpd_jax.data build --source sumo --traffic legacy --out /work/data/plan_train --scenarios 400 --seed 31 --per-job 25 --split train
+    python -m gpd_jax.data build --source sumo --traffic legacy --out /work/data/plan_dev --scenarios 150 --seed 37 --per-job 25 --split val --against /work/data/plan_train
     python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data /work/data/plan_train --frame-stride 10
     python -m gpd_jax.map_tokenizer encode --checkpoint checkpoints/map_tokenizer --data /work/data/plan_dev --frame-stride 10
     python train.py --config configs/gpd_sumo_plan_head.py --workdir runs/plan_head \
