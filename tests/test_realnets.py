@@ -58,6 +58,10 @@ def test_prepare_tile_cached_inside_its_box_and_clear_of_test_networks(tmp_path)
     mtime = os.path.getmtime(path)
     again = realnets.prepare_real_networks(str(tmp_path), splits=("dev",), names=["drt_ne"])
     assert again == out and os.path.getmtime(path) == mtime  # reused, not rebuilt
+    with open(path + ".key", "w") as f:  # made from something else (e.g. an older box): rebuilt
+        f.write("other\n")
+    realnets.prepare_real_networks(str(tmp_path), splits=("dev",), names=["drt_ne"])
+    assert open(path + ".key").read().strip() != "other"
     realnets.check_disjoint([path], realnets.test_networks())  # no exception
 
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from gpd_jax.data import sumo
 from gpd_jax.data.errors import DataError
-from gpd_jax.fsutil import atomic_path, atomic_write_json
+from gpd_jax.fsutil import atomic_path, atomic_write_json, atomic_write_text
 
 OSM_LICENCE = "ODbL-1.0"
 OSM_ATTRIBUTION = "(c) OpenStreetMap contributors, ODbL 1.0 (https://www.openstreetmap.org/copyright)"
@@ -268,7 +268,11 @@ def prepare_tile(tile: Tile, cache_dir: str) -> tuple[str, dict]:
     src = SOURCES[tile.source]
     full, sha = source_network(src, cache_dir)
     out = os.path.join(cache_dir, tile.split, f"{tile.name}.net.xml.gz")
-    if not os.path.isfile(out):
+    # what the tile is made from: a cached tile made otherwise (another box, source or options) is rebuilt
+    key = hashlib.sha256(json.dumps([tile.box, src.kind, src.ref, sha, OSM_NETCONVERT_OPTIONS]).encode()).hexdigest()
+    key_path = out + ".key"
+    fresh = os.path.isfile(out) and os.path.isfile(key_path) and open(key_path).read().strip() == key
+    if not fresh:
         keep = edges_inside(full, tile.box)
         if not keep:
             raise DataError(full, f"tile {tile.name}: no edge inside {tile.box}")
@@ -278,6 +282,7 @@ def prepare_tile(tile: Tile, cache_dir: str) -> tuple[str, dict]:
                 f.write("\n".join(keep) + "\n")
         _netconvert(["-s", full, "--keep-edges.input-file", lst, "--keep-edges.components", "1",
                      "--geometry.remove", "false"], out, f"tile {tile.name}")
+        atomic_write_text(key_path, key + "\n")
     rec = {"name": tile.name, "split": tile.split, "path": out, "box": list(tile.box), "source": src.name,
            "source_file": src.ref, "source_sha256": sha, "place": src.place, "shipped_by": src.shipped_by,
            "licence": src.licence, "attribution": src.attribution, "lane_km": round(_lane_km(out), 3)}
