@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, MAP_BASELINES, MAP_METRICS, MOTION_RATIOS,
-                                     MOTION_SPEED, MOTION_SPLIT, RATIO_KEY, RATIO_KEY_MODEL_RATE)
+from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, MAP_BASELINES, MAP_CUTFREE_METRICS, MAP_METRICS,
+                                     MOTION_RATIOS, MOTION_SPEED, MOTION_SPLIT, RATIO_KEY, RATIO_KEY_MODEL_RATE)
 from gpd_jax.metrics import MOTION_CLASSES, STATIONARY_MPS, VARIANTS, reduce_agent_metrics, reduce_map_metrics
 from gpd_jax.spec import EvalError, ModelSpec
 from gpd_jax.tasks import generated
@@ -53,6 +53,7 @@ def _motion_entries(red: dict[str, dict[str, dict[str, float]]], label: str, gro
 def _map_entries(sums: dict[str, np.ndarray], h: int, variant: str) -> dict[str, float]:
     r = reduce_map_metrics({k: v[:h] for k, v in sums.items()})
     d = {k: r[k] for k in MAP_METRICS}
+    d.update({k: r[k] for k in MAP_CUTFREE_METRICS if k in r})
     cham = {"paper": r["map_chamfer"], "corrected": r["map_chamfer_corrected"]}
     d["map_chamfer"] = cham[variant]
     d[f"map_chamfer_{other_variant(variant)}"] = cham[other_variant(variant)]
