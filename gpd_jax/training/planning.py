@@ -14,7 +14,10 @@ A config with a `plan_head` section (configs/gpd_sumo_plan_head.py) builds the G
   `train.gpd_loss_weight` x the GPD's own teacher-forced loss (`gpd_jax.training.step.batch_loss`, a second
   backbone pass) to keep its agent and map predictions while the backbone moves.
 * Backbone: `train.backbone_lr_scale` x the learning rate (0: frozen; no gradient flows into it). The head
-  always trains at `train.learning_rate` (AdamW, warm-up + cosine, clipping: `step.make_optimizer`).
+  always trains at `train.learning_rate` (AdamW, warm-up + cosine, clipping: `step.make_optimizer`). With a
+  frozen backbone, `train.cache_features` runs it once per training and validation scene (`cache_features`:
+  `PlanFeatures` in host memory) and the steps run the head alone on batches drawn by `feature_batches`
+  (configs/gpd_sumo_plan_head_frozen.py).
 * Initialisation: `train.init_from` (an exported GPD or a workdir: the shipped `checkpoints/gpd_sumo`) gives
   the backbone's parameters and must have the same `model` config; empty trains everything from scratch (the
   paper's "without pre-training" ablation, configs/gpd_sumo_plan_head_scratch.py).
