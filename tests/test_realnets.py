@@ -84,9 +84,8 @@ def test_bad_requests(tmp_path):
 def test_chain_statistics_matches_the_data_layer_and_turnarounds_cut():
     net = os.path.join(sumo.sumo_home(), "tools", "game", "fkk_in", "ingolstadt.net.xml.gz")
     s = realnets.chain_statistics(net)
-    ours, theirs = realnets.network_chains(net), sumo.read_network_lanes(net)  # the same one-to-one merge rule
-    assert s["chains"] == len(theirs) == len(ours)
-    assert all(np.array_equal(a, b) for a, b in zip(ours, theirs))
+    assert s["chains"] == len(sumo.read_network_lanes(net))
     t = realnets.chain_statistics(net, ignore_turnarounds=True)
+    assert t["chains"] == len(sumo.read_network_lanes(net, ignore_turnarounds=True))
     assert s["turnaround_connections"] > 0 and t["chains"] < s["chains"]
     assert t["chain_length_m"]["p10"] > s["chain_length_m"]["p10"]

@@ -330,78 +330,6 @@ def prepare_real_networks(cache_dir: str, splits=SPLITS, names: list[str] | None
 
 
 # ------------------------------------------------------------------------------------------ GT cut statistics
-def network_chains(net_path: str, ignore_turnarounds: bool = False) -> tuple[np.ndarray, ...]:
-    """The GT polylines of a SUMO network: lane centrelines (normal and internal, open to passenger cars) merged
-    into chains where one-to-one (a lane's only successor has it as only predecessor), as
-    `sumo.read_network_lanes(net, merge_chains=True)` (same output when `ignore_turnarounds` is False).
-
-    With `ignore_turnarounds`, connections with dir="t" (SUMO's turnaround connectors, which it adds at most
-    junctions of OSM imports, including where an OSM way is merely split) are left out of the successor and
-    predecessor counts and their internal lanes out of the lanes: the cut proposed for real roads, where a lane
-    then runs on through a junction the raster does not show.
-
-    Returns a tuple of f64[P_i, 2] polylines in the network's frame.
-    """
-    shapes: dict[str, np.ndarray] = {}
-    links: list[tuple[str, str, str]] = []
-    opener = gzip.open if net_path.endswith(".gz") else open
-    try:
-        with opener(net_path, "rb") as f:
-            for _, el in ET.iterparse(f, events=("end",)):
-                if el.tag == "edge":
-                    if el.get("function", "normal") in ("normal", "internal"):
-                        for ln in el.findall("lane"):
-                            if sumo._passenger_allowed(ln.attrib) and ln.get("shape"):
-                                s = sumo._parse_shape(ln.get("shape"))
-                                if len(s) >= 2:
-                                    shapes[ln.get("id")] = s
-                    el.clear()
-                elif el.tag == "connection":
-                    a = f"{el.get('from')}_{el.get('fromLane')}"
-                    b = el.get("via") or f"{el.get('to')}_{el.get('toLane')}"
-                    links.append((a, b, el.get("dir", "")))
-                    el.clear()
-    except (ET.ParseError, ValueError, OSError, EOFError) as e:
-        raise DataError(net_path, f"not a readable SUMO network: {e}") from e
-    if ignore_turnarounds:
-        turn_internal = {b for a, b, d in links if d == "t" and b.startswith(":")}
-        shapes = {k: v for k, v in shapes.items() if k not in turn_internal}
-        links = [(a, b, d) for a, b, d in links if d != "t"]
-    if not shapes:
-        raise DataError(net_path, "network has no lanes usable by passenger cars")
-    ids = sorted(shapes)
-    succ: dict[str, list] = {k: [] for k in ids}
-    pred: dict[str, list] = {k: [] for k in ids}
-    for a, b in {(a, b) for a, b, _ in links}:
-        if a in shapes and b in shapes and a != b:
-            succ[a].append(b)
-            pred[b].append(a)
-    nxt = {a: s[0] for a, s in succ.items() if len(s) == 1 and len(pred[s[0]]) == 1}
-    has_prev = set(nxt.values())
-    done: set = set()
-    out = []
-
-    def walk(start):
-        chain, cur = [shapes[start]], start
-        done.add(start)
-        while cur in nxt and nxt[cur] not in done:
-            cur = nxt[cur]
-            done.add(cur)
-            nx = shapes[cur]
-            if np.allclose(chain[-1][-1], nx[0], atol=1e-3):
-                nx = nx[1:]
-            chain.append(nx)
-        return np.concatenate(chain, axis=0)
-
-    for k in ids:
-        if k not in has_prev and k not in done:
-            out.append(walk(k))
-    for k in ids:  # pure cycles
-        if k not in done:
-            out.append(walk(k))
-    return tuple(out)
-
-
 def _turnaround_count(net_path: str) -> int:
     opener = gzip.open if net_path.endswith(".gz") else open
     n = 0
@@ -414,9 +342,10 @@ def _turnaround_count(net_path: str) -> int:
 
 
 def chain_statistics(net_path: str, ignore_turnarounds: bool = False) -> dict:
-    """How the lanes of a SUMO network chain into GT polylines (`network_chains`): {"chains", "chain_km",
+    """How the lanes of a SUMO network chain into GT polylines (`sumo.read_network_lanes`, optionally with
+    turnaround connectors ignored): {"chains", "chain_km",
     "chain_length_m": {p10, p50, p90}, "chains_per_km", "turnaround_connections"}."""
-    chains = network_chains(net_path, ignore_turnarounds)
+    chains = sumo.read_network_lanes(net_path, merge_chains=True, ignore_turnarounds=ignore_turnarounds)
     arr = np.asarray([float(np.linalg.norm(np.diff(c, axis=0), axis=-1).sum()) for c in chains])
     km = float(arr.sum() / 1000.0)
     return {"chains": len(arr), "chain_km": round(km, 3),

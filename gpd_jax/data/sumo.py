@@ -320,17 +320,23 @@ def read_network_areas(net_path: str) -> tuple[Area, ...]:
     return tuple(areas)
 
 
-def read_network_lanes(net_path: str, merge_chains: bool = True) -> tuple[np.ndarray, ...]:
+def read_network_lanes(net_path: str, merge_chains: bool = True,
+                       ignore_turnarounds: bool = False) -> tuple[np.ndarray, ...]:
     """Lane centrelines (normal and internal junction lanes open to passenger cars) of a SUMO network.
 
     Returns a tuple of f64[P_i, 2] polylines in the network's metric frame. With `merge_chains`, lanes
     linked one-to-one (the upstream lane has one successor, the downstream lane one predecessor) are
     concatenated into one polyline, as SLEDGE does for nuPlan lanes and connectors.
+
+    With `ignore_turnarounds`, connections with dir="t" (SUMO's turnaround connectors, which it adds at most
+    junctions of OSM imports, including where an OSM way is merely split) are left out of the successor and
+    predecessor counts and their internal lanes out of the lanes, so a real lane runs on through a junction the
+    raster does not show (the cut `gpd_jax.data.realnets.chain_statistics` measures; stores use the default).
     """
     if not os.path.isfile(net_path):
         raise DataError(net_path, "network file not found")
     shapes: dict[str, np.ndarray] = {}
-    links: list[tuple[str, str]] = []
+    links: list[tuple[str, str, str]] = []
     try:
         with _open_xml(net_path) as f:
             for _, el in ET.iterparse(f, events=("end",)):
@@ -346,10 +352,14 @@ def read_network_lanes(net_path: str, merge_chains: bool = True) -> tuple[np.nda
                 elif el.tag == "connection":
                     a = f"{el.get('from')}_{el.get('fromLane')}"
                     b = el.get("via") or f"{el.get('to')}_{el.get('toLane')}"
-                    links.append((a, b))
+                    links.append((a, b, el.get("dir", "")))
                     el.clear()
     except (ET.ParseError, ValueError, OSError, EOFError) as e:  # bad XML, bad shape numbers, bad gzip
         raise DataError(net_path, f"not a readable SUMO network: {e}") from e
+    if ignore_turnarounds:
+        turn_internal = {b for a, b, d in links if d == "t" and b.startswith(":")}
+        shapes = {k: v for k, v in shapes.items() if k not in turn_internal}
+        links = [(a, b, d) for a, b, d in links if d != "t"]
     if not shapes:
         raise DataError(net_path, "network has no lanes usable by passenger cars")
     ids = sorted(shapes)
@@ -357,7 +367,7 @@ def read_network_lanes(net_path: str, merge_chains: bool = True) -> tuple[np.nda
         return tuple(shapes[i] for i in ids)
     succ: dict[str, list[str]] = {i: [] for i in ids}
     pred: dict[str, list[str]] = {i: [] for i in ids}
-    for a, b in set(links):
+    for a, b in {(a, b) for a, b, _ in links}:
         if a in shapes and b in shapes and a != b:
             succ[a].append(b)
             pred[b].append(a)
