@@ -135,24 +135,22 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m gpd_jax.map_tokenizer", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
+
+    def split_args(q):  # the store, split and batching that evaluate and diagnose both read
+        q.add_argument("--data", required=True)
+        q.add_argument("--split", default="test")
+        q.add_argument("--json", default=None)
+        q.add_argument("--batch-size", type=int, default=32)
+        q.add_argument("--frame-stride", type=int, default=10)
+        q.add_argument("--max-batches", type=int, default=None)
+
     e = sub.add_parser("evaluate", help="reconstruction metrics of a checkpoint on a data split")
     e.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
-    e.add_argument("--data", required=True)
-    e.add_argument("--split", default="test")
-    e.add_argument("--json", default=None)
-    e.add_argument("--batch-size", type=int, default=32)
-    e.add_argument("--frame-stride", type=int, default=10)
-    e.add_argument("--max-batches", type=int, default=None)
+    split_args(e)
     e.add_argument("--gt-recut", default=None, choices=("split_mid", "join_ends", "no_turnarounds"),
                    help="score against the GT of the polylines re-cut this way (the raster stays as stored): a "
                         "probe of how much the GT's cut costs, never the tokenizer's figure")
-    g = sub.add_parser("diagnose", help="how the GT vector lanes cut the road; the paper F1 of the GT re-cut")
-    g.add_argument("--data", required=True)
-    g.add_argument("--split", default="test")
-    g.add_argument("--json", default=None)
-    g.add_argument("--batch-size", type=int, default=32)
-    g.add_argument("--frame-stride", type=int, default=10)
-    g.add_argument("--max-batches", type=int, default=None)
+    split_args(sub.add_parser("diagnose", help="how the GT vector lanes cut the road; the paper F1 of the GT re-cut"))
     c = sub.add_parser("encode", help="write map tokens of every frame next to the samples")
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     c.add_argument("--data", required=True)
