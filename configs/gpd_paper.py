@@ -37,7 +37,9 @@ def get_config() -> ml_collections.ConfigDict:
     m.map_tokenizer = ""        # checkpoint dir of the map tokenizer whose codebook embeds map tokens
 
     d = c.data = ml_collections.ConfigDict()
-    d.dir = ""                  # a data store (python -m gpd_jax.data build); map tokens encoded into it
+    d.dir = ""                  # a data store (python -m gpd_jax.data build) with map tokens encoded into it, or a
+                                # weighted mixture of stores "DIR:0.7,DIR:0.3" (gpd_jax.data.loader.parse_mixture)
+    d.val_dir = ""              # where validation reads val_split ("" : the first store of d.dir)
     d.train_split = "train"
     d.val_split = "val"
     d.frame_stride = 1          # model frame k is stored frame k * stride (stored data is 10 Hz, 101 frames)

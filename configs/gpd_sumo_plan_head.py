@@ -28,7 +28,6 @@ import gpd_sumo  # noqa: E402
 def get_config():
     c = gpd_sumo.get_config()
     c.data.dir = "data/plan_train"
-    c.data.val_dir = ""            # "" : the training store; validation reads its data.val_split
     ph = c.plan_head = ml_collections.ConfigDict()
     ph.num_future = 8              # poses planned: 8 model frames = 8 s at 1 Hz
     ph.num_heads = 4

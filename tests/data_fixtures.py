@@ -67,8 +67,10 @@ def straight_road_log(num_frames: int = 130, num_others: int = 40, seed: int = 0
                   lanes=tuple(lanes), ego_index=None, areas=tuple(areas))
 
 
-def write_small_store(path: str, n_shards: int = 3, per_shard: int = 4, split: str = "train") -> list[str]:
-    """A store of `n_shards` shards built from the hand-built log (different window starts)."""
+def write_small_store(path: str, n_shards: int = 3, per_shard: int = 4, split: str = "train",
+                      offset: float = 0.0) -> list[str]:
+    """A store of `n_shards` shards built from the hand-built log (different window starts); sample k's ego is
+    moved by 0.001 k + `offset` m along x (to tell samples and stores apart)."""
     log = straight_road_log()
     lp = preprocess.lane_points(log.lanes)
     road = preprocess.road_index(log)
@@ -79,7 +81,7 @@ def write_small_store(path: str, n_shards: int = 3, per_shard: int = 4, split: s
         for _ in range(per_shard):
             start = k % 25
             smp = preprocess.make_sample(log, start, 0, lp=lp, road=road)
-            smp["xy"][:, 0, 0] += 0.001 * k  # make every sample distinguishable
+            smp["xy"][:, 0, 0] += 0.001 * k + offset  # make every sample distinguishable
             smp["ego_pose"][:, 0] = smp["xy"][:, 0, 0]
             samples.append(smp)
             sids.append(f"straight/{k}")

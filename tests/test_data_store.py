@@ -133,6 +133,40 @@ def test_loader_determinism_resume_and_sharding(small_store):
     assert not set(p0) & set(p1) and len(set(p0) | set(p1)) == 12
 
 
+def test_loader_mixture_of_stores_follows_the_weights_and_resumes(small_store, tmp_path):
+    a, _ = small_store  # 12 samples
+    b = str(tmp_path / "b")
+    write_small_store(b, n_shards=1, per_shard=4, offset=5.0)  # 4 samples, told apart from a's by the offset
+    in_a, in_b = set(_ids(loader.load_split(a, "train"))), set(_ids(loader.load_split(b, "train")))
+    assert len(in_a) == 12 and len(in_b) == 4 and not in_a & in_b
+    mix = f"{a}:3,{b}:1"
+    batches = [_ids(x) for x in _take(loader.make_loader(mix, "train", 4, seed=7), 40)]
+    flat = sum(batches, [])
+    assert set(flat) == in_a | in_b  # both stores read whole (b repeated more often)
+    assert 0.2 <= sum(x in in_b for x in flat) / len(flat) <= 0.3  # weight 1 of 4, though b holds 4 of 16 scenes
+    assert batches == [_ids(x) for x in _take(loader.make_loader(mix, "train", 4, seed=7), 40)]
+    assert [_ids(x) for x in _take(loader.make_loader(mix, "train", 4, seed=7, start_step=30), 5)] == batches[30:35]
+    assert [_ids(x) for x in _take(loader.make_loader(mix, "train", 4, seed=8), 5)] != batches[:5]
+    # the other weights change the share
+    flat9 = sum([_ids(x) for x in _take(loader.make_loader(f"{a}:1,{b}:9", "train", 4, seed=7), 20)], [])
+    assert sum(x in in_b for x in flat9) / len(flat9) >= 0.85
+    with pytest.raises(ValueError, match="endless"):
+        loader.make_dataset(mix, "train", 4, num_epochs=1)
+    with pytest.raises(DataError, match="no complete shards"):
+        next(loader.make_loader(f"{a}:1,{tmp_path / 'missing'}:1", "train", 4))
+
+
+def test_parse_mixture():
+    assert loader.parse_mixture("/d") == (("/d", 1.0),)
+    assert loader.parse_mixture("/a:3, /b:1") == (("/a", 0.75), ("/b", 0.25))
+    assert loader.parse_mixture("/a,/b:3") == (("/a", 0.25), ("/b", 0.75))
+    assert loader.parse_mixture("/x/run:v2") == (("/x/run:v2", 1.0),)  # a colon in a name, no weight
+    for bad, why in [("/a:0", "positive"), ("/a:-1", "positive"), ("/a:nan", "positive"), ("/a:inf", "positive"),
+                     (":2", "no directory"), ("/a:1,/a/:2", "twice"), ("", "no data directory"), ("/a,,/b", "no directory")]:
+        with pytest.raises(DataError, match=why):
+            loader.parse_mixture(bad)
+
+
 def test_loader_lanes_and_polylines(small_store):
     d, _ = small_store
     scene, poly = next(loader.make_loader(d, "train", 2, seed=0, with_lanes=True, with_polylines=True))

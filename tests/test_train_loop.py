@@ -228,3 +228,26 @@ def test_init_from_starts_a_new_run_from_a_models_parameters(store_dir, tmp_path
     other.model.num_layers = 1
     with pytest.raises(ValueError, match="init_from .* num_layers"):
         train_and_evaluate(other, str(tmp_path / "w2"), stop_after=0, quiet=True)
+
+
+def test_a_mixture_of_stores_trains_and_validates_on_val_dir(store_dir, tmp_path):
+    from gpd_jax.data.errors import DataError
+    from gpd_jax.training.loop import train_and_evaluate
+
+    # a second store with only a train split: validation must read data.val_dir
+    other = str(tmp_path / "other")
+    write_small_store(other, n_shards=1, per_shard=4, offset=3.0)
+    c = _config(f"{store_dir}:1,{other}:1", steps=2, eval_every=2)
+    with pytest.raises(DataError, match=f"{other}.*map tokens"):  # every store of the mixture is checked
+        train_and_evaluate(c, str(tmp_path / "w0"), quiet=True)
+    from gpd_jax.data import store
+
+    tokens = np.full((4, 101, 64), store.MISSING_MAP_TOKEN, np.uint8)
+    tokens[:, ::10] = 5
+    store.save_map_tokens(other, "train", 0, tokens, frame_stride=10)
+    c = _config(f"{other}:1,{store_dir}:1", steps=2, eval_every=2)
+    with pytest.raises(DataError, match="no complete shards"):  # the first store has no val split
+        train_and_evaluate(c, str(tmp_path / "w1"), quiet=True)
+    c.data.val_dir = store_dir
+    out = train_and_evaluate(c, str(tmp_path / "w2"), quiet=True)
+    assert out["step"] == 2 and np.isfinite(out["eval"]["loss"]) and out["export"]

@@ -11,6 +11,11 @@ Two APIs:
   `max_open_shards` are open at a time; only the prefetch buffer holds batches.
 * `load_split(data_dir, split)`: a whole (small) split as one stacked Scene, for evaluation.
 
+`make_loader` also reads a *mixture* of stores: `data_dir` = `"DIR_A:0.7,DIR_B:0.3"` (`parse_mixture`) draws
+every sample from store A with probability 0.7 and from B with 0.3, each store shuffled by its own seed and
+repeated on its own (so a small store is seen more often than its share of the scenes), still a pure function
+of (seed, step) and resumable with `start_step`. A single directory reads exactly as before.
+
 Map tokens written by the tokenizer (`store.save_map_tokens`) fill `Scene.map_tokens` with `map_valid`
 True; without them, and in frames that were not encoded (`encode --frame-stride`), tokens are 0 and
 `map_valid` False. With `with_lanes=True` the SLEDGE vector lanes
@@ -159,21 +164,66 @@ def _split_output(with_polylines: bool):
     return fn
 
 
+def parse_mixture(spec: str) -> tuple[tuple[str, float], ...]:
+    """`"DIR"` or `"DIR:WEIGHT,DIR:WEIGHT,..."` -> ((dir, weight), ...), the weights normalised to sum to 1 (a
+    directory given without a weight weighs 1; text after the last colon that is not a number belongs to the
+    directory's name). Raises `DataError` naming the spec for an empty entry, a weight that is not positive and
+    finite, or a directory named twice."""
+    import math
+
+    if not spec or not spec.strip():
+        raise DataError("data_dir", "no data directory given")
+    out: list[tuple[str, float]] = []
+    for part in spec.split(","):
+        part = part.strip()
+        d, sep, w = part.rpartition(":")
+        try:
+            weight = float(w) if sep else 1.0
+        except ValueError:  # a colon inside the directory's name, no weight
+            d, weight = part, 1.0
+        if not sep:
+            d = part
+        if not d:
+            raise DataError(spec, f"mixture entry {part!r} has no directory (format DIR:WEIGHT,DIR:WEIGHT)")
+        if not (math.isfinite(weight) and weight > 0):
+            raise DataError(spec, f"mixture entry {part!r}: the weight must be positive and finite")
+        out.append((d, weight))
+    names = [os.path.normpath(d) for d, _ in out]
+    if len(set(names)) != len(names):
+        raise DataError(spec, "a directory is named twice in the mixture")
+    total = sum(w for _, w in out)
+    return tuple((d, w / total) for d, w in out)
+
+
 def make_dataset(data_dir: str, split: str, batch_size: int, seed: int = 0, *, shuffle: bool = True,
                  num_epochs: int | None = None, drop_remainder: bool = True, process_index: int = 0,
                  process_count: int = 1, start_step: int = 0, with_polylines: bool = False,
                  with_lanes: bool = False):
     """The grain `MapDataset` of batches (before threading/prefetch): indexable, `len` = number of batches
-    (huge when `num_epochs` is None). Element k is batch k of this process."""
+    (huge when `num_epochs` is None). Element k is batch k of this process. `data_dir` may be a mixture
+    (`parse_mixture`; endless, so `num_epochs` must be None)."""
     import grain
 
     if not 0 <= process_index < process_count:
         raise ValueError(f"process_index {process_index} not in [0, {process_count})")
-    src = SplitSource(data_dir, split, with_polylines=with_polylines or with_lanes)
-    ds = grain.MapDataset.source(src)
-    if shuffle:
-        ds = ds.shuffle(seed=seed)
-    ds = ds.repeat(num_epochs)
+    mixture = parse_mixture(data_dir)
+    if len(mixture) > 1 and num_epochs is not None:
+        raise ValueError(f"a mixture of stores ({data_dir}) is endless: num_epochs must be None")
+    parts = []
+    for i, (d, _) in enumerate(mixture):
+        src = SplitSource(d, split, with_polylines=with_polylines or with_lanes)
+        part = grain.MapDataset.source(src)
+        if shuffle:
+            part = part.shuffle(seed=seed + i)
+        parts.append(part.repeat(num_epochs))
+    if len(parts) > 1:
+        roads = {d: SplitSource(d, split).has_road for d, _ in mixture}
+        if (with_polylines or with_lanes) and len(set(roads.values())) > 1:
+            raise DataError(data_dir, f"only some stores of the mixture have road geometry ({roads}); "
+                            "rebuild the others or read without polylines")
+        ds = grain.MapDataset.mix(parts, [w for _, w in mixture])
+    else:
+        ds = parts[0]
     if process_count > 1:
         ds = ds[process_index::process_count]
     if with_lanes:
@@ -191,6 +241,7 @@ def make_loader(data_dir: str, split: str, batch_size: int, seed: int = 0, *, sh
     """Iterator of `Scene` batches (or `(Scene, polylines)` with `with_polylines`), see the module doc.
 
     Args:
+      data_dir: a store, or a mixture of stores `"DIR:WEIGHT,DIR:WEIGHT"` (`parse_mixture`).
       seed: shuffling seed (same seed, same order; each epoch is a new permutation).
       num_epochs: None repeats forever.
       process_index, process_count: this process's share of every epoch (e.g. `jax.process_index()`).

@@ -1,8 +1,10 @@
 """Stage-2 training: GPD on a data store with map tokens (`python train.py --config configs/gpd_sumo.py ...`).
 
 * Data: `gpd_jax.data.loader.make_loader` (grain; seeded shuffle, a new permutation per epoch), every batch cut
-  to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. Map tokens must
-  have been encoded into the store (`python -m gpd_jax.map_tokenizer encode --data DIR`).
+  to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. `data.dir` is one
+  store or a weighted mixture of stores (`DIR:0.7,DIR:0.3`, `loader.parse_mixture`); validation reads
+  `data.val_dir` (default: the first store). Map tokens must have been encoded into every store
+  (`python -m gpd_jax.map_tokenizer encode --data DIR`).
 * Step: teacher forcing (`gpd_jax.training.step`): AdamW, linear warm-up then cosine decay, global-norm clipping;
   with `train.rollout_passes` > 0 the future frames' agent inputs are the model's own predictions.
   `train.init_from` (an exported model or a workdir) starts a new run from its parameters (fine-tuning).
@@ -57,9 +59,25 @@ from gpd_jax.training.validation import Validator
 
 # ----------------------------------------------------------------------------------------------- data
 def resolve_data_dir(path: str) -> str:
+    """`config.data.dir` with every directory made absolute: one store, or a mixture `DIR:W,DIR:W`
+    (`gpd_jax.data.loader.parse_mixture`; the weights as given)."""
     if not path:
         raise DataError("config.data.dir", "no data directory configured (set --config.data.dir=DIR)")
-    return path if os.path.isabs(path) else os.path.abspath(path)
+    mixture = data_loader.parse_mixture(path)
+    if len(mixture) == 1:
+        return os.path.abspath(mixture[0][0])
+    return ",".join(f"{os.path.abspath(d)}:{w:.6g}" for d, w in mixture)
+
+
+def store_dirs(data_dir: str) -> list[str]:
+    """The stores of a (resolved) `config.data.dir`, one or a mixture's."""
+    return [d for d, _ in data_loader.parse_mixture(data_dir)]
+
+
+def validation_dir(config: ml_collections.ConfigDict, data_dir: str) -> str:
+    """Where validation reads `data.val_split`: `data.val_dir` if set, else the (first) training store."""
+    val = config.data.get("val_dir")
+    return resolve_data_dir(val) if val else store_dirs(data_dir)[0]
 
 
 def _check_store(config, data_dir: str, split: str) -> int:
@@ -134,7 +152,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     data_dir, n_train, mesh, pindex = prepare_run(config)
     if config.model.map_tokenizer:
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
-        _check_token_source(data_dir, (config.data.train_split, config.data.val_split), config.model.map_tokenizer)
+        for d in store_dirs(data_dir):
+            _check_token_source(d, (config.data.train_split,), config.model.map_tokenizer)
+        if int(tc.eval_every) > 0:
+            _check_token_source(validation_dir(config, data_dir), (config.data.val_split,),
+                                config.model.map_tokenizer)
 
     lead = pindex == 0
     os.makedirs(workdir, exist_ok=True)
@@ -165,7 +187,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     elif lead:
         print(f"training {count_params(model):,} parameters on {n_train} scenes, {mesh.devices.size} device(s)")
 
-    validator = Validator(config, data_dir, trainer) if int(tc.eval_every) > 0 else None
+    validator = Validator(config, validation_dir(config, data_dir), trainer) if int(tc.eval_every) > 0 else None
 
     def summary(ev: dict[str, float]) -> str:
         keys = [k for k in ev if k in ("loss", "position") or k.endswith("_vs_cv")]
@@ -182,7 +204,7 @@ def prepare_run(config: ml_collections.ConfigDict) -> tuple[str, int, Any, int]:
     the device mesh, and a batch size that divides over its devices and processes. Returns (data_dir, n_train,
     mesh, process index)."""
     data_dir = resolve_data_dir(config.data.dir)
-    n_train = _check_store(config, data_dir, config.data.train_split)
+    n_train = sum(_check_store(config, d, config.data.train_split) for d in store_dirs(data_dir))
     pcount = jax.process_count()
     mesh = data_mesh()
     bs = int(config.train.batch_size)

@@ -58,7 +58,7 @@ from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.spec import EvalError
 from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state
-from gpd_jax.training.loop import _check_token_source, prepare_run, resolve_data_dir, run_steps
+from gpd_jax.training.loop import _check_token_source, prepare_run, run_steps, store_dirs, validation_dir
 from gpd_jax.training.step import TrainState, _smooth_l1, batch_loss, make_optimizer
 
 HEAD = "plan_head"
@@ -365,11 +365,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if not config.get(HEAD):
         raise ValueError("the config has no plan_head section (configs/gpd_sumo_plan_head.py)")
     data_dir, n_train, mesh, pindex = prepare_run(config)
-    val_dir = resolve_data_dir(config.data.get("val_dir") or config.data.dir)
+    val_dir = validation_dir(config, data_dir)
     first_frame(config)
     if config.model.map_tokenizer:
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
-        _check_token_source(data_dir, (config.data.train_split,), config.model.map_tokenizer)
+        for d in store_dirs(data_dir):
+            _check_token_source(d, (config.data.train_split,), config.model.map_tokenizer)
         if int(tc.eval_every) > 0:
             _check_token_source(val_dir, (config.data.val_split,), config.model.map_tokenizer)
 
@@ -399,6 +400,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     start = int(state.step)
     next_batch, validator = None, None
     if use_features:  # the frozen backbone runs once per scene, here; the steps run the head alone
+        if len(store_dirs(data_dir)) > 1:
+            raise ValueError(f"train.cache_features reads one store, not the mixture {data_dir}; build one store "
+                             "or train without cached features")
         backbone = nnx.merge(trainer.graphdef, state.params, trainer.rest)
         t0 = time.perf_counter()
         feats = cache_features(backbone, config, data_dir, config.data.train_split, quiet=quiet or not lead)
