@@ -18,6 +18,8 @@ def get_config() -> ml_collections.ConfigDict:
     c.data.dir = "/work/data/sumo1k"
     c.data.train_split = "train"
     c.data.eval_split = "val"
+    c.data.eval_dir = ""  # where validation reads eval_split ("" : the first store of data.dir, which may be a
+    #                       weighted mixture "DIR:0.7,DIR:0.3" for training)
     c.data.num_workers = 1  # loader prefetch threads
 
     c.raster = ml_collections.ConfigDict()

@@ -309,3 +309,31 @@ def test_decoder_only_adds_identity_layers(tmp_path):
         initial_params(small_config("--config.model.decoder.num_layers=0", "--config.train.decoder_only=True"), out)
     with pytest.raises(ValueError, match="decoder: ffn_dim"):
         initial_params(small_config("--config.model.decoder.ffn_dim=32", "--config.train.decoder_only=True"), out)
+
+
+def test_frame_batches_from_a_mixture_of_stores(tmp_path):
+    """A training mixture draws frames from every store by weight, deterministically; evaluation refuses it."""
+    from data_fixtures import write_small_store
+    from gpd_jax.map_tokenizer.store import frame_batches
+
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    write_small_store(a, n_shards=2, per_shard=3)
+    write_small_store(b, n_shards=1, per_shard=2, offset=500.0)  # b's ego poses lie 500 m further along x
+
+    def from_b(batches):
+        return np.concatenate([bt["pose"][:, 0] > 250.0 for bt in batches])
+
+    mix = f"{a}:1,{b}:3"
+    first = list(frame_batches(mix, "train", 8, seed=3, max_batches=25))
+    share = from_b(first).mean()
+    assert 0.65 <= share <= 0.85  # weight 3 of 4, though b holds 2 of 8 samples
+    assert first[0]["lanes"].shape == (8, 50, 20, 2) and first[0]["lanes_valid"].any()
+    again = list(frame_batches(mix, "train", 8, seed=3, max_batches=25))
+    for x, y in zip(first, again):
+        np.testing.assert_array_equal(x["pose"], y["pose"])
+    other = list(frame_batches(mix, "train", 8, seed=4, max_batches=3))
+    assert any(not np.array_equal(x["pose"], y["pose"]) for x, y in zip(first, other))
+    with pytest.raises(ValueError, match="evaluate one store"):
+        next(frame_batches(mix, "train", 8, shuffle=False, repeat=False))
+    single = next(frame_batches(f"{a}:1", "train", 4, seed=0))  # a one-store "mixture" reads that store
+    assert not (single["pose"][:, 0] > 250.0).any()

@@ -52,11 +52,14 @@ def _synthetic(split: str, batch_size: int, seed: int, repeat: bool, max_batches
 
 
 def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: bool = True, repeat: bool = True,
-                  max_batches: int | None = None, all_frames: bool = False) -> Iterator[dict]:
+                  max_batches: int | None = None, all_frames: bool = False,
+                  data_dir: str | None = None) -> Iterator[dict]:
     """Iterator of frame batches (see the module docstring).
 
     Args:
       config: a map-tokenizer config (uses `config.data`).
+      data_dir: read this store instead of `config.data.dir` (one store or a training mixture
+        `"DIR:0.7,DIR:0.3"`).
       split: data split name ("train", "val", "test").
       batch_size: frames per batch (the last batch of a finite pass may be smaller).
       seed: shuffling / frame-choice seed (deterministic).
@@ -65,9 +68,10 @@ def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: b
       max_batches: stop after this many batches.
       all_frames: every frame of every sample in order (token extraction) instead of one random frame per sample.
     """
-    if config.data.dir == "synthetic":
+    data_dir = config.data.dir if data_dir is None else data_dir
+    if data_dir == "synthetic":
         return _prefetch(_synthetic(split, batch_size, seed, repeat, max_batches))
     from gpd_jax.map_tokenizer import store  # the data-store adapter (needs gpd_jax.data)
-    return _prefetch(store.frame_batches(config.data.dir, split, batch_size, seed=seed, shuffle=shuffle,
+    return _prefetch(store.frame_batches(data_dir, split, batch_size, seed=seed, shuffle=shuffle,
                                          repeat=repeat, max_batches=max_batches, all_frames=all_frames),
                      size=max(2, int(config.data.num_workers) + 1))

@@ -12,6 +12,7 @@ from typing import Iterator
 import numpy as np
 
 from gpd_jax.data.lanes import vector_lanes
+from gpd_jax.data.loader import parse_mixture
 from gpd_jax.data.store import Shard, list_shards
 
 _KEYS = ("polylines", "polyline_valid", "ego_pose")
@@ -42,8 +43,19 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
     """Batches of frames (dict of numpy arrays, see `gpd_jax.map_tokenizer.data`).
 
     One random frame per sample and pass (deterministic in `seed`), or with `frame_stride` the frames
-    0, stride, 2 stride, ... of every sample (evaluation), or with `all_frames` every frame.
+    0, stride, 2 stride, ... of every sample (evaluation), or with `all_frames` every frame. `data_dir` may be a
+    weighted mixture of stores `"DIR:0.7,DIR:0.3"` (`gpd_jax.data.loader.parse_mixture`) for training
+    (shuffled, repeated, one random frame per sample): each frame comes from a store drawn by weight, and each
+    store walks its own permutations (`sample` then indexes that store).
     """
+    mixture = parse_mixture(data_dir)
+    if len(mixture) > 1:
+        if not (shuffle and repeat) or all_frames or frame_stride:
+            raise ValueError(f"a mixture of stores ({data_dir}) is for training batches (shuffled, repeated, one "
+                             "random frame per sample); evaluate one store at a time")
+        yield from _mixture_batches(mixture, split, batch_size, seed, max_batches)
+        return
+    data_dir = mixture[0][0]
     shards = open_split(data_dir, split)
     index = [(s, i) for s in range(len(shards)) for i in range(shards[s].num_samples)]
     num_frames = shards[0].arrays["ego_pose"].shape[1]
@@ -68,3 +80,30 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
             made += 1
         if not repeat:
             return
+
+
+def _mixture_batches(mixture, split: str, batch_size: int, seed: int,
+                     max_batches: int | None) -> Iterator[dict[str, np.ndarray]]:
+    """Endless training batches from a mixture of stores (see `frame_batches`), deterministic in `seed`."""
+    stores = [open_split(d, split) for d, _ in mixture]
+    weights = np.asarray([w for _, w in mixture], np.float64)
+    pick = np.random.default_rng((seed, len(stores)))
+
+    def walk(k: int) -> Iterator[tuple[int, int, int]]:
+        rng = np.random.default_rng((seed, k))
+        index = [(s, i) for s in range(len(stores[k])) for i in range(stores[k][s].num_samples)]
+        num_frames = stores[k][0].arrays["ego_pose"].shape[1]
+        while True:
+            for j in rng.permutation(len(index)):
+                s, i = index[j]
+                yield s, i, int(rng.integers(num_frames))
+
+    walks = [walk(k) for k in range(len(stores))]
+    made = 0
+    while max_batches is None or made < max_batches:
+        items = []
+        for k in pick.choice(len(stores), size=batch_size, p=weights):
+            s, i, t = next(walks[k])
+            items.append(_item(stores[k][s], i, t))
+        yield _stack(items)
+        made += 1

@@ -31,6 +31,7 @@ import tqdm
 from flax import nnx
 
 from gpd_jax.config import config_differences
+from gpd_jax.data.loader import parse_mixture
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import core, load_tokenizer
 from gpd_jax.map_tokenizer.data import frame_batches
@@ -216,9 +217,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     train_iter = frame_batches(config, config.data.train_split, tcfg.batch_size, seed=config.seed + start,
                                shuffle=True, repeat=True)
 
+    # validation reads data.eval_dir, else the (first) training store
+    eval_dir = config.data.get("eval_dir") or parse_mixture(config.data.dir)[0][0]
+
     def eval_batches():
         return frame_batches(config, config.data.eval_split, tcfg.batch_size, seed=12345, shuffle=True,
-                             repeat=False, max_batches=tcfg.eval_batches)
+                             repeat=False, max_batches=tcfg.eval_batches, data_dir=eval_dir)
 
     train_step = jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,))
     eval_step = jax.jit(make_eval_step(graphdef))
