@@ -1,3 +1,5 @@
+import os
+
 import pytest
 
 from gpd_jax.config import load_config, split_config_args
@@ -48,6 +50,22 @@ def test_shipped_model_is_the_sumo_configs():
         if k not in ("init_from",):
             assert ship["train"][k] == v, k
     assert last["init_from"] == "runs/gpd_sumo_ft/export" and last["map_feedback"] == 1.0
+
+
+def test_shipped_real_traffic_model_is_its_config():
+    """checkpoints/gpd_sumo_real: the shipped model's architecture, fine-tuned with configs/gpd_sumo_real.py's
+    schedule (its data paths given on the command line)."""
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real/config.json"))
+    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo/config.json"))
+    assert {k: v for k, v in ship["model"].items() if k != "map_tokenizer"} == {
+        k: v for k, v in base["model"].items() if k != "map_tokenizer"}
+    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real.py")
+    assert ship["train"] == cfg.train.to_dict()
+    assert cfg.train.init_from == "checkpoints/gpd_sumo" and cfg.train.rollout_passes == 2
+    assert [os.path.basename(d.rsplit(":", 1)[0]) for d in ship["data"]["dir"].split(",")] == [
+        os.path.basename(d.rsplit(":", 1)[0]) for d in cfg.data.dir.split(",")]
 
 
 def test_shipped_tokenizer_is_the_decoder_config():
