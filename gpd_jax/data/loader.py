@@ -209,15 +209,15 @@ def make_dataset(data_dir: str, split: str, batch_size: int, seed: int = 0, *, s
     mixture = parse_mixture(data_dir)
     if len(mixture) > 1 and num_epochs is not None:
         raise ValueError(f"a mixture of stores ({data_dir}) is endless: num_epochs must be None")
-    parts = []
+    parts, roads = [], {}
     for i, (d, _) in enumerate(mixture):
         src = SplitSource(d, split, with_polylines=with_polylines or with_lanes)
+        roads[d] = src.has_road
         part = grain.MapDataset.source(src)
         if shuffle:
             part = part.shuffle(seed=seed + i)
         parts.append(part.repeat(num_epochs))
     if len(parts) > 1:
-        roads = {d: SplitSource(d, split).has_road for d, _ in mixture}
         if (with_polylines or with_lanes) and len(set(roads.values())) > 1:
             raise DataError(data_dir, f"only some stores of the mixture have road geometry ({roads}); "
                             "rebuild the others or read without polylines")

@@ -118,6 +118,15 @@ def _check_token_source(data_dir: str, splits: Sequence[str], tokenizer_dir: str
                             f"{tokenizer_dir} --data {data_dir}")
 
 
+def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> None:
+    """`_check_token_source` for the training split of every store of `data_dir` (one or a mixture's) and, when
+    the run validates, for the validation split where validation reads it (`validation_dir`)."""
+    for d in store_dirs(data_dir):
+        _check_token_source(d, (config.data.train_split,), config.model.map_tokenizer)
+    if int(config.train.eval_every) > 0:
+        _check_token_source(validation_dir(config, data_dir), (config.data.val_split,), config.model.map_tokenizer)
+
+
 def initial_params(path: str, config):
     """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its
     model config must equal `config.model` (the map tokenizer's path aside)."""
@@ -152,11 +161,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     data_dir, n_train, mesh, pindex = prepare_run(config)
     if config.model.map_tokenizer:
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
-        for d in store_dirs(data_dir):
-            _check_token_source(d, (config.data.train_split,), config.model.map_tokenizer)
-        if int(tc.eval_every) > 0:
-            _check_token_source(validation_dir(config, data_dir), (config.data.val_split,),
-                                config.model.map_tokenizer)
+        check_token_sources(config, data_dir)
 
     lead = pindex == 0
     os.makedirs(workdir, exist_ok=True)

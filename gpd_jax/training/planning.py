@@ -23,8 +23,8 @@ A config with a `plan_head` section (configs/gpd_sumo_plan_head.py) builds the G
   paper's "without pre-training" ablation, configs/gpd_sumo_plan_head_scratch.py).
 * Checkpoints, resume, SIGTERM, metrics.jsonl and the export to WORKDIR/export work as in the stage-2 loop
   (`gpd_jax.training.loop`); validation every `train.eval_every` steps over `train.eval_batches` batches of
-  `data.val_dir` (default `data.dir`) / `data.val_split`: the loss and the ego ADE / FDE of the current frame's
-  plan at 3 / 5 / 8 s.
+  `data.val_dir` (default: the first store of `data.dir`) / `data.val_split`: the loss and the ego ADE / FDE of
+  the current frame's plan at 3 / 5 / 8 s.
 
 `evaluate_planning` scores an exported plan-head model open loop against the zero-shot GPD (the
 `motion_planning` rollout) and constant velocity: `python -m gpd_jax.training.planning evaluate ...`.
@@ -58,7 +58,7 @@ from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.spec import EvalError
 from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state
-from gpd_jax.training.loop import _check_token_source, prepare_run, run_steps, store_dirs, validation_dir
+from gpd_jax.training.loop import check_token_sources, prepare_run, run_steps, store_dirs, validation_dir
 from gpd_jax.training.step import TrainState, _smooth_l1, batch_loss, make_optimizer
 
 HEAD = "plan_head"
@@ -369,10 +369,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     first_frame(config)
     if config.model.map_tokenizer:
         config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
-        for d in store_dirs(data_dir):
-            _check_token_source(d, (config.data.train_split,), config.model.map_tokenizer)
-        if int(tc.eval_every) > 0:
-            _check_token_source(val_dir, (config.data.val_split,), config.model.map_tokenizer)
+        check_token_sources(config, data_dir)
 
     lead = pindex == 0
     os.makedirs(workdir, exist_ok=True)
