@@ -45,6 +45,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--log-map", default="tokens", choices=("tokens", "lanes"),
                    help="tasks that take the map from the log but generate the ego get the logged map tokens "
                         "(the paper's choice) or the log's lanes re-encoded around the generated ego every frame")
+    p.add_argument("--gen-map", default="model", choices=("model", "warp"),
+                   help="where the map is generated: every token the model's (the paper's choice) or the previous "
+                        "frame's map moved with the ego, the model's tokens only in cells newly in view")
     p.add_argument("--prompt", default=None, metavar="FILE[,FILE]",
                    help="JSON prompt file(s) (examples/prompt_*.json): roll out every scenario under each prompt "
                         "and score how the conditions are respected (OUT/conditions.json) instead of the tasks")

@@ -26,6 +26,9 @@ def get_config() -> ml_collections.ConfigDict:
     c.raster.size = 256
     c.raster.pixel_size = 0.25
     c.raster.max_segment_length = 1.0  # the data store resamples lanes every 1 m: 4 samples per segment, gap-free
+    # True: 3-channel rasters (occupancy, cos, sin of the lane heading; SLEDGE's line channels): the decoder can see
+    # which way a lane runs. False: binary (the paper's, and the shipped tokenizer's)
+    c.raster.direction = False
 
     c.model = ml_collections.ConfigDict()
     c.model.grid = 8

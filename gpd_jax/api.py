@@ -118,8 +118,17 @@ def prepare(model: Model, scenes: Scene) -> Scene:
     return view
 
 
+def _check_gen_map(model: Model, gen_map: str) -> bool:
+    """Whether `gen_map` asks for the warp ("warp"; needs the model's tokenizer) or not ("model")."""
+    if gen_map not in ("model", "warp"):
+        raise ValueError(f"gen_map must be 'model' or 'warp', got {gen_map!r}")
+    if gen_map == "warp" and model.tokenizer is None:
+        raise EvalError("gen_map='warp' moves generated maps through the model's map tokenizer, and the model has none")
+    return gen_map == "warp"
+
+
 def make_rollout_fn(model: Model, *, temperature: float | None = None, method: str = "cached",
-                    log_map: str = "tokens") -> Callable[..., RolloutOutput]:
+                    log_map: str = "tokens", gen_map: str = "model") -> Callable[..., RolloutOutput]:
     """The rollout as a pure function of the parameters: `fn(params, scenes, tasks, key) -> RolloutOutput`.
 
     scenes: Scene [S, T, A, ...] in the model's view (`prepare`); tasks: Task [K, ...] (`make_tasks`) or Prompt
@@ -131,6 +140,8 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
     it is not reverse-differentiable) or "recompute" (the full-prefix forward at every frame, the official
     method: slower, and `jax.grad` goes through it). log_map "lanes": tasks that take the map from the log but
     generate the ego get the log's lanes (`scenes.polylines`) encoded around the generated ego each frame.
+    gen_map "warp": where the map is generated, the last given map moves with the ego and the model's tokens
+    fill only the cells it did not see (`gpd_jax.decoding`).
     """
     if method not in ("cached", "recompute"):
         raise ValueError(f"method must be 'cached' or 'recompute', got {method!r}")
@@ -138,6 +149,7 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
         raise ValueError(f"log_map must be 'tokens' or 'lanes', got {log_map!r}")
     if log_map == "lanes" and model.tokenizer is None:
         raise EvalError("log_map='lanes' needs the model's map tokenizer, and the model has none")
+    warp_on = _check_gen_map(model, gen_map)
     graphdef, rest, h = model.graphdef, model.rest, model.spec.num_history
     temp = float(model.config.rollout.temperature if temperature is None else temperature)
     tok = model.tokenizer
@@ -154,8 +166,9 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
             if tok is None:
                 raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
             encoder = tok.pose_encoder(tok.params)
+        warp = tok.warper(tok.params) if warp_on else None
         if method == "cached":
-            return rollout_tasks(module, scenes, tasks, key, h, temp, lanes, encoder)
+            return rollout_tasks(module, scenes, tasks, key, h, temp, lanes, encoder, warp)
         tasks = as_prompt(tasks, scenes.xy.shape[-3])
         per_scene = tasks.from_log.ndim == 4
         s, k = scenes.xy.shape[0], tasks.from_log.shape[1 if per_scene else 0]
@@ -163,7 +176,7 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
         flat_s, flat_l = jax.tree.map(rep, (scenes, lanes))
         flat_t = (jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks) if per_scene else
                   jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks))
-        one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder)
+        one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder, warp)
         out = jax.vmap(one)(flat_s, flat_t, jax.random.split(key, s * k), flat_l)
         return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
 
@@ -187,14 +200,15 @@ def _as_tasks(model: Model, tasks) -> tuple[Task | Prompt, bool]:
 
 
 def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Prompt | Sequence[Prompt] = "all",
-            key: jax.Array | None = None, *, temperature: float | None = None, log_map: str = "tokens"
-            ) -> RolloutOutput:
+            key: jax.Array | None = None, *, temperature: float | None = None, log_map: str = "tokens",
+            gen_map: str = "model") -> RolloutOutput:
     """Rolls out stored-rate scenes under tasks or prompts with the KV-cached rollout, compiled once per shape.
 
     scenes: one Scene [T, A, ...] or a batch [B, T, A, ...] at the stored rate (`load_scenes`); the model's view
     is taken inside, map tokens encoded on the fly where missing. tasks: a task name, names, "all", Task arrays,
     a Prompt (`make_prompt`, `task_prompt`), a list of prompts (stacked: K prompts, every scene under each), or
     a Prompt [B, K, ...] (scene b under prompts[b, k]). key: PRNG key for sampling (temperature > 0; default 0).
+    log_map / gen_map: as `make_rollout_fn`.
     Returns RolloutOutput at the model's rate: [B, K, T, A, ...], without the B axis for one scene and without
     the K axis for one task (a single name or an unstacked Task).
     """
@@ -217,6 +231,8 @@ def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Pro
                      lanes=LogLanes(jnp.asarray(view.polylines), jnp.asarray(view.polyline_valid)))
     elif log_map != "tokens":
         raise ValueError(f"log_map must be 'tokens' or 'lanes', got {log_map!r}")
+    if _check_gen_map(model, gen_map):
+        extra = dict(extra, tok=model.tokenizer, tok_params=model.tokenizer.params, map_warp=True)
     view = jax.tree.map(jnp.asarray, view.replace(polylines=None, polyline_valid=None))
     out = rollout_jit(model.graphdef, model.params, model.rest, view, task_arrays, key, model.spec.num_history,
                       temp, **extra)
@@ -232,7 +248,7 @@ def evaluate(model: Model, scenes_or_dir: Scene | str, tasks: str | Sequence[str
     """Scores every task (and the constant-velocity, log-replay and map baselines) at 3 / 5 / 8 s on stored-rate
     scenes Scene [n, ...] or the split of a store directory: the content of `rollout.py`'s metrics.json
     (`results["tasks"][task]["3s"]["agent_ade"]`, ...). Other keyword arguments as `gpd_jax.evaluation.evaluate`
-    (batch_size, seed, variant, horizons_s, log_map, temperature, progress, log)."""
+    (batch_size, seed, variant, horizons_s, log_map, gen_map, temperature, progress, log)."""
     kwargs.setdefault("progress", False)
     kwargs.setdefault("log", lambda _msg: None)
     results, _ = _evaluate(model, scenes_or_dir, split, task_names=tasks, num_scenarios=num_scenarios, **kwargs)

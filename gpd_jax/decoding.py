@@ -19,6 +19,13 @@ may instead re-encode the log's lanes around the ego it generated (`LogLanes` + 
 stays where the log's roads are relative to the generated ego. Without them (the default, as the paper and the
 official code do) the logged tokens are used as they are.
 
+A generated map that moves with the ego (`map_warp`, e.g. `gpd_jax.map_tokenizer.MapTokenizer.warper`): where the
+map is generated, frame t's map tokens are the map of the last frame whose map was given (the anchor: the last
+history frame in the six tasks) decoded into lanes, moved to frame t's ego pose and encoded again, and the
+model's own tokens are kept only in the token cells the anchor did not see (the new ground ahead). Moving the
+anchor rather than the previous generated frame keeps the tokenizer's loss from compounding frame after frame.
+Without it (the default, the paper's) every generated map token is the model's.
+
 Prompts (`gpd_jax.prompts.Prompt`, conditional generation): wherever a task is taken, a prompt may be given
 instead: its from-log mask is per frame, its agent states and map tokens override the log where it says so, its
 agent cap removes slots like hidden agents, and its own vector map (`Prompt.lanes`) is encoded with the
@@ -72,6 +79,9 @@ class LogLanes:
 
 # (polylines f32[L, P, 2], valid bool[L, P], ego pose f32[3] in the scene frame) -> map tokens i32[M]
 MapEncoder = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+# (map tokens i32[M] seen from an anchor pose f32[3], new pose f32[3]) -> (tokens i32[M] seen from the new pose,
+# bool[M] cells the anchor did not see)
+MapWarp = Callable[[jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
 
 
 @flax.struct.dataclass
@@ -117,6 +127,15 @@ class DecodeState:
     hidden: jax.Array
 
 
+@flax.struct.dataclass
+class RolloutCarry:
+    """The carry of `rollout`'s scan: the decoder state and the last frame whose map was given (`Frame`,
+    unbatched: the anchor a warped map is moved from)."""
+
+    decode: DecodeState
+    anchor: Frame
+
+
 def given_inputs(model: GPD, scene: Scene, task: Task | Prompt, lanes: LogLanes | None = None,
                  map_encoder: MapEncoder | None = None) -> Given:
     """The log of `scene` as model inputs under `task` (a Task or a Prompt): hidden and capped agents removed, a
@@ -152,13 +171,16 @@ def given_inputs(model: GPD, scene: Scene, task: Task | Prompt, lanes: LogLanes 
 
 
 def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
-                  map_encoder: MapEncoder | None = None) -> Frame:
+                  map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None,
+                  anchor: Frame | None = None) -> Frame:
     """Frame t's inputs: the given data where the prompt says so at frame t, the prediction elsewhere.
 
     `pred` holds the single-frame prediction made at frame t-1 (leading dim 1). With `given.lanes` and
     `map_encoder`, map tokens taken from the log while the ego is generated (and valid) are the log's lanes
     encoded around the generated ego pose instead of the logged tokens. With a prompt's own lanes (and
-    `map_encoder`), the map slots taken from the given data are those lanes encoded around frame t's ego.
+    `map_encoder`), the map slots taken from the given data are those lanes encoded around frame t's ego. With
+    `map_warp` and the `anchor` frame, generated map slots are the anchor's map moved to frame t's ego, except
+    in cells the anchor did not see (both egos valid; otherwise the model's tokens).
     """
     log, task = given.log, given.task
     num_map = log.map_tokens.shape[-1]
@@ -186,6 +208,12 @@ def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
                          jnp.stack([log.xy[t, 0, 0], log.xy[t, 0, 1], log.heading[t, 0]]))
         own = map_encoder(task.lanes, task.lanes_valid, pose).astype(log_map.dtype)
         map_t = jnp.where(fl_map & task.use_lanes, own, map_t)
+    if map_warp is not None:
+        anchor_pose = jnp.stack([anchor.xy[0, 0], anchor.xy[0, 1], anchor.heading[0]])
+        pose = jnp.stack([xy_t[0, 0], xy_t[0, 1], heading_t[0]])
+        warped, new = map_warp(anchor.map_tokens, anchor_pose, pose)
+        keep = ~fl_map & ~new & anchor.valid[0] & valid_t[0]
+        map_t = jnp.where(keep, warped.astype(map_t.dtype), map_t)
     pred_vel = jnp.zeros_like(log.velocity[t]) if pred.velocity is None else pred.velocity[0]
     vel_t = jnp.where(fl_agent[:, None], log.velocity[t], pred_vel)
     return Frame(xy=xy_t, heading=heading_t, valid=valid_t, valid_logit=logit_t, map_tokens=map_t, velocity=vel_t)
@@ -193,7 +221,7 @@ def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
 
 def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_history: int,
             temperature: float = 0.0, lanes: LogLanes | None = None,
-            map_encoder: MapEncoder | None = None) -> RolloutOutput:
+            map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """KV-cached rollout of one scenario under one task or prompt.
 
     Args:
@@ -205,6 +233,7 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
       temperature: 0 for greedy map tokens, > 0 to sample them.
       lanes, map_encoder: the scene's logged lanes and a tokenizer's pose encoder, to re-encode the logged map
         around a generated ego (see the module docstring); a prompt with its own lanes needs the encoder.
+      map_warp: move the last given map with the ego where the map is generated (module docstring).
     """
     t_total, h = scene.num_frames, num_history
     task = as_prompt(task, t_total)
@@ -212,12 +241,17 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
     given = given_inputs(model, scene, task, lanes, map_encoder)
     log = given.log
 
-    def step(state: DecodeState, t):
-        f = _choose_frame(state.pred, given, t, key, temperature, map_encoder)
-        return advance(model, state, f, t), f
+    def choose(carry: RolloutCarry, t) -> Frame:
+        return _choose_frame(carry.decode.pred, given, t, key, temperature, map_encoder, map_warp, carry.anchor)
 
-    final, frames = jax.lax.scan(step, prefill(model, log, h, t_total), jnp.arange(h, t_total - 1))
-    last = _choose_frame(final.pred, given, jnp.asarray(t_total - 1), key, temperature, map_encoder)
+    def step(carry: RolloutCarry, t):
+        f = choose(carry, t)
+        anchor = jax.tree.map(lambda a, b: jnp.where(_map_given(given.task, t), a, b), f, carry.anchor)
+        return RolloutCarry(decode=advance(model, carry.decode, f, t), anchor=anchor), f
+
+    start = RolloutCarry(decode=prefill(model, log, h, t_total), anchor=jax.tree.map(lambda a: a[h - 1], log))
+    final, frames = jax.lax.scan(step, start, jnp.arange(h, t_total - 1))
+    last = choose(final, jnp.asarray(t_total - 1))
     frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
     return _assemble(log, frames, h)
 
@@ -259,6 +293,12 @@ def _check_map_encoder(lanes, map_encoder, prompt: Prompt | None = None) -> None
                          f"map_encoder={map_encoder!r}")
 
 
+def _map_given(prompt: Prompt, t) -> jax.Array:
+    """bool[]: every map slot of frame t comes from the given data (t may be traced)."""
+    num_map = prompt.from_log.shape[-1] - prompt.hidden.shape[-1]
+    return jnp.all(jnp.asarray(prompt.from_log)[t, :num_map])
+
+
 def _prev(xy, valid, t):
     """The frame before frame t as a 1-frame block (invalid when t is 0); t may be traced."""
     p = jnp.maximum(t - 1, 0)
@@ -277,7 +317,7 @@ def _assemble(log: Frame, frames: Frame, h: int) -> RolloutOutput:
 
 def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_history: int,
                       temperature: float = 0.0, lanes: LogLanes | None = None,
-                      map_encoder: MapEncoder | None = None) -> RolloutOutput:
+                      map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """The official method: for every future frame, a full forward over the whole buffer (no cache).
 
     The buffer holds all T frames; frames not yet generated still hold log values, which the scene-level
@@ -296,7 +336,11 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
         pred = model.predict(sl(hid), sl(buf.xy), sl(buf.heading), sl(buf.valid), *_prev(buf.xy, buf.valid, prev),
                              sl(buf.velocity))
-        frame = _choose_frame(pred, given, t, key, temperature, map_encoder)
+        frames = jnp.arange(t_total)
+        given_map = jax.vmap(lambda s: _map_given(given.task, s))(frames) | (frames < h)
+        a = jnp.max(jnp.where(given_map & (frames < t), frames, 0))
+        anchor = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, a, 0, keepdims=False), buf)
+        frame = _choose_frame(pred, given, t, key, temperature, map_encoder, map_warp, anchor)
         buf = jax.tree.map(lambda b, f: jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0),
                            buf, frame)
         return buf, None
@@ -308,16 +352,16 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
 
 def rollout_batch(model: GPD, scenes: Scene, tasks: Task | Prompt, keys: jax.Array, num_history: int,
                   temperature: float = 0.0, lanes: LogLanes | None = None,
-                  map_encoder: MapEncoder | None = None) -> RolloutOutput:
+                  map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """`rollout` vmapped over a leading batch dim shared by scenes, tasks or prompts, keys (and lanes; mixed
     tasks and prompts allowed)."""
-    fn = lambda s, t, k, ln: rollout(model, s, t, k, num_history, temperature, ln, map_encoder)
+    fn = lambda s, t, k, ln: rollout(model, s, t, k, num_history, temperature, ln, map_encoder, map_warp)
     return jax.vmap(fn)(scenes, tasks, keys, lanes)
 
 
 def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Array, num_history: int,
                   temperature: float = 0.0, lanes: LogLanes | None = None,
-                  map_encoder: MapEncoder | None = None) -> RolloutOutput:
+                  map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """Every scenario under every task or prompt: scenes [S, ...], tasks [K, ...] -> outputs [S, K, ...].
 
     Prompts may also be per scenario, Prompt [S, K, ...] (e.g. paths given in each scene's frame): scenario s
@@ -336,13 +380,15 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Arra
     else:
         flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
     keys = jax.random.split(key, s * k)
-    out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature, flat_lanes, map_encoder)
+    out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature, flat_lanes, map_encoder,
+                        map_warp)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "temperature", "tok"))
+@functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "temperature", "tok", "map_warp"))
 def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key, num_history: int,
-                temperature: float = 0.0, tok=None, tok_params=None, lanes: LogLanes | None = None) -> RolloutOutput:
+                temperature: float = 0.0, tok=None, tok_params=None, lanes: LogLanes | None = None,
+                map_warp: bool = False) -> RolloutOutput:
     """`rollout_tasks` of the model `nnx.merge(graphdef, params, rest)`, jitted: the one compiled rollout entry
     of evaluation, training's validation, the benchmark and `gpd_jax.rollout` (one compile per shape and static
     setting).
@@ -350,9 +396,13 @@ def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key
     scenes [S, ...] at the model's rate, tasks or prompts [K, ...] (prompts also [S, K, ...]) -> outputs
     [S, K, ...]. With a map tokenizer `tok` (its `tok_params`) and the scenes' `lanes` [S, ...], logged map tokens
     of tasks that generate the ego are re-encoded around the generated ego; prompts with their own lanes are
-    encoded with `tok` (needed then).
+    encoded with `tok` (needed then). `map_warp` (needs `tok`): generated maps move with the ego
+    (`MapTokenizer.warper`; the module docstring).
     """
     own = isinstance(tasks, Prompt) and tasks.lanes is not None
     encoder = None if tok is None or (lanes is None and not own) else tok.pose_encoder(tok_params)
+    if map_warp and tok is None:
+        raise ValueError("map_warp moves generated maps with the ego through a map tokenizer: pass tok")
+    warp = tok.warper(tok_params) if map_warp else None
     return rollout_tasks(nnx.merge(graphdef, params, rest), scenes, tasks, key, num_history, temperature, lanes,
-                         encoder)
+                         encoder, warp)

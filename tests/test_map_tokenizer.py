@@ -311,6 +311,36 @@ def test_decoder_only_adds_identity_layers(tmp_path):
         initial_params(small_config("--config.model.decoder.ffn_dim=32", "--config.train.decoder_only=True"), out)
 
 
+def test_direction_channels_start_from_a_binary_tokenizer(tmp_path):
+    """`raster.direction` started from a binary tokenizer: the same tokens and lines on the same lanes (the new
+    channels' weights are zero), the heading channels get gradients, and the reverse is refused."""
+    from gpd_jax.map_tokenizer.tokenizer import MapTokenizer
+    from gpd_jax.training.map_tokenizer import build_model, initial_params, loss_fn
+    cfg = small_config()
+    _, params = build_model(cfg)
+    out = str(tmp_path / "src")
+    export_tokenizer(params, cfg, out, dtype=np.float32)
+    src = load_tokenizer(out)
+    directed = small_config("--config.raster.direction=True", f"--config.train.init_from={out}")
+    grown = initial_params(directed, out)
+    graphdef, _ = build_model(directed)
+    tok = MapTokenizer(directed, graphdef, grown)
+    assert tok.fingerprint() != src.fingerprint()  # other rasters: other tokens in general
+    batch = synthetic_lanes(0, 3)
+    poses = jnp.asarray(batch["pose"])
+    t_src = src.encode_lanes(src.params, batch["polylines"], batch["polyline_valid"], poses)
+    t_dir = tok.encode_lanes(grown, batch["polylines"], batch["polyline_valid"], poses)
+    np.testing.assert_array_equal(t_dir, t_src)
+    grads = jax.grad(lambda p: loss_fn(graphdef, directed, p, batch)[0])(grown)
+    stem = grads["encoder"]["stem"]["conv"]["kernel"].reshape(3, 3, -1, 3, grads["encoder"]["stem"]["conv"][
+        "kernel"].shape[-1])
+    assert float(jnp.abs(stem[:, :, :, 1:]).sum()) > 0
+    with pytest.raises(ValueError, match="directional source cannot start a binary"):
+        d_out = str(tmp_path / "dir")
+        export_tokenizer(grown, directed, d_out, dtype=np.float32)
+        initial_params(small_config(f"--config.train.init_from={d_out}"), d_out)
+
+
 def test_frame_batches_from_a_mixture_of_stores(tmp_path):
     """A training mixture draws frames from every store by weight, deterministically; evaluation refuses it."""
     from data_fixtures import write_small_store

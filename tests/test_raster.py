@@ -4,6 +4,7 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gpd_jax.map_tokenizer.raster import pixel_index, rasterize
 
@@ -89,3 +90,42 @@ def test_jit_vmap_and_batch_dims_agree():
     one = rasterize(pts[1, 2], valid[1, 2], pose[1, 2])
     np.testing.assert_array_equal(batched, vm)
     np.testing.assert_array_equal(batched[1, 2], one)
+
+
+def test_from_ego_frame_inverts_to_ego_frame():
+    from gpd_jax.map_tokenizer.raster import from_ego_frame, to_ego_frame
+
+    rng = np.random.default_rng(0)
+    pts = rng.normal(0, 30, (5, 7, 2)).astype(np.float32)
+    pose = np.array([12.0, -40.0, 2.3], np.float32)
+    back = np.asarray(from_ego_frame(to_ego_frame(pts, pose), pose))
+    np.testing.assert_allclose(back, pts, rtol=1e-5, atol=1e-4 * np.abs(pts).max())
+    # a point 10 m ahead of an ego heading north is 10 m north of it
+    np.testing.assert_allclose(np.asarray(from_ego_frame(np.array([[10.0, 0.0]], np.float32),
+                                                         np.array([1.0, 2.0, np.pi / 2], np.float32))),
+                               [[1.0, 12.0]], atol=1e-5)
+
+
+def test_directional_raster_holds_the_lane_heading():
+    """Channel 0 is the binary raster; channels 1-2 are cos / sin of the heading in the ego frame where a line
+    passes (zero elsewhere): a line driving +x ahead, one driving -x behind, and the heading turns with the ego."""
+    ahead = _line((5.0, 3.0), (15.0, 3.0), 11)
+    behind = _line((-5.0, -3.0), (-15.0, -3.0), 11)
+    lines, valid = np.stack([ahead, behind]), np.ones((2, 11), bool)
+    r = np.asarray(rasterize(lines, valid, np.zeros(3, np.float32), direction=True))
+    binary = np.asarray(rasterize(lines, valid, np.zeros(3, np.float32)))
+    assert r.shape == (256, 256, 3)
+    np.testing.assert_array_equal(r[..., 0], binary)
+    on = binary > 0
+    np.testing.assert_array_equal(r[~on, 1:], 0.0)
+    rows = np.nonzero(on)[0]
+    front, back = on & (np.arange(256)[:, None] < 128), on & (np.arange(256)[:, None] > 128)
+    assert front.sum() > 30 and back.sum() > 30 and len(rows) == on.sum()
+    np.testing.assert_allclose(r[front, 1], 1.0, atol=1e-5)   # cos = +1: along +x
+    np.testing.assert_allclose(r[back, 1], -1.0, atol=1e-5)   # cos = -1: along -x
+    np.testing.assert_allclose(r[on, 2], 0.0, atol=1e-5)
+    # the same lines seen by an ego turned +90 degrees: +x in the scene is -y (to the right) for it, sin = -1
+    turned = np.asarray(rasterize(lines, valid, np.array([0.0, 0.0, np.pi / 2], np.float32), direction=True))
+    on_t = turned[..., 0] > 0
+    np.testing.assert_allclose(np.abs(turned[on_t, 2]), 1.0, atol=1e-5)
+    assert (turned[on_t, 2] < 0).sum() == pytest.approx(front.sum(), abs=4)

@@ -312,3 +312,72 @@ def test_logged_map_is_re_encoded_around_the_generated_ego(setup):
     with pytest.raises(ValueError, match="needs both `lanes`"):
         rollout(nnx.merge(graphdef, state), jax.tree.map(lambda x: x[0], scenes),
                 jax.tree.map(lambda x: x[0], tasks), jax.random.key(0), h, map_encoder=enc)
+
+
+def _stand_in_warp(num_tokens: int, codebook: int):
+    """A stand-in map warp: tokens depend on the anchor's tokens and both poses; cells 0-7 are always new."""
+    def warp(tokens, anchor_pose, pose):
+        code = jnp.floor((pose - anchor_pose) * 10) @ jnp.array([7.0, 3.0, 5.0])
+        return (tokens + code.astype(jnp.int32) + 1) % codebook, jnp.arange(num_tokens) < 8
+    return warp
+
+
+def test_generated_map_moves_with_the_ego(setup):
+    """With a map warp, generated map slots are the warp of the anchor's map (the last frame whose map was
+    given: the last history frame, or a later frame a prompt gives the map of) from the anchor's ego to this
+    frame's, except in new cells (the model's tokens); maps taken from the log are untouched; cached ==
+    recompute."""
+    from gpd_jax.prompts import as_prompt
+
+    graphdef, state, m, scenes = setup
+    h, s, t_total = m.num_history, scenes.xy.shape[0], m.num_frames
+    tasks = make_tasks(["all"], m.num_map_tokens, m.num_agents)
+    prompts = as_prompt(tasks, t_total)
+    given_at = h + 1  # an extra prompt: map prediction with the map of frame h + 1 given
+    mp = TASK_NAMES.index("map_prediction")
+    extra = jax.tree.map(lambda x: np.asarray(x)[mp:mp + 1].copy(), prompts)
+    extra.from_log[0, given_at, :m.num_map_tokens] = True
+    prompts = jax.tree.map(lambda a, b: jnp.asarray(np.concatenate([np.asarray(a), b])), prompts, extra)
+    names = list(TASK_NAMES) + ["map_prediction, map given at h+1"]
+    warp = _stand_in_warp(m.num_map_tokens, m.codebook_size)
+
+    @jax.jit
+    def run(state, scenes, prompts):
+        model = nnx.merge(graphdef, state)
+        key = jax.random.key(1)
+        plain = rollout_tasks(model, scenes, prompts, key, h)
+        warped = rollout_tasks(model, scenes, prompts, key, h, map_warp=warp)
+        rec = jax.vmap(lambda sc: jax.vmap(lambda t: rollout_recompute(model, sc, t, key, h, map_warp=warp))(
+            prompts))(scenes)
+        return plain, warped, rec
+
+    plain, warped, rec = jax.tree.map(np.asarray, run(state, scenes, prompts))
+    np.testing.assert_array_equal(warped.map_tokens, rec.map_tokens)
+    np.testing.assert_allclose(warped.xy, rec.xy, atol=1e-4)
+    checked = {}  # frames checked with both egos valid (the tiny model's own egos may all be invalid)
+    for i, name in enumerate(names):
+        if name in TASKS and TASKS[name][0]:  # the map comes from the log: exactly the plain rollout
+            for a, b in zip(jax.tree.leaves(warped), jax.tree.leaves(plain)):
+                np.testing.assert_array_equal(a[:, i], b[:, i], err_msg=name)
+            continue
+        np.testing.assert_array_equal(warped.map_tokens[:, i, :h], plain.map_tokens[:, i, :h])
+        # the first generated frame's new cells are the model's prediction from the same history
+        np.testing.assert_array_equal(warped.map_tokens[:, i, h, :8], plain.map_tokens[:, i, h, :8])
+        checked[name] = 0
+        for j in range(s):
+            pose = lambda f: jnp.stack([warped.xy[j, i, f, 0, 0], warped.xy[j, i, f, 0, 1],
+                                        warped.heading[j, i, f, 0]])
+            for t in range(h, t_total):
+                if name not in TASKS and t == given_at:
+                    np.testing.assert_array_equal(warped.map_tokens[j, i, t], scenes.map_tokens[j, t])
+                    continue
+                a = given_at if name not in TASKS and t > given_at else h - 1
+                if not (warped.valid[j, i, t, 0] and warped.valid[j, i, a, 0]):
+                    continue
+                want, _ = warp(jnp.asarray(warped.map_tokens[j, i, a]), pose(a), pose(t))
+                np.testing.assert_array_equal(warped.map_tokens[j, i, t, 8:], np.asarray(want)[8:],
+                                              err_msg=f"{name} {j} {t}")
+                checked[name] += 1
+        if checked[name]:
+            assert (warped.map_tokens[:, i, h:] != plain.map_tokens[:, i, h:]).any(), name
+    assert checked["map_prediction"] and checked[names[-1]], checked

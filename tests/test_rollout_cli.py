@@ -171,6 +171,21 @@ def test_log_map_lanes_re_encodes_only_where_the_ego_is_generated_from_a_logged_
             assert m["tasks"][name] == ref["tasks"][name], name
 
 
+def test_gen_map_warp_changes_only_generated_maps(run_ok, setup, tmp_path):
+    d, data, model = setup
+    out = str(tmp_path / "out")
+    assert rollout.main(["--checkpoint", model, "--data", data, "--out", out, "--scenarios", "3", "--batch", "2",
+                         "--no-progress", "--gen-map", "warp", "--tasks", "traffic_simulation,map_prediction"]) == 0
+    m, ref = _strict_json(os.path.join(out, "metrics.json")), _strict_json(os.path.join(run_ok[1], "metrics.json"))
+    assert (m["gen_map"], ref["gen_map"]) == ("warp", "model")
+    ts, ts_ref = m["tasks"]["traffic_simulation"], ref["tasks"]["traffic_simulation"]  # its map is the log's
+    for h in ts_ref:  # the same rollout (another task batch: float rounding only)
+        assert {k: v for k, v in ts[h].items() if isinstance(v, float)} == pytest.approx(
+            {k: v for k, v in ts_ref[h].items() if isinstance(v, float)}, rel=1e-5, abs=1e-6), h
+    assert m["tasks"]["map_prediction"]["3s"]["map_f1_cutfree"] != pytest.approx(
+        ref["tasks"]["map_prediction"]["3s"]["map_f1_cutfree"])
+
+
 def _bad_model(setup, name, edit):
     d, _, model = setup
     bad = d / name
@@ -201,11 +216,12 @@ def _shape_mismatch(cfg):
     ("bad override", ["--config.model.d_model=8"], "only --config.rollout"),
     ("bad variant", ["--variant", "best"], "invalid choice"),
     ("log map without tokenizer", ["--checkpoint", "{notok}", "--log-map", "lanes"], "has none"),
+    ("gen map without tokenizer", ["--checkpoint", "{notok}", "--gen-map", "warp"], "has none"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(setup, capsys, case, args, message):
     d, data, model = setup
     bad = _bad_model(setup, "bad_shapes", _shape_mismatch) if case == "shape mismatch" else ""
-    notok = _bad_model(setup, "no_tokenizer", _no_tokenizer) if case == "log map without tokenizer" else ""
+    notok = _bad_model(setup, "no_tokenizer", _no_tokenizer) if "without tokenizer" in case else ""
     out = d / f"out_{case.replace(' ', '_')}"
     # later occurrences of an option win (argparse), so the case's arguments go after the good ones
     argv = ["--checkpoint", model, "--data", data, "--out", str(out), "--no-progress"]

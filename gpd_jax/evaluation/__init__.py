@@ -19,7 +19,9 @@ What `evaluate` does (the command line is `rollout.py` at the repository root):
    copies of its last scenario, weighted out of every sum, so the shapes and the compile stay the same).
    `log_map="lanes"` re-encodes the logged map around the generated ego in tasks that take the map from the
    log but generate the ego (traffic simulation, motion planning) inside that compiled rollout; the default,
-   "tokens", feeds the logged tokens (encoded around the logged ego), as the paper does.
+   "tokens", feeds the logged tokens (encoded around the logged ego), as the paper does. `gen_map="warp"` moves
+   the previous frame's map with the ego where the map is generated (the model's tokens only in cells newly in
+   view; `gpd_jax.decoding`); the default, "model", keeps every generated token the model's, as the paper does.
 4. Metrics per task (`score_batch`, jitted): ego ADE / FDE / collision rate where the task generates the ego,
    agent ADE / FDE / collision rate where it generates the agents, map F1 / precision / recall / lateral /
    Chamfer where it generates the map. Map metrics decode the predicted tokens of the future frames with the
@@ -61,7 +63,7 @@ metrics.json (written by rollout.py; NaN written as null)::
      "horizons": {"3s": 6, "5s": 10, "8s": 16},                  # label -> model frames
      "scored_agents": "valid at the current frame", "num_scored_agents": ...,
      "task_generates": {task: ["ego", "agent", "map"]}, "map_tokens": {"from_store": n1, "encoded": n2},
-     "log_map": "tokens" | "lanes",
+     "log_map": "tokens" | "lanes", "gen_map": "model" | "warp",
      "temperature", "seed",
      "tasks": {task: {"3s": {"ego_ade", "ego_fde", "ego_collision", "ego_collision_frames",  # if it makes the ego
                              "agent_ade", "agent_fde", "agent_collision", "agent_collision_frames",  # the agents

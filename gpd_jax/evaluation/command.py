@@ -74,6 +74,9 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> tuple[a
         if args.log_map == "lanes" and not args.tokenizer_path:
             raise UsageError(f"--log-map lanes re-encodes the log's lanes with the model's map tokenizer, and {ckpt} "
                              "has none (config.model.map_tokenizer is empty)")
+        if args.gen_map == "warp" and not args.tokenizer_path:
+            raise UsageError(f"--gen-map warp moves generated maps through the model's map tokenizer, and {ckpt} "
+                             "has none (config.model.map_tokenizer is empty)")
         preflight(config, args.data, args.split, task_names=args.task_names, num_scenarios=args.scenarios,
                   variant=args.variant, horizons_s=args.horizons, has_tokenizer=bool(args.tokenizer_path))
     except FileNotFoundError as e:
@@ -176,7 +179,7 @@ def run(args: argparse.Namespace, overrides: list[str]) -> int:
         results, items = evaluate(model, args.data, args.split, task_names=args.task_names,
                                   num_scenarios=args.scenarios, batch_size=args.batch, seed=args.seed,
                                   variant=args.variant, horizons_s=args.horizons, render_count=args.render,
-                                  log_map=args.log_map, progress=not args.no_progress)
+                                  log_map=args.log_map, gen_map=args.gen_map, progress=not args.no_progress)
     except EvalError as e:
         raise UsageError(str(e)) from None
     if args.render > len(items):

@@ -19,7 +19,7 @@ from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import to_scene
 from gpd_jax.data.store import foreign_map_token_shards, sample_layouts
 from gpd_jax.decoding import LogLanes, RolloutOutput, rollout_jit
-from gpd_jax.evaluation.keys import LOG_MAP_SOURCES, RATIO_TARGETS, SCORED_AGENTS
+from gpd_jax.evaluation.keys import GEN_MAP_SOURCES, LOG_MAP_SOURCES, RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import (decode_map_tokens, encode_map_frames, gt_future_lanes,
                                      persistence_future_lanes)
 from gpd_jax.evaluation.preflight import preflight
@@ -44,7 +44,7 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
              num_scenarios: int | None = None, batch_size: int = 8, seed: int = 0, variant: str = "paper",
              horizons_s: Sequence[float] = HORIZONS_S, render_count: int = 0, log_map: str = "tokens",
              temperature: float | None = None, progress: bool = True, log: Callable[[str], None] = print,
-             layouts: Sequence[str] | None = None) -> tuple[dict[str, Any], list[RenderItem]]:
+             layouts: Sequence[str] | None = None, gen_map: str = "model") -> tuple[dict[str, Any], list[RenderItem]]:
     """Rolls out every task on the first `num_scenarios` scenarios of a split (or of given scenes) and scores
     them.
 
@@ -61,6 +61,9 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
       render_count: keep the arrays of the first this-many scenarios for `gpd_jax.render` (returned).
       log_map: "tokens" (the logged map tokens) or "lanes" (the log's lanes encoded around a generated ego;
         needs the tokenizer) for tasks that take the map from the log.
+      gen_map: "model" (every generated map token the model's: the paper's) or "warp" (the previous frame's map
+        moved with the ego, the model's tokens only in newly seen cells; needs the tokenizer) where the map is
+        generated.
       temperature: map-token sampling temperature (default: the model config's `rollout.temperature`).
       layouts: the road-network layout of every scenario (grid, spider, random, real, ...), for figures per
         layout beside the overall ones (`results["by_layout"]`, when there are two or more). Default: read from
@@ -75,6 +78,11 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
     if log_map == "lanes" and tokenizer is None:
         raise EvalError("log_map='lanes' re-encodes the log's lanes with the model's map tokenizer, and the model "
                         "has none (config.model.map_tokenizer is empty)")
+    if gen_map not in GEN_MAP_SOURCES:
+        raise EvalError(f"gen_map must be one of {GEN_MAP_SOURCES}, got {gen_map!r}")
+    if gen_map == "warp" and tokenizer is None:
+        raise EvalError("gen_map='warp' moves generated maps through the model's map tokenizer, and the model has "
+                        "none (config.model.map_tokenizer is empty)")
     prep = preflight(config, data, split, task_names=task_names, num_scenarios=num_scenarios, variant=variant,
                      horizons_s=horizons_s, has_tokenizer=tokenizer is not None, tokenizer=tokenizer)
     spec, names, src, n = prep.spec, prep.task_names, prep.source, prep.num_scenarios
@@ -140,6 +148,8 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
             t_data += tb - ta
             relane = {} if log_map == "tokens" else dict(
                 **tok_args, lanes=LogLanes(jnp.asarray(polylines), jnp.asarray(poly_valid)))
+            if gen_map == "warp":
+                relane = dict(relane, **tok_args, map_warp=True)
             out = rollout_jit(model.graphdef, model.params, model.rest, jax.tree.map(jnp.asarray, scene), tasks,
                               jax.random.fold_in(key, b), spec.num_history, temperature, **relane)
             out = jax.block_until_ready(out)
@@ -199,6 +209,7 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
         "task_generates": {t: list(generated(t)) for t in names},
         "map_tokens": {"from_store": n_store, "encoded": n_encoded},
         "log_map": log_map,
+        "gen_map": gen_map,
         "temperature": temperature,
         "seed": seed,
         **res,

@@ -17,17 +17,19 @@ import numpy as np
 import jax.numpy as jnp
 
 from gpd_jax.map_tokenizer import core
-from gpd_jax.map_tokenizer.raster import rasterize
+from gpd_jax.map_tokenizer.raster import raster_channels, rasterize
 from gpd_jax.metrics.matching import match_lines
 from gpd_jax.metrics.map import (LENGTH_EDGES_M, cutfree_frame_sums, length_labels, map_metric_sums,
                                  reduce_map_metrics)
 
 
 def rasterize_batch(config, batch):
-    """f32[B, 256, 256] rasters of a batch dict (polylines, polyline_valid, pose)."""
+    """f32[B, 256, 256] rasters of a batch dict (polylines, polyline_valid, pose); f32[B, 256, 256, 3] with
+    `raster.direction`."""
     r = config.raster
     return rasterize(batch["polylines"], batch["polyline_valid"], batch["pose"], size=r.size,
-                     pixel_size=r.pixel_size, max_segment_length=r.max_segment_length)
+                     pixel_size=r.pixel_size, max_segment_length=r.max_segment_length,
+                     direction=raster_channels(r) > 1)
 
 
 RASTER_TOLERANCE_PX = 6  # 1.5 m at 0.25 m per pixel: the raster F1's tolerance, the map F1's threshold
@@ -117,7 +119,8 @@ def make_eval_step(graphdef, config=None):
         out = core.forward(graphdef, params, raster)
         sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M)
         if config is not None:
-            sums.update(raster_sums(decoded_raster(config, out["points"], out["logits"]), raster))
+            occupancy = raster[..., 0] if raster.ndim == 4 else raster
+            sums.update(raster_sums(decoded_raster(config, out["points"], out["logits"]), occupancy))
             sums.update(pair_sums(out["points"], out["logits"], lanes, lanes_valid))
         return sums, out["idx"]
 

@@ -74,7 +74,7 @@ class BottleneckBlock(nnx.Module):
 
 
 class Encoder(nnx.Module):
-    """ResNet over a 1-channel raster, then GroupNorm -> 3x3 conv -> 3x3 conv to the code dim -> Linear.
+    """ResNet over a raster (`in_channels`: 1 binary, 3 directional), then GroupNorm -> 3x3 conv -> 3x3 conv to the code dim -> Linear.
 
     `cfg` fields: block ('basic' | 'bottleneck'), stage_sizes (blocks per stage), width (first stage width;
     doubles each stage), stem_patch (space-to-depth factor applied to the raster before the stem conv: a
@@ -83,11 +83,12 @@ class Encoder(nnx.Module):
     stage_strides, norm_groups, head_channels, code_dim. The total stride must map 256 to the token grid.
     """
 
-    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs):
+    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs, in_channels: int = 1):
         block = {"basic": BasicBlock, "bottleneck": BottleneckBlock}[cfg.block]
         g = cfg.norm_groups
         self.patch = int(cfg.stem_patch)
-        self.stem = ConvNorm(self.patch ** 2, cfg.width, cfg.stem_kernel, cfg.stem_stride, g, rngs)
+        self.in_channels = int(in_channels)
+        self.stem = ConvNorm(self.patch ** 2 * self.in_channels, cfg.width, cfg.stem_kernel, cfg.stem_stride, g, rngs)
         self.stem_pool = bool(cfg.stem_pool)
         blocks = []
         cin = cfg.width
@@ -103,12 +104,15 @@ class Encoder(nnx.Module):
         self.out = nnx.Linear(cfg.code_dim, cfg.code_dim, rngs=rngs)
 
     def __call__(self, raster: jax.Array) -> jax.Array:
-        """raster f32[B, H, W] -> latents f32[B, h, w, code_dim]."""
-        x = raster[..., None]
-        if self.patch > 1:
-            b, h, w, _ = x.shape
+        """raster f32[B, H, W] (1 channel) or f32[B, H, W, C] -> latents f32[B, h, w, code_dim]."""
+        x = raster[..., None] if self.in_channels == 1 and raster.ndim == 3 else raster
+        if x.shape[-1] != self.in_channels:
+            raise ValueError(f"the encoder takes {self.in_channels}-channel rasters, got shape {raster.shape}")
+        if self.patch > 1:  # space to depth: channel index (i * p + j) * C + c
+            b, h, w, c = x.shape
             p = self.patch
-            x = x.reshape(b, h // p, p, w // p, p).transpose(0, 1, 3, 2, 4).reshape(b, h // p, w // p, p * p)
+            x = x.reshape(b, h // p, p, w // p, p, c).transpose(0, 1, 3, 2, 4, 5).reshape(b, h // p, w // p,
+                                                                                       p * p * c)
         x = self.stem(x)
         x = jax.nn.relu(x)
         if self.stem_pool:
@@ -238,17 +242,19 @@ class VectorDecoder(nnx.Module):
 
 
 class MapVQVAE(nnx.Module):
-    """Encoder + codebook + vector decoder. `cfg` is the `model` section of a map-tokenizer config."""
+    """Encoder + codebook + vector decoder. `cfg` is the `model` section of a map-tokenizer config;
+    `in_channels` the raster's (`gpd_jax.map_tokenizer.raster.raster_channels` of the config's `raster`)."""
 
-    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs):
+    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs, in_channels: int = 1):
         self.grid = int(cfg.grid)
         self.commitment = float(cfg.commitment)
-        self.encoder = Encoder(cfg.encoder, rngs)
+        self.encoder = Encoder(cfg.encoder, rngs, in_channels)
         self.codebook = Codebook(cfg.num_codes, cfg.encoder.code_dim, rngs)
         self.decoder = VectorDecoder(cfg.decoder, cfg.encoder.code_dim, self.grid, rngs)
 
     def encode_latents(self, raster: jax.Array) -> jax.Array:
-        """raster f32[B, 256, 256] -> continuous latents f32[B, grid*grid, D] (row-major cells)."""
+        """raster f32[B, 256, 256] (or [B, 256, 256, C]) -> continuous latents f32[B, grid*grid, D] (row-major
+        cells)."""
         z = self.encoder(raster)
         if z.shape[1:3] != (self.grid, self.grid):
             raise ValueError(f"encoder produced a {z.shape[1:3]} grid, config says {self.grid}x{self.grid}; "

@@ -19,6 +19,12 @@ this holds for every segment up to 2 m long, i.e. for polylines resampled every 
 Longer segments are still drawn, with gaps of `length / samples_per_segment`.
 
 The batch is drawn with one flat scatter over all rasters (no per-sample loop), which is what makes it fast.
+
+Directional rasters (`direction=True`, a tokenizer's `raster.direction`): three channels per pixel,
+(occupancy, cos, sin) of the heading of the segment drawn there in the ego frame (zeros where no line passes),
+as SLEDGE's line channels carry the heading; a binary raster cannot tell which way a lane runs, so a decoder
+must guess the point order of every line (right-hand traffic is what it learns), which the paper's
+index-aligned F1 punishes on left-hand and one-way roads.
 """
 
 from __future__ import annotations
@@ -50,6 +56,20 @@ def to_ego_frame(points: jax.Array, pose: jax.Array) -> jax.Array:
     return jnp.stack([x, y], axis=-1)
 
 
+def from_ego_frame(points: jax.Array, pose: jax.Array) -> jax.Array:
+    """The inverse of `to_ego_frame`: points f32[..., N, 2] in the frame of `pose` f32[..., 3] -> the frame the
+    pose is given in (`R(heading) @ p + (x, y)`)."""
+    c, s = jnp.cos(pose[..., 2]), jnp.sin(pose[..., 2])
+    x = c[..., None] * points[..., 0] - s[..., None] * points[..., 1]
+    y = s[..., None] * points[..., 0] + c[..., None] * points[..., 1]
+    return jnp.stack([x, y], axis=-1) + pose[..., None, :2]
+
+
+def raster_channels(raster_config) -> int:
+    """Channels of a tokenizer's rasters: 3 with `raster.direction` (occupancy, cos, sin), else 1."""
+    return 3 if bool(raster_config.get("direction", False)) else 1
+
+
 def samples_per_segment(max_segment_length: float = 2.0, pixel_size: float = PIXEL_SIZE) -> int:
     """Samples per segment so that a segment up to `max_segment_length` metres is drawn without gaps."""
     return max(1, int(math.ceil(max_segment_length / pixel_size)))
@@ -65,7 +85,7 @@ def pixel_index(xy: jax.Array, size: int = RASTER_SIZE, pixel_size: float = PIXE
 
 
 def rasterize(polylines: jax.Array, valid: jax.Array, pose: jax.Array, *, size: int = RASTER_SIZE,
-              pixel_size: float = PIXEL_SIZE, max_segment_length: float = 2.0) -> jax.Array:
+              pixel_size: float = PIXEL_SIZE, max_segment_length: float = 2.0, direction: bool = False) -> jax.Array:
     """Draws lane polylines into a binary raster around an ego pose.
 
     Args:
@@ -78,9 +98,12 @@ def rasterize(polylines: jax.Array, valid: jax.Array, pose: jax.Array, *, size: 
       pixel_size: metres per pixel (0.25).
       max_segment_length: longest segment (metres) guaranteed to be drawn without gaps; sets the static
         number of samples per segment (`ceil(max_segment_length / pixel_size)`).
+      direction: also the heading of the lines (module docstring).
 
     Returns:
-      f32[..., size, size] with 1.0 on pixels a line passes through and 0.0 elsewhere.
+      f32[..., size, size] with 1.0 on pixels a line passes through and 0.0 elsewhere; with `direction`,
+      f32[..., size, size, 3]: that occupancy, then cos and sin of the drawn segment's heading in the ego frame
+      (an isolated valid point, which has no heading, draws (1, 0, 0)).
     """
     polylines = jnp.asarray(polylines, jnp.float32)
     valid = jnp.asarray(valid, bool)
@@ -105,6 +128,22 @@ def rasterize(polylines: jax.Array, valid: jax.Array, pose: jax.Array, *, size: 
     hw = size * size
     flat = jnp.arange(B, dtype=jnp.int32)[:, None] * hw + row * size + col
     flat = jnp.where(ok & inside, flat, B * hw)  # out-of-range index: dropped by the scatter
+    if direction:
+        seg = b[..., 0, :] - a[..., 0, :]  # [B, L, P-1, 2]
+        norm = jnp.linalg.norm(seg, axis=-1, keepdims=True)
+        unit = jnp.where(norm > 0, seg / jnp.where(norm > 0, norm, 1.0), jnp.array([0.0, 0.0]))
+        seg_dir = jnp.broadcast_to(unit[..., None, :], seg_pts.shape).reshape((B, -1, 2))
+        # A vertex takes its outgoing segment's heading, else its incoming one's; an isolated point none.
+        seg_valid = (valid[:, :, :-1] & valid[:, :, 1:])[..., None]
+        none = jnp.zeros_like(unit[:, :, :1])
+        out_dir = jnp.concatenate([jnp.where(seg_valid, unit, 0.0), none], 2)
+        in_dir = jnp.concatenate([none, jnp.where(seg_valid, unit, 0.0)], 2)
+        has_out = jnp.concatenate([seg_valid, jnp.zeros_like(seg_valid[:, :, :1])], 2)
+        vert_dir = jnp.where(has_out, out_dir, in_dir).reshape((B, -1, 2))
+        values = jnp.concatenate([jnp.ones(pts.shape[:-1] + (1,)), jnp.concatenate([seg_dir, vert_dir], 1)], -1)
+        raster = jnp.zeros((B * hw + 1, 3), jnp.float32).at[flat.reshape(-1)].set(values.reshape(-1, 3),
+                                                                                   mode="drop")
+        return raster[:-1].reshape(lead + (size, size, 3))
     # uint8 scatter: ~1.7x faster than float32 on CPU (it is memory bound).
     raster = jnp.zeros((B * hw,), jnp.uint8).at[flat.reshape(-1)].set(jnp.uint8(1), mode="drop")
     return raster.reshape(lead + (size, size)).astype(jnp.float32)

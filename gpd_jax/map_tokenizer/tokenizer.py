@@ -27,7 +27,7 @@ from gpd_jax.config import config_from_json
 from gpd_jax.fsutil import atomic_directory, flatten_params, restore_params, unflatten_params
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
-from gpd_jax.map_tokenizer.raster import rasterize
+from gpd_jax.map_tokenizer.raster import from_ego_frame, raster_channels, rasterize, to_ego_frame
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -62,9 +62,11 @@ class MapTokenizer:
         return h.hexdigest()[:16]
 
     def encode(self, params, rasters: jax.Array) -> jax.Array:
-        """Map tokens i32[..., 64] (row-major over the 8x8 grid, row 0 = front) of rasters f32[..., 256, 256]."""
-        lead = rasters.shape[:-2]
-        r = rasters.reshape((-1,) + rasters.shape[-2:]).astype(jnp.float32)
+        """Map tokens i32[..., 64] (row-major over the 8x8 grid, row 0 = front) of rasters f32[..., 256, 256]
+        (f32[..., 256, 256, 3] for a tokenizer with `raster.direction`)."""
+        k = 3 if raster_channels(self.config.raster) > 1 else 2
+        lead = rasters.shape[:-k]
+        r = rasters.reshape((-1,) + rasters.shape[rasters.ndim - k:]).astype(jnp.float32)
         z = core.encode_latents(self.graphdef, params, r)
         idx = nearest_code(core.codebook_of(params), z)
         return idx.reshape(lead + (idx.shape[-1],))
@@ -75,7 +77,7 @@ class MapTokenizer:
         exactly what `python -m gpd_jax.map_tokenizer encode` stores for a logged frame."""
         r = self.config.raster
         raster = rasterize(polylines, valid, pose, size=r.size, pixel_size=r.pixel_size,
-                           max_segment_length=r.max_segment_length)
+                           max_segment_length=r.max_segment_length, direction=raster_channels(r) > 1)
         return self.encode(params, raster)
 
     def pose_encoder(self, params):
@@ -83,6 +85,33 @@ class MapTokenizer:
         f32[L, P, 2], valid bool[L, P], pose f32[3]) -> i32[64]. Pass traced parameters (an argument of the
         jitted function) rather than constants, so they are not baked into the compiled rollout."""
         return lambda polylines, valid, pose: self.encode_lanes(params, polylines, valid, pose)
+
+    def warper(self, params, margin_cells: float = 0.5):
+        """The previous frame's map moved to a new ego pose, as the `map_warp` of `gpd_jax.decoding.rollout`:
+        (tokens i32[64] seen from `prev_pose` f32[3], `pose` f32[3], both in one scene frame) -> (tokens i32[64],
+        new bool[64]).
+
+        The tokens are decoded into lanes (those with logit > 0), moved into the scene frame, rasterized around
+        `pose` and encoded again. `new[k]` marks the token cells the previous window did not see: a cell is new
+        where its centre, seen from `prev_pose`, lies less than `margin_cells` cells inside the previous window's
+        edge (0.5: the whole cell was seen, up to rotation), so its warped token holds no previous lanes there.
+        """
+        r, grid = self.config.raster, int(self.config.model.grid)
+        half = r.size * r.pixel_size / 2.0
+        cell = 2.0 * half / grid
+        centre = half - cell * (jnp.arange(grid, dtype=jnp.float32) + 0.5)  # x of rows, y of columns
+        cells = jnp.stack(jnp.broadcast_arrays(centre[:, None], centre[None, :]), -1).reshape(-1, 2)  # [64, 2]
+
+        def warp(tokens, prev_pose, pose):
+            pts, logits = self.decode(params, tokens)
+            valid = jnp.broadcast_to((logits > 0)[:, None], pts.shape[:-1])
+            in_scene = from_ego_frame(pts, prev_pose)
+            warped = self.encode_lanes(params, in_scene, valid, pose)
+            seen_from_prev = to_ego_frame(from_ego_frame(cells, pose), prev_pose)
+            new = jnp.max(jnp.abs(seen_from_prev), axis=-1) > half - margin_cells * cell + 0.01  # 1 cm: rounding
+            return warped, new
+
+        return warp
 
     def decode(self, params, tokens: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Vector lanes of tokens i32[..., 64]: (points f32[..., 50, 20, 2] metres in the frame's ego frame,
@@ -124,12 +153,12 @@ def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
     npz = os.path.join(checkpoint_dir, "params.npz")
     if os.path.isfile(npz):
         # Only shapes are needed to read an export: skip the (slow) random initialisation.
-        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0)))
+        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0), raster_channels(config.raster)))
         graphdef, state = nnx.split(model, nnx.Param)
         with np.load(npz) as f:
             params = unflatten_params(nnx.to_pure_dict(state), dict(f))
     else:
-        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0)))
+        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0), raster_channels(config.raster)))
         graphdef, state = nnx.split(model, nnx.Param)
         try:
             params = restore_params(checkpoint_dir, nnx.to_pure_dict(state))

@@ -37,6 +37,7 @@ from gpd_jax.map_tokenizer import core, load_tokenizer
 from gpd_jax.map_tokenizer.data import frame_batches
 from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step, rasterize_batch
 from gpd_jax.map_tokenizer.model import MapVQVAE
+from gpd_jax.map_tokenizer.raster import raster_channels
 from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state, save_state
 
 
@@ -50,7 +51,7 @@ class TrainState(NamedTuple):
 
 def build_model(config: ml_collections.ConfigDict, seed: int | None = None):
     """(graphdef, params) of a freshly initialised `MapVQVAE`; params is a pure dict of arrays."""
-    model = MapVQVAE(config.model, nnx.Rngs(config.seed if seed is None else seed))
+    model = MapVQVAE(config.model, nnx.Rngs(config.seed if seed is None else seed), raster_channels(config.raster))
     graphdef, state = nnx.split(model, nnx.Param)
     return graphdef, nnx.to_pure_dict(state)
 
@@ -147,18 +148,26 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     """Float32 params of the tokenizer at `path` (an export or a workdir) to start from (`train.init_from`);
     its model and raster settings must equal `config`'s.
 
-    One exception, for `train.decoder_only`: `config` may ask for a deeper decoder than the source's
+    Exception: `config` may add direction channels (`raster.direction`) to a binary source. The stem kernel's
+    weights for the occupancy channel are the source's and those for the new (cos, sin) channels start at zero,
+    so the fine-tune starts from the source's tokens exactly and learns to read the lanes' heading.
+
+    Another exception, for `train.decoder_only`: `config` may ask for a deeper decoder than the source's
     (`model.decoder.num_layers`). The source's layers are kept and each added layer starts as an exact identity
     (its attention output and second FFN projections are zero, the rest freshly initialised), so training
     starts from the source's reconstructions, with its tokens, and only gains capacity. `fresh`: freshly
     initialised params of `config`'s model to take the added layers from (built here when not given).
     """
     src = load_tokenizer(path)
-    raster_diff = config_differences(config.raster, src.config.raster)
-    if raster_diff:
-        raise ValueError(f"train.init_from {path}: its raster config differs in {raster_diff}")
+    mine, theirs = raster_channels(config.raster), raster_channels(src.config.raster)
+    raster_diff = config_differences(config.raster, src.config.raster, ignore=("direction",))
+    if raster_diff or mine < theirs:
+        raise ValueError(f"train.init_from {path}: its raster config differs in "
+                         f"{raster_diff or 'direction (a directional source cannot start a binary tokenizer)'}")
     extra = _added_decoder_layers(config, src.config, path)
     params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
+    if mine > theirs:
+        params = _with_direction_channels(params, mine)
     if not extra:
         return params
     if fresh is None:
@@ -173,6 +182,16 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
         layer["ff2"] = jax.tree.map(jnp.zeros_like, layer["ff2"])
         layers[i] = layer
     return {**params, "decoder": {**params["decoder"], "layers": layers}}
+
+
+def _with_direction_channels(params, channels: int):
+    """Params of a binary tokenizer with the stem taking `channels`-channel rasters: space-to-depth puts input
+    channel c of patch pixel k at (k * channels + c), so the source's weight of pixel k moves to channel 0 of it
+    and the others are zero (the same function of a raster's occupancy channel)."""
+    k = params["encoder"]["stem"]["conv"]["kernel"]  # [kh, kw, p*p, width]
+    new = jnp.zeros(k.shape[:2] + (k.shape[2], channels) + k.shape[3:], k.dtype).at[:, :, :, 0].set(k)
+    stem = {**params["encoder"]["stem"], "conv": {"kernel": new.reshape(k.shape[:2] + (-1,) + k.shape[3:])}}
+    return {**params, "encoder": {**params["encoder"], "stem": stem}}
 
 
 def _added_decoder_layers(config, src_config, path: str) -> int:
