@@ -57,6 +57,7 @@ import json
 import os
 import shutil
 import tempfile
+import threading
 from typing import Any
 
 import numpy as np
@@ -171,6 +172,18 @@ def clean_temporaries(data_dir: str) -> int:
     return n
 
 
+# numpy parses a .npy header with `ast.literal_eval`, which CPython 3.11 (up to at least 3.11.7) cannot run in two
+# threads at once: it fails with "SystemError: AST constructor recursion depth mismatch". grain's reader threads
+# open shards concurrently (a store mixture opens several at a time), so headers are read one at a time.
+_NPY_HEADER_LOCK = threading.Lock()
+
+
+def _open_npy(path: str) -> np.ndarray:
+    """A read-only memory map of a .npy file (no pickles); the header is parsed under `_NPY_HEADER_LOCK`."""
+    with _NPY_HEADER_LOCK:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+
+
 class Shard:
     """A complete shard, validated on open and read through memory maps.
 
@@ -217,7 +230,7 @@ class Shard:
             if size != info.get("nbytes"):
                 raise DataError(f, f"truncated or corrupt: {size} bytes, meta.json says {info.get('nbytes')}")
             try:
-                a = np.load(f, mmap_mode="r", allow_pickle=False)
+                a = _open_npy(f)
             except (ValueError, OSError, EOFError) as e:
                 raise DataError(f, f"unreadable .npy: {e}") from e
             if a.shape != (n, *shape) or a.dtype != np.dtype(dtype):
@@ -227,7 +240,7 @@ class Shard:
         tp = os.path.join(path, MAP_TOKENS)
         if os.path.isfile(tp):
             try:
-                t = np.load(tp, mmap_mode="r", allow_pickle=False)
+                t = _open_npy(tp)
             except (ValueError, OSError, EOFError) as e:
                 raise DataError(tp, f"unreadable map tokens: {e}") from e
             T = spec["xy"][0][0]
