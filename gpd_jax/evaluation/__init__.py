@@ -20,8 +20,8 @@ What `evaluate` does (the command line is `rollout.py` at the repository root):
    `log_map="lanes"` re-encodes the logged map around the generated ego in tasks that take the map from the
    log but generate the ego (traffic simulation, motion planning) inside that compiled rollout; the default,
    "tokens", feeds the logged tokens (encoded around the logged ego), as the paper does. `gen_map="warp"` moves
-   the previous frame's map with the ego where the map is generated (the model's tokens only in cells newly in
-   view; `gpd_jax.decoding`); the default, "model", keeps every generated token the model's, as the paper does.
+   the last given map with the ego where the map is generated (the model's tokens only in cells it did not see;
+   `gpd_jax.decoding`); the default, "model", keeps every generated token the model's, as the paper does.
 4. Metrics per task (`score_batch`, jitted): ego ADE / FDE / collision rate where the task generates the ego,
    agent ADE / FDE / collision rate where it generates the agents, map F1 / precision / recall / lateral /
    Chamfer where it generates the map. Map metrics decode the predicted tokens of the future frames with the

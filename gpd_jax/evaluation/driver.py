@@ -61,8 +61,8 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
       render_count: keep the arrays of the first this-many scenarios for `gpd_jax.render` (returned).
       log_map: "tokens" (the logged map tokens) or "lanes" (the log's lanes encoded around a generated ego;
         needs the tokenizer) for tasks that take the map from the log.
-      gen_map: "model" (every generated map token the model's: the paper's) or "warp" (the previous frame's map
-        moved with the ego, the model's tokens only in newly seen cells; needs the tokenizer) where the map is
+      gen_map: "model" (every generated map token the model's: the paper's) or "warp" (the last given map moved
+        with the ego, the model's tokens only in cells it did not see; needs the tokenizer) where the map is
         generated.
       temperature: map-token sampling temperature (default: the model config's `rollout.temperature`).
       layouts: the road-network layout of every scenario (grid, spider, random, real, ...), for figures per

@@ -2,8 +2,8 @@
 `metrics.json`)."""
 
 LOG_MAP_SOURCES = ("tokens", "lanes")  # what a task that takes the map from the log feeds (see `evaluate`)
-# Where a generated map comes from: every token the model's (the paper's), or the previous frame's map moved with
-# the ego and the model's tokens only in newly seen cells (`gpd_jax.decoding`'s map_warp).
+# Where a generated map comes from: every token the model's (the paper's), or the last given map moved with the
+# ego and the model's tokens only in cells it did not see (`gpd_jax.decoding`'s map_warp).
 GEN_MAP_SOURCES = ("model", "warp")
 BASELINE_NAMES = ("constant_velocity", "constant_velocity_model_rate", "log_replay")
 # The logged map tokens decoded and scored like a map task: the ceiling any generated map can reach.

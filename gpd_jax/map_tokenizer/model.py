@@ -74,7 +74,8 @@ class BottleneckBlock(nnx.Module):
 
 
 class Encoder(nnx.Module):
-    """ResNet over a raster (`in_channels`: 1 binary, 3 directional), then GroupNorm -> 3x3 conv -> 3x3 conv to the code dim -> Linear.
+    """ResNet over a raster (`in_channels`: 1 binary, 3 directional), then GroupNorm -> 3x3 conv -> 3x3 conv to
+    the code dim -> Linear.
 
     `cfg` fields: block ('basic' | 'bottleneck'), stage_sizes (blocks per stage), width (first stage width;
     doubles each stage), stem_patch (space-to-depth factor applied to the raster before the stem conv: a

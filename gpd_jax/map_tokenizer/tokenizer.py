@@ -87,14 +87,13 @@ class MapTokenizer:
         return lambda polylines, valid, pose: self.encode_lanes(params, polylines, valid, pose)
 
     def warper(self, params, margin_cells: float = 0.5):
-        """The previous frame's map moved to a new ego pose, as the `map_warp` of `gpd_jax.decoding.rollout`:
-        (tokens i32[64] seen from `prev_pose` f32[3], `pose` f32[3], both in one scene frame) -> (tokens i32[64],
-        new bool[64]).
+        """A frame's map moved to a new ego pose, as the `map_warp` of `gpd_jax.decoding.rollout`: (tokens i32[64]
+        seen from `from_pose` f32[3], `pose` f32[3], both in one scene frame) -> (tokens i32[64], new bool[64]).
 
         The tokens are decoded into lanes (those with logit > 0), moved into the scene frame, rasterized around
-        `pose` and encoded again. `new[k]` marks the token cells the previous window did not see: a cell is new
-        where its centre, seen from `prev_pose`, lies less than `margin_cells` cells inside the previous window's
-        edge (0.5: the whole cell was seen, up to rotation), so its warped token holds no previous lanes there.
+        `pose` and encoded again. `new[k]` marks the token cells the first window did not see: a cell is new
+        where its centre, seen from `from_pose`, lies less than `margin_cells` cells inside that window's edge
+        (0.5: the whole cell was seen, up to rotation), so its warped token holds no lanes there.
         """
         r, grid = self.config.raster, int(self.config.model.grid)
         half = r.size * r.pixel_size / 2.0
@@ -102,13 +101,13 @@ class MapTokenizer:
         centre = half - cell * (jnp.arange(grid, dtype=jnp.float32) + 0.5)  # x of rows, y of columns
         cells = jnp.stack(jnp.broadcast_arrays(centre[:, None], centre[None, :]), -1).reshape(-1, 2)  # [64, 2]
 
-        def warp(tokens, prev_pose, pose):
+        def warp(tokens, from_pose, pose):
             pts, logits = self.decode(params, tokens)
             valid = jnp.broadcast_to((logits > 0)[:, None], pts.shape[:-1])
-            in_scene = from_ego_frame(pts, prev_pose)
+            in_scene = from_ego_frame(pts, from_pose)
             warped = self.encode_lanes(params, in_scene, valid, pose)
-            seen_from_prev = to_ego_frame(from_ego_frame(cells, pose), prev_pose)
-            new = jnp.max(jnp.abs(seen_from_prev), axis=-1) > half - margin_cells * cell + 0.01  # 1 cm: rounding
+            seen_before = to_ego_frame(from_ego_frame(cells, pose), from_pose)
+            new = jnp.max(jnp.abs(seen_before), axis=-1) > half - margin_cells * cell + 0.01  # 1 cm: rounding
             return warped, new
 
         return warp
