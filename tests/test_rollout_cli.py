@@ -193,7 +193,8 @@ def _bad_model(setup, name, edit):
     cfg = json.load(open(os.path.join(model, "config.json")))
     edit(cfg)
     json.dump(cfg, open(bad / "config.json", "w"))
-    os.symlink(os.path.join(model, "params.npz"), bad / "params.npz")
+    if not (bad / "params.npz").exists():  # several cases may share one bad model
+        os.symlink(os.path.join(model, "params.npz"), bad / "params.npz")
     return str(bad)
 
 
