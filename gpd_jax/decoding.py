@@ -246,7 +246,9 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
 
     def step(carry: RolloutCarry, t):
         f = choose(carry, t)
-        anchor = jax.tree.map(lambda a, b: jnp.where(_map_given(given.task, t), a, b), f, carry.anchor)
+        anchor = carry.anchor
+        if map_warp is not None:  # only a warp reads the anchor: no per-step selects otherwise
+            anchor = jax.tree.map(lambda a, b: jnp.where(_map_given(given.task, t), a, b), f, anchor)
         return RolloutCarry(decode=advance(model, carry.decode, f, t), anchor=anchor), f
 
     start = RolloutCarry(decode=prefill(model, log, h, t_total), anchor=jax.tree.map(lambda a: a[h - 1], log))
@@ -336,10 +338,12 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
         pred = model.predict(sl(hid), sl(buf.xy), sl(buf.heading), sl(buf.valid), *_prev(buf.xy, buf.valid, prev),
                              sl(buf.velocity))
-        frames = jnp.arange(t_total)
-        given_map = jax.vmap(lambda s: _map_given(given.task, s))(frames) | (frames < h)
-        a = jnp.max(jnp.where(given_map & (frames < t), frames, 0))
-        anchor = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, a, 0, keepdims=False), buf)
+        anchor = None
+        if map_warp is not None:
+            frames = jnp.arange(t_total)
+            given_map = jax.vmap(lambda s: _map_given(given.task, s))(frames) | (frames < h)
+            a = jnp.max(jnp.where(given_map & (frames < t), frames, 0))
+            anchor = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, a, 0, keepdims=False), buf)
         frame = _choose_frame(pred, given, t, key, temperature, map_encoder, map_warp, anchor)
         buf = jax.tree.map(lambda b, f: jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0),
                            buf, frame)
