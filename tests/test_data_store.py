@@ -181,8 +181,9 @@ def test_inspect_keys(small_store, tmp_path):
     for k in ("scenarios", "scenarios_per_split", "agents_per_frame_mean", "agents_per_frame_max",
               "lanes_per_frame_mean", "lanes_per_frame_min", "stationary_fraction", "speed_mps_p5",
               "speed_mps_p50", "speed_mps_p95", "accel_mps2_p1", "accel_mps2_p99", "log_collisions",
-              "build_wall_s"):
+              "build_wall_s", "frame_rate_floor"):
         assert k in s, k
+    assert set(s["frame_rate_floor"]) == {"1hz", "2hz", "5hz"} and s["frame_rate_floor"]["1hz"]["all"]["n"] > 0
     assert s["scenarios"] == 12 and s["log_collisions"] == 0 and s["lanes_per_frame_min"] >= 3
     assert abs(s["speed_mps_p50"] - 10.0) < 0.1
     from gpd_jax.data.__main__ import main
@@ -204,3 +205,31 @@ def test_box_overlap():
 
 def _take(it, n):
     return [next(it) for _ in range(n)]
+
+
+def test_frame_rate_floor_is_the_sagitta_of_a_turn_and_zero_on_a_straight_line():
+    from gpd_jax.data.inspection import frame_rate_floor_errors
+
+    T, v, R = 41, 8.0, 20.0  # 10 Hz; slot 0 drives straight at 8 m/s, slot 1 circles at 8 m/s on radius 20 m
+    t = np.arange(T) * 0.1
+    xy = np.zeros((1, T, 3, 2))
+    heading = np.zeros((1, T, 3))
+    xy[0, :, 0, 0] = v * t
+    ang = v * t / R
+    xy[0, :, 1] = np.stack([R * np.sin(ang), R * (1 - np.cos(ang))], -1)
+    heading[0, :, 1] = ang
+    valid = np.ones((1, T, 3), bool)
+    valid[0, :, 2] = False  # slot 2 is padding: never scored
+    e, man = frame_rate_floor_errors(xy, heading, valid, current=0, stride=10)
+    assert len(e) == 2 * 4 * 9  # two valid slots, four 1 s intervals, nine frames between their ends
+    straight, turn = e[0::2], e[1::2]
+    np.testing.assert_allclose(straight, 0.0, atol=1e-9)
+    w = np.tile(np.arange(1, 10) / 10, 4)
+    th = v * 1.0 / R  # the angle turned in one model frame
+    chord = np.abs(R * np.exp(1j * w * th) - ((1 - w) * R + w * R * np.exp(1j * th)))
+    np.testing.assert_allclose(turn, chord, rtol=1e-6)
+    assert turn.max() > 0.3  # a 0.4 rad/s turn is 0.39 m off a straight line in the middle of a 1 s step
+    # yaw rate 0.4 rad/s > 0.2: the turning slot's frames are maneuvers, the straight slot's are not
+    assert man[1::2].all() and not man[0::2].any()
+    e2, _ = frame_rate_floor_errors(xy, heading, valid, current=0, stride=5)
+    assert e2.max() < turn.max() / 3  # half the step, a quarter of the sagitta

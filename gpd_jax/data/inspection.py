@@ -12,7 +12,9 @@ agents_stationary_in_lanes_fraction (other agents at the current frame that stan
 "other", such as SUMO's parking strips / elsewhere: in lanes and junctions, queues and stops; samples with road
 geometry only), agent_speed_mps_p50 (other agents), speed_mps_p5 / p50 / p95, accel_mps2_p1 / p99 (from finite
 differences of consecutive valid frames at 10 Hz), log_collisions (scenarios in which two recorded
-oriented boxes overlap in some frame, separating-axis test), build_wall_s, plus a few extras.
+oriented boxes overlap in some frame, separating-axis test), frame_rate_floor (`frame_rate_floor_errors`: for
+model rates of 1, 2 and 5 Hz, how far the logged future lies from straight lines between the model's frames,
+overall and while agents brake or turn), build_wall_s, plus a few extras.
 
 `per_source` repeats the agent figures (scenarios, agents per frame, speeds, ego median speed, stationary
 fraction, accelerations, logged overlaps, agent types) for each source, so that simulated (SUMO) and recorded
@@ -33,6 +35,43 @@ from gpd_jax.scene import AGENT_TYPES
 
 DT = 0.1
 STATIONARY_MPS = 0.5  # speed under which an agent-frame counts as stationary (as `gpd_jax.metrics.agents`)
+FLOOR_STRIDES = {"1hz": 10, "2hz": 5, "5hz": 2}  # model frame rates the frame-rate floor is measured for
+MANEUVER_ACCEL_MPS2 = 2.0  # |acceleration| over which an agent-frame counts as braking / accelerating hard
+MANEUVER_YAW_RATE = 0.2  # |yaw rate| (rad/s) over which an agent-frame counts as turning
+
+
+def frame_rate_floor_errors(xy: np.ndarray, heading: np.ndarray, valid: np.ndarray, current: int, stride: int
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """How far a model at `stride` x the stored period can follow the logged motion of the future frames.
+
+    The log is kept only at the frames current, current + stride, ... (a model's frames); between two kept frames
+    the path is their straight line at uniform speed. Returns (errors f64[N] in metres: logged position against
+    that line, at every stored frame in between whose agent is valid there and at both kept frames,
+    maneuver bool[N]: the agent brakes or accelerates by more than MANEUVER_ACCEL_MPS2 or turns faster than
+    MANEUVER_YAW_RATE at that frame). `xy f[B, T, A, 2]`, `heading f[B, T, A]`, `valid bool[B, T, A]`.
+    """
+    xy = xy.astype(np.float64)
+    T = xy.shape[1]
+    sp = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / DT  # [B, T-1, A]
+    acc = np.zeros(valid.shape)
+    acc[:, 1:-1] = np.diff(sp, axis=1) / DT
+    yaw = np.zeros(valid.shape)
+    yaw[:, 1:] = np.abs(np.angle(np.exp(1j * np.diff(heading.astype(np.float64), axis=1)))) / DT
+    ok3 = np.zeros(valid.shape, bool)  # valid at t - 1, t, t + 1: the finite differences are defined
+    ok3[:, 1:-1] = valid[:, :-2] & valid[:, 1:-1] & valid[:, 2:]
+    hard = ok3 & ((np.abs(acc) > MANEUVER_ACCEL_MPS2) | (yaw > MANEUVER_YAW_RATE))
+    errs, man = [], []
+    for a in range(current, T - stride, stride):
+        b = a + stride
+        for i in range(1, stride):
+            w = i / stride
+            line = (1 - w) * xy[:, a] + w * xy[:, b]
+            ok = valid[:, a] & valid[:, b] & valid[:, a + i]
+            errs.append(np.linalg.norm(xy[:, a + i] - line, axis=-1)[ok])
+            man.append(hard[:, a + i][ok])
+    if not errs:
+        return np.zeros(0), np.zeros(0, bool)
+    return np.concatenate(errs), np.concatenate(man)
 
 
 def point_in_kind(points: np.ndarray, rings: np.ndarray, ring_valid: np.ndarray, ring_kind: np.ndarray,
@@ -68,6 +107,7 @@ class _Figures:
         # stationary elsewhere (lanes, junctions: queues, stops), all (with road geometry)
         self.collisions, self.n = 0, 0
         self.type_hist = np.zeros(len(AGENT_TYPES), np.int64)
+        self.floor = {k: ([], []) for k in FLOOR_STRIDES}
 
     def add(self, a: dict) -> None:
         v = a["valid"]
@@ -103,6 +143,10 @@ class _Figures:
                     self.still_place += (int(on.sum()), int((~on).sum()), int(okc[k, 1:].sum()))
         ok2 = ok1[:, 1:] & ok1[:, :-1]
         self.accels.append((np.diff(sp, axis=1) / DT)[ok2])
+        for key, stride in FLOOR_STRIDES.items():
+            e, m = frame_rate_floor_errors(xy, a["heading"], v, max(c, 0), stride)
+            self.floor[key][0].append(e)
+            self.floor[key][1].append(m)
         for k in range(len(v)):
             self.collisions += sample_has_overlap(xy[k], a["heading"][k], v[k], a["size"][k])
             present = v[k].any(0)
@@ -154,7 +198,18 @@ class _Figures:
             "log_collisions": int(self.collisions),
             "log_collision_fraction": float(self.collisions / self.n),
             "agent_types": {AGENT_TYPES[i]: int(c) for i, c in enumerate(self.type_hist) if c},
+            "frame_rate_floor": {k: _floor_summary(cat(e), cat(m)) for k, (e, m) in self.floor.items()},
         }
+
+
+def _floor_summary(err: np.ndarray, man: np.ndarray) -> dict:
+    """Mean / p95 / max of the frame-rate floor errors (metres), overall and on maneuvering agent-frames."""
+    def stats(x):
+        return {"n": int(len(x)), "mean_m": float(x.mean()) if len(x) else None,
+                "p95_m": float(np.percentile(x, 95)) if len(x) else None,
+                "max_m": float(x.max()) if len(x) else None}
+    return {"all": stats(err), "maneuver": stats(err[man.astype(bool)]),
+            "maneuver_share": float(man.mean()) if len(man) else None}
 
 
 def shard_source(meta: dict, build_source: str | None = None) -> str:
@@ -234,6 +289,11 @@ def format_summary(s: dict) -> str:
         v = s.get(k)
         lines.append(f"  {k:38s} {v:.3f}" if isinstance(v, float) else f"  {k:38s} {v}")
     lines.append(f"  agent types              {s['agent_types']}")
+    for k, f in (s.get("frame_rate_floor") or {}).items():
+        a, m = f["all"], f["maneuver"]
+        if a["n"]:
+            lines.append(f"  frame-rate floor {k:4s}    mean {a['mean_m']:.3f} m, p95 {a['p95_m']:.3f} m; maneuvers "
+                         f"({f['maneuver_share']:.2f} of frames) mean {m['mean_m'] or 0:.3f} m, p95 {m['p95_m'] or 0:.3f} m")
     if s.get("samples_per_layout"):
         lines.append(f"  samples per layout       {s['samples_per_layout']}")
     if s.get("overlap_gate"):
