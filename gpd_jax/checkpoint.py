@@ -105,13 +105,28 @@ def build_model(config, seed: int | None = None, codebook: np.ndarray | None = N
     `gpd_jax.model.PlanningHead`; `python train.py --config configs/gpd_sumo_plan_head.py` trains it)."""
     m = config.model
     if codebook is None and m.map_tokenizer:
-        codebook = np.asarray(load_tokenizer(resolve_tokenizer_path(m.map_tokenizer, checkpoint_dir)).codebook)
+        tok = load_tokenizer(resolve_tokenizer_path(m.map_tokenizer, checkpoint_dir))
+        check_map_extent(config, tok)
+        codebook = np.asarray(tok.codebook)
     seed = config.seed if seed is None else seed
     module = GPD(m, nnx.Rngs(seed), codebook=codebook, frame_period_s=model_frame_period_s(config))
     if config.get("plan_head"):
         # The fine-tuned planner (gpd_jax.model.planning_head): its parameters live under "plan_head".
         module.plan_head = PlanningHead.from_config(config.plan_head, m, nnx.Rngs(seed + 1))
     return module
+
+
+def check_map_extent(config, tokenizer) -> None:
+    """An `agent_map_context` model places agents on the map-token grid with `model.map_extent_m`: it must be the
+    window the tokenizer's rasters cover (raises ValueError naming both)."""
+    if not config.model.get("agent_map_context", False):
+        return
+    r = tokenizer.config.raster
+    window = float(r.size) * float(r.pixel_size)
+    extent = float(config.model.get("map_extent_m", 64.0))
+    if abs(window - extent) > 1e-6:
+        raise ValueError(f"model.map_extent_m is {extent} m but the map tokenizer's rasters cover {window} m "
+                         f"({r.size} px x {r.pixel_size} m): set model.map_extent_m={window}")
 
 
 def is_exported(path: str) -> bool:
@@ -152,6 +167,8 @@ def load_model(path: str | None = None, step: int | None = None) -> Model:
         raise ValueError(f"{cfg_path}: stage is {config.get('stage')!r}, not a GPD model")
     tok_path = resolve_tokenizer_path(config.model.map_tokenizer, path)
     tokenizer = load_tokenizer(tok_path) if tok_path else None
+    if tokenizer is not None:
+        check_map_extent(config, tokenizer)
     codebook = None if tokenizer is None else np.asarray(tokenizer.codebook)
     graphdef, params, rest = nnx.split(build_model(config, codebook=codebook), nnx.Param, ...)
     if is_exported(path):

@@ -17,6 +17,14 @@ Option `velocity_inputs` (not in the paper): agent tokens also encode each agent
 fifth head predicts the next frame's velocity, which is fed back like positions. With `velocity_residual` the
 position head then regresses the residual over xy + velocity * frame period, so a model at a low frame rate
 extrapolates from current motion (as constant velocity at the stored rate does) instead of last frame's.
+
+Option `agent_map_context` (not in the paper): each agent token also gets the map of its surroundings, read
+from its own frame's map tokens: the embeddings of the 3 x 3 map cells around the agent's position in the
+frame's ego frame (cells outside the grid are zeros), the agent's offset inside its cell and its heading relative
+to the ego, through a small MLP whose last layer starts at zero (`local_map_context`). The plain model reaches
+the map only through attention from learned slot and grid embeddings; with the other scene's map tokens its
+agents lose little (the README's "Does the model use the map?"), so this gives every agent the cells it stands
+on directly.
 """
 
 from __future__ import annotations
@@ -33,6 +41,10 @@ from flax import nnx
 from gpd_jax.model.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
 from gpd_jax.model.agent_tokenizer import AgentTokenizer, sinusoid_table
+
+
+# the map cells each agent reads with `agent_map_context`: (row, column) offsets from its own cell
+CONTEXT_CELLS = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1))
 
 
 class Frozen(nnx.Variable):
@@ -170,6 +182,14 @@ class GPD(nnx.Module):
         self.valid_head = MLP((d, hh, 1), rngs)
         self.map_head = MLP((d, hh, k_codes), rngs)
         self.velocity_head = MLP((d, hh, 2), rngs) if self.velocity_inputs else None
+        self.grid = grid
+        self.map_context = bool(cfg.get("agent_map_context", False))
+        if self.map_context:
+            # the map window the tokens cover (the map tokenizer's raster: 256 px x 0.25 m)
+            self.map_extent_m = float(cfg.get("map_extent_m", 64.0))
+            self.context_in = nnx.Linear(len(CONTEXT_CELLS) * d + 4, d, rngs=rngs)
+            self.context_ln = nnx.LayerNorm(d, rngs=rngs)
+            self.context_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
 
     # ------------------------------------------------------------------ embedding
     def embed(self, xy, heading, valid, map_tokens, frames, velocity=None):
@@ -184,14 +204,49 @@ class GPD(nnx.Module):
         """
         codes = self.tokenizer.encode(xy, heading, self.input_velocity(velocity))
         agents = self.agent_mlp(codes)
-        agents = jnp.where(valid[..., None], agents, self.oob[...])
         if self.codebook is not None:
             maps = self.map_in(jnp.take(self.codebook[...], map_tokens, axis=0))
         else:
             maps = self.map_embed(map_tokens)
+        if self.map_context:
+            agents = agents + self.local_map_context(xy, heading, valid, maps)
+        agents = jnp.where(valid[..., None], agents, self.oob[...])
         maps = maps + self.grid_mlp(self.grid_code[...])
         tokens = jnp.concatenate([maps, agents], axis=-2)
         return tokens + self.slot_emb[...] + jnp.take(self.frame_emb[...], frames, axis=0)[:, None, :]
+
+    def local_map_context(self, xy, heading, valid, maps):
+        """f32[F, A, d] what each agent's surroundings add to its token (`agent_map_context`).
+
+        xy f32[F, A, 2], heading f32[F, A], valid bool[F, A] are the frame's inputs (slot 0 is the ego, whose pose
+        the frame's map tokens are expressed in: the raster convention of `gpd_jax.map_tokenizer.raster`, rows
+        from the front, columns from the left); maps f32[F, M, d] the map tokens' embeddings (before the grid
+        code). Zeros for invalid agents, agents of frames whose ego is invalid, and agents outside the window.
+        """
+        g, cell = self.grid, self.map_extent_m / self.grid
+        half = self.map_extent_m / 2
+        # invalid slots may hold anything (NaN too): zero them before any arithmetic, gradients included
+        xy = jnp.where(valid[..., None], xy, 0.0)
+        heading = jnp.where(valid, heading, 0.0)
+        c, s = jnp.cos(heading[:, :1]), jnp.sin(heading[:, :1])
+        d = xy - xy[:, :1]
+        x = c * d[..., 0] + s * d[..., 1]
+        y = -s * d[..., 0] + c * d[..., 1]
+        r, col = (half - x) / cell, (half - y) / cell  # f32[F, A] in cells
+        ri, ci = jnp.floor(r), jnp.floor(col)
+        offs = jnp.asarray(CONTEXT_CELLS, jnp.float32)  # [9, 2]
+        rows = ri[..., None] + offs[:, 0]
+        cols = ci[..., None] + offs[:, 1]
+        inside = (rows >= 0) & (rows < g) & (cols >= 0) & (cols < g)  # [F, A, 9]
+        idx = (jnp.clip(rows, 0, g - 1) * g + jnp.clip(cols, 0, g - 1)).astype(jnp.int32)
+        cells = jax.vmap(lambda m, i: jnp.take(m, i, axis=0))(maps, idx)  # [F, A, 9, d]
+        cells = jnp.where(inside[..., None], cells, 0.0)
+        rel = heading - heading[:, :1]
+        feats = jnp.concatenate([cells.reshape(*cells.shape[:2], -1),
+                                 jnp.stack([r - ri - 0.5, col - ci - 0.5, jnp.cos(rel), jnp.sin(rel)], -1)], -1)
+        out = self.context_out(jax.nn.relu(self.context_ln(self.context_in(feats))))
+        keep = valid & valid[:, :1] & jnp.any(inside, axis=-1)
+        return jnp.where(keep[..., None], out, 0.0)
 
     # ------------------------------------------------------------------ heads
     def input_velocity(self, velocity):

@@ -127,14 +127,42 @@ def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> Non
         _check_token_source(validation_dir(config, data_dir), (config.data.val_split,), config.model.map_tokenizer)
 
 
-def initial_params(path: str, config):
+# Model options a fine-tune may switch on over a model trained without them: their parameters start fresh, and
+# at their initialisation (a last layer at zero) the model computes exactly what the source model does.
+ADDABLE_OPTIONS = ("agent_map_context", "map_extent_m")
+
+
+def initial_params(path: str, config, template=None):
     """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its
-    model config must equal `config.model` (the map tokenizer's path aside)."""
+    model config must equal `config.model` (the map tokenizer's path aside), except that options of
+    `ADDABLE_OPTIONS` may be on here and off there: then `template` (this config's freshly initialised params)
+    keeps the new parameters and takes every other leaf from the source."""
     src = load_model(path)
-    diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
+    adding = bool(config.model.get("agent_map_context", False)) and not src.config.model.get("agent_map_context",
+                                                                                            False)
+    diff = config_differences(config.model, src.config.model,
+                              ignore=("map_tokenizer",) + (ADDABLE_OPTIONS if adding else ()))
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-    return src.params
+    if not adding:
+        return src.params
+    if template is None:
+        raise ValueError("initial_params: adding agent_map_context needs the new model's params as a template")
+    flat_src = {jax.tree_util.keystr(p): x for p, x in jax.tree_util.tree_leaves_with_path(src.params)}
+    missing = []
+
+    def take(p, x):
+        k = jax.tree_util.keystr(p)
+        if k in flat_src and flat_src[k].shape == x.shape:
+            return jnp.asarray(flat_src[k], x.dtype)
+        missing.append(k)
+        return x
+
+    out = jax.tree_util.tree_map_with_path(take, template)
+    stray = [k for k in missing if ".context_" not in k and "'context_" not in k]
+    if stray:
+        raise ValueError(f"train.init_from {path}: no parameters for {stray[:5]}")
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- training
@@ -182,7 +210,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if mgr.latest_step() is not None:
         state = TrainState(**restore_state(mgr, state._asdict()))
     elif tc.init_from:
-        state = trainer.init_state(initial_params(str(tc.init_from), config))
+        state = trainer.init_state(initial_params(str(tc.init_from), config, nnx.state(model, nnx.Param)))
     start = int(state.step)
     replicated = NamedSharding(mesh, PartitionSpec())
     state = jax.device_put(state, replicated)
