@@ -7,6 +7,7 @@
    it, and the same with the road given in the history only and the map generated afterwards.
 
     python examples/prompt_demo.py --out /work/notes/prompts_demo     # prints the numbers, writes PNG/GIF + JSON
+    python examples/prompt_demo.py --checkpoint checkpoints/gpd_sumo_real --out OUT   # another model
 """
 
 from __future__ import annotations
@@ -84,8 +85,9 @@ def curved_scene(road, num_stored=101, current=20, dt=0.1, slots=33, v=8.0):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default="/work/notes/prompts_demo")
+    ap.add_argument("--checkpoint", default=None, help="an exported GPD (default: the shipped checkpoints/gpd_sumo)")
     args = ap.parse_args()
-    model = gpd_jax.load_model()
+    model = gpd_jax.load_model(args.checkpoint)
     spec, tok = model.spec, model.tokenizer
     h, t_total = spec.num_history, spec.num_frames
     fut = np.arange(h, t_total)

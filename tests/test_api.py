@@ -151,3 +151,26 @@ def test_examples_run(example, store, tmp_path):
         assert any(f.endswith(".gif") for f in os.listdir(tmp_path / "pictures"))
     else:
         assert "gradient norm" in res.stdout
+
+
+def test_map_use_example_swaps_only_the_map(scenes, store):
+    import dataclasses
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("map_use", os.path.join(ROOT, "examples", "map_use.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    with pytest.raises(SystemExit, match="no stored map tokens"):
+        mod.main(["--data", store, "--split", "test", "--scenarios", "2"])
+    n = np.asarray(scenes.xy).shape[0]
+    tok = np.arange(np.asarray(scenes.map_tokens).size).reshape(np.asarray(scenes.map_tokens).shape) % 7
+    tok[..., :3] = 5  # the most frequent code
+    sc = dataclasses.replace(scenes, map_tokens=tok, map_valid=np.ones_like(np.asarray(scenes.map_valid)))
+    v = mod.map_variants(sc)
+    assert set(v) == {"logged", "other_scene", "constant_code"}
+    np.testing.assert_array_equal(v["other_scene"].map_tokens[1:], tok[:-1])
+    np.testing.assert_array_equal(v["other_scene"].polylines[0], np.asarray(scenes.polylines)[n - 1])
+    assert np.all(v["constant_code"].map_tokens == 5)
+    for name in ("other_scene", "constant_code"):  # agents, frames and poses untouched
+        for f in ("xy", "heading", "valid", "ego_pose"):
+            np.testing.assert_array_equal(np.asarray(getattr(v[name], f)), np.asarray(getattr(scenes, f)))

@@ -1,0 +1,72 @@
+"""Does a GPD use the map? Traffic simulation on the same scenes, agents and frames with three maps:
+
+* `logged`: the scenes' own map tokens (plain traffic simulation);
+* `other_scene`: the map tokens (and lane polylines) of another scene of the split (each scene takes the previous
+  one's), so the road no longer matches the agents;
+* `constant_code`: every map token the split's most frequent code (no road at all).
+
+If agent ADE / constant velocity barely changes between them, the model's agents do not read the map.
+
+    python examples/map_use.py --checkpoint checkpoints/gpd_sumo_real --data data/mix_real_dev --split val \
+        --scenarios 150 --json OUT.json
+
+(The figures of checkpoints/gpd_sumo_real/README.md, "Does the model use the map?", come from this script.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+import numpy as np
+
+import gpd_jax
+from gpd_jax.data.loader import SplitSource
+from gpd_jax.fsutil import atomic_write_json
+
+
+def map_variants(scenes: gpd_jax.Scene) -> dict[str, gpd_jax.Scene]:
+    """The three maps of the module docstring for stored-rate scenes Scene [n, ...] (n >= 2)."""
+    tokens, known = np.asarray(scenes.map_tokens), np.asarray(scenes.map_valid)
+    if not known.any():
+        raise SystemExit("these scenes have no stored map tokens: run `python -m gpd_jax.map_tokenizer encode` "
+                         "on the store first (constant_code needs real codes)")
+    roll = lambda x: None if x is None else np.roll(np.asarray(x), 1, axis=0)  # noqa: E731
+    common = np.bincount(tokens[known].ravel()).argmax()
+    return {
+        "logged": scenes,
+        "other_scene": dataclasses.replace(scenes, map_tokens=roll(tokens), map_valid=roll(known),
+                                           polylines=roll(scenes.polylines),
+                                           polyline_valid=roll(scenes.polyline_valid)),
+        "constant_code": dataclasses.replace(scenes, map_tokens=np.full_like(tokens, common),
+                                             map_valid=np.ones_like(known)),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--checkpoint", default=None, help="an exported GPD (default: checkpoints/gpd_sumo)")
+    ap.add_argument("--data", required=True, help="a data store with map tokens")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--scenarios", type=int, default=150)
+    ap.add_argument("--json", default=None, help="write the figures here")
+    args = ap.parse_args(argv)
+    model = gpd_jax.load_model(args.checkpoint)
+    n = min(args.scenarios, len(SplitSource(args.data, args.split)))
+    scenes = gpd_jax.load_scenes(args.data, args.split, indices=range(n))
+    out = {}
+    for name, s in map_variants(scenes).items():
+        r = gpd_jax.evaluate(model, s, "traffic_simulation")
+        split = r["motion_split"]["ratios"]["traffic_simulation_over_constant_velocity"]
+        out[name] = {"agent_ade_over_cv": r["ratios"]["traffic_simulation_agent_ade_over_constant_velocity"],
+                     "moving": split["agent_moving"], "stationary": split["agent_stationary"]}
+        print(name, json.dumps({k: {h: round(v, 3) for h, v in d.items()} for k, d in out[name].items()}))
+    if args.json:
+        atomic_write_json(args.json, {"checkpoint": args.checkpoint, "data": args.data, "split": args.split,
+                                      "scenarios": n, **out})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
