@@ -17,6 +17,25 @@ import orbax.checkpoint as ocp
 from gpd_jax.fsutil import orbax_manager
 
 
+def graft_params(template, source, fresh) -> tuple[Any, list[str]]:
+    """`template` (a params tree) with every leaf taken from `source` (a params tree of another model) at the same
+    path and shape, except where `fresh(path)` (a jax key path) says the leaf stays as initialised. Returns (tree, the key
+    strings of the other leaves `source` lacks)."""
+    flat = {jax.tree_util.keystr(p): x for p, x in jax.tree_util.tree_leaves_with_path(source)}
+    missing = []
+
+    def take(p, x):
+        if fresh(p):
+            return x
+        k = jax.tree_util.keystr(p)
+        if k not in flat or flat[k].shape != x.shape:
+            missing.append(k)
+            return x
+        return jax.numpy.asarray(flat[k], x.dtype)
+
+    return jax.tree_util.tree_map_with_path(take, template), missing
+
+
 def checkpoint_manager(workdir: str, keep: int = 2) -> ocp.CheckpointManager:
     """The workdir's CheckpointManager (`WORKDIR/checkpoints`, the `keep` latest steps kept)."""
     return orbax_manager(workdir, keep=keep)

@@ -52,7 +52,8 @@ from gpd_jax.model import count_params
 from gpd_jax.parallel import data_mesh
 from gpd_jax.scene import Scene
 from gpd_jax.spec import ModelSpec, spec_from_config
-from gpd_jax.training.common import MetricsLog, StopOnSigterm, checkpoint_manager, restore_state, save_state
+from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, graft_params, restore_state,
+                                     save_state)
 from gpd_jax.training.step import TrainState, make_trainer
 from gpd_jax.training.validation import Validator
 
@@ -148,20 +149,10 @@ def initial_params(path: str, config, template=None):
         return src.params
     if template is None:
         raise ValueError("initial_params: adding agent_map_context needs the new model's params as a template")
-    flat_src = {jax.tree_util.keystr(p): x for p, x in jax.tree_util.tree_leaves_with_path(src.params)}
-    missing = []
-
-    def take(p, x):
-        k = jax.tree_util.keystr(p)
-        if k in flat_src and flat_src[k].shape == x.shape:
-            return jnp.asarray(flat_src[k], x.dtype)
-        missing.append(k)
-        return x
-
-    out = jax.tree_util.tree_map_with_path(take, template)
-    stray = [k for k in missing if ".context_" not in k and "'context_" not in k]
-    if stray:
-        raise ValueError(f"train.init_from {path}: no parameters for {stray[:5]}")
+    out, missing = graft_params(template, src.params,
+                                lambda p: "context_" in jax.tree_util.keystr(p))
+    if missing:
+        raise ValueError(f"train.init_from {path}: no parameters for {missing[:5]}")
     return out
 
 

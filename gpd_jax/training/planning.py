@@ -57,7 +57,7 @@ from gpd_jax.model import count_params, forward
 from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.spec import EvalError
-from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state
+from gpd_jax.training.common import MetricsLog, checkpoint_manager, graft_params, restore_state
 from gpd_jax.training.loop import check_token_sources, prepare_run, run_steps, store_dirs, validation_dir
 from gpd_jax.training.step import TrainState, _smooth_l1, batch_loss, make_optimizer
 
@@ -286,19 +286,7 @@ def pretrained_params(path: str, config, template):
     diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-    flat_src = {jax.tree_util.keystr(p): x for p, x in jax.tree_util.tree_leaves_with_path(src.params)}
-    missing = []
-
-    def take(p, x):
-        if is_head_path(p):
-            return x
-        k = jax.tree_util.keystr(p)
-        if k not in flat_src:
-            missing.append(k)
-            return x
-        return jnp.asarray(flat_src[k], x.dtype)
-
-    out = jax.tree_util.tree_map_with_path(take, template)
+    out, missing = graft_params(template, src.params, is_head_path)
     if missing:
         raise ValueError(f"train.init_from {path}: no parameters for {missing[:5]}")
     return out
