@@ -217,7 +217,7 @@ def test_options_cli_and_old_settings(tmp_path):
     class A:
         traffic, parking_edge_share, parking_occupancy, parked_leave_share = "legacy", None, None, None
         short_stop_share, drivers, ego_rule, ego_stationary_share = None, None, None, None
-        lefthand_share, static_tls_share = None, None
+        lefthand_share, static_tls_share, curved_share = None, None, None
 
     o = traffic_options(A)
     assert o["ego"] == build.LEGACY_EGO and o["lefthand_share"] == 0.0 and o["static_tls_share"] == 0.0
@@ -245,6 +245,54 @@ def test_options_cli_and_old_settings(tmp_path):
     assert sumo.random_net_spec(9) == dataclasses.replace(sumo.random_net_spec(9, None, 1.0, 1.0), lefthand=False,
                                                          tls_type="actuated")
     assert sum(sumo.random_net_spec(s, None, 0.25).lefthand for s in range(200)) in range(30, 71)
+    assert sumo.random_net_spec(9, None, 1.0, 1.0) == dataclasses.replace(
+        sumo.random_net_spec(9, None, 1.0, 1.0, 1.0), bend=0.0)
+    bends = [sumo.random_net_spec(s, None, 0.0, 0.0, 0.5).bend for s in range(200)]
+    assert sum(b > 0 for b in bends) in range(70, 131)
+    assert all(b == 0 or sumo.BEND_RANGE[0] <= b <= sumo.BEND_RANGE[1] for b in bends)
+    # bending is for generated networks: with given ones the flag is refused, not ignored
+    assert main(["build", "--out", str(tmp_path / "o"), "--scenarios", "1", "--curved-share", "0.5",
+                 "--net", str(tmp_path / "missing.net.xml")]) == 2
+
+
+def test_curved_streets_share_one_centreline_per_road():
+    nod = ('<nodes><node id="a" x="0.00" y="0.00" type="priority"/><node id="b" x="200.00" y="0.00"/>'
+           '<node id="c" x="200.00" y="20.00"/></nodes>')
+    edg = ('<edges><edge id="ab" from="a" to="b" numLanes="1"/><edge id="ba" from="b" to="a" numLanes="1"/>'
+           '<edge id="bc" from="b" to="c" numLanes="1"/></edges>')
+    spec = dataclasses.replace(sumo.random_net_spec(4, "grid"), bend=0.2)
+    out = sumo._bend_edges(edg, nod, spec)
+    assert out == sumo._bend_edges(edg, nod, spec)  # deterministic in the seed
+
+    def shape(eid):
+        m = re.search(rf'<edge id="{eid}"[^>]*?shape="([^"]+)"', out)
+        return None if m is None else np.array([[float(v) for v in p.split(",")] for p in m.group(1).split()])
+
+    ab, ba = shape("ab"), shape("ba")
+    assert shape("bc") is None  # 20 m: too short to bend
+    if ab is None:  # this seed drew a straight street: both directions stay straight
+        assert ba is None
+        return
+    np.testing.assert_allclose(ab, ba[::-1])  # one road, two directions: the same centreline
+    np.testing.assert_allclose(ab[[0, -1]], [[0, 0], [200, 0]])
+    assert 0.95 * 0.5 * 0.2 * 200 * 0.6 <= np.abs(ab[:, 1]).max() <= 0.2 * 200 + 1e-6
+    assert np.all(np.diff(ab[:, 0]) > 0) and np.diff(ab[:, 0]).max() <= 4.0 + 1e-6
+
+
+def test_curved_network_lanes_turn_along_their_streets(tmp_path):
+    base = dataclasses.replace(sumo.random_net_spec(3, "grid"), size=3, size2=3)
+
+    def max_turn(spec):  # the largest heading change along one lane chain between junctions
+        _, edges = sumo.read_network_edges(sumo.generate_network(spec, str(tmp_path / f"{spec.bend}.net.xml")))
+        turns = [0.0]
+        for e in edges:
+            d = np.diff(np.asarray(e.shape), axis=0)
+            h = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+            turns.append(float(h.max() - h.min()))
+        return max(turns)
+
+    assert max_turn(base) < 0.05
+    assert max_turn(dataclasses.replace(base, bend=0.2)) > 0.6
 
 
 def test_static_lights_and_lefthand_in_the_network_file(tmp_path):

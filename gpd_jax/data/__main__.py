@@ -45,7 +45,7 @@ def _share(text: str) -> float:
 
 
 TRAFFIC_FLAGS = ("parking_edge_share", "parking_occupancy", "parked_leave_share", "short_stop_share", "drivers",
-                 "ego_rule", "ego_stationary_share", "lefthand_share", "static_tls_share")
+                 "ego_rule", "ego_stationary_share", "lefthand_share", "static_tls_share", "curved_share")
 
 
 def traffic_options(args) -> dict:
@@ -66,7 +66,8 @@ def traffic_options(args) -> dict:
     return {"traffic": traffic or None, "ego": ego,
             "lefthand_share": args.lefthand_share if args.lefthand_share is not None else (0.0 if legacy else None),
             "static_tls_share": (args.static_tls_share if args.static_tls_share is not None
-                                 else (0.0 if legacy else 0.5))}
+                                 else (0.0 if legacy else 0.5)),
+            "curved_share": args.curved_share or 0.0}
 
 
 def main(argv=None) -> int:
@@ -123,6 +124,8 @@ def main(argv=None) -> int:
                         "--net / --real-networks: 0, else a left-hand copy of each network drawn, location <name>_lh)")
     t.add_argument("--static-tls-share", type=_share, default=None,
                    help="generated networks: share whose traffic lights run fixed cycles (0.5)")
+    t.add_argument("--curved-share", type=_share, default=None,
+                   help="generated networks: share with curved streets, bulges and S-bends (0: straight streets)")
     i = sub.add_parser("inspect", help="summary statistics of a dataset")
     i.add_argument("dir")
     i.add_argument("--json", default=None, help="also write the statistics to this JSON file")

@@ -76,6 +76,7 @@ class SumoJob:
     layout: str = ""  # "grid" | "spider" | "random" (generated), "real" (--real-networks) or "given" (--net)
     lefthand_share: float = 0.0  # generated networks: probability of left-hand traffic (`sumo.random_net_spec`)
     static_tls_share: float = 0.0  # generated networks: probability of fixed-cycle traffic lights
+    curved_share: float = 0.0  # generated networks: probability of curved streets (`sumo.NetSpec.bend`)
     lefthand_net: bool = False  # given networks: simulate a left-hand copy (`sumo.make_lefthand`, in DIR/_networks)
 
     def net_spec(self):
@@ -84,7 +85,8 @@ class SumoJob:
 
         if self.net_path is not None:
             return None
-        return sumo.random_net_spec(self.seed, self.layout or None, self.lefthand_share, self.static_tls_share)
+        return sumo.random_net_spec(self.seed, self.layout or None, self.lefthand_share, self.static_tls_share,
+                                    self.curved_share)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,7 +147,7 @@ def _assign_by_layout(locs: list[str], layouts: list[str], seed: int) -> dict[st
 
 def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_job: int = 50,
                    split: str | None = None, net_layout: str = "given", lefthand_share: float = 0.0,
-                   static_tls_share: float = 0.0) -> list[SumoJob]:
+                   static_tls_share: float = 0.0, curved_share: float = 0.0) -> list[SumoJob]:
     """Jobs of a SUMO build: `ceil(num_scenarios / per_job)` runs, one network each when generating,
     cycling over the given networks (with different demand seeds) otherwise; with fewer jobs than given
     networks, one job per network (as long as there are scenarios for it), the scenarios spread evenly.
@@ -154,7 +156,8 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
     location names end in the layout (`gen_<seed>_<jjjj>_<layout>`); given networks get `net_layout`.
     `lefthand_share`: generated networks: probability of left-hand traffic (drawn from each network's seed);
     given networks: probability that a network is simulated as a left-hand copy (every job of it; its location
-    gets the suffix "_lh"), drawn from `seed` and the network's name.
+    gets the suffix "_lh"), drawn from `seed` and the network's name. `static_tls_share` / `curved_share`:
+    generated networks: probability of fixed-cycle lights / curved streets (`sumo.random_net_spec`).
     """
     from gpd_jax.data.sumo import LAYOUTS
 
@@ -187,7 +190,8 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
     seeds = [int(s.generate_state(1)[0]) for s in ss.spawn(n_jobs)]
     return [SumoJob(i, seeds[i], counts[i], locs[i], splits[locs[i]],
                     nets[i % len(nets)] if nets else None, layouts[i], 0.0 if nets else lefthand_share,
-                    0.0 if nets else static_tls_share, lh_net[i]) for i in range(n_jobs)]
+                    0.0 if nets else static_tls_share, 0.0 if nets else curved_share, lh_net[i])
+            for i in range(n_jobs)]
 
 
 def _net_location(path: str) -> str:
@@ -427,8 +431,10 @@ def iter_sumo_samples(log, cfg: preprocess.SampleConfig, num: int | None, seed: 
         yield f"{log.name}/{start}/{log.agent_ids[e]}", s
 
 
-def traffic_settings(sim_cfg, ego: EgoChoice, lefthand_share: float, static_tls_share: float) -> dict:
-    """The real-traffic options of a SUMO build as recorded in its settings and shards."""
+def traffic_settings(sim_cfg, ego: EgoChoice, lefthand_share: float, static_tls_share: float,
+                     curved_share: float = 0.0) -> dict:
+    """The real-traffic options of a SUMO build as recorded in its settings and shards (`curved_share` only
+    where it is not 0, so that builds from before it resume)."""
     from gpd_jax.data import sumo
 
     def plain(v):  # as JSON gives it back (tuples -> lists), so that recorded and fresh settings compare equal
@@ -436,7 +442,7 @@ def traffic_settings(sim_cfg, ego: EgoChoice, lefthand_share: float, static_tls_
 
     return {**{k: plain(getattr(sim_cfg, k)) for k in sumo.TRAFFIC_FIELDS}, "ego_rule": ego.rule,
             "ego_stationary_share": ego.stationary_share, "lefthand_share": lefthand_share,
-            "static_tls_share": static_tls_share}
+            "static_tls_share": static_tls_share, **({"curved_share": curved_share} if curved_share else {})}
 
 
 def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
@@ -510,7 +516,7 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
                                      "net": job.net_path or dataclasses.asdict(spec),
                                      "lefthand": sumo.is_lefthand(net),
                                      "traffic": record or traffic_settings(sim_cfg, ego, job.lefthand_share,
-                                                                           job.static_tls_share)})
+                                                                           job.static_tls_share, job.curved_share)})
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary = {"index": job.index, "split": job.split, "location": job.location, "layout": job.layout,
@@ -579,7 +585,7 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                keep_overlaps: bool = False, refuse_near_duplicates: bool = True,
                near_duplicate_tol: float | None = None, against: list[str] | tuple = (),
                traffic: dict | None = None, ego: EgoChoice = EgoChoice(), lefthand_share: float | None = None,
-               static_tls_share: float = 0.5) -> dict:
+               static_tls_share: float = 0.5, curved_share: float = 0.0) -> dict:
     """Builds (or resumes) a SUMO dataset in `out_dir`. Returns the manifest.
 
     Args:
@@ -600,6 +606,8 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
         networks, 0 for given ones (a test store of given networks stays as it was unless asked).
       static_tls_share: generated networks: probability of fixed-cycle traffic lights (queues), drawn per
         network from its seed.
+      curved_share: generated networks: probability of curved streets (bulges and S-bends, `sumo.NetSpec.bend`),
+        drawn per network from its seed; 0 (default) = straight streets as in every store built before it.
     All of them are recorded in the settings (`build.traffic` in the manifest) and in every shard's meta.
     """
     from gpd_jax.data import netgeom, sumo
@@ -612,9 +620,13 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
     sample_cfg = sample_cfg or default_sumo_sample_config()
     if lefthand_share is None:
         lefthand_share = 0.0 if nets else 0.25
-    for name, v in (("lefthand_share", lefthand_share), ("static_tls_share", static_tls_share)):
+    for name, v in (("lefthand_share", lefthand_share), ("static_tls_share", static_tls_share),
+                    ("curved_share", curved_share)):
         if not 0.0 <= v <= 1.0:
             raise DataError(None, f"{name} must be a share in [0, 1], got {v!r}")
+    if nets and curved_share:
+        raise DataError(None, f"curved_share={curved_share} bends generated networks only; given networks (--net, "
+                              "--real-networks) keep their own shapes")
     if traffic:
         unknown = sorted(set(traffic) - set(sumo.TRAFFIC_FIELDS))
         if unknown:
@@ -639,14 +651,15 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                 "per_job": per_job, "sample_config": dataclasses.asdict(sample_cfg),
                 "sim_config": dataclasses.asdict(sim_cfg) if sim_cfg else None,
                 "netgen_version": None if nets else NETGEN_VERSION, "net_layout": net_layout if nets else None,
-                "traffic": traffic_settings(eff_sim, ego, lefthand_share, 0.0 if nets else static_tls_share)}
+                "traffic": traffic_settings(eff_sim, ego, lefthand_share, 0.0 if nets else static_tls_share,
+                                            0.0 if nets else curved_share)}
     if _built_before_traffic_options(out_dir) and settings["traffic"] == traffic_settings(
             dataclasses.replace(eff_sim, **sumo.LEGACY_TRAFFIC), LEGACY_EGO, 0.0, 0.0):
         settings.pop("traffic")  # resuming a build from before the traffic options, with --traffic legacy
     if _check_settings(out_dir, settings):  # an abandoned start with other settings: its networks go too
         shutil.rmtree(netgeom.networks_dir(out_dir), ignore_errors=True)
     jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout, lefthand_share,
-                          0.0 if nets else static_tls_share)
+                          0.0 if nets else static_tls_share, 0.0 if nets else curved_share)
     index = prepare_networks(jobs, out_dir, workers)
     dups, dup_summary = check_near_duplicates(out_dir, index, against, near_duplicate_tol)
     if dups:

@@ -119,20 +119,27 @@ class NetSpec:
     connectivity: float = 0.95  # random: probability that a road continues at a node
     lefthand: bool = False  # left-hand traffic (`netconvert --lefthand`; the network's <net lefthand="true">)
     tls_type: str = "actuated"  # traffic-light programs: "actuated" (gap-based) or "static" (fixed cycles: queues)
+    bend: float = 0.0  # curved streets: the largest sideways bulge of a street as a share of its length (0: straight)
+
+
+BEND_RANGE = (0.08, 0.22)  # `NetSpec.bend` of a curved network, drawn uniformly
 
 
 def random_net_spec(seed: int, layout: str | None = None, lefthand_share: float = 0.0,
-                    static_tls_share: float = 0.0) -> NetSpec:
+                    static_tls_share: float = 0.0, curved_share: float = 0.0) -> NetSpec:
     """A network spec drawn from `seed` (the layout too, unless given: "grid", "spider" or "random").
 
-    `lefthand_share` / `static_tls_share`: probabilities that the network has left-hand traffic / fixed-cycle
-    traffic lights, drawn from a stream of their own (with both 0 every spec is the one drawn before they
-    existed)."""
+    `lefthand_share` / `static_tls_share` / `curved_share`: probabilities that the network has left-hand
+    traffic / fixed-cycle traffic lights / curved streets (`NetSpec.bend` drawn from `BEND_RANGE`), each drawn
+    from a stream of its own (with all three 0 every spec is the one drawn before they existed)."""
     spec = _random_net_spec(seed, layout)
     rng = np.random.default_rng([seed, 19])
     u_left, u_tls = rng.uniform(size=2)
+    u_curve, bend = np.random.default_rng([seed, 23]).uniform(size=2)
     return dataclasses.replace(spec, lefthand=bool(u_left < lefthand_share),
-                               tls_type="static" if u_tls < static_tls_share else "actuated")
+                               tls_type="static" if u_tls < static_tls_share else "actuated",
+                               bend=float(BEND_RANGE[0] + (BEND_RANGE[1] - BEND_RANGE[0]) * bend)
+                               if u_curve < curved_share else 0.0)
 
 
 def _random_net_spec(seed: int, layout: str | None = None) -> NetSpec:
@@ -165,7 +172,8 @@ def _random_net_spec(seed: int, layout: str | None = None) -> NetSpec:
 def generate_network(spec: NetSpec, out_path: str) -> str:
     """Runs netgenerate for `spec`, writing `out_path` (.net.xml, or .net.xml.gz compressed). Returns the path."""
     flag = {"random": "rand", "rand": "rand"}.get(spec.layout, spec.layout)
-    rewrite = flag in ("grid", "spider") and (spec.jitter > 0 or spec.perturb > 0)
+    jitter = flag in ("grid", "spider") and (spec.jitter > 0 or spec.perturb > 0)
+    rewrite = jitter or spec.bend > 0  # netgenerate's plain files are edited, then netconvert builds the network
     if spec.tls_type not in ("actuated", "static"):
         raise ValueError(f"unknown tls_type {spec.tls_type!r}; expected 'actuated' or 'static'")
     common = ["--no-turnarounds", "true", "--junctions.join", "false", "--no-warnings", "true",
@@ -177,7 +185,7 @@ def generate_network(spec: NetSpec, out_path: str) -> str:
             "--default.lanenumber", str(spec.lanes), "--default.speed", f"{spec.speed:.2f}", *common]
     if rewrite:
         args += ["--plain-output-prefix", os.path.join(plain, "p")]
-    if spec.perturb > 0 and not rewrite:
+    if spec.perturb > 0 and not jitter:
         s = spec.perturb
         args += ["--perturb-x", f"normc(0,{s:.2f},{-2 * s:.2f},{2 * s:.2f})",
                  "--perturb-y", f"normc(0,{s:.2f},{-2 * s:.2f},{2 * s:.2f})"]
@@ -204,12 +212,19 @@ def generate_network(spec: NetSpec, out_path: str) -> str:
     try:
         _run(args, what=f"netgenerate {spec}", env=env)
         if rewrite:
-            nod = os.path.join(plain, "p.nod.xml")
+            nod, edg = os.path.join(plain, "p.nod.xml"), os.path.join(plain, "p.edg.xml")
             with open(nod) as f:
                 text = f.read()
-            with open(nod, "w") as f:
-                f.write(_jitter_nodes(text, spec))
-            _run([_bin("netconvert"), "--node-files", nod, "--edge-files", os.path.join(plain, "p.edg.xml"),
+            if jitter:
+                text = _jitter_nodes(text, spec)
+                with open(nod, "w") as f:
+                    f.write(text)
+            if spec.bend > 0:
+                with open(edg) as f:
+                    edges = f.read()
+                with open(edg, "w") as f:
+                    f.write(_bend_edges(edges, text, spec))
+            _run([_bin("netconvert"), "--node-files", nod, "--edge-files", edg,
                   "-o", out_path, *common] + (["--tls.guess", "true"] if spec.junction == "mixed" else []),
                  what=f"netconvert {spec}", env=env)
     finally:
@@ -217,6 +232,49 @@ def generate_network(spec: NetSpec, out_path: str) -> str:
             import shutil
             shutil.rmtree(plain, ignore_errors=True)
     return out_path
+
+
+_NODE_ID = re.compile(r'<node [^>]*?\bid="([^"]+)"[^>]*?\bx="([-\d.]+)"[^>]*?\by="([-\d.]+)"')
+_EDGE_ENDS = re.compile(r'<edge [^>]*?\bfrom="([^"]+)"[^>]*?\bto="([^"]+)"[^>]*?(/?>)')
+
+
+def _bend_edges(edg_text: str, nod_text: str, spec: NetSpec, step_m: float = 4.0, min_len_m: float = 40.0) -> str:
+    """netgenerate's plain edges with curved shapes (`NetSpec.bend`); deterministic in `spec.seed`.
+
+    Each street (node pair; both directions share one centreline, reversed, so that a two-way road stays one road)
+    longer than `min_len_m` is drawn as a one-sided bulge (`sin(pi s)`, 55 %), an S-bend (`0.6 sin(2 pi s)`, 30 %)
+    or kept straight (15 %), with an amplitude of U(0.5, 1) * `spec.bend` * its length and a random side. A bulge
+    of 0.22 x length bends a 150 m street to a 69 m radius at its middle and meets its junctions 35 degrees off
+    the chord; an S-bend of a 200 m street at the same bend turns at a 47 m radius."""
+    nodes = {m.group(1): np.array([float(m.group(2)), float(m.group(3))]) for m in _NODE_ID.finditer(nod_text)}
+    rng = np.random.default_rng([spec.seed, 17])
+    shapes: dict[tuple[str, str], np.ndarray | None] = {}
+    out, k = [], 0
+    for m in _EDGE_ENDS.finditer(edg_text):
+        a, b = m.group(1), m.group(2)
+        if a not in nodes or b not in nodes:
+            raise RuntimeError(f"netgenerate's edge {a}->{b} names a node it did not write ({spec})")
+        key = (a, b) if a <= b else (b, a)
+        if key not in shapes:
+            p, q = nodes[key[0]], nodes[key[1]]
+            chord = float(np.linalg.norm(q - p))
+            kind, amp, side = rng.uniform(), rng.uniform(0.5, 1.0), rng.choice([-1.0, 1.0])
+            if chord < min_len_m or kind >= 0.85 or "shape=" in m.group(0):
+                shapes[key] = None
+            else:
+                s = np.linspace(0.0, 1.0, max(8, int(np.ceil(chord / step_m)) + 1))
+                wave = np.sin(np.pi * s) if kind < 0.55 else 0.6 * np.sin(2 * np.pi * s)
+                d = (q - p) / chord
+                normal = np.array([-d[1], d[0]])
+                shapes[key] = p + s[:, None] * (q - p) + (side * amp * spec.bend * chord * wave)[:, None] * normal
+        pts = shapes[key]
+        if pts is None:
+            continue
+        pts = pts if (a, b) == key else pts[::-1]
+        attr = ' shape="' + " ".join(f"{x:.2f},{y:.2f}" for x, y in pts) + '"'
+        out += [edg_text[k:m.start(3)], attr]
+        k = m.start(3)
+    return "".join(out) + edg_text[k:]
 
 
 _NODE_XY = re.compile(r'(<node [^>]*?\bx=")([-\d.]+)("[^>]*?\by=")([-\d.]+)(")')
