@@ -82,11 +82,11 @@ def curved_scene(road, num_stored=101, current=20, dt=0.1, slots=33, v=8.0):
     return stored_scene(xy, hd, valid, None, None, slots, have_tokens=True)
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default="/work/notes/prompts_demo")
     ap.add_argument("--checkpoint", default=None, help="an exported GPD (default: the shipped checkpoints/gpd_sumo)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     model = gpd_jax.load_model(args.checkpoint)
     spec, tok = model.spec, model.tokenizer
     h, t_total = spec.num_history, spec.num_frames
@@ -153,6 +153,7 @@ def main():
                    size_px=360)
     print(json.dumps(res, indent=1))
     atomic_write_json(os.path.join(args.out, "demo.json"), res)
+    return res
 
 
 if __name__ == "__main__":

@@ -68,6 +68,19 @@ def test_shipped_real_traffic_model_is_its_config():
         os.path.basename(d.rsplit(":", 1)[0]) for d in cfg.data.dir.split(",")]
 
 
+def test_shipped_curved_road_model_is_its_config():
+    """checkpoints/gpd_sumo_real_curved: checkpoints/gpd_sumo_real's architecture, fine-tuned from it with
+    configs/gpd_sumo_real_curved.py (8 rollout passes over a mixture with curved generated streets)."""
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_curved/config.json"))
+    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real/config.json"))
+    assert ship["model"] == base["model"]
+    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real_curved.py")
+    assert ship["train"] == cfg.train.to_dict() and ship["data"] == cfg.data.to_dict()
+    assert cfg.train.init_from == "checkpoints/gpd_sumo_real" and cfg.train.rollout_passes == 8
+
+
 def test_shipped_tokenizer_is_the_decoder_config():
     """checkpoints/map_tokenizer is configs/map_tokenizer_tiny.py's model with the decoder deepened by
     configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's)."""
