@@ -4,8 +4,8 @@ One *job* = one network + one demand seed + one SUMO run. The pipeline of a job:
 
 1. network: `netgenerate` (random / grid / spider layouts, 1-3 lanes, traffic lights or priority junctions,
    sizes, street lengths and netgenerate's random node perturbation all drawn from the job seed, so that no
-   two seeds give the same roads: `NetSpec`), a given `.net.xml[.gz]`, or one of the real OSM-derived
-   networks shipped with SUMO (`real_networks`);
+   two seeds give the same roads: `NetSpec`; optionally curved streets, `NetSpec.bend`), a given `.net.xml[.gz]`,
+   or one of the real OSM-derived networks shipped with SUMO (`real_networks`);
 2. demand: `randomTrips.py --insertion-density` (vehicles per hour and km of lane, so that big and small
    networks get comparable traffic) with `departLane="best" departSpeed="max"`; each vehicle's type is drawn
    by us from a size mix (car, SUV, van, truck, bus) with the job's RNG, so the FCD needs no string columns;
