@@ -27,7 +27,6 @@ import gpd_sumo_real  # noqa: E402
 def get_config():
     c = gpd_sumo_real.get_config()
     c.data.dir = "data/gen_curved_train:0.6,data/mix_real_train:0.4"
-    c.data.val_dir = "data/mix_real_dev"
     t = c.train
     t.init_from = "checkpoints/gpd_sumo_real"
     t.rollout_passes = 8

@@ -652,14 +652,14 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                 "sim_config": dataclasses.asdict(sim_cfg) if sim_cfg else None,
                 "netgen_version": None if nets else NETGEN_VERSION, "net_layout": net_layout if nets else None,
                 "traffic": traffic_settings(eff_sim, ego, lefthand_share, 0.0 if nets else static_tls_share,
-                                            0.0 if nets else curved_share)}
+                                            curved_share)}
     if _built_before_traffic_options(out_dir) and settings["traffic"] == traffic_settings(
             dataclasses.replace(eff_sim, **sumo.LEGACY_TRAFFIC), LEGACY_EGO, 0.0, 0.0):
         settings.pop("traffic")  # resuming a build from before the traffic options, with --traffic legacy
     if _check_settings(out_dir, settings):  # an abandoned start with other settings: its networks go too
         shutil.rmtree(netgeom.networks_dir(out_dir), ignore_errors=True)
     jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout, lefthand_share,
-                          0.0 if nets else static_tls_share, 0.0 if nets else curved_share)
+                          0.0 if nets else static_tls_share, curved_share)
     index = prepare_networks(jobs, out_dir, workers)
     dups, dup_summary = check_near_duplicates(out_dir, index, against, near_duplicate_tol)
     if dups:
