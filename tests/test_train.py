@@ -147,3 +147,40 @@ def test_rollout_passes_train_on_own_predictions_against_the_log():
     cfg.train.map_feedback, cfg.train.rollout_passes = 0.5, 0
     with pytest.raises(ValueError, match="set train.rollout_passes > 0"):
         make_trainer(model, cfg, donate=False)
+
+
+def test_euclidean_agent_loss_takes_the_median_where_smooth_l1_creeps():
+    """A car stopped at a light stays (80 %) or moves 2 m on (20 %): the expected smooth-L1 (beta 1) is least at
+    a 0.25 m creep, the expected Euclidean pseudo-Huber at the median, staying put. Both norms as defined."""
+    from gpd_jax.training.step import vector_loss
+
+    e = np.array([[3.0, 4.0], [0.3, -0.4], [0.0, 0.0]], np.float32)
+    np.testing.assert_allclose(vector_loss(e, "smooth_l1"), [2.5 + 3.5, 0.045 + 0.08, 0.0], rtol=1e-6)
+    np.testing.assert_allclose(vector_loss(e, "euclidean", 0.05),
+                               np.sqrt(np.array([25.0, 0.25, 0.0]) + 0.0025) - 0.05, rtol=1e-6, atol=1e-7)
+    futures = np.array([[0.0, 0.0]] * 8 + [[2.0, 0.0]] * 2, np.float32)
+    grid = np.linspace(0.0, 1.0, 201, dtype=np.float32)
+
+    def best(norm):
+        cost = [float(np.mean(vector_loss(np.array([[x, 0.0]], np.float32) - futures, norm))) for x in grid]
+        return grid[int(np.argmin(cost))]
+
+    assert abs(best("smooth_l1") - 0.25) <= 0.005
+    assert best("euclidean") <= 0.015
+
+
+def test_euclidean_agent_loss_trains_and_an_unknown_norm_is_refused():
+    cfg, model, scenes = _velocity_model()
+    with pytest.raises(ValueError, match="loss.agent_norm"):
+        make_trainer(model, load_config(f"{ROOT}/configs/gpd_tiny.py", ["--config.loss.agent_norm=l2"]))
+    cfg.loss.agent_norm = "euclidean"
+    trainer, state = make_trainer(model, cfg, donate=False)
+    ev = trainer.eval_step(state.params, scenes)
+    assert np.isfinite(float(ev["loss"])) and float(ev["position"]) > 0 and float(ev["velocity"]) > 0
+    cfg.loss.agent_norm = "smooth_l1"
+    smooth = make_trainer(model, cfg, donate=False)[0].eval_step(state.params, scenes)
+    assert abs(float(ev["position"]) - float(smooth["position"])) > 1e-3 * float(smooth["position"])
+    new = state
+    for _ in range(3):
+        new, metrics = trainer.train_step(new, scenes)
+    assert np.isfinite(float(metrics["grad_norm"])) and float(metrics["grad_norm"]) > 0
