@@ -174,3 +174,34 @@ def test_map_use_example_swaps_only_the_map(scenes, store):
     for name in ("other_scene", "constant_code"):  # agents, frames and poses untouched
         for f in ("xy", "heading", "valid", "ego_pose"):
             np.testing.assert_array_equal(np.asarray(getattr(v[name], f)), np.asarray(getattr(scenes, f)))
+
+
+def test_stationary_drift_example_measures_stopped_agents_only():
+    import importlib.util
+    from types import SimpleNamespace
+
+    spec = importlib.util.spec_from_file_location("drift", os.path.join(ROOT, "examples", "stationary_drift.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    t, a = 6, 4
+    xy = np.zeros((1, t, a, 2), np.float32)
+    xy[0, :, 2, 0] = 5.0 * np.arange(t)  # slot 2 moves: not stationary
+    xy[0, 4:, 3, 1] = 2.0  # slot 3 stood, then left 2 m sideways in the log
+    vel = np.zeros((1, t, a, 2), np.float32)
+    vel[0, :, 2, 0] = 5.0
+    valid = np.ones((1, t, a), bool)
+    out_xy = xy.copy()
+    out_xy[0, 2:, 1, 0] = 0.3 * np.arange(1, t - 1)  # slot 1 creeps 0.3 m a frame in the rollout
+    out_xy[0, 2:, 3] = 0.0  # slot 3 stays put in the rollout
+    out_valid = valid.copy()
+    out_valid[0, 5, 1] = False  # not scored where the rollout dropped it
+    res = mod.stationary_drift(SimpleNamespace(xy=xy, valid=valid, velocity=vel), out_xy, out_valid, 2,
+                               frames=(1, 3, 4, 9))
+    assert set(res) == {"1", "3", "4"}  # frame 9 lies beyond the scene
+    assert res["1"]["n"] == 2 and res["4"]["n"] == 1  # slots 1 and 3 (never the ego or the moving slot 2)
+    np.testing.assert_allclose(res["3"]["generated_quantiles_m"][0], 0.45, rtol=1e-5)  # median of 0.9 and 0
+    np.testing.assert_allclose(res["3"]["logged_quantiles_m"][0], 1.0, rtol=1e-5)  # median of 0 and 2
+    assert res["3"]["logged_beyond_1m"] == 0.5 and res["1"]["generated_beyond_1m"] == 0.0
+    np.testing.assert_allclose(res["3"]["error_m"], (0.9 + 2.0) / 2, rtol=1e-5)
+    np.testing.assert_allclose(res["3"]["stay_put_error_m"], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(res["4"]["generated_quantiles_m"][0], 0.0, atol=1e-6)  # slot 3 alone
