@@ -81,6 +81,24 @@ def test_shipped_curved_road_model_is_its_config():
     assert cfg.train.init_from == "checkpoints/gpd_sumo_real" and cfg.train.rollout_passes == 8
 
 
+def test_shipped_euclidean_loss_model_is_its_configs():
+    """checkpoints/gpd_sumo_real_euclid: gpd_sumo_real_curved's architecture, fine-tuned from it in two stages with
+    the Euclidean agent loss (configs/gpd_sumo_real_euclid.py, then configs/gpd_sumo_real_euclid_narrow.py)."""
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_euclid/config.json"))
+    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_curved/config.json"))
+    assert ship["model"] == base["model"]
+    first = load_config(f"{ROOT}/configs/gpd_sumo_real_euclid.py")
+    assert first.train.init_from == "checkpoints/gpd_sumo_real_curved" and first.loss.agent_norm == "euclidean"
+    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real_euclid_narrow.py")
+    assert ship["train"] == cfg.train.to_dict() and ship["data"] == cfg.data.to_dict()
+    assert ship["loss"] == cfg.loss.to_dict() and cfg.loss.agent_norm_delta == 0.01
+    # the two stages differ from each other only in where they start and the loss's width
+    assert {k: v for k, v in first.train.to_dict().items() if k != "init_from"} == {
+        k: v for k, v in cfg.train.to_dict().items() if k != "init_from"}
+
+
 def test_shipped_tokenizer_is_the_decoder_config():
     """checkpoints/map_tokenizer is configs/map_tokenizer_tiny.py's model with the decoder deepened by
     configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's)."""
