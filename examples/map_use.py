@@ -15,15 +15,18 @@ If agent ADE / constant velocity barely changes between them, the model's agents
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
+import os
+import sys
 
 import numpy as np
 
 import gpd_jax
-from gpd_jax.data.loader import SplitSource
 from gpd_jax.fsutil import atomic_write_json
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _store_cli import load_model_and_scenes, store_parser  # noqa: E402
 
 
 def map_variants(scenes: gpd_jax.Scene) -> dict[str, gpd_jax.Scene]:
@@ -45,16 +48,8 @@ def map_variants(scenes: gpd_jax.Scene) -> dict[str, gpd_jax.Scene]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--checkpoint", default=None, help="an exported GPD (default: checkpoints/gpd_sumo)")
-    ap.add_argument("--data", required=True, help="a data store with map tokens")
-    ap.add_argument("--split", default="val")
-    ap.add_argument("--scenarios", type=int, default=150)
-    ap.add_argument("--json", default=None, help="write the figures here")
-    args = ap.parse_args(argv)
-    model = gpd_jax.load_model(args.checkpoint)
-    n = min(args.scenarios, len(SplitSource(args.data, args.split)))
-    scenes = gpd_jax.load_scenes(args.data, args.split, indices=range(n))
+    args = store_parser(__doc__.split("\n\n")[0], "a data store with map tokens").parse_args(argv)
+    model, scenes, n = load_model_and_scenes(args)
     out = {}
     for name, s in map_variants(scenes).items():
         r = gpd_jax.evaluate(model, s, "traffic_simulation")

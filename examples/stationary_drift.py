@@ -14,15 +14,18 @@ what the stationary rows of the motion split charge it with (`python rollout.py`
 
 from __future__ import annotations
 
-import argparse
 import json
+import os
+import sys
 
 import jax
 import numpy as np
 
 import gpd_jax
-from gpd_jax.data.loader import SplitSource
 from gpd_jax.fsutil import atomic_write_json
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _store_cli import load_model_and_scenes, store_parser  # noqa: E402
 
 QUANTILES = (0.5, 0.75, 0.9)
 
@@ -61,16 +64,8 @@ def stationary_drift(view: gpd_jax.Scene, xy_out, valid_out, num_history: int, f
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--checkpoint", default=None, help="an exported GPD (default: checkpoints/gpd_sumo)")
-    ap.add_argument("--data", required=True, help="a data store")
-    ap.add_argument("--split", default="val")
-    ap.add_argument("--scenarios", type=int, default=150)
-    ap.add_argument("--json", default=None, help="write the figures here")
-    args = ap.parse_args(argv)
-    model = gpd_jax.load_model(args.checkpoint)
-    n = min(args.scenarios, len(SplitSource(args.data, args.split)))
-    scenes = gpd_jax.load_scenes(args.data, args.split, indices=range(n))
+    args = store_parser(__doc__.split("\n\n")[0], "a data store").parse_args(argv)
+    model, scenes, n = load_model_and_scenes(args)
     out = gpd_jax.rollout(model, scenes, "traffic_simulation", jax.random.key(0))
     res = {"checkpoint": args.checkpoint, "data": args.data, "split": args.split, "scenarios": n,
            "frame_period_s": model.spec.frame_period_s, "quantiles": list(QUANTILES),

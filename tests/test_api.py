@@ -137,11 +137,13 @@ def test_make_rollout_fn_names_a_bad_method(model):
         gpd_jax.make_rollout_fn(model, method="fast")
 
 
-@pytest.mark.parametrize("example", ["quickstart.py", "functional.py"])
+@pytest.mark.parametrize("example", ["quickstart.py", "functional.py", "stationary_drift.py"])
 def test_examples_run(example, store, tmp_path):
     args = [sys.executable, os.path.join(ROOT, "examples", example), "--data", store]
     if example == "quickstart.py":
         args += ["--scenes", "2", "--out", str(tmp_path / "pictures")]
+    elif example == "stationary_drift.py":
+        args += ["--split", "test", "--scenarios", "2", "--json", str(tmp_path / "drift.json")]
     else:
         args += ["--shifts=-1,1"]
     res = subprocess.run(args, cwd=str(tmp_path), capture_output=True, text=True, timeout=600)
@@ -149,6 +151,11 @@ def test_examples_run(example, store, tmp_path):
     if example == "quickstart.py":
         assert "traffic_simulation 3s" in res.stdout.replace("  ", " ")
         assert any(f.endswith(".gif") for f in os.listdir(tmp_path / "pictures"))
+    elif example == "stationary_drift.py":
+        import json
+
+        out = json.load(open(tmp_path / "drift.json"))
+        assert out["scenarios"] == 2 and set(out["frames"]) <= {"1", "2", "3", "5", "8"} and out["frames"]
     else:
         assert "gradient norm" in res.stdout
 
