@@ -7,7 +7,7 @@ velocity at 3 / 5 / 8 s. Below a metre smooth-L1 is quadratic, so for a stopped 
 mostly and "go" sometimes, the loss is least at the mean, a creep forward every frame, fed back as the next
 frame's velocity; ADE averages error lengths, whose expectation is least at the median, staying put.
 
-    python train.py --config configs/gpd_sumo_real_euclid.py --workdir runs/gpd_sumo_real_euclid
+    python train.py --config configs/gpd_sumo_real_euclid.py --workdir runs/euclid
 
 Its control is the same run with `--config.loss.agent_norm=smooth_l1`: the same start, steps, schedule and data.
 (data/gen_curved_train, data/mix_real_train and data/mix_real_dev as in configs/gpd_sumo_real_curved.py.)

@@ -14,6 +14,7 @@ what the stationary rows of the motion split charge it with (`python rollout.py`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -34,8 +35,9 @@ def stationary_drift(view: gpd_jax.Scene, xy_out, valid_out, num_history: int, f
                      below_mps: float = 0.5) -> dict[str, dict]:
     """Displacement from the current frame of the agents (not the ego) stationary there.
 
-    view: the model's view of the scenes (`gpd_jax.prepare`: xy f32[B, T, A, 2], valid bool[B, T, A], velocity
-    f32[B, T, A, 2] at the stored rate); xy_out f32[B, T, A, 2] / valid_out bool[B, T, A]: a rollout of them.
+    view: the model's frames and slots of the scenes with stored-rate velocities (`speed_view`:
+    xy f32[B, T, A, 2], valid bool[B, T, A], velocity f32[B, T, A, 2]); xy_out f32[B, T, A, 2] /
+    valid_out bool[B, T, A]: a rollout of them.
     For each k in `frames` (model frames after the current one, num_history - 1), over the agents stationary at
     the current frame and valid at frame c + k in both the log and the rollout: their count, the generated and
     logged displacement quantiles (`QUANTILES`, metres), the share of each beyond 1 m, and the mean error
@@ -63,13 +65,19 @@ def stationary_drift(view: gpd_jax.Scene, xy_out, valid_out, num_history: int, f
     return res
 
 
+def speed_view(model, scenes: gpd_jax.Scene) -> gpd_jax.Scene:
+    """The model's frames and slots of stored-rate scenes, with stored-rate velocities whether or not the model
+    reads them (the motion split's speed)."""
+    return dataclasses.replace(model.spec, velocity_inputs=True).view(scenes)
+
+
 def main(argv=None) -> int:
     args = store_parser(__doc__.split("\n\n")[0], "a data store").parse_args(argv)
     model, scenes, n = load_model_and_scenes(args)
     out = gpd_jax.rollout(model, scenes, "traffic_simulation", jax.random.key(0))
     res = {"checkpoint": args.checkpoint, "data": args.data, "split": args.split, "scenarios": n,
            "frame_period_s": model.spec.frame_period_s, "quantiles": list(QUANTILES),
-           "frames": stationary_drift(gpd_jax.prepare(model, scenes), out.xy, out.valid, model.spec.num_history)}
+           "frames": stationary_drift(speed_view(model, scenes), out.xy, out.valid, model.spec.num_history)}
     if args.json:
         atomic_write_json(args.json, res)
     print(json.dumps(res["frames"], indent=1))
