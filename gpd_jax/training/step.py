@@ -44,9 +44,10 @@ def _smooth_l1(x, beta: float = 1.0):
 
 
 AGENT_NORMS = ("smooth_l1", "euclidean")
+NORM_DELTA = 0.05  # the euclidean loss's default width (m, m/s): `loss.agent_norm_delta`
 
 
-def vector_loss(err, norm: str = "smooth_l1", delta: float = 0.05):
+def vector_loss(err, norm: str = "smooth_l1", delta: float = NORM_DELTA):
     """Per-vector loss of errors f32[..., 2] -> f32[...]: "smooth_l1" (beta 1) summed over the components (the
     official loss), or "euclidean", the pseudo-Huber sqrt(|err|^2 + delta^2) - delta of the error's length (its
     gradient is the unit error vector beyond delta: the minimiser of its expectation is the geometric median)."""
@@ -116,7 +117,7 @@ def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int,
 
 
 def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0,
-               feed_map=False, agent_norm: str = "smooth_l1", norm_delta: float = 0.05) -> dict[str, jax.Array]:
+               feed_map=False, agent_norm: str = "smooth_l1", norm_delta: float = NORM_DELTA) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide).
 
     `agent_norm` / `norm_delta`: the position and velocity loss (`vector_loss`).
@@ -147,8 +148,7 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
 def agent_norm_of(loss_cfg) -> tuple[str, float]:
     """(`loss.agent_norm`, `loss.agent_norm_delta`) of a loss config, with the official smooth-L1 where a config
     (for example an older checkpoint's) has neither; an unknown norm is refused here, before anything compiles."""
-    get = loss_cfg.get if hasattr(loss_cfg, "get") else lambda k, d: getattr(loss_cfg, k, d)
-    norm, delta = str(get("agent_norm", "smooth_l1")), float(get("agent_norm_delta", 0.05))
+    norm, delta = str(loss_cfg.get("agent_norm", "smooth_l1")), float(loss_cfg.get("agent_norm_delta", NORM_DELTA))
     if norm not in AGENT_NORMS:
         raise ValueError(f"loss.agent_norm must be one of {AGENT_NORMS}, got {norm!r}")
     if not delta > 0:
