@@ -53,6 +53,7 @@ def get_config() -> ml_collections.ConfigDict:
     lw.velocity = 2.0           # only with model.velocity_inputs (smooth-L1 in m/s)
     lw.agent_norm = "smooth_l1"  # position / velocity loss: "smooth_l1" (official) or "euclidean" (training/step.py)
     lw.agent_norm_delta = 0.05  # the euclidean loss's pseudo-Huber width (m, m/s)
+    lw.moving_weight = 1.0      # agent-loss weight of agents moving at the input frame (training/step.py)
 
     t = c.train = ml_collections.ConfigDict()
     t.batch_size = 16

@@ -1,7 +1,10 @@
 """A short teacher-forced training run on a small synthetic batch: the loss falls by at least half."""
 
+import dataclasses
+
 import chex
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
@@ -184,3 +187,31 @@ def test_euclidean_agent_loss_trains_and_an_unknown_norm_is_refused():
     for _ in range(3):
         new, metrics = trainer.train_step(new, scenes)
     assert np.isfinite(float(metrics["grad_norm"])) and float(metrics["grad_norm"]) > 0
+
+
+def test_moving_weight_weighs_agents_moving_at_the_input_frame():
+    from gpd_jax.metrics import STATIONARY_MPS
+    from gpd_jax.training.step import loss_terms
+
+    cfg, model, scenes = _velocity_model()
+    scene = jax.tree.map(lambda x: x[0], scenes)
+    # half the agents stand still at every frame (speed 0), so both classes are present
+    still = np.arange(scene.xy.shape[1]) % 2 == 0
+    xy = np.where(still[None, :, None], np.asarray(scene.xy[:1]), np.asarray(scene.xy))
+    scene = dataclasses.replace(scene, xy=jnp.asarray(xy)).with_velocity(0.1)
+    speed = np.linalg.norm(np.asarray(scene.velocity[:-1]), axis=-1)
+    tv = np.asarray(scene.valid[1:], np.float32)
+    moving = (speed >= STATIONARY_MPS) & np.asarray(scene.valid[:-1])
+    n_moving = float(np.sum(tv * moving))
+    assert 0 < n_moving < float(np.sum(tv))
+    one, three = (loss_terms(model, scene, cfg.model.num_history, moving_weight=w) for w in (1.0, 3.0))
+    # sums and counts are linear in the weight: the difference is twice the moving agents' share
+    np.testing.assert_allclose(float(three["agent_count"] - one["agent_count"]), 2 * n_moving, rtol=1e-6)
+    stationary_pos = float(one["position_sum"]) - (float(three["position_sum"] - one["position_sum"]) / 2)
+    assert float(three["position_sum"] - one["position_sum"]) > 0 and stationary_pos >= -1e-4 * float(one["position_sum"])
+    cfg.loss.moving_weight = 3.0
+    trainer, state = make_trainer(model, cfg, donate=False)
+    assert np.isfinite(float(trainer.eval_step(state.params, scenes)["loss"]))
+    cfg.loss.moving_weight = 0.0
+    with pytest.raises(ValueError, match="loss.moving_weight"):
+        make_trainer(model, cfg, donate=False)
