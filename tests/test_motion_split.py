@@ -13,7 +13,8 @@ import pytest
 from gpd_jax.evaluation import add_sums, format_tables, reduce_results, score_batch
 from gpd_jax.evaluation.scoring import current_speed
 from gpd_jax.decoding import RolloutOutput
-from gpd_jax.metrics import MOTION_CLASSES, STATIONARY_MPS, agent_metric_sums, reduce_agent_metrics
+from gpd_jax.metrics import (MOTION_CLASSES, STATIONARY_MPS, TRACK_COMPONENTS, agent_metric_sums,
+                             reduce_agent_metrics)
 from gpd_jax.scene import TYPE_ID, Scene
 from gpd_jax.spec import ModelSpec
 
@@ -91,6 +92,11 @@ def test_stationary_and_moving_agents_land_in_their_rows(batch_sums):
             assert d[f"agent_fde_moving{suffix}"] == pytest.approx(3.0, rel=1e-5)
             assert d[f"ego_ade_moving{suffix}"] == pytest.approx(0.5, rel=1e-5)
             assert d[f"ego_ade_stationary{suffix}"] == pytest.approx(0.5, rel=1e-5)
+            # the offset is sideways to the motion (along x): all of it is cross-track
+            for n in ("ade", "fde"):
+                assert d[f"agent_{n}_cross_moving{suffix}"] == pytest.approx(3.0, rel=1e-5)
+                assert d[f"agent_{n}_along_moving{suffix}"] == pytest.approx(0.0, abs=1e-4)
+            assert d[f"ego_ade_cross_moving{suffix}"] == pytest.approx(0.5, rel=1e-5)
         assert (d["agent_n_stationary"], d["agent_n_moving"], d["agent_n_speed_unknown"]) == (2, 2, 2)
         assert (d["ego_n_stationary"], d["ego_n_moving"], d["ego_n_speed_unknown"]) == (1, 1, 0)
         assert np.isnan(d["ego_ade_speed_unknown"])
@@ -103,10 +109,12 @@ def test_stationary_and_moving_agents_land_in_their_rows(batch_sums):
     assert cv["agent_ade_moving"] == pytest.approx(0.0, abs=1e-4) and cv["ego_ade_stationary"] == 0.0
     assert ms["baselines"]["log_replay"]["3s"]["agent_ade_stationary"] == 0.0
     r = ms["ratios"]["traffic_simulation_over_constant_velocity"]
-    assert set(r) == {f"{g}_{k}" for g in ("agent", "ego") for k in MOTION_CLASSES}
+    assert set(r) == ({f"{g}_{k}" for g in ("agent", "ego") for k in MOTION_CLASSES}
+                      | {f"{g}_moving_{c}" for g in ("agent", "ego") for c in TRACK_COMPONENTS})
     table = format_tables(res)
     assert "| agents stationary (< 0.5 m/s) | 2 | 1.00 / 1.00 / 1.00 |" in table
     assert "| agents moving | 2 | 3.00 / 3.00 / 3.00 |" in table
+    assert "| · cross-track | | 3.00 / 3.00 / 3.00 |" in table and "| · along-track | | 0.00 / 0.00 / 0.00 |" in table
     assert "| ego moving | 1 | 0.50 / 0.50 / 0.50 |" in table
     assert "ego speed unknown" not in table and "agents speed unknown" in table
 
@@ -177,3 +185,24 @@ def test_agent_metric_sums_split_under_jit_traces_once():
     # without speeds: no split keys (other users of agent_metric_sums are unaffected)
     plain = agent_metric_sums(pred, jnp.zeros((f, 4)), gt, valid, jnp.ones((4, 2)), num_history=h, horizons=(3,))
     assert not any("stationary" in k for k in plain["0.3s"])
+
+
+def test_along_and_cross_track_components_of_moving_errors():
+    """An error of (L, 0) against a direction of motion (0.6, 0.8) is 0.6 L along the motion and 0.8 L across;
+    only moving slots get the components, and a direction without speeds is refused."""
+    f, h = 6, 3
+    gt = jnp.zeros((f, 4, 2))
+    pred = gt.at[h:, :, 0].add(jnp.array([1.0, 2.0, 4.0, 8.0]))
+    valid = jnp.ones((f, 4), bool)
+    direction = jnp.tile(jnp.array([[0.6, 0.8]]), (4, 1))
+    fn = functools.partial(agent_metric_sums, pred, jnp.zeros((f, 4)), gt, valid, jnp.ones((4, 2)), num_history=h,
+                           horizons=(3,), current_direction=direction)
+    for variant in ("paper", "corrected"):
+        r = reduce_agent_metrics(fn(variant=variant, current_speed=jnp.array([5.0, 0.0, 5.0, 5.0])))["0.3s"]
+        for n in ("ade", "fde"):
+            assert r[f"agent_{n}_moving"] == pytest.approx(6.0, rel=1e-6)  # agents 2 and 3: errors 4 and 8
+            assert r[f"agent_{n}_along_moving"] == pytest.approx(3.6, rel=1e-5)
+            assert r[f"agent_{n}_cross_moving"] == pytest.approx(4.8, rel=1e-5)
+            assert r[f"ego_{n}_cross_moving"] == pytest.approx(0.8, rel=1e-5)
+    with pytest.raises(ValueError, match="current_speed"):
+        fn()

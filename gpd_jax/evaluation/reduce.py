@@ -10,7 +10,8 @@ import numpy as np
 
 from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, MAP_BASELINES, MAP_CUTFREE_METRICS, MAP_METRICS,
                                      MOTION_RATIOS, MOTION_SPEED, MOTION_SPLIT, RATIO_KEY, RATIO_KEY_MODEL_RATE)
-from gpd_jax.metrics import MOTION_CLASSES, STATIONARY_MPS, VARIANTS, reduce_agent_metrics, reduce_map_metrics
+from gpd_jax.metrics import (MOTION_CLASSES, STATIONARY_MPS, TRACK_COMPONENTS, VARIANTS, reduce_agent_metrics,
+                             reduce_map_metrics)
 from gpd_jax.spec import EvalError, ModelSpec
 from gpd_jax.tasks import generated
 
@@ -47,6 +48,11 @@ def _motion_entries(red: dict[str, dict[str, dict[str, float]]], label: str, gro
             for n in ("ade", "fde"):
                 d[f"{g}_{n}_{k}"] = red[variant][label][f"{g}_{n}_{k}"]
                 d[f"{g}_{n}_{k}_{other}"] = red[other][label][f"{g}_{n}_{k}"]
+        for n in ("ade", "fde"):
+            for comp in TRACK_COMPONENTS:
+                key = f"{g}_{n}_{comp}_moving"
+                if key in red[variant][label]:
+                    d[key], d[f"{key}_{other}"] = red[variant][label][key], red[other][label][key]
     return d
 
 
@@ -114,7 +120,13 @@ def _motion_block(motion: dict[str, Any], labels: Sequence[str]) -> dict[str, An
         t, b = motion["tasks"][task], motion["baselines"][base]
         ratios[key] = {f"{g}_{k}": {lb: _ratio(t[lb][f"{g}_ade_{k}"], b[lb][f"{g}_ade_{k}"]) for lb in labels}
                        for g in ("agent", "ego") for k in MOTION_CLASSES if f"{g}_ade_{k}" in t[labels[0]]}
+        ratios[key] |= {f"{g}_moving_{c}": {lb: _ratio(t[lb][f"{g}_ade_{c}_moving"], b[lb][f"{g}_ade_{c}_moving"])
+                                            for lb in labels}
+                        for g in ("agent", "ego") for c in TRACK_COMPONENTS if f"{g}_ade_{c}_moving" in t[labels[0]]}
     return {"stationary_below_mps": STATIONARY_MPS, "speed": MOTION_SPEED, "classes": list(MOTION_CLASSES),
+            "track_components": {"along": "moving entities' |error . u|, u the unit direction of the current "
+                                          "frame's speed difference (pace: braking, starting)",
+                                 "cross": "|error x u| (path: turns, curves, lane changes)"},
             "tasks": motion["tasks"], "baselines": motion["baselines"], "ratios": ratios}
 
 

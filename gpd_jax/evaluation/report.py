@@ -119,6 +119,11 @@ def format_motion_table(results: dict[str, Any], variant: str = "paper", task: s
                     "speed_unknown": "speed unknown"}[k]
             lines.append(f"| {gname} {name} | {n} | {row(t, key)} | {row(cv, key)} | {ratio(key, cv)} | "
                          f"{row(cvm, key)} | {ratio(key, cvm)} |")
+            for comp, what in (("along", "along-track"), ("cross", "cross-track")):
+                key = f"{g}_ade_{comp}_{k}"
+                if key in t[labels[0]]:
+                    lines.append(f"| · {what} | | {row(t, key)} | {row(cv, key)} | {ratio(key, cv)} | "
+                                 f"{row(cvm, key)} | {ratio(key, cvm)} |")
     return lines
 
 

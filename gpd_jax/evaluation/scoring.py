@@ -37,25 +37,37 @@ def current_speed(full: Scene, spec: ModelSpec) -> jax.Array:
     valid at c - 1 (first seen at the current frame) have no measured speed (NaN); with one history frame, none
     does.
     """
+    return current_motion(full, spec)[0]
+
+
+def current_motion(full: Scene, spec: ModelSpec) -> tuple[jax.Array, jax.Array]:
+    """(`current_speed` f32[..., A], the unit direction of the same backward difference f32[..., A, 2]: zero
+    where the speed is unknown or zero)."""
     c, a = spec.full_history - 1, spec.num_agents
     if c < 1:
-        return jnp.full(full.valid.shape[:-2] + (a,), jnp.nan, jnp.float32)
+        shape = full.valid.shape[:-2] + (a,)
+        return jnp.full(shape, jnp.nan, jnp.float32), jnp.zeros(shape + (2,), jnp.float32)
     xy, v = full.xy[..., c - 1:c + 1, :a, :], full.valid[..., c - 1:c + 1, :a]
-    speed = jnp.linalg.norm(xy[..., 1, :, :] - xy[..., 0, :, :], axis=-1) / spec.stored_period_s
-    return jnp.where(v[..., 0, :] & v[..., 1, :], speed, jnp.nan).astype(jnp.float32)
+    step = xy[..., 1, :, :] - xy[..., 0, :, :]
+    length = jnp.linalg.norm(step, axis=-1)
+    known = v[..., 0, :] & v[..., 1, :]
+    direction = jnp.where((known & (length > 0))[..., None], step / jnp.maximum(length, 1e-12)[..., None], 0.0)
+    return (jnp.where(known, length / spec.stored_period_s, jnp.nan).astype(jnp.float32),
+            direction.astype(jnp.float32))
 
 
-def agent_sums(pred_xy, pred_heading, pred_valid, scene: Scene, scored, spec: ModelSpec, speed=None
-               ) -> dict[str, Any]:
+def agent_sums(pred_xy, pred_heading, pred_valid, scene: Scene, scored, spec: ModelSpec, speed=None,
+               direction=None) -> dict[str, Any]:
     """{variant: agent_metric_sums(...)} for both variants, scoring `scored: bool[..., A]` slots only; with
-    `speed` (f32[..., A], `current_speed`) ADE / FDE split by motion at the current frame too.
+    `speed` (f32[..., A], `current_speed`) ADE / FDE split by motion at the current frame too, and with
+    `direction` (f32[..., A, 2], `current_motion`) the moving class's along- and cross-track errors.
 
     Ground-truth validity is restricted to the scored slots, so unscored slots are not obstacles either.
     """
     gv = scene.valid & scored[..., None, :]
     return {v: agent_metric_sums(pred_xy, pred_heading, scene.xy, gv, scene.size, num_history=spec.num_history,
                                  pred_valid=pred_valid, eval_mask=scored, horizons=spec.horizons, variant=v,
-                                 dt=spec.frame_period_s, current_speed=speed)
+                                 dt=spec.frame_period_s, current_speed=speed, current_direction=direction)
             for v in VARIANTS}
 
 
@@ -145,8 +157,9 @@ def _score(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSp
     base = baseline_predictions(full, spec)
     stack = lambda i, x: jnp.concatenate([x] + [b[i][:, None] for b in base.values()], axis=1)
     preds = (stack(0, pred.xy), stack(1, pred.heading), stack(2, pred.valid))
-    speed = current_speed(full, spec)
-    sums = jax.vmap(lambda xy, hd, v: agent_sums(xy, hd, v, scene, scored, spec, speed), in_axes=1)(*preds)
+    speed, direction = current_motion(full, spec)
+    sums = jax.vmap(lambda xy, hd, v: agent_sums(xy, hd, v, scene, scored, spec, speed, direction),
+                    in_axes=1)(*preds)
     pick = lambda i: jax.tree.map(lambda x: x[i], sums)
     out: dict[str, Any] = {"tasks": {name: pick(k) for k, name in enumerate(task_names)},
                            "baselines": {name: pick(len(task_names) + j) for j, name in enumerate(base)}}

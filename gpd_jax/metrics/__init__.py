@@ -5,16 +5,15 @@ Every metric is computed as sums and counts over a batch (`*_metric_sums`, jit/v
 that add up exactly across batches (`accumulate`), then turned into numbers by a reducer (`reduce_*_metrics`).
 """
 
-from gpd_jax.metrics.agents import (DEFAULT_HORIZONS, MOTION_CLASSES, PAPER_BOX, STATIONARY_MPS, VARIANTS, accumulate,
-                                    agent_metric_sums,
-                                    agent_metrics, box_corners, box_overlap_pairwise, horizon_label,
-                                    reduce_agent_metrics)
+from gpd_jax.metrics.agents import (DEFAULT_HORIZONS, MOTION_CLASSES, PAPER_BOX, STATIONARY_MPS, TRACK_COMPONENTS,
+                                    VARIANTS, accumulate, agent_metric_sums, agent_metrics, box_corners,
+                                    box_overlap_pairwise, horizon_label, reduce_agent_metrics)
 from gpd_jax.metrics.map import (lateral_distances, map_metric_sums, map_metrics, point_to_line_distance,
                                  reduce_map_metrics, set_chamfer)
 from gpd_jax.metrics.matching import gather_matched, hungarian, line_match_cost, match_lines
 
 __all__ = [
-    "DEFAULT_HORIZONS", "MOTION_CLASSES", "PAPER_BOX", "STATIONARY_MPS", "VARIANTS",
+    "DEFAULT_HORIZONS", "MOTION_CLASSES", "PAPER_BOX", "STATIONARY_MPS", "TRACK_COMPONENTS", "VARIANTS",
     "accumulate",
     "agent_metric_sums", "agent_metrics", "reduce_agent_metrics", "horizon_label",
     "box_corners", "box_overlap_pairwise",

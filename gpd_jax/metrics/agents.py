@@ -32,6 +32,13 @@ velocity measured, e.g. first seen at the current frame), with the same numerato
 unsplit metric restricted to each class (the paper variant's N_exist too), so the three classes' sums add up to
 the unsplit sums exactly; `{g}_n_{class}` counts the entities of a class with a valid log frame within the
 horizon.
+
+**Along- and cross-track error of moving entities** (optional, `current_direction=` with `current_speed=`): the
+error vector of each moving entity at every frame split into its component along the direction of motion at the
+current frame and the one across it, |e . u| and |e x u| (u the unit direction), summed as ADE and FDE with the
+moving class's denominators ("{g}_{ade,fde}_{along,cross}_moving"). Along-track error is speed: braking,
+starting, the wrong pace; cross-track error is the path: turns, curves, lane changes that the direction at the
+current frame does not continue.
 """
 
 from __future__ import annotations
@@ -51,6 +58,7 @@ _RATES = ("collision", "collision_frames")  # reported in percent
 STATIONARY_MPS = 0.5
 MOTION_CLASSES = ("stationary", "moving", "speed_unknown")
 _SPLIT_NAMES = ("ade", "fde")
+TRACK_COMPONENTS = ("along", "cross")  # of moving entities' errors, against the current direction of motion
 
 
 def horizon_label(frames: int, dt: float = 0.1) -> str:
@@ -130,7 +138,8 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
                       size: jax.Array, *, num_history: int = 0, pred_valid: jax.Array | None = None,
                       eval_mask: jax.Array | None = None, horizons: Sequence[int] = DEFAULT_HORIZONS,
                       variant: str = "paper", dt: float = 0.1, current_speed: jax.Array | None = None,
-                      stationary_below: float = STATIONARY_MPS) -> dict[str, dict[str, jax.Array]]:
+                      stationary_below: float = STATIONARY_MPS, current_direction: jax.Array | None = None
+                      ) -> dict[str, dict[str, jax.Array]]:
     """Sums and counts of the ADE / FDE / collision metrics, summed over every leading batch dim.
 
     Args:
@@ -151,14 +160,20 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
       current_speed: optional f32[..., A] each slot's speed (m/s) at the current frame, NaN where unknown: adds
         the ADE / FDE sums split by motion class (`MOTION_CLASSES`, module docstring).
       stationary_below: the speed (m/s) below which a slot is stationary.
+      current_direction: optional f32[..., A, 2] each slot's unit direction of motion at the current frame (only
+        read for moving slots; needs `current_speed`): adds the along- and cross-track ADE / FDE sums of the
+        moving class (module docstring).
 
     Returns:
       {horizon_label: {"{ego,agent}_{ade,fde,collision,collision_frames}_{num,den}": f32[]}}; with
       `current_speed` also "{ego,agent}_{ade,fde}_{class}_{num,den}" and "{ego,agent}_n_{class}" for every class
-      of `MOTION_CLASSES`. Feed to `reduce_agent_metrics`.
+      of `MOTION_CLASSES`; with `current_direction` also "{g}_{ade,fde}_{along,cross}_moving_num". Feed to
+      `reduce_agent_metrics`.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    if current_direction is not None and current_speed is None:
+        raise ValueError("current_direction splits the moving class's errors: pass current_speed too")
     t_total = gt_xy.shape[-3]
     fut = t_total - num_history
     if max(horizons) > fut:
@@ -180,6 +195,13 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
 
     err = jnp.linalg.norm(pxy - gxy, axis=-1)  # [..., F, A]
     err = jnp.where(gv, err, 0.0)
+    track = {}
+    if current_direction is not None:
+        u = jnp.broadcast_to(current_direction, batch + (a, 2))[..., None, :, :]  # [..., 1, A, 2]
+        ev_ = pxy - gxy
+        track = {"along": jnp.abs(jnp.sum(ev_ * u, -1)),
+                 "cross": jnp.abs(ev_[..., 0] * u[..., 1] - ev_[..., 1] * u[..., 0])}
+        track = {k: jnp.where(gv, v, 0.0) for k, v in track.items()}  # [..., F, A]
     f32 = lambda x: jnp.sum(x.astype(jnp.float32))
 
     if variant == "paper":
@@ -234,6 +256,12 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
                     d[f"{g}_ade_{k}_den"] = f32(sk[..., None, :] & m)
                     d[f"{g}_fde_{k}_num"] = f32(jnp.where(sk & any_valid, fde_err, 0.0))
                     d[f"{g}_fde_{k}_den"] = f32(sk & any_valid)
+                if k != "moving":
+                    continue
+                for comp, te in track.items():  # the same numerators' sets as the moving ADE / FDE above
+                    te = te[..., :h, :]
+                    d[f"{g}_ade_{comp}_moving_num"] = f32(jnp.where(sk[..., None, :] & m, te, 0.0))
+                    d[f"{g}_fde_{comp}_moving_num"] = f32(jnp.where(sk & any_valid, _last_valid_error(te, m)[0], 0.0))
         out[horizon_label(h, dt)] = d
     return out
 
@@ -247,7 +275,8 @@ def reduce_agent_metrics(sums: dict[str, dict[str, jax.Array]]) -> dict[str, dic
     """Sums -> {horizon_label: {ego_ade, ego_fde, ego_collision, ego_collision_frames, agent_ade, ...}}.
 
     With the motion split (`current_speed` given to `agent_metric_sums`) also "{g}_{ade,fde}_{class}" and the
-    count "{g}_n_{class}" for every class of `MOTION_CLASSES`.
+    count "{g}_n_{class}" for every class of `MOTION_CLASSES`; with `current_direction` also the moving class's
+    "{g}_{ade,fde}_{along,cross}_moving".
 
     ADE / FDE in metres, collision rates in percent; NaN where the denominator is 0 (nothing to score).
     """
@@ -265,6 +294,10 @@ def reduce_agent_metrics(sums: dict[str, dict[str, jax.Array]]) -> dict[str, dic
                 for n in _SPLIT_NAMES:
                     r[f"{g}_{n}_{k}"] = ratio(d[f"{g}_{n}_{k}_num"], d[f"{g}_{n}_{k}_den"])
                 r[f"{g}_n_{k}"] = int(round(float(d[f"{g}_n_{k}"])))
+            for n in _SPLIT_NAMES:
+                for comp in TRACK_COMPONENTS:
+                    if f"{g}_{n}_{comp}_moving_num" in d:
+                        r[f"{g}_{n}_{comp}_moving"] = ratio(d[f"{g}_{n}_{comp}_moving_num"], d[f"{g}_{n}_moving_den"])
         out[hl] = r
     return out
 
