@@ -198,9 +198,9 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
     track = {}
     if current_direction is not None:
         u = jnp.broadcast_to(current_direction, batch + (a, 2))[..., None, :, :]  # [..., 1, A, 2]
-        ev_ = pxy - gxy
-        track = {"along": jnp.abs(jnp.sum(ev_ * u, -1)),
-                 "cross": jnp.abs(ev_[..., 0] * u[..., 1] - ev_[..., 1] * u[..., 0])}
+        evec = pxy - gxy
+        track = {"along": jnp.abs(jnp.sum(evec * u, -1)),
+                 "cross": jnp.abs(evec[..., 0] * u[..., 1] - evec[..., 1] * u[..., 0])}
         track = {k: jnp.where(gv, v, 0.0) for k, v in track.items()}  # [..., F, A]
     f32 = lambda x: jnp.sum(x.astype(jnp.float32))
 
