@@ -193,12 +193,11 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
         classes = {"stationary": known & (speed < stationary_below), "moving": known & (speed >= stationary_below),
                    "speed_unknown": ~known}  # [..., A], a partition of the slots
 
-    err = jnp.linalg.norm(pxy - gxy, axis=-1)  # [..., F, A]
-    err = jnp.where(gv, err, 0.0)
+    evec = pxy - gxy  # [..., F, A, 2]
+    err = jnp.where(gv, jnp.linalg.norm(evec, axis=-1), 0.0)  # [..., F, A]
     track = {}
     if current_direction is not None:
         u = jnp.broadcast_to(current_direction, batch + (a, 2))[..., None, :, :]  # [..., 1, A, 2]
-        evec = pxy - gxy
         track = {"along": jnp.abs(jnp.sum(evec * u, -1)),
                  "cross": jnp.abs(evec[..., 0] * u[..., 1] - evec[..., 1] * u[..., 0])}
         track = {k: jnp.where(gv, v, 0.0) for k, v in track.items()}  # [..., F, A]
