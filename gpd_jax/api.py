@@ -32,7 +32,7 @@ from flax import nnx
 from gpd_jax.checkpoint import Model, load_model
 from gpd_jax.data.build import build_sumo
 from gpd_jax.data.loader import SplitSource, to_scene
-from gpd_jax.decoding import LogLanes, RolloutOutput, rollout_jit, rollout_recompute, rollout_tasks
+from gpd_jax.decoding import LogLanes, RolloutOutput, drop_unread_lanes, rollout_jit, rollout_recompute, rollout_tasks
 from gpd_jax.evaluation.driver import RenderItem
 from gpd_jax.evaluation.driver import evaluate as _evaluate
 from gpd_jax.evaluation.maps import encode_map_frames
@@ -161,7 +161,7 @@ def make_rollout_fn(model: Model, *, temperature: float | None = None, method: s
             if scenes.polylines is None:
                 raise EvalError("log_map='lanes' needs the scenes' lane polylines (Scene.polylines)")
             lanes, encoder = LogLanes(scenes.polylines, scenes.polyline_valid), tok.pose_encoder(tok.params)
-        scenes = scenes.replace(polylines=None, polyline_valid=None)
+        scenes = drop_unread_lanes(model.config.model, scenes)
         if isinstance(tasks, Prompt) and tasks.lanes is not None:  # a prompt's own vector map
             if tok is None:
                 raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
@@ -233,7 +233,7 @@ def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Pro
         raise ValueError(f"log_map must be 'tokens' or 'lanes', got {log_map!r}")
     if _check_gen_map(model, gen_map):
         extra = dict(extra, tok=model.tokenizer, tok_params=model.tokenizer.params, map_warp=True)
-    view = jax.tree.map(jnp.asarray, view.replace(polylines=None, polyline_valid=None))
+    view = jax.tree.map(jnp.asarray, drop_unread_lanes(model.config.model, view))
     out = rollout_jit(model.graphdef, model.params, model.rest, view, task_arrays, key, model.spec.num_history,
                       temp, **extra)
     if single_task:

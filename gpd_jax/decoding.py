@@ -31,6 +31,10 @@ instead: its from-log mask is per frame, its agent states and map tokens overrid
 agent cap removes slots like hidden agents, and its own vector map (`Prompt.lanes`) is encoded with the
 `map_encoder` around the ego of every frame, history included. A task is converted with `as_prompt` and rolls
 out to the same arrays.
+
+Lane context (`model.agent_lane_context`, `lane_context`): such a model's agents read vector lanes in the history
+frames and every frame whose map is given: the prompt's own lanes where it has them, else the scene's polylines
+(`Scene.polylines`; a rollout handed a scene without them runs as if no frame had lanes).
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from gpd_jax.model import GPD, KVCache, Prediction, forward, forward_cached
+from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forward_cached
 from gpd_jax.prompts import Prompt, as_prompt
 from gpd_jax.scene import Scene
 from gpd_jax.tasks import Task
@@ -105,12 +109,14 @@ class Frame:
 class Given:
     """What a rollout of one scenario is given: the log's frames as model inputs (`Frame` with a leading T:
     hidden agents removed, velocities zero for a model without velocity inputs; a prompt's given agent states and
-    map tokens in place), the prompt (`task`: a `Prompt`, a task converted by `as_prompt`), and optionally the
-    log's lanes to re-encode the map around a generated ego."""
+    map tokens in place), the prompt (`task`: a `Prompt`, a task converted by `as_prompt`), optionally the
+    log's lanes to re-encode the map around a generated ego, and for an `agent_lane_context` model the lanes its
+    agents read (`context`, with `on` bool[T]: `lane_context`)."""
 
     log: Frame
     task: Prompt
     lanes: LogLanes | None = None
+    context: LaneContext | None = None
 
 
 @flax.struct.dataclass
@@ -136,12 +142,54 @@ class RolloutCarry:
     anchor: Frame
 
 
+def lane_context(model: GPD, scene: Scene, prompt: Prompt, num_history: int) -> LaneContext | None:
+    """The lanes an `agent_lane_context` model's agents read in a rollout (None for other models, or with no
+    lanes at all): the prompt's own lanes where it uses them, else the scene's polylines (`Scene.polylines`), in
+    the history frames and the frames whose every map slot comes from the given data (`on` bool[T]); frames whose
+    map is generated get none, since the log's lanes would tell the model the map it is asked to generate."""
+    if not model.lane_context:
+        return None
+    own = prompt.lanes is not None
+    if scene.polylines is None and not own:
+        return None
+    num_map = prompt.from_log.shape[-1] - prompt.hidden.shape[-1]
+    on = jnp.all(jnp.asarray(prompt.from_log)[:, :num_map], axis=-1) | (jnp.arange(scene.num_frames) < num_history)
+    if not own:
+        return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=on)
+    use = jnp.asarray(prompt.use_lanes, bool)
+    polys, valid = prompt.lanes, prompt.lanes_valid & use
+    if scene.polylines is not None:  # both kinds, one masked out: the shapes stay fixed under vmap
+        p = max(polys.shape[-2], scene.polylines.shape[-2])
+        pad = lambda a, v: (jnp.pad(a, ((0, 0), (0, p - a.shape[-2]), (0, 0))),
+                            jnp.pad(v, ((0, 0), (0, p - v.shape[-1]))))
+        (pa, va), (pb, vb) = pad(polys, valid), pad(scene.polylines, scene.polyline_valid & ~use)
+        polys, valid = jnp.concatenate([pa, pb.astype(pa.dtype)], 0), jnp.concatenate([va, vb], 0)
+    return LaneContext(polylines=polys, valid=valid, on=on)
+
+
+def drop_unread_lanes(model_config, scene: Scene) -> Scene:
+    """`scene` without its lane polylines (smaller jit arguments) unless the model's agents read them
+    (`model_config.agent_lane_context`, `lane_context`): what evaluation, the API and the condition scores hand a
+    rollout."""
+    if bool(model_config.get("agent_lane_context", False)):
+        return scene
+    return scene.replace(polylines=None, polyline_valid=None)
+
+
+def _context_at(ctx: LaneContext | None, frames) -> LaneContext | None:
+    """`ctx` for a block of frames (`frames`: an index array, or a traced scalar for one frame)."""
+    if ctx is None:
+        return None
+    return ctx.replace(on=jnp.reshape(jnp.asarray(ctx.on)[frames], (-1,)))
+
+
 def given_inputs(model: GPD, scene: Scene, task: Task | Prompt, lanes: LogLanes | None = None,
-                 map_encoder: MapEncoder | None = None) -> Given:
+                 map_encoder: MapEncoder | None = None, num_history: int = 0) -> Given:
     """The log of `scene` as model inputs under `task` (a Task or a Prompt): hidden and capped agents removed, a
     prompt's given agent states and map tokens in place (velocities of given states: backward differences over
     the model's frame period), and with a prompt's own lanes and `map_encoder` every frame's map tokens encoded
-    from those lanes around that frame's given ego."""
+    from those lanes around that frame's given ego. `num_history`: the history frames, whose map is always
+    given (`lane_context`)."""
     prompt = jax.tree.map(jnp.asarray, as_prompt(task, scene.num_frames))
     xy, heading, valid = scene.xy, scene.heading, scene.valid
     vel = model.input_velocity(scene.velocity)  # raises if the model needs velocities and the scene has none
@@ -167,7 +215,7 @@ def given_inputs(model: GPD, scene: Scene, task: Task | Prompt, lanes: LogLanes 
         map_tokens = jnp.where(prompt.use_lanes, enc, map_tokens)
     log = Frame(xy=xy, heading=heading, valid=valid, valid_logit=jnp.zeros(valid.shape, jnp.float32),
                 map_tokens=map_tokens, velocity=vel)
-    return Given(log=log, task=prompt, lanes=lanes)
+    return Given(log=log, task=prompt, lanes=lanes, context=lane_context(model, scene, prompt, num_history))
 
 
 def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
@@ -238,7 +286,7 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
     t_total, h = scene.num_frames, num_history
     task = as_prompt(task, t_total)
     _check_map_encoder(lanes, map_encoder, task)
-    given = given_inputs(model, scene, task, lanes, map_encoder)
+    given = given_inputs(model, scene, task, lanes, map_encoder, h)
     log = given.log
 
     def choose(carry: RolloutCarry, t) -> Frame:
@@ -249,22 +297,26 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
         anchor = carry.anchor
         if map_warp is not None:  # only a warp reads the anchor: no per-step selects otherwise
             anchor = jax.tree.map(lambda a, b: jnp.where(_map_given(given.task, t), a, b), f, anchor)
-        return RolloutCarry(decode=advance(model, carry.decode, f, t), anchor=anchor), f
+        return RolloutCarry(decode=advance(model, carry.decode, f, t, _context_at(given.context, t)),
+                            anchor=anchor), f
 
-    start = RolloutCarry(decode=prefill(model, log, h, t_total), anchor=jax.tree.map(lambda a: a[h - 1], log))
+    start = RolloutCarry(decode=prefill(model, log, h, t_total, given.context),
+                         anchor=jax.tree.map(lambda a: a[h - 1], log))
     final, frames = jax.lax.scan(step, start, jnp.arange(h, t_total - 1))
     last = choose(final, jnp.asarray(t_total - 1))
     frames = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]], axis=0), frames, last)
     return _assemble(log, frames, h)
 
 
-def prefill(model: GPD, log: Frame, num_history: int, num_frames: int) -> DecodeState:
+def prefill(model: GPD, log: Frame, num_history: int, num_frames: int,
+            lanes: LaneContext | None = None) -> DecodeState:
     """Pushes the history frames `log[:num_history]` (a `Frame` with a leading T >= num_history) through the
     transformer in one call into a fresh KV cache for `num_frames` frames; the returned state holds the
-    prediction of frame `num_history`. The first half of every cached rollout (and of `gpd_jax.sim.reset`)."""
+    prediction of frame `num_history`. The first half of every cached rollout (and of `gpd_jax.sim.reset`).
+    `lanes`: what an `agent_lane_context` model's agents read (`on` over all T frames or the history's)."""
     h = num_history
     tokens = model.embed(log.xy[:h], log.heading[:h], log.valid[:h], log.map_tokens[:h], jnp.arange(h),
-                         log.velocity[:h])
+                         log.velocity[:h], _context_at(lanes, jnp.arange(h)))
     hidden, cache = forward_cached(model, tokens, model.init_cache(num_frames), 0)
     pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
                          *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h])
@@ -272,12 +324,13 @@ def prefill(model: GPD, log: Frame, num_history: int, num_frames: int) -> Decode
                        hidden=hidden[-1])
 
 
-def advance(model: GPD, state: DecodeState, frame: Frame, t) -> DecodeState:
+def advance(model: GPD, state: DecodeState, frame: Frame, t, lanes: LaneContext | None = None) -> DecodeState:
     """Appends frame t (`frame`, unbatched: what the scene holds at t, however chosen) to the KV cache and
-    predicts frame t + 1. `t` may be traced. One step of every cached rollout (and of `gpd_jax.sim.step`)."""
+    predicts frame t + 1. `t` may be traced. One step of every cached rollout (and of `gpd_jax.sim.step`).
+    `lanes`: what an `agent_lane_context` model's agents read at frame t (`on` of that one frame)."""
     f = frame
     tok = model.embed(f.xy[None], f.heading[None], f.valid[None], f.map_tokens[None], jnp.asarray(t)[None],
-                      f.velocity[None])
+                      f.velocity[None], lanes)
     hid, cache = forward_cached(model, tok, state.cache, t)
     pred = model.predict(hid, f.xy[None], f.heading[None], f.valid[None], state.last_xy[None],
                          state.last_valid[None], f.velocity[None])
@@ -329,10 +382,11 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
     t_total, h = scene.num_frames, num_history
     task = as_prompt(task, t_total)
     _check_map_encoder(lanes, map_encoder, task)
-    given = given_inputs(model, scene, task, lanes, map_encoder)
+    given = given_inputs(model, scene, task, lanes, map_encoder, h)
 
     def step(buf: Frame, t):
-        tokens = model.embed(buf.xy, buf.heading, buf.valid, buf.map_tokens, jnp.arange(t_total), buf.velocity)
+        tokens = model.embed(buf.xy, buf.heading, buf.valid, buf.map_tokens, jnp.arange(t_total), buf.velocity,
+                             given.context)
         hid = forward(model, tokens)
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)

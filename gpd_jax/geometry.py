@@ -15,9 +15,9 @@ holds three things, all fixed-shape with validity masks (never ragged):
   `Scene.polyline_valid`; stores keep them only once (the loader fills them in from the polylines).
 
 Queries take one unbatched road and points `xy f32[..., 2]` with any leading dims (vmap over scenes):
-`on_road`, `area_kinds`, `signed_distance_to_edge`, `lane_direction`. They are pure, jit- and vmap-able and
-loop over nothing in Python; segment scans run in fixed-size blocks of points (`lax.map`) so memory stays
-bounded whatever the number of points.
+`on_road`, `area_kinds`, `signed_distance_to_edge`, `lane_direction`, `lane_trace`. They are pure, jit- and
+vmap-able and loop over nothing in Python; segment scans run in fixed-size blocks of points (`lax.map`) so
+memory stays bounded whatever the number of points.
 
 This module is at the bottom of the package's layers: it imports only jax, numpy and flax.
 """
@@ -248,6 +248,70 @@ def lane_direction(road: RoadGeometry, xy: jax.Array) -> tuple[jax.Array, jax.Ar
     heading, dist = _map_points(fn, xy)
     heading = (heading + jnp.pi) % (2 * jnp.pi) - jnp.pi
     return heading, dist
+
+
+def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: jax.Array, step_m,
+               num_steps: int, turn_penalty_m: float = 10.0, stride: int = 1) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Walks the directed lane centrelines ahead of each pose: where a driver keeping its lane would be.
+
+    From each pose (`xy f32[..., 2]`, `heading f32[...]`, scene frame) it takes the lane segment that minimises
+    distance + `turn_penalty_m` * (1 - cos(segment heading - travel direction)) / 2 (the nearest lane that runs
+    the way the agent goes, rather than the opposing one beside it), projects onto it, and steps `step_m` along the
+    segment's direction; `num_steps` times, each from the last point and along the last segment's heading.
+    `step_m` is one length for every pose or f32[...] one per pose.
+    `lanes f32[L, Q, 2]` / `lane_valid bool[L, Q]` are one scene's (`RoadGeometry.lanes`); `stride` keeps every
+    stride-th point of each line (coarser segments, cheaper queries; the last valid point is kept).
+
+    Returns (points f32[..., K + 1, 2]: the projections onto the lane at the pose and after each step,
+    headings f32[..., K + 1]: the chosen segments' directions, distances f32[..., K + 1]: from each query point
+    to its chosen segment). Without any lane segment: points at the query points, headings the travel direction,
+    distances +inf.
+    """
+    if stride > 1:
+        last = jnp.maximum(jnp.sum(lane_valid, axis=-1) - 1, 0)  # index of the last valid point (prefix-valid)
+        idx = jnp.arange(0, lanes.shape[-2], stride)
+        keep = jnp.minimum(idx[None, :], last[:, None])  # [L, Q'] every stride-th point, clipped to the last
+        keep = jnp.concatenate([keep, last[:, None]], axis=-1)
+        lanes = jnp.take_along_axis(lanes, keep[..., None], axis=-2)
+        lane_valid = jnp.take_along_axis(lane_valid, keep, axis=-1)
+    a, b, ok = _segments(lanes.astype(jnp.float32), lane_valid)
+    seg_heading = jnp.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
+    ok = ok & (jnp.sum((b - a) ** 2, -1) > 0)
+    seg_dir = jnp.stack([jnp.cos(seg_heading), jnp.sin(seg_heading)], -1)
+
+    def walk(q):  # q f32[N, 4] (x, y, heading, step) -> f32[N, K+1, 4] (x, y, heading, distance)
+        def one(p, h):
+            d, t = _point_segment_distance(p, a, b)
+            cost = d + turn_penalty_m * 0.5 * (1.0 - jnp.cos(seg_heading[None] - h[:, None]))
+            cost = jnp.where(ok[None], cost, jnp.inf)
+            i = jnp.argmin(cost, axis=-1)
+            found = jnp.isfinite(jnp.take_along_axis(cost, i[:, None], -1)[:, 0])
+            ti = jnp.take_along_axis(t, i[:, None], -1)
+            proj = a[i] + ti * (b[i] - a[i])
+            dist = jnp.take_along_axis(d, i[:, None], -1)[:, 0]
+            return (jnp.where(found[:, None], proj, p), jnp.where(found, seg_heading[i], h),
+                    jnp.where(found, dist, jnp.inf), jnp.where(found[:, None], seg_dir[i], 0.0))
+
+        p, h, step = q[:, :2], q[:, 2], q[:, 3:]
+        rows = []
+        for k in range(num_steps + 1):  # a fixed, small number of steps (not a loop over time)
+            proj, hk, dist, u = one(p, h)
+            rows.append(jnp.concatenate([proj, hk[:, None], dist[:, None]], -1))
+            p = proj + step * jnp.where(jnp.isfinite(dist)[:, None], u, jnp.stack([jnp.cos(h), jnp.sin(h)], -1))
+            h = hk
+        return (jnp.stack(rows, 1),)
+
+    lead = xy.shape[:-1]
+    steps = jnp.broadcast_to(jnp.asarray(step_m, jnp.float32), lead)
+    q = jnp.concatenate([xy.astype(jnp.float32), heading.astype(jnp.float32)[..., None], steps[..., None]], -1)
+    flat = q.reshape(-1, 4)
+    if flat.shape[0] <= _BLOCK:
+        (out,) = walk(flat)
+    else:
+        out = jax.lax.map(lambda r: walk(r[None])[0][0], flat, batch_size=_BLOCK)
+    out = out.reshape(lead + (num_steps + 1, 4))
+    headings = (out[..., 2] + jnp.pi) % (2 * jnp.pi) - jnp.pi
+    return out[..., :2], headings, out[..., 3]
 
 
 def road_from_arrays(arrays: dict[str, Any], lanes: Any, lane_valid: Any, prefix: str = "road_") -> RoadGeometry:

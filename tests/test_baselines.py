@@ -2,7 +2,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpd_jax.evaluation.baselines import constant_velocity, log_replay
+from gpd_jax.evaluation.baselines import LANE_SNAP_M, Trajectories, constant_velocity, follow_lanes, log_replay
 from gpd_jax.metrics import agent_metrics
 from gpd_jax.scene import empty_scene
 
@@ -59,3 +59,35 @@ def test_log_replay_zero_error(variant):
     r = agent_metrics(cv.xy, cv.heading, s.xy, s.valid, s.size, num_history=H, pred_valid=cv.valid,
                       eval_mask=em, horizons=(8,), variant=variant)
     assert r["0.8s"]["agent_ade"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_follow_lanes_keeps_constant_velocitys_speed_along_a_curved_lane():
+    # a counter-clockwise circle of radius 30 and, 3.5 m outside it, the opposing lane
+    th = np.linspace(-np.pi, np.pi, 361)
+    lanes = np.stack([np.stack([30 * np.cos(th), 30 * np.sin(th)], -1),
+                      np.stack([33.5 * np.cos(th[::-1]), 33.5 * np.sin(th[::-1])], -1)]).astype(np.float32)
+    ok = np.ones(lanes.shape[:2], bool)
+    t = np.arange(T, dtype=np.float32)
+    # constant velocity of four agents: on the lane at 5 m per frame tangentially, 1 m outside it, standing,
+    # and far from every lane
+    start = np.array([[30.0, 0.0], [31.0, 0.0], [0.0, -30.0], [0.0, 0.0]], np.float32)
+    vel = np.array([[0.0, 5.0], [0.0, 5.0], [0.0, 0.0], [4.0, 0.0]], np.float32)
+    xy = start[None] + (t - (H - 1))[:, None, None] * vel[None]
+    heading = np.broadcast_to(np.array([np.pi / 2, np.pi / 2, 0.0, 0.0], np.float32), (T, A)).copy()
+    cv = Trajectories(xy=jnp.asarray(xy), heading=jnp.asarray(heading), valid=jnp.ones((T, A), bool))
+    out = follow_lanes(cv, H, jnp.asarray(lanes), jnp.asarray(ok), stride=1)
+    np.testing.assert_array_equal(np.asarray(out.xy[:H]), xy[:H])
+    fut = np.asarray(out.xy[H:])
+    k = np.arange(1, T - H + 1)
+    # agent 0 rides the circle, 5 m of arc per frame (chords of 1-degree segments: within a few cm)
+    np.testing.assert_allclose(np.hypot(fut[:, 0, 0], fut[:, 0, 1]), 30.0, atol=0.05)
+    np.testing.assert_allclose(np.arctan2(fut[:, 0, 1], fut[:, 0, 0]) * 30.0, 5.0 * k, rtol=0.02)
+    np.testing.assert_allclose(np.asarray(out.heading[H:, 0]), np.arctan2(fut[:, 0, 1], fut[:, 0, 0]) + np.pi / 2,
+                               atol=0.03)
+    # agent 1 keeps its 1 m offset outside the lane, turned with the lane
+    np.testing.assert_allclose(np.hypot(fut[:, 1, 0], fut[:, 1, 1]), 31.0, atol=0.05)
+    # standing stays; far from every lane (> LANE_SNAP_M) keeps constant velocity
+    np.testing.assert_allclose(fut[:, 2], xy[H:, 2], atol=1e-5)
+    assert 30.0 - np.hypot(*start[3]) > LANE_SNAP_M
+    np.testing.assert_allclose(fut[:, 3], xy[H:, 3], atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(out.valid), np.asarray(cv.valid))

@@ -94,7 +94,8 @@ def test_metrics_json_layout(run_ok, setup):
     assert m["map_tokens"] == {"from_store": 2, "encoded": 1}  # shard 0 has tokens, shard 1 is encoded
     assert set(m["tasks"]) == set(TASK_NAMES)
     assert set(m["baselines"]) == {"constant_velocity", "constant_velocity_model_rate", "log_replay",
-                                   "map_tokenizer_reconstruction", "map_persistence"}
+                                   "constant_velocity_lanes", "map_tokenizer_reconstruction", "map_persistence"}
+    assert set(m["ratios"]["traffic_simulation_agent_ade_over_constant_velocity_lanes"]) == {"3s", "5s", "8s"}
     for name in ("map_tokenizer_reconstruction", "map_persistence"):
         base = m["baselines"][name]
         assert set(base) == {"3s", "5s", "8s"} and 0.0 <= base["3s"]["map_f1"] <= 1.0, name

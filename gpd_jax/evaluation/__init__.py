@@ -32,7 +32,9 @@ What `evaluate` does (the command line is `rollout.py` at the repository root):
    last two 10 Hz history frames: more recent motion than a model at a lower frame rate ever sees), and
    `constant_velocity_model_rate`, whose velocity is the difference of the last two *model* frames (the same
    information the model gets; identical to the former at stride 1). Log replay has zero ADE / FDE; its
-   collision rate is the log's own, the floor a generator should not exceed.
+   collision rate is the log's own, the floor a generator should not exceed. Where the scenes carry their lane
+   polylines, `constant_velocity_lanes` too (not in the paper): constant velocity's speed along the lane each
+   agent is on, its offset from the lane kept (`baselines.follow_lanes`): what the map alone gives.
    Two map baselines where a task generates the map: `map_tokenizer_reconstruction` (the logged tokens
    decoded: the ceiling of any generated map) and `map_persistence` (the current frame's ground-truth lanes
    carried into each future frame with the logged ego pose: the map seen now, kept, never extended; the map
@@ -72,10 +74,12 @@ metrics.json (written by rollout.py; NaN written as null)::
                              "map_chamfer", "map_chamfer_corrected", "map_chamfer_corrected_skipped"}}},
      "baselines": {"constant_velocity": {"3s": {ego_* and agent_* as above}},
                    "constant_velocity_model_rate": {...}, "log_replay": {...},
+                   "constant_velocity_lanes": {...},         # where the scenes have lane polylines
                    "map_tokenizer_reconstruction": {"3s": {map_* as above}},  # logged tokens decoded
                    "map_persistence": {"3s": {map_* as above}}},  # current lanes carried forward
      "ratios": {"traffic_simulation_agent_ade_over_constant_velocity": {"3s": r, "5s": r, "8s": r},
-                "traffic_simulation_agent_ade_over_constant_velocity_model_rate": {...}},
+                "traffic_simulation_agent_ade_over_constant_velocity_model_rate": {...},
+                "traffic_simulation_agent_ade_over_constant_velocity_lanes": {...}},  # with that baseline
      "ratio_targets": {...: {"3s": 0.8, "5s": 0.75, "8s": 0.7}},
      "motion_split": {"stationary_below_mps": 0.5, "speed": "...", "classes": ["stationary", "moving",
                                                                           "speed_unknown"],
@@ -83,7 +87,8 @@ metrics.json (written by rollout.py; NaN written as null)::
                                               "agent_ade_stationary_corrected", ..., "ego_ade_moving", ...}}},
                       "baselines": {"constant_velocity": {...}, "constant_velocity_model_rate": ..., "log_replay": ...},
                       "ratios": {"traffic_simulation_over_constant_velocity": {"agent_stationary": {"3s": r}, ...},
-                                 "traffic_simulation_over_constant_velocity_model_rate": {...}}},
+                                 "traffic_simulation_over_constant_velocity_model_rate": {...},
+                                 "traffic_simulation_over_constant_velocity_lanes": {...}}},
      "by_layout": {layout: {"scenarios": n, "tasks": ..., "baselines": ..., "ratios": ...,
                             "motion_split": ...}},  # 2+ layouts only
      "timing_s": {...}, "render": {...}}                           # render: only with --render

@@ -4,6 +4,9 @@
   own collision rate).
 * `constant_velocity`: every agent continues from its last valid history frame at the velocity of its last two
   valid history frames, keeping its last observed heading.
+* `follow_lanes` (not in the paper; `constant_velocity_lanes` in `metrics.json`): constant velocity's speed, but
+  along the lane the agent is on (`gpd_jax.geometry.lane_trace`), keeping its offset from the lane: what a map
+  gives a predictor that knows nothing else. Agents more than `LANE_SNAP_M` from a lane keep constant velocity.
 
 History frames [0, num_history) are copied from the log, as a rollout does; the current frame is
 `num_history - 1`. Both are pure jit/vmap-able functions of a `Scene` (any leading batch dims).
@@ -17,7 +20,11 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from gpd_jax.geometry import lane_trace
 from gpd_jax.scene import Scene
+
+# An agent farther than this from every lane running its way keeps constant velocity in `follow_lanes` (m).
+LANE_SNAP_M = 3.0
 
 
 @flax.struct.dataclass
@@ -83,6 +90,44 @@ def constant_velocity(scene: Scene, num_history: int) -> Trajectories:
     cat = lambda a, b, axis: jnp.concatenate([a, b], axis=axis)
     return Trajectories(xy=cat(xy[..., :h, :, :], fxy, -3), heading=cat(heading[..., :h, :], fhead, -2),
                         valid=cat(valid[..., :h, :], fvalid, -2))
+
+
+def follow_lanes(cv: Trajectories, num_history: int, polylines: jax.Array, polyline_valid: jax.Array,
+                 stride: int = 4) -> Trajectories:
+    """Constant velocity moved onto the lanes (one scene; vmap for batches).
+
+    `cv`: constant velocity's prediction of one scene at evenly spaced frames (xy f32[T, A, 2], ...; frames
+    [0, num_history) the log's). Each agent valid at the current frame `num_history - 1` covers the same distance
+    per frame as there (|cv.xy[H] - cv.xy[H - 1]|), but along the lane it is on: from its current position it walks
+    the lanes (`lane_trace` from its direction of motion, or its heading when it stands), and frame H - 1 + k
+    is the walk's point after k steps plus the agent's current offset from the lane turned with the lane,
+    heading along the lane there. Agents with no lane
+    within `LANE_SNAP_M` of them keep constant velocity. polylines f32[L, P, 2] / polyline_valid bool[L, P]: the
+    scene's lane centrelines in the scene frame; `stride`: every stride-th point (coarser segments).
+    """
+    h = num_history
+    t_total = cv.xy.shape[-3]
+    if t_total <= h:
+        return cv
+    p0, d = cv.xy[h - 1], cv.xy[h] - cv.xy[h - 1]  # [A, 2]
+    speed = jnp.linalg.norm(d, axis=-1)
+    direction = jnp.where(speed > 1e-6, jnp.arctan2(d[:, 1], d[:, 0]), cv.heading[h - 1])
+    pts, lane_h, dist = lane_trace(polylines, polyline_valid, p0, direction, speed, t_total - h, stride=stride)
+    use = cv.valid[h - 1] & (dist[:, 0] <= LANE_SNAP_M)  # [A]
+    # the walk's points with the agent's offset from the lane, turned with the lane: [F, A, 2]
+    off = p0 - pts[:, 0]
+    turn = lane_h[:, 1:] - lane_h[:, :1]  # [A, F]
+    c, s = jnp.cos(turn)[..., None], jnp.sin(turn)[..., None]
+    ox, oy = off[:, None, :1], off[:, None, 1:]
+    rotated = jnp.concatenate([c * ox - s * oy, s * ox + c * oy], -1)
+    xy = jnp.swapaxes(pts[:, 1:] + rotated, 0, 1)
+    moving = speed > 1e-6
+    heading = jnp.where(moving[None], jnp.swapaxes(lane_h[:, 1:], 0, 1), cv.heading[h:])
+    fut_xy = jnp.where(use[None, :, None], xy, cv.xy[h:])
+    fut_heading = jnp.where(use[None], heading, cv.heading[h:])
+    return Trajectories(xy=jnp.concatenate([cv.xy[:h], fut_xy.astype(cv.xy.dtype)], 0),
+                        heading=jnp.concatenate([cv.heading[:h], fut_heading.astype(cv.heading.dtype)], 0),
+                        valid=cv.valid)
 
 
 BASELINES = {"log_replay": log_replay, "constant_velocity": constant_velocity}

@@ -268,7 +268,7 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
     `traffic_simulation` for reference, in one compiled rollout per batch (per-scenario prompts [B, K]), and
     scores each prompt's conditions (module docstring). Returns {"prompts": {name: scores}, ...}."""
     from gpd_jax.data.loader import SplitSource, to_scene
-    from gpd_jax.decoding import rollout_jit
+    from gpd_jax.decoding import drop_unread_lanes, rollout_jit
     from gpd_jax.evaluation.maps import encode_map_frames
     from gpd_jax.evaluation.render import render_rollout
     from gpd_jax.prompts import prompt_from_json, prompt_from_task, stack_prompts
@@ -317,7 +317,7 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
         prompts = jax.tree.map(lambda x: jnp.asarray(x.reshape((bs, k) + x.shape[1:])), prompts)
         extra = {} if prompts.lanes is None else dict(tok=tok, tok_params=tok.params)
         out = rollout_jit(model.graphdef, model.params, model.rest,
-                          jax.tree.map(jnp.asarray, view.replace(polylines=None, polyline_valid=None, road=None)),
+                          jax.tree.map(jnp.asarray, drop_unread_lanes(model.config.model, view.replace(road=None))),
                           prompts,
                           jax.random.fold_in(jax.random.key(seed), b), h, float(model.config.rollout.temperature),
                           **extra)

@@ -18,7 +18,7 @@ from gpd_jax.checkpoint import Model
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import to_scene
 from gpd_jax.data.store import foreign_map_token_shards, sample_layouts
-from gpd_jax.decoding import LogLanes, RolloutOutput, rollout_jit
+from gpd_jax.decoding import LogLanes, RolloutOutput, drop_unread_lanes, rollout_jit
 from gpd_jax.evaluation.keys import GEN_MAP_SOURCES, LOG_MAP_SOURCES, RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import (decode_map_tokens, encode_map_frames, gt_future_lanes,
                                      persistence_future_lanes)
@@ -128,7 +128,7 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
                 raise EvalError(f"cannot read split {split!r}: {e}") from None
             full = to_scene({k: np.stack([r[k] for r in recs]) for k in recs[0]})
             polylines, poly_valid = full.polylines, full.polyline_valid
-            scene = spec.view(full).replace(polylines=None, polyline_valid=None)
+            scene = drop_unread_lanes(model.config.model, spec.view(full))
             has = scene.map_valid.all(axis=-1) & ~foreign[np.searchsorted(src.offsets, idx, side="right") - 1]
             if not has[:real].all():
                 if tokenizer is None:
@@ -223,9 +223,10 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
 
 
 def _agents_only(full: Scene) -> Scene:
-    """The full-rate scene without the fields the baselines do not use (smaller jit arguments)."""
+    """The full-rate scene without the fields the baselines do not use (smaller jit arguments; the polylines stay,
+    for the lane-following baseline)."""
     return jax.tree.map(jnp.asarray, full.replace(map_tokens=full.map_tokens[..., :1], lanes=None, lanes_valid=None,
-                                                  polylines=None, polyline_valid=None))
+                                                  road=None))
 
 
 def _render_item(i: int, ids: Sequence[str], out: RolloutOutput, scene: Scene, j: int) -> RenderItem:

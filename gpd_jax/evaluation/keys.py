@@ -6,6 +6,10 @@ LOG_MAP_SOURCES = ("tokens", "lanes")  # what a task that takes the map from the
 # ego and the model's tokens only in cells it did not see (`gpd_jax.decoding`'s map_warp).
 GEN_MAP_SOURCES = ("model", "warp")
 BASELINE_NAMES = ("constant_velocity", "constant_velocity_model_rate", "log_replay")
+# Constant velocity's speed along the lanes (`gpd_jax.evaluation.baselines.follow_lanes`; not in the paper): scored
+# where the scenes carry their lane polylines, after the other baselines.
+LANE_BASELINE = "constant_velocity_lanes"
+OPTIONAL_BASELINES = (LANE_BASELINE,)
 # The logged map tokens decoded and scored like a map task: the ceiling any generated map can reach.
 TOKENIZER_CEILING = "map_tokenizer_reconstruction"
 # The current frame's ground-truth lanes carried into each future frame with the logged ego pose, nothing added:
@@ -23,6 +27,7 @@ MAP_CUTFREE_METRICS = ("map_f1_cutfree", "map_precision_cutfree", "map_recall_cu
 RATIO_TARGETS = {"3s": 0.8, "5s": 0.75, "8s": 0.7}
 RATIO_KEY = "traffic_simulation_agent_ade_over_constant_velocity"
 RATIO_KEY_MODEL_RATE = "traffic_simulation_agent_ade_over_constant_velocity_model_rate"
+RATIO_KEY_LANES = "traffic_simulation_agent_ade_over_constant_velocity_lanes"
 # ADE / FDE split by motion at the current frame (`metrics.json`'s "motion_split"; `gpd_jax.metrics.agents`).
 MOTION_SPLIT = "motion_split"
 MOTION_SPEED = ("stored-rate backward difference at the current frame: |xy[c] - xy[c-1]| / stored frame period "
@@ -31,4 +36,5 @@ MOTION_SPEED = ("stored-rate backward difference at the current frame: |xy[c] - 
 # The model / baseline ratios of the motion split: (key, task, baseline).
 MOTION_RATIOS = (("traffic_simulation_over_constant_velocity", "traffic_simulation", "constant_velocity"),
                  ("traffic_simulation_over_constant_velocity_model_rate", "traffic_simulation",
-                  "constant_velocity_model_rate"))
+                  "constant_velocity_model_rate"),
+                 ("traffic_simulation_over_constant_velocity_lanes", "traffic_simulation", LANE_BASELINE))

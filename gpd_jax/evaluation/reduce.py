@@ -8,8 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, MAP_BASELINES, MAP_CUTFREE_METRICS, MAP_METRICS,
-                                     MOTION_RATIOS, MOTION_SPEED, MOTION_SPLIT, RATIO_KEY, RATIO_KEY_MODEL_RATE)
+from gpd_jax.evaluation.keys import (AGENT_METRICS, BASELINE_NAMES, LANE_BASELINE, MAP_BASELINES, MAP_CUTFREE_METRICS,
+                                     MAP_METRICS, MOTION_RATIOS, MOTION_SPEED, MOTION_SPLIT, OPTIONAL_BASELINES,
+                                     RATIO_KEY, RATIO_KEY_LANES, RATIO_KEY_MODEL_RATE)
 from gpd_jax.metrics import (MOTION_CLASSES, STATIONARY_MPS, TRACK_COMPONENTS, VARIANTS, reduce_agent_metrics,
                              reduce_map_metrics)
 from gpd_jax.spec import EvalError, ModelSpec
@@ -90,7 +91,7 @@ def reduce_results(acc: dict[str, Any], spec: ModelSpec, task_names: Sequence[st
             res["tasks"][name][label] = d
         if groups:
             motion["tasks"][name] = {label: _motion_entries(red, label, groups, variant) for label in labels}
-    for name in BASELINE_NAMES:
+    for name in BASELINE_NAMES + tuple(b for b in OPTIONAL_BASELINES if b in acc["baselines"]):
         red = {v: reduce_agent_metrics(acc["baselines"][name][v]) for v in VARIANTS}
         res["baselines"][name] = {label: _agent_entries(red, label, ("ego", "agent"), variant) for label in labels}
         motion["baselines"][name] = {label: _motion_entries(red, label, ("ego", "agent"), variant)
@@ -102,7 +103,10 @@ def reduce_results(acc: dict[str, Any], spec: ModelSpec, task_names: Sequence[st
     res["ratios"] = {}
     if "traffic_simulation" in res["tasks"]:
         ts = res["tasks"]["traffic_simulation"]
-        for key, base in ((RATIO_KEY, "constant_velocity"), (RATIO_KEY_MODEL_RATE, "constant_velocity_model_rate")):
+        for key, base in ((RATIO_KEY, "constant_velocity"), (RATIO_KEY_MODEL_RATE, "constant_velocity_model_rate"),
+                          (RATIO_KEY_LANES, LANE_BASELINE)):
+            if base not in res["baselines"]:
+                continue
             cv = res["baselines"][base]
             res["ratios"][key] = {label: _ratio(ts[label]["agent_ade"], cv[label]["agent_ade"]) for label in labels}
     if all(d for part in ("tasks", "baselines") for per in motion[part].values() for d in per.values()):
@@ -115,7 +119,7 @@ def _motion_block(motion: dict[str, Any], labels: Sequence[str]) -> dict[str, An
     ADE ratios of each group and motion class."""
     ratios: dict[str, Any] = {}
     for key, task, base in MOTION_RATIOS:
-        if task not in motion["tasks"]:
+        if task not in motion["tasks"] or base not in motion["baselines"]:
             continue
         t, b = motion["tasks"][task], motion["baselines"][base]
         ratios[key] = {f"{g}_{k}": {lb: _ratio(t[lb][f"{g}_ade_{k}"], b[lb][f"{g}_ade_{k}"]) for lb in labels}

@@ -8,8 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from gpd_jax.evaluation.keys import (BASELINE_NAMES, MAP_PERSISTENCE, MOTION_RATIOS, MOTION_SPLIT, RATIO_KEY,
-                                     RATIO_KEY_MODEL_RATE, RATIO_TARGETS, TOKENIZER_CEILING)
+from gpd_jax.evaluation.keys import (BASELINE_NAMES, MAP_PERSISTENCE, MOTION_RATIOS, MOTION_SPLIT, OPTIONAL_BASELINES,
+                                     RATIO_KEY, RATIO_KEY_LANES, RATIO_KEY_MODEL_RATE, RATIO_TARGETS,
+                                     TOKENIZER_CEILING)
 
 MOTION_RATIO_KEY = MOTION_RATIOS[0][0]  # traffic simulation over constant velocity (stored rate)
 from gpd_jax.evaluation.reduce import other_variant
@@ -56,7 +57,7 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
     for n in traj:
         rows1.append((_title(n) + ":", None))
         rows1 += [(f"  {lb}", tasks[n][lb]) for lb in labels]
-    for n in BASELINE_NAMES:
+    for n in BASELINE_NAMES + tuple(b for b in OPTIONAL_BASELINES if b in base):
         rows1.append((_title(n) + " (baseline):", None))
         rows1 += [(f"  {lb}", base[n][lb]) for lb in labels]
     out = table(f"Table 1 - trajectories and map ({variant} metrics; ADE/FDE m; Col% = share of agents with a "
@@ -73,10 +74,13 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
                 rows2 += [(f"  {lb}", base[name][lb]) for lb in labels]
         out += [""] + table(f"Table 2 - map prediction ({variant} Chamfer in 'Ch')", rows2, cols2)
     for key, what in ((RATIO_KEY, "constant velocity (stored rate)"),
-                      (RATIO_KEY_MODEL_RATE, "constant velocity (model rate)")):
+                      (RATIO_KEY_MODEL_RATE, "constant velocity (model rate)"),
+                      (RATIO_KEY_LANES, "constant velocity along the lanes")):
         ratio = results.get("ratios", {}).get(key)
         if ratio:
-            parts = [f"{lb} {_fmt(v)} (target <= {RATIO_TARGETS.get(lb, float('nan')):g})" for lb, v in ratio.items()]
+            target = (lambda lb: f" (target <= {RATIO_TARGETS.get(lb, float('nan')):g})") if key != RATIO_KEY_LANES \
+                else (lambda lb: "")
+            parts = [f"{lb} {_fmt(v)}{target(lb)}" for lb, v in ratio.items()]
             out += [f"traffic simulation agent ADE / {what} agent ADE: " + ", ".join(parts)]
     if results.get(MOTION_SPLIT):
         out += [""] + format_motion_table(results, variant)

@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.decoding import RolloutOutput
-from gpd_jax.evaluation.baselines import constant_velocity
-from gpd_jax.evaluation.keys import MAP_PERSISTENCE, TOKENIZER_CEILING
+from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow_lanes
+from gpd_jax.evaluation.keys import LANE_BASELINE, MAP_PERSISTENCE, TOKENIZER_CEILING
 from gpd_jax.metrics import VARIANTS, agent_metric_sums, map_metric_sums
 from gpd_jax.scene import Scene
 from gpd_jax.spec import ModelSpec
@@ -78,19 +78,27 @@ def subsample_trajectories(xy, heading, valid, spec: ModelSpec):
     return xy[..., fr, :a, :], heading[..., fr, :a], valid[..., fr, :a]
 
 
-def baseline_predictions(full: Scene, spec: ModelSpec) -> dict[str, tuple[jax.Array, jax.Array, jax.Array]]:
+def baseline_predictions(full: Scene, spec: ModelSpec, with_lanes: bool = True
+                         ) -> dict[str, tuple[jax.Array, jax.Array, jax.Array]]:
     """{baseline: (xy, heading, valid)} at the model's frames.
 
     `constant_velocity` is computed on the full-rate scene (its velocity is the last stored-frame difference,
     the most recent there is); `constant_velocity_model_rate` on the model's frames (the velocity between the
-    last two model frames: exactly the information the model gets). They coincide when the stride is 1."""
+    last two model frames: exactly the information the model gets). They coincide when the stride is 1.
+    Where the scenes carry their lane polylines (`Scene.polylines`, one leading batch dim) and `with_lanes`,
+    also `constant_velocity_lanes`: `constant_velocity` moved along the lanes (`follow_lanes`)."""
     cv = constant_velocity(full, spec.full_history)
     log = subsample_trajectories(full.xy, full.heading, full.valid, spec)
     xy, heading, valid = log
     cvm = constant_velocity(full.replace(xy=xy, heading=heading, valid=valid), spec.num_history)
-    return {"constant_velocity": subsample_trajectories(cv.xy, cv.heading, cv.valid, spec),
-            "constant_velocity_model_rate": (cvm.xy, cvm.heading, cvm.valid),
-            "log_replay": log}
+    out = {"constant_velocity": subsample_trajectories(cv.xy, cv.heading, cv.valid, spec),
+           "constant_velocity_model_rate": (cvm.xy, cvm.heading, cvm.valid),
+           "log_replay": log}
+    if with_lanes and full.polylines is not None:
+        lanes = jax.vmap(lambda c, p, v: follow_lanes(c, spec.num_history, p, v))(
+            Trajectories(*out["constant_velocity"]), full.polylines, full.polyline_valid)
+        out[LANE_BASELINE] = (lanes.xy, lanes.heading, lanes.valid)
+    return out
 
 
 def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight, count_exact_hits: bool = False

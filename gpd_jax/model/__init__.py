@@ -11,7 +11,8 @@ Public names (pure functions of an NNX module; `gpd_jax.checkpoint.build_model` 
 """
 
 from gpd_jax.model.planning_head import PlanningHead, plan_trajectory, to_ego_frame, to_scene_frame
-from gpd_jax.model.transformer import GPD, KVCache, Prediction, count_params, forward, forward_cached
+from gpd_jax.model.transformer import (GPD, KVCache, LaneContext, Prediction, count_params, forward,
+                                      forward_cached)
 
-__all__ = ["GPD", "KVCache", "PlanningHead", "Prediction", "count_params", "forward", "forward_cached",
+__all__ = ["GPD", "KVCache", "LaneContext", "PlanningHead", "Prediction", "count_params", "forward", "forward_cached",
            "plan_trajectory", "to_ego_frame", "to_scene_frame"]

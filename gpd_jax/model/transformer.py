@@ -25,6 +25,16 @@ to the ego, through a small MLP whose last layer starts at zero (`local_map_cont
 the map only through attention from learned slot and grid embeddings; with the other scene's map tokens its
 agents lose little (the README's "Does the model use the map?"), so this gives every agent the cells it stands
 on directly.
+
+Option `agent_lane_context` (not in the paper): each agent token also gets the road ahead of it from the vector
+lane centrelines of the scene (`LaneContext`: the log's `Scene.polylines` in tasks that take the map from the log,
+a prompt's own lanes), where a frame's map is given: `gpd_jax.geometry.lane_trace` walks the lane the agent is on
+`lane_context_steps` x `lane_context_step_m` metres ahead, and the walk (points, lane headings and distances, in
+the agent's own frame) goes through a small MLP whose last layer starts at zero (`lane_context_features`). The
+map tokens of real roads decode poorly (the map tokenizer's README), and on them the plain model's moving agents
+keep the path of constant velocity; the lanes give every agent the road's curve without the tokenizer. Frames whose
+map is generated get no lane context (the log's lanes would leak the answer), and training drops it from a share
+of the scenes' future frames (`train.lane_context_drop`) so the model works both ways.
 """
 
 from __future__ import annotations
@@ -38,6 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from gpd_jax.geometry import lane_trace
 from gpd_jax.model.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
 from gpd_jax.model.agent_tokenizer import AgentTokenizer, sinusoid_table
@@ -45,6 +56,25 @@ from gpd_jax.model.agent_tokenizer import AgentTokenizer, sinusoid_table
 
 # the map cells each agent reads with `agent_map_context`: (row, column) offsets from its own cell
 CONTEXT_CELLS = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1))
+
+
+# lane-context features per walk point: x, y (agent frame, scaled), cos / sin of the lane heading relative to the
+# agent's, distance to the lane (scaled, clipped), lane found
+LANE_POINT_FEATURES = 6
+
+
+@flax.struct.dataclass
+class LaneContext:
+    """The vector lanes agents read with `agent_lane_context` (one scene; vmap for batches).
+
+    polylines: f32[L, P, 2] directed lane centrelines in the scene frame; valid: bool[L, P];
+    on: bool[F] per frame of the block being embedded, whether its agents get the lane context (frames whose map
+    is given), broadcast against the block's frames.
+    """
+
+    polylines: jax.Array
+    valid: jax.Array
+    on: jax.Array
 
 
 class Frozen(nnx.Variable):
@@ -190,15 +220,26 @@ class GPD(nnx.Module):
             self.context_in = nnx.Linear(len(CONTEXT_CELLS) * d + 4, d, rngs=rngs)
             self.context_ln = nnx.LayerNorm(d, rngs=rngs)
             self.context_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
+        self.lane_context = bool(cfg.get("agent_lane_context", False))
+        if self.lane_context:
+            self.lane_steps = int(cfg.get("lane_context_steps", 6))
+            self.lane_step_m = float(cfg.get("lane_context_step_m", 5.0))
+            self.lane_stride = int(cfg.get("lane_context_stride", 4))  # every 4th stored 1 m point: 4 m segments
+            n_in = (self.lane_steps + 1) * LANE_POINT_FEATURES
+            self.lane_in = nnx.Linear(n_in, d, rngs=rngs)
+            self.lane_ln = nnx.LayerNorm(d, rngs=rngs)
+            self.lane_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
 
     # ------------------------------------------------------------------ embedding
-    def embed(self, xy, heading, valid, map_tokens, frames, velocity=None):
+    def embed(self, xy, heading, valid, map_tokens, frames, velocity=None, lanes: LaneContext | None = None):
         """Tokens of a block of frames.
 
         Args:
           xy: f32[F, A, 2], heading: f32[F, A], valid: bool[F, A], map_tokens: i32[F, M],
           frames: i32[F] absolute frame indices (for the frame embedding),
           velocity: f32[F, A, 2] (m/s), required by a `velocity_inputs` model and ignored otherwise.
+          lanes: the lanes an `agent_lane_context` model's agents read (ignored by other models); None: no frame
+            has them (as where the map is generated).
         Returns:
           f32[F, N, d] with N = M + A, map tokens first.
         """
@@ -210,6 +251,8 @@ class GPD(nnx.Module):
             maps = self.map_embed(map_tokens)
         if self.map_context:
             agents = agents + self.local_map_context(xy, heading, valid, maps)
+        if self.lane_context and lanes is not None:
+            agents = agents + self.lane_context_features(xy, heading, valid, lanes)
         agents = jnp.where(valid[..., None], agents, self.oob[...])
         maps = maps + self.grid_mlp(self.grid_code[...])
         tokens = jnp.concatenate([maps, agents], axis=-2)
@@ -246,6 +289,33 @@ class GPD(nnx.Module):
                                  jnp.stack([r - ri - 0.5, col - ci - 0.5, jnp.cos(rel), jnp.sin(rel)], -1)], -1)
         out = self.context_out(jax.nn.relu(self.context_ln(self.context_in(feats))))
         keep = valid & valid[:, :1] & jnp.any(inside, axis=-1)
+        return jnp.where(keep[..., None], out, 0.0)
+
+    def lane_walk_features(self, xy, heading, valid, lanes: LaneContext):
+        """f32[F, A, (steps + 1) * LANE_POINT_FEATURES] the lane walk of every agent (`agent_lane_context`) in
+        its own frame: per walk point x / 10 m, y / 5 m, cos and sin of the lane heading minus the agent's,
+        min(distance, 10 m) / 5 m and 1 where a lane was found; zeros for invalid agents and frames without lanes.
+        No gradient flows through the lanes or the query poses (they are inputs)."""
+        xy = jax.lax.stop_gradient(jnp.where(valid[..., None], xy, 0.0))
+        heading = jax.lax.stop_gradient(jnp.where(valid, heading, 0.0))
+        pts, lane_h, dist = lane_trace(lanes.polylines, lanes.valid, xy, heading, self.lane_step_m,
+                                       self.lane_steps, stride=self.lane_stride)
+        c, s = jnp.cos(heading)[..., None], jnp.sin(heading)[..., None]
+        rel = pts - xy[..., None, :]
+        x = c * rel[..., 0] + s * rel[..., 1]
+        y = -s * rel[..., 0] + c * rel[..., 1]
+        dh = lane_h - heading[..., None]
+        found = jnp.isfinite(dist)
+        feats = jnp.stack([x / 10.0, y / 5.0, jnp.cos(dh), jnp.sin(dh),
+                           jnp.minimum(jnp.where(found, dist, 10.0), 10.0) / 5.0, found.astype(jnp.float32)], -1)
+        feats = jnp.where(found[..., None], feats, 0.0).reshape(*xy.shape[:-1], -1)
+        keep = valid & jnp.broadcast_to(jnp.asarray(lanes.on, bool).reshape(-1, 1), valid.shape)
+        return jnp.where(keep[..., None], feats, 0.0), keep
+
+    def lane_context_features(self, xy, heading, valid, lanes: LaneContext):
+        """f32[F, A, d] what the lane walk adds to each agent's token (zeros where it has none)."""
+        feats, keep = self.lane_walk_features(xy, heading, valid, lanes)
+        out = self.lane_out(jax.nn.relu(self.lane_ln(self.lane_in(feats))))
         return jnp.where(keep[..., None], out, 0.0)
 
     # ------------------------------------------------------------------ heads

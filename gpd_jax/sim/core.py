@@ -39,6 +39,7 @@ from flax import nnx
 
 from gpd_jax.checkpoint import Model
 from gpd_jax.decoding import DecodeState, Frame, advance, prefill
+from gpd_jax.model import LaneContext
 from gpd_jax.scene import Scene
 from gpd_jax.sim.agents import IDMParams, IDMState, Paths, idm_poses, idm_substep, make_paths
 from gpd_jax.sim.dynamics import BicycleLimits, bicycle_path, hermite, lerp_heading, pose_path
@@ -251,6 +252,14 @@ def _log_frame(parts: _Parts, view: Scene) -> Frame:
                  valid_logit=jnp.zeros(view.valid.shape, jnp.float32), map_tokens=view.map_tokens, velocity=vel)
 
 
+def _lanes(parts: _Parts, scene: SimScene, frames: int) -> LaneContext | None:
+    """What an `agent_lane_context` model's agents read in `frames` frames: the log's lanes in every frame (the
+    simulator's map is always the log's, encoded around the ego). None for other models."""
+    if parts.module is None or not parts.module.lane_context:
+        return None
+    return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=jnp.ones((frames,), bool))
+
+
 def _reset(parts: _Parts, scene: SimScene, agents: str) -> SimState:
     if agents not in AGENT_MODELS:
         raise SimError(f"unknown agent model {agents!r}; known: {', '.join(AGENT_MODELS)}")
@@ -260,7 +269,8 @@ def _reset(parts: _Parts, scene: SimScene, agents: str) -> SimState:
     view = scene.view
     hist = (jnp.arange(t_total) < h)
     fhist = (jnp.arange(scene.log_xy.shape[0]) <= c)
-    decode = prefill(parts.module, _log_frame(parts, view), h, t_total) if parts.with_model else None
+    decode = (prefill(parts.module, _log_frame(parts, view), h, t_total, _lanes(parts, scene, h))
+              if parts.with_model else None)
     speed = jnp.linalg.norm(scene.log_velocity[c:], axis=-1)
     paths = make_paths(scene.log_xy[c:], scene.log_heading[c:], scene.log_valid[c:], speed)
     idm = IDMState(s=jnp.zeros(paths.v0.shape), v=jnp.where(scene.log_valid[c], speed[0], 0.0),
@@ -381,7 +391,7 @@ def _step(parts: _Parts, state: SimState, ego: jax.Array, limits: BicycleLimits 
         in_vel = parts.module.input_velocity(avel)
         in_vel = jnp.zeros_like(axy) if in_vel is None else in_vel
         frame = Frame(xy=axy, heading=ah, valid=av, valid_logit=logit, map_tokens=tokens, velocity=in_vel)
-        decode = advance(parts.module, decode, frame, t1)
+        decode = advance(parts.module, decode, frame, t1, _lanes(parts, sc, 1))
     put = lambda arr, val, i: jax.lax.dynamic_update_index_in_dim(arr, val.astype(arr.dtype), i, 0)
     putf = lambda arr, val: jax.lax.dynamic_update_slice_in_dim(arr, val.astype(arr.dtype), g0 + 1, 0)
     return state.replace(t=t1, xy=put(state.xy, axy, t1), heading=put(state.heading, ah, t1),

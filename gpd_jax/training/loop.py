@@ -54,7 +54,7 @@ from gpd_jax.scene import Scene
 from gpd_jax.spec import ModelSpec, spec_from_config
 from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, graft_params, restore_state,
                                      save_state)
-from gpd_jax.training.step import TrainState, make_trainer
+from gpd_jax.training.step import TrainState, make_trainer, training_scene
 from gpd_jax.training.validation import Validator
 
 
@@ -130,7 +130,10 @@ def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> Non
 
 # Model options a fine-tune may switch on over a model trained without them: their parameters start fresh, and
 # at their initialisation (a last layer at zero) the model computes exactly what the source model does.
-ADDABLE_OPTIONS = ("agent_map_context", "map_extent_m")
+# (switch, the settings that come with it, a substring of the names of the parameters it adds)
+ADDABLE_OPTIONS = (("agent_map_context", ("map_extent_m",), "context_"),
+                   ("agent_lane_context", ("lane_context_steps", "lane_context_step_m", "lane_context_stride"),
+                    "lane_"))
 
 
 def initial_params(path: str, config, template=None):
@@ -139,18 +142,20 @@ def initial_params(path: str, config, template=None):
     `ADDABLE_OPTIONS` may be on here and off there: then `template` (this config's freshly initialised params)
     keeps the new parameters and takes every other leaf from the source."""
     src = load_model(path)
-    adding = bool(config.model.get("agent_map_context", False)) and not src.config.model.get("agent_map_context",
-                                                                                            False)
-    diff = config_differences(config.model, src.config.model,
-                              ignore=("map_tokenizer",) + (ADDABLE_OPTIONS if adding else ()))
+    added = [opt for opt in ADDABLE_OPTIONS
+             if bool(config.model.get(opt[0], False)) and not src.config.model.get(opt[0], False)]
+    ignore = ("map_tokenizer",) + tuple(k for name, extra, _ in added for k in (name,) + extra)
+    diff = config_differences(config.model, src.config.model, ignore=ignore)
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-    if not adding:
+    if not added:
         return src.params
     if template is None:
-        raise ValueError("initial_params: adding agent_map_context needs the new model's params as a template")
+        raise ValueError(f"initial_params: adding {[a[0] for a in added]} needs the new model's params as a "
+                         "template")
+    marks = tuple(mark for _, _, mark in added)
     out, missing = graft_params(template, src.params,
-                                lambda p: "context_" in jax.tree_util.keystr(p))
+                                lambda p: any(m in jax.tree_util.keystr(p) for m in marks))
     if missing:
         raise ValueError(f"train.init_from {path}: no parameters for {missing[:5]}")
     return out
@@ -253,9 +258,10 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     Returns {"step", "train": last logged train metrics, "eval": last evaluation, "export": dir or None}."""
     tc = config.train
     bs, pcount, pindex = int(tc.batch_size), jax.process_count(), jax.process_index()
+    lanes = bool(config.model.get("agent_lane_context", False))  # its agents read the lane polylines
     it = None if next_batch is not None else data_loader.make_loader(
         data_dir, config.data.train_split, bs // pcount, seed=int(config.seed), process_index=pindex,
-        process_count=pcount, start_step=start, num_threads=int(tc.loader_threads))
+        process_count=pcount, start_step=start, num_threads=int(tc.loader_threads), with_polylines=lanes)
     total = int(tc.steps)
     end = total if stop_after is None else min(total, start + int(stop_after))
     last_train: dict[str, float] = {}
@@ -270,7 +276,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
                 if next_batch is not None:
                     view = next_batch(step)
                 else:
-                    view = spec.view(next(it))
+                    view = spec.view(training_scene(next(it)))
                     if not np.all(view.map_valid):
                         raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step "
                                         f"{step + 1} has model frames without map tokens; encode every shard: "

@@ -28,6 +28,10 @@ factor against stationary ones, as a weighted mean. With the Euclidean norm ever
 with the same force, so on real roads, where two thirds of the agents stand, most of the agent gradient comes
 from stopped cars; the weight hands it back to the moving ones. It needs the logged velocity (velocity inputs).
 
+An `agent_lane_context` model reads the scenes' lane polylines (`lane_context_of`, the batches must carry
+`Scene.polylines`) in every input frame, its own rollout passes included; `train.lane_context_drop` = f drops
+them from the future frames of the last round(f * B) scenes of each batch, as in the tasks that generate the map.
+
 The step is a pure function of (params, opt_state, batch); NNX only defines the parameter tree.
 """
 
@@ -41,7 +45,7 @@ import optax
 from flax import nnx
 
 from gpd_jax.metrics import STATIONARY_MPS
-from gpd_jax.model import GPD, Prediction, forward
+from gpd_jax.model import GPD, LaneContext, Prediction, forward
 from gpd_jax.scene import Scene, wrap_angle
 
 
@@ -72,18 +76,21 @@ def previous_frames(xy, valid):
             jnp.concatenate([jnp.zeros_like(valid[:1]), valid[:-1]], 0))
 
 
-def teacher_forced(model: GPD, xy, heading, valid, map_tokens, velocity=None) -> Prediction:
+def teacher_forced(model: GPD, xy, heading, valid, map_tokens, velocity=None,
+                   lanes: LaneContext | None = None) -> Prediction:
     """One teacher-forced pass: next-frame predictions from every frame's inputs.
 
     xy f32[F, A, 2], heading f32[F, A], valid bool[F, A], map_tokens i32[F, M], velocity f32[F, A, 2] or None
-    (frames [0, F) of a scene) -> Prediction of frames [1, F + 1)."""
-    tokens = model.embed(xy, heading, valid, map_tokens, jnp.arange(xy.shape[0]), velocity)
+    (frames [0, F) of a scene), lanes: what an `agent_lane_context` model's agents read -> Prediction of frames
+    [1, F + 1)."""
+    tokens = model.embed(xy, heading, valid, map_tokens, jnp.arange(xy.shape[0]), velocity, lanes)
     hidden = forward(model, tokens)
     prev_xy, prev_valid = previous_frames(xy, valid)
     return model.predict(hidden, xy, heading, valid, prev_xy, prev_valid, velocity)
 
 
-def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int, feed_map=False):
+def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int, feed_map=False,
+                        lanes: LaneContext | None = None):
     """The inputs a rollout would see, approximated by `passes` teacher-forced passes without gradient.
 
     Frames [num_history, T-1) of agents valid there and in the previous frame take the model's own prediction
@@ -115,7 +122,7 @@ def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int,
 
     def one_pass(_, inputs):
         xy, heading, vel, maps = inputs
-        pred = teacher_forced(frozen, xy, heading, valid, maps, vel)
+        pred = teacher_forced(frozen, xy, heading, valid, maps, vel, lanes)
         return (take(logged[0], pred.xy), take(logged[1], pred.heading),
                 None if vel is None else take(logged[2], pred.velocity),
                 take(logged[3], jnp.argmax(pred.map_logits, -1).astype(maps.dtype), own_map))
@@ -134,18 +141,42 @@ def moving_weights(scene: Scene, moving_weight: float) -> jax.Array:
     return jnp.where(moving, jnp.float32(moving_weight), jnp.float32(1.0))
 
 
+def training_scene(batch) -> Scene:
+    """A loader batch as the Scene a train or eval step takes: with polylines (`with_polylines` gives `(scene,
+    polylines)`) the scene keeps them and drops the road geometry, which no loss reads."""
+    if isinstance(batch, tuple):
+        return batch[0].replace(road=None)
+    return batch
+
+
+def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> LaneContext | None:
+    """The lanes an `agent_lane_context` model's agents read in training: the scene's polylines in every input
+    frame, or with `drop` (bool[], may be traced) in the history frames only, as in a task that generates the
+    map. None for other models. A lane-context model needs the polylines (`Scene.polylines`)."""
+    if not model.lane_context:
+        return None
+    if scene.polylines is None or scene.polyline_valid is None:
+        raise ValueError("an agent_lane_context model trains on the scenes' lane polylines (Scene.polylines): "
+                         "load the batches with them")
+    frames = jnp.arange(scene.num_frames - 1)
+    on = (frames < num_history) | ~jnp.asarray(drop, bool)
+    return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=on)
+
+
 def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0,
                feed_map=False, agent_norm: str = "smooth_l1", norm_delta: float = NORM_DELTA,
-               moving_weight: float = 1.0) -> dict[str, jax.Array]:
+               moving_weight: float = 1.0, drop_lanes=False) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide).
 
     `agent_norm` / `norm_delta`: the position and velocity loss (`vector_loss`); `moving_weight`: the weight of
     agents moving at the input frame (`moving_weights`; the agent counts are weighted the same way).
     With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
     predictions (`free_running_inputs`; with `feed_map` the map tokens too) while the targets stay the log's:
-    the model learns to recover from its own errors, as it must in a rollout."""
-    xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map)
-    pred = teacher_forced(model, xy, heading, scene.valid[:-1], maps, vel)
+    the model learns to recover from its own errors, as it must in a rollout. An `agent_lane_context` model
+    reads the scene's lanes (`lane_context_of`; with `drop_lanes` in the history frames only)."""
+    lanes = lane_context_of(model, scene, num_history, drop_lanes)
+    xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map, lanes)
+    pred = teacher_forced(model, xy, heading, scene.valid[:-1], maps, vel, lanes)
     tv = scene.valid[1:].astype(jnp.float32)
     w = moving_weights(scene, moving_weight)
     pos = vector_loss(pred.xy - scene.xy[1:], agent_norm, norm_delta)
@@ -182,16 +213,19 @@ def agent_norm_of(loss_cfg) -> tuple[str, float, float]:
 
 
 def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout_passes: int = 0,
-               map_feedback: float = 0.0) -> tuple[jax.Array, dict[str, jax.Array]]:
+               map_feedback: float = 0.0, lane_drop: float = 0.0) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Weighted total loss over a batch of scenes (leading dim B) and its parts (see `loss_terms`).
 
     With `rollout_passes` > 0 the first round(map_feedback * B) scenes of the batch (a random subset: batches
-    are shuffled) also take their future map tokens from the model (`free_running_inputs`)."""
+    are shuffled) also take their future map tokens from the model (`free_running_inputs`). For an
+    `agent_lane_context` model the last round(lane_drop * B) scenes read no lanes in their future frames."""
     b = scenes.xy.shape[0]
-    feed = jnp.arange(b) < round(float(map_feedback) * b)
+    idx = jnp.arange(b)
+    feed = idx < round(float(map_feedback) * b)
+    drop = idx >= b - round(float(lane_drop) * b)
     norm, delta, moving = agent_norm_of(weights)
-    terms = jax.vmap(lambda s, f: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, moving))(
-        scenes, feed)
+    terms = jax.vmap(lambda s, f, d: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, moving, d))(
+        scenes, feed, drop)
     terms = jax.tree.map(jnp.sum, terms)
     n_agents = jnp.maximum(terms["agent_count"], 1.0)
     n_map = jnp.maximum(terms["map_count"], 1.0)
@@ -264,6 +298,9 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
     num_history = int(config.model.num_history)
     passes = int(config.train.get("rollout_passes", 0))
     map_feedback = float(config.train.get("map_feedback", 0.0))
+    lane_drop = float(config.train.get("lane_context_drop", 0.0))
+    if not 0.0 <= lane_drop <= 1.0:
+        raise ValueError(f"train.lane_context_drop must be a fraction in [0, 1], got {lane_drop}")
     if not 0.0 <= map_feedback <= 1.0:
         raise ValueError(f"train.map_feedback must be a fraction in [0, 1], got {map_feedback}")
     if map_feedback > 0 and passes <= 0:
@@ -271,7 +308,8 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
                          "train.rollout_passes > 0")
 
     def loss_of(p, scenes):
-        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, num_history, passes, map_feedback)
+        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, num_history, passes, map_feedback,
+                          lane_drop)
 
     def train_step(state: TrainState, scenes: Scene):
         (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)

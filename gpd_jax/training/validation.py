@@ -13,6 +13,7 @@ from gpd_jax.evaluation.scoring import baseline_predictions
 from gpd_jax.metrics import agents as agent_metrics_lib
 from gpd_jax.spec import EvalError, spec_from_config
 from gpd_jax.tasks import make_tasks
+from gpd_jax.training.step import training_scene
 
 
 class Validator:
@@ -26,11 +27,13 @@ class Validator:
         n_val = len(data_loader.SplitSource(data_dir, split))
         bs = int(tc.batch_size)
         n_batches = min(int(tc.eval_batches), n_val // bs)
+        lanes = bool(m.get("agent_lane_context", False))  # its agents read the lane polylines
         self.loss_batches = []
         if n_batches:
-            it = data_loader.make_loader(data_dir, split, bs, seed=12345, num_epochs=1, num_threads=2, prefetch=0)
+            it = data_loader.make_loader(data_dir, split, bs, seed=12345, num_epochs=1, num_threads=2, prefetch=0,
+                                         with_polylines=lanes)
             for _ in range(n_batches):
-                self.loss_batches.append(view_spec.view(next(it)))
+                self.loss_batches.append(view_spec.view(training_scene(next(it))))
             it.close()
         n_roll = min(int(tc.eval_rollout_scenarios), n_val)
         try:
@@ -38,7 +41,10 @@ class Validator:
         except EvalError as e:
             print(f"validation rollouts off: {e}")
             n_roll = 0
-        self.scenes = data_loader.load_split(data_dir, split, indices=range(n_roll)) if n_roll else None
+        self.scenes = None
+        if n_roll:
+            self.scenes = training_scene(data_loader.load_split(data_dir, split, indices=range(n_roll),
+                                                                with_polylines=lanes))
         if self.scenes is not None:
             self.view = view_spec.view(self.scenes)
             # Constant velocity from the stored frame rate, as rollout.py scores it; fixed, so scored once here.

@@ -1,0 +1,247 @@
+"""`model.agent_lane_context`: agents read the lane they are on, walked ahead in the vector lanes (not in the paper)."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from gpd_jax.config import load_config
+from gpd_jax.decoding import lane_context, rollout_recompute, rollout_tasks
+from gpd_jax.geometry import lane_trace
+from gpd_jax.model import GPD, LaneContext
+from gpd_jax.prompts import as_prompt, make_prompt
+from gpd_jax.synthetic import synthetic_scenes
+from gpd_jax.tasks import TASK_NAMES, make_tasks
+from gpd_jax.training.step import batch_loss
+
+from conftest import ROOT
+
+
+def _arc(radius, start, stop, n=128, centre=(0.0, 0.0)):
+    th = np.linspace(start, stop, n)
+    return np.stack([centre[0] + radius * np.cos(th), centre[1] + radius * np.sin(th)], -1).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ the walk
+def test_walk_follows_the_lane_that_runs_the_agents_way():
+    inner = _arc(30.0, 0.0, np.pi)  # counter-clockwise
+    outer = _arc(33.5, np.pi, 0.0)  # the opposing lane, clockwise, 3.5 m outside
+    lanes, valid = jnp.asarray(np.stack([inner, outer])), jnp.ones((2, 128), bool)
+    # a car between the two, nearer the opposing lane, heading counter-clockwise: it keeps its own lane
+    xy, heading = jnp.array([[32.5, 0.5]]), jnp.array([np.pi / 2])
+    pts, lane_h, dist = lane_trace(lanes, valid, xy, heading, 5.0, 4)
+    r = np.hypot(pts[0, :, 0], pts[0, :, 1])
+    np.testing.assert_allclose(r, 30.0, atol=0.05)
+    # each step moves ~5 m along the arc, the heading turns with it (tangent = angle + pi/2)
+    ang = np.unwrap(np.arctan2(pts[0, :, 1], pts[0, :, 0]))
+    np.testing.assert_allclose(np.diff(ang) * 30.0, 5.0, rtol=0.05)
+    np.testing.assert_allclose(np.unwrap(lane_h[0]), ang + np.pi / 2, atol=0.03)
+    assert abs(float(dist[0, 0]) - 2.5) < 0.05 and float(dist[0, 1:].max()) < 0.5
+    # the same car heading the other way takes the opposing lane
+    pts2, lane_h2, _ = lane_trace(lanes, valid, xy, heading + np.pi, 5.0, 4)
+    np.testing.assert_allclose(np.hypot(pts2[0, :, 0], pts2[0, :, 1]), 33.5, atol=0.05)
+    # coarser segments (every 4th point) move the walk by centimetres only
+    pts4, _, _ = lane_trace(lanes, valid, xy, heading, 5.0, 4, stride=4)
+    assert float(jnp.abs(pts4 - pts).max()) < 0.1
+
+
+def test_walk_without_lanes_stays_put_with_infinite_distance():
+    lanes, valid = jnp.zeros((3, 8, 2)), jnp.zeros((3, 8), bool)
+    xy, heading = jnp.array([[1.0, 2.0], [3.0, -4.0]]), jnp.array([0.3, -2.0])
+    pts, lane_h, dist = lane_trace(lanes, valid, xy, heading, 5.0, 2)
+    assert pts.shape == (2, 3, 2) and np.isinf(np.asarray(dist)).all()
+    np.testing.assert_allclose(lane_h, np.repeat(np.asarray(heading)[:, None], 3, 1), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ the model
+def _cfg(lanes: bool):
+    c = load_config(f"{ROOT}/configs/gpd_tiny.py")
+    c.model.agent_lane_context = lanes
+    c.model.lane_context_steps = 3
+    c.model.lane_context_step_m = 5.0
+    c.model.lane_context_stride = 2
+    return c
+
+
+def _scenes(cfg, n=2):
+    m = cfg.model
+    sc = synthetic_scenes(3, n, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
+    # three concentric arcs and a straight road through the scene frame, a lane slot left empty
+    lines = np.zeros((5, 64, 2), np.float32)
+    ok = np.zeros((5, 64), bool)
+    for i, r in enumerate((20.0, 30.0, 40.0)):
+        lines[i] = _arc(r, -np.pi, np.pi, 64)
+        ok[i] = True
+    lines[3] = np.stack([np.linspace(-60, 60, 64), np.zeros(64)], -1)
+    ok[3, :50] = True
+    return sc.replace(polylines=np.broadcast_to(lines, (n,) + lines.shape).copy(),
+                      polyline_valid=np.broadcast_to(ok, (n,) + ok.shape).copy())
+
+
+def _trained(model: GPD) -> GPD:
+    """The lane context's last layer away from its zero start (random, not uniform: a uniform shift of every
+    feature is what the blocks' LayerNorms remove)."""
+    model.lane_out.kernel[...] = 0.3 * jax.random.normal(jax.random.key(1), model.lane_out.kernel[...].shape)
+    return model
+
+
+def test_new_lane_context_starts_as_the_model_without_it_and_reads_only_where_on():
+    plain, cfg = _cfg(False), _cfg(True)
+    m = cfg.model
+    sc = jax.tree.map(lambda x: jnp.asarray(x[0]), _scenes(cfg))
+    a, b = GPD(plain.model, nnx.Rngs(0)), GPD(cfg.model, nnx.Rngs(0))
+    on = jnp.arange(m.num_frames) < 7
+    ctx = LaneContext(sc.polylines, sc.polyline_valid, on)
+    args = (sc.xy, sc.heading, sc.valid, sc.map_tokens, jnp.arange(m.num_frames))
+    np.testing.assert_array_equal(np.asarray(a.embed(*args)), np.asarray(b.embed(*args, lanes=ctx)))
+    _trained(b)
+    t0, t1 = np.asarray(b.embed(*args)), np.asarray(b.embed(*args, lanes=ctx))
+    agents = slice(m.num_map_tokens, None)
+    changed = ~np.all(np.isclose(t0[:, agents], t1[:, agents]), axis=-1)  # [T, A]
+    valid = np.asarray(sc.valid)
+    assert changed[:7][valid[:7]].all()
+    assert not changed[7:].any() and not changed[~valid].any()
+    np.testing.assert_array_equal(t0[:, : m.num_map_tokens], t1[:, : m.num_map_tokens])
+    # NaN in invalid slots leaves every gradient finite
+    xy = jnp.where(sc.valid[..., None], sc.xy, jnp.nan)
+    g = nnx.grad(lambda mod: jnp.sum(mod.embed(xy, *args[1:], lanes=ctx) ** 2))(b)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(g))
+
+
+def test_rollout_reads_lanes_where_the_map_is_given_cached_equals_recompute_one_compile():
+    cfg = _cfg(True)
+    m = cfg.model
+    model = _trained(GPD(cfg.model, nnx.Rngs(0)))
+    scenes = jax.tree.map(jnp.asarray, _scenes(cfg))
+    tasks = jax.tree.map(jnp.asarray, make_tasks(["all"], m.num_map_tokens, m.num_agents))
+    h = m.num_history
+    # the frames with lanes: every frame where the map comes from the log, the history only where generated
+    one = jax.tree.map(lambda x: x[0], scenes)
+    for i, name in enumerate(TASK_NAMES):
+        ctx = lane_context(model, one, as_prompt(jax.tree.map(lambda x: x[i], tasks), m.num_frames), h)
+        on = np.asarray(ctx.on)
+        assert on[:h].all(), name
+        assert on[h:].all() == (not name.startswith(("scene_generation", "map_prediction"))), name
+        assert on[h:].any() == on[h:].all(), name
+    assert lane_context(model, one.replace(polylines=None, polyline_valid=None),
+                        as_prompt(jax.tree.map(lambda x: x[0], tasks), m.num_frames), h) is None
+    graphdef, state = nnx.split(model)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def both(state, scenes, tasks):
+        mod = nnx.merge(graphdef, state)
+        key = jax.random.key(0)
+        cached = rollout_tasks(mod, scenes, tasks, key, h)
+        rec = jax.vmap(lambda sc: jax.vmap(lambda t: rollout_recompute(mod, sc, t, key, h))(tasks))(scenes)
+        plain = rollout_tasks(mod, scenes.replace(polylines=None, polyline_valid=None), tasks, key, h)
+        return cached, rec, plain
+
+    cached, rec, plain = both(state, scenes, tasks)
+    both(state, scenes, tasks)  # the one trace serves again
+    np.testing.assert_allclose(cached.xy, rec.xy, atol=1e-3, rtol=1e-4)
+    np.testing.assert_array_equal(cached.valid, rec.valid)
+    np.testing.assert_array_equal(cached.map_tokens, rec.map_tokens)
+    # in traffic simulation the lanes change the generated agents (the log's lanes are read), not the history
+    k = TASK_NAMES.index("traffic_simulation")
+    gen = np.asarray(cached.valid & plain.valid)[:, k, h:, 1:]
+    moved = np.abs(np.asarray(cached.xy - plain.xy))[:, k, h:, 1:].max(-1) > 1e-3
+    assert moved[gen].mean() > 0.5
+    np.testing.assert_array_equal(cached.xy[:, :, :h], plain.xy[:, :, :h])
+
+
+def test_a_prompts_own_lanes_replace_the_logs_for_its_agents():
+    cfg = _cfg(True)
+    m = cfg.model
+    model = GPD(cfg.model, nnx.Rngs(0))
+    one = jax.tree.map(lambda x: np.asarray(x[0]), _scenes(cfg))
+    road = [[[-50.0, 5.0], [50.0, 5.0]], [[-50.0, -5.0], [0.0, -5.0], [40.0, 20.0]]]
+    p = make_prompt(one, m.num_history, lanes=road)
+    ctx = lane_context(model, jax.tree.map(jnp.asarray, one), jax.tree.map(jnp.asarray, p), m.num_history)
+    assert np.asarray(ctx.on).all()
+    pts = np.asarray(ctx.polylines)[np.asarray(ctx.valid)]
+    # every readable point lies on the drawn lanes: none of the log's arcs is left
+    segs = [(np.array(a_), np.array(b_)) for line in road for a_, b_ in zip(line[:-1], line[1:])]
+
+    def off_road(q):
+        return min(np.linalg.norm(q - (a_ + np.clip(np.dot(q - a_, b_ - a_) / np.dot(b_ - a_, b_ - a_), 0, 1)
+                                       * (b_ - a_))) for a_, b_ in segs)
+
+    assert len(pts) > 10 and max(off_road(q) for q in pts) < 1e-3
+
+
+# ------------------------------------------------------------------------------------------------ training
+def test_training_reads_the_lanes_and_drops_them_from_a_share_of_the_futures():
+    cfg = _cfg(True)
+    m = cfg.model
+    model = _trained(GPD(cfg.model, nnx.Rngs(0)))
+    scenes = jax.tree.map(jnp.asarray, _scenes(cfg, 4))
+    loss = lambda sc, drop: float(batch_loss(model, sc, cfg.loss, m.num_history, 0, 0.0, drop)[1]["position"])
+    full, none = loss(scenes, 0.0), loss(scenes, 1.0)
+    assert np.isfinite(full) and np.isfinite(none) and full != none
+    # dropping lanes from every scene's future equals a context that is off there (frames >= H)
+    with pytest.raises(ValueError, match="polylines"):
+        loss(scenes.replace(polylines=None, polyline_valid=None), 0.0)
+
+
+def test_fine_tune_adds_the_lane_context_to_a_model_without_it(tmp_path):
+    from gpd_jax.checkpoint import build_model, export_model
+    from gpd_jax.training.loop import initial_params
+
+    plain = _cfg(False)
+    del plain.model["lane_context_steps"], plain.model["lane_context_step_m"], plain.model["lane_context_stride"]
+    src = str(tmp_path / "src")
+    export_model(nnx.state(build_model(plain, seed=7), nnx.Param), plain, src)
+    cfg = _cfg(True)
+    params = initial_params(src, cfg, nnx.state(build_model(cfg, seed=0), nnx.Param))
+    flat_src = {jax.tree_util.keystr(p): x for p, x in jax.tree_util.tree_leaves_with_path(
+        initial_params(src, plain))}
+    added = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_leaves_with_path(params)
+             if jax.tree_util.keystr(p) not in flat_src]
+    assert added and all("lane_" in k for k in added)
+    for p, x in jax.tree_util.tree_leaves_with_path(params):
+        k = jax.tree_util.keystr(p)
+        if k in flat_src:
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(flat_src[k]))
+    cfg.model.num_layers = 1
+    with pytest.raises(ValueError, match="num_layers"):
+        initial_params(src, cfg, nnx.state(build_model(_cfg(True), seed=0), nnx.Param))
+
+
+# ------------------------------------------------------------------------------------------------ simulator
+def test_the_simulator_feeds_the_lanes_as_the_closed_loop_rollout_does(tmp_path):
+    """A lane-context model in the simulator (log-replay ego, GPD agents) is the closed-loop task's rollout with
+    the log's lanes: `sim.core` hands its agents the same lanes in every frame."""
+    import gpd_jax
+    from gpd_jax import sim
+    from gpd_jax.checkpoint import build_model, export_model, resolve_tokenizer_path
+    from gpd_jax.training.loop import initial_params
+    from test_sim import straight_scenes
+
+    base = gpd_jax.load_model()
+    cfg = base.config.copy_and_resolve_references()
+    cfg.model.map_tokenizer = resolve_tokenizer_path(base.config.model.map_tokenizer, base.path)
+    cfg.model.agent_lane_context = True
+    cfg.model.lane_context_steps, cfg.model.lane_context_step_m, cfg.model.lane_context_stride = 3, 5.0, 4
+    template = build_model(cfg, seed=0)
+    _trained(template)
+    params = initial_params(base.path, cfg, nnx.state(template, nnx.Param))
+    out_dir = export_model(params, cfg, str(tmp_path / "lanes"), tokenizer_dir=cfg.model.map_tokenizer)
+    model = gpd_jax.load_model(out_dir)
+    scenes = straight_scenes(2)
+    run = sim.run(model, sim.make_sim_scenes(model, scenes), sim.make_policy("log", model),
+                  jax.random.key(0), agents="gpd")
+    ref = jax.tree.map(np.asarray, gpd_jax.rollout(model, scenes, "closed_loop", jax.random.key(0), log_map="lanes"))
+    np.testing.assert_array_equal(np.asarray(run.valid), ref.valid)
+    np.testing.assert_allclose(np.asarray(run.xy)[ref.valid], ref.xy[ref.valid], atol=1e-3, rtol=0)
+    # and the lanes matter: the same rollout without them differs
+    from gpd_jax.decoding import rollout_jit
+
+    view = jax.tree.map(jnp.asarray, gpd_jax.prepare(model, scenes))
+    task = jax.tree.map(jnp.asarray, make_tasks(["closed_loop"], model.spec.num_map_tokens, model.spec.num_agents))
+    h = model.spec.num_history
+    with_lanes, without = (rollout_jit(model.graphdef, model.params, model.rest, v, task, jax.random.key(0), h)
+                           for v in (view, view.replace(polylines=None, polyline_valid=None)))
+    assert np.abs(np.asarray(with_lanes.xy - without.xy)[:, 0, h:, 1:]).max() > 1e-2
