@@ -251,14 +251,18 @@ def lane_direction(road: RoadGeometry, xy: jax.Array) -> tuple[jax.Array, jax.Ar
 
 
 def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: jax.Array, step_m,
-               num_steps: int, turn_penalty_m: float = 10.0, stride: int = 1) -> tuple[jax.Array, jax.Array, jax.Array]:
+               num_steps: int, turn_penalty_m: float = 10.0, stride: int = 1,
+               max_gap_m=None) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Walks the directed lane centrelines ahead of each pose: where a driver keeping its lane would be.
 
     From each pose (`xy f32[..., 2]`, `heading f32[...]`, scene frame) it takes the lane segment that minimises
     distance + `turn_penalty_m` * (1 - cos(segment heading - travel direction)) / 2 (the nearest lane that runs
     the way the agent goes, rather than the opposing one beside it), projects onto it, and steps `step_m` along the
     segment's direction; `num_steps` times, each from the last point and along the last segment's heading.
-    `step_m` is one length for every pose or f32[...] one per pose.
+    `step_m` is one length for every pose or f32[...] one per pose. With `max_gap_m` (one or per pose), a step that lands farther
+    than that from every lane (the lane ended, as lanes clipped to a sample's region do) is not pulled back onto
+    one: the walk goes on straight from there along its last heading until a lane is near again (without it, the
+    walk stalls at the end of a lane).
     `lanes f32[L, Q, 2]` / `lane_valid bool[L, Q]` are one scene's (`RoadGeometry.lanes`); `stride` keeps every
     stride-th point of each line (coarser segments, cheaper queries; the last valid point is kept).
 
@@ -279,7 +283,7 @@ def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: 
     ok = ok & (jnp.sum((b - a) ** 2, -1) > 0)
     seg_dir = jnp.stack([jnp.cos(seg_heading), jnp.sin(seg_heading)], -1)
 
-    def walk(q):  # q f32[N, 4] (x, y, heading, step) -> f32[N, K+1, 4] (x, y, heading, distance)
+    def walk(q):  # q f32[N, 5] (x, y, heading, step, gap) -> f32[N, K+1, 4] (x, y, heading, distance)
         def one(p, h):
             d, t = _point_segment_distance(p, a, b)
             cost = d + turn_penalty_m * 0.5 * (1.0 - jnp.cos(seg_heading[None] - h[:, None]))
@@ -292,10 +296,15 @@ def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: 
             return (jnp.where(found[:, None], proj, p), jnp.where(found, seg_heading[i], h),
                     jnp.where(found, dist, jnp.inf), jnp.where(found[:, None], seg_dir[i], 0.0))
 
-        p, h, step = q[:, :2], q[:, 2], q[:, 3:]
+        p, h, step, gap = q[:, :2], q[:, 2], q[:, 3:4], q[:, 4]
         rows = []
         for k in range(num_steps + 1):  # a fixed, small number of steps (not a loop over time)
             proj, hk, dist, u = one(p, h)
+            if max_gap_m is not None and k > 0:
+                off = ~(dist <= gap)  # no lane near the stepped point: keep it, and the heading
+                proj = jnp.where(off[:, None], p, proj)
+                hk = jnp.where(off, h, hk)
+                u = jnp.where(off[:, None], jnp.stack([jnp.cos(h), jnp.sin(h)], -1), u)
             rows.append(jnp.concatenate([proj, hk[:, None], dist[:, None]], -1))
             p = proj + step * jnp.where(jnp.isfinite(dist)[:, None], u, jnp.stack([jnp.cos(h), jnp.sin(h)], -1))
             h = hk
@@ -303,8 +312,10 @@ def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: 
 
     lead = xy.shape[:-1]
     steps = jnp.broadcast_to(jnp.asarray(step_m, jnp.float32), lead)
-    q = jnp.concatenate([xy.astype(jnp.float32), heading.astype(jnp.float32)[..., None], steps[..., None]], -1)
-    flat = q.reshape(-1, 4)
+    gaps = jnp.broadcast_to(jnp.asarray(jnp.inf if max_gap_m is None else max_gap_m, jnp.float32), lead)
+    q = jnp.concatenate([xy.astype(jnp.float32), heading.astype(jnp.float32)[..., None], steps[..., None],
+                         gaps[..., None]], -1)
+    flat = q.reshape(-1, 5)
     if flat.shape[0] <= _BLOCK:
         (out,) = walk(flat)
     else:

@@ -245,3 +245,15 @@ def test_the_simulator_feeds_the_lanes_as_the_closed_loop_rollout_does(tmp_path)
     with_lanes, without = (rollout_jit(model.graphdef, model.params, model.rest, v, task, jax.random.key(0), h)
                            for v in (view, view.replace(polylines=None, polyline_valid=None)))
     assert np.abs(np.asarray(with_lanes.xy - without.xy)[:, 0, h:, 1:]).max() > 1e-2
+
+
+def test_walk_goes_on_straight_where_its_lane_ends_with_a_gap_limit():
+    lane = np.stack([np.linspace(0.0, 20.0, 21), np.zeros(21)], -1).astype(np.float32)  # ends at x = 20
+    lanes, valid = jnp.asarray(lane[None]), jnp.ones((1, 21), bool)
+    xy, heading = jnp.array([[2.0, 0.5]]), jnp.array([0.0])
+    stall, _, _ = lane_trace(lanes, valid, xy, heading, 8.0, 4)
+    np.testing.assert_allclose(np.asarray(stall[0, -2:, 0]), 20.0, atol=1e-4)  # pulled back to the lane's end
+    on, h, dist = lane_trace(lanes, valid, xy, heading, 8.0, 4, max_gap_m=4.0)
+    np.testing.assert_allclose(np.asarray(on[0, :, 0]), [2.0, 10.0, 18.0, 26.0, 34.0], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(on[0, :, 1]), 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(dist[0, 3:]), [6.0, 14.0], atol=1e-4)

@@ -101,7 +101,8 @@ def follow_lanes(cv: Trajectories, num_history: int, polylines: jax.Array, polyl
     per frame as there (|cv.xy[H] - cv.xy[H - 1]|), but along the lane it is on: from its current position it walks
     the lanes (`lane_trace` from its direction of motion, or its heading when it stands), and frame H - 1 + k
     is the walk's point after k steps plus the agent's current offset from the lane turned with the lane,
-    heading along the lane there. Agents with no lane
+    heading along the lane there. Where the walk runs off the lanes (a lane clipped at the sample's edge), it
+    goes on straight (`lane_trace`'s `max_gap_m`). Agents with no lane
     within `LANE_SNAP_M` of them keep constant velocity. polylines f32[L, P, 2] / polyline_valid bool[L, P]: the
     scene's lane centrelines in the scene frame; `stride`: every stride-th point (coarser segments).
     """
@@ -112,7 +113,10 @@ def follow_lanes(cv: Trajectories, num_history: int, polylines: jax.Array, polyl
     p0, d = cv.xy[h - 1], cv.xy[h] - cv.xy[h - 1]  # [A, 2]
     speed = jnp.linalg.norm(d, axis=-1)
     direction = jnp.where(speed > 1e-6, jnp.arctan2(d[:, 1], d[:, 0]), cv.heading[h - 1])
-    pts, lane_h, dist = lane_trace(polylines, polyline_valid, p0, direction, speed, t_total - h, stride=stride)
+    # a step that lands more than half a step (and 1 m) from every lane left the lanes (their clipped ends): on
+    # a curve of radius R a step s lands about s^2 / 2R off, under s / 2 while s < R
+    pts, lane_h, dist = lane_trace(polylines, polyline_valid, p0, direction, speed, t_total - h, stride=stride,
+                                   max_gap_m=jnp.maximum(0.5 * speed, 1.0))
     use = cv.valid[h - 1] & (dist[:, 0] <= LANE_SNAP_M)  # [A]
     # the walk's points with the agent's offset from the lane, turned with the lane: [F, A, 2]
     off = p0 - pts[:, 0]
