@@ -225,6 +225,8 @@ class GPD(nnx.Module):
             self.lane_steps = int(cfg.get("lane_context_steps", 6))
             self.lane_step_m = float(cfg.get("lane_context_step_m", 5.0))
             self.lane_stride = int(cfg.get("lane_context_stride", 4))  # every 4th stored 1 m point: 4 m segments
+            gap = cfg.get("lane_context_max_gap_m", None)  # walks leave a lane's clipped end (None: they stall)
+            self.lane_max_gap = None if gap is None else float(gap)
             n_in = (self.lane_steps + 1) * LANE_POINT_FEATURES
             self.lane_in = nnx.Linear(n_in, d, rngs=rngs)
             self.lane_ln = nnx.LayerNorm(d, rngs=rngs)
@@ -299,7 +301,8 @@ class GPD(nnx.Module):
         xy = jax.lax.stop_gradient(jnp.where(valid[..., None], xy, 0.0))
         heading = jax.lax.stop_gradient(jnp.where(valid, heading, 0.0))
         pts, lane_h, dist = lane_trace(lanes.polylines, lanes.valid, xy, heading, self.lane_step_m,
-                                       self.lane_steps, stride=self.lane_stride)
+                                       self.lane_steps, stride=self.lane_stride,
+                                       max_gap_m=self.lane_max_gap)
         c, s = jnp.cos(heading)[..., None], jnp.sin(heading)[..., None]
         rel = pts - xy[..., None, :]
         x = c * rel[..., 0] + s * rel[..., 1]

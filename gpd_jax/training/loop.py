@@ -132,7 +132,8 @@ def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> Non
 # at their initialisation (a last layer at zero) the model computes exactly what the source model does.
 # (switch, the settings that come with it, a substring of the names of the parameters it adds)
 ADDABLE_OPTIONS = (("agent_map_context", ("map_extent_m",), "context_"),
-                   ("agent_lane_context", ("lane_context_steps", "lane_context_step_m", "lane_context_stride"),
+                   ("agent_lane_context", ("lane_context_steps", "lane_context_step_m", "lane_context_stride",
+                                           "lane_context_max_gap_m"),
                     "lane_"))
 
 
