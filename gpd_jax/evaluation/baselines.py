@@ -102,10 +102,9 @@ def follow_lanes(cv: Trajectories, num_history: int, polylines: jax.Array, polyl
     the lanes (`lane_trace` from its direction of motion, or its heading when it stands), and frame H - 1 + k
     is the walk's point after k steps plus the agent's current offset from the lane turned with the lane,
     heading along the lane there. Where the walk runs off the lanes (a lane clipped at the sample's edge), it
-    goes on straight (`lane_trace`'s `max_gap_m`). Agents with no lane
-    within `LANE_SNAP_M` of them keep constant velocity. polylines f32[L, P, 2] / polyline_valid bool[L, P]: the
-    scene's lane centrelines in the scene frame; `stride`: every stride-th point (coarser segments).
-    """
+    goes on straight (`lane_trace`'s `max_gap_m`). Agents with no lane within `LANE_SNAP_M` of them keep
+    constant velocity. polylines f32[L, P, 2] / polyline_valid bool[L, P]: the scene's lane centrelines in the
+    scene frame; `stride`: every stride-th point (coarser segments)."""
     h = num_history
     t_total = cv.xy.shape[-3]
     if t_total <= h:
