@@ -73,14 +73,13 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
                 rows2.append((title, None))
                 rows2 += [(f"  {lb}", base[name][lb]) for lb in labels]
         out += [""] + table(f"Table 2 - map prediction ({variant} Chamfer in 'Ch')", rows2, cols2)
-    for key, what in ((RATIO_KEY, "constant velocity (stored rate)"),
-                      (RATIO_KEY_MODEL_RATE, "constant velocity (model rate)"),
-                      (RATIO_KEY_LANES, "constant velocity along the lanes")):
+    for key, what, targeted in ((RATIO_KEY, "constant velocity (stored rate)", True),
+                                (RATIO_KEY_MODEL_RATE, "constant velocity (model rate)", True),
+                                (RATIO_KEY_LANES, "constant velocity along the lanes", False)):
         ratio = results.get("ratios", {}).get(key)
         if ratio:
-            target = (lambda lb: f" (target <= {RATIO_TARGETS.get(lb, float('nan')):g})") if key != RATIO_KEY_LANES \
-                else (lambda lb: "")
-            parts = [f"{lb} {_fmt(v)}{target(lb)}" for lb, v in ratio.items()]
+            parts = [f"{lb} {_fmt(v)}" + (f" (target <= {RATIO_TARGETS.get(lb, float('nan')):g})" if targeted else "")
+                     for lb, v in ratio.items()]
             out += [f"traffic simulation agent ADE / {what} agent ADE: " + ", ".join(parts)]
     if results.get(MOTION_SPLIT):
         out += [""] + format_motion_table(results, variant)

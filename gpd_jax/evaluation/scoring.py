@@ -86,7 +86,8 @@ def baseline_predictions(full: Scene, spec: ModelSpec, with_lanes: bool = True
     the most recent there is); `constant_velocity_model_rate` on the model's frames (the velocity between the
     last two model frames: exactly the information the model gets). They coincide when the stride is 1.
     Where the scenes carry their lane polylines (`Scene.polylines`, one leading batch dim) and `with_lanes`,
-    also `constant_velocity_lanes`: `constant_velocity` moved along the lanes (`follow_lanes`)."""
+    also `constant_velocity_lanes`: `constant_velocity` moved along the lanes (`follow_lanes`); callers that only
+    need constant velocity (training's validation) skip its lane walks with `with_lanes=False`."""
     cv = constant_velocity(full, spec.full_history)
     log = subsample_trajectories(full.xy, full.heading, full.valid, spec)
     xy, heading, valid = log

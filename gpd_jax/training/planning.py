@@ -486,7 +486,7 @@ def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Mod
             bxy, bh = np.array(v.xy), np.array(v.heading)  # the baseline may read fewer agent slots
             bxy[:, h:, 0], bh[:, h:, 0] = np.asarray(out.xy[:, 0, h:, 0]), np.asarray(out.heading[:, 0, h:, 0])
             score("gpd_motion_planning", bxy, bh, v)
-        cv_xy, cv_heading, _ = baseline_predictions(fb, spec)["constant_velocity"]
+        cv_xy, cv_heading, _ = baseline_predictions(fb, spec, with_lanes=False)["constant_velocity"]
         score("constant_velocity", cv_xy, cv_heading, v)
     keep = ("ego_ade", "ego_fde", "ego_collision")
     return {name: {hl: {k: val for k, val in d.items() if k in keep} for hl, d in reduce_agent_metrics(s).items()}

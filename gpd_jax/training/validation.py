@@ -48,7 +48,7 @@ class Validator:
         if self.scenes is not None:
             self.view = view_spec.view(self.scenes)
             # Constant velocity from the stored frame rate, as rollout.py scores it; fixed, so scored once here.
-            cv_xy, cv_heading, _ = baseline_predictions(self.scenes, self.spec)["constant_velocity"]
+            cv_xy, cv_heading, _ = baseline_predictions(self.scenes, self.spec, with_lanes=False)["constant_velocity"]
             self.cv_scores = self._score(cv_xy, cv_heading)
             self.tasks = make_tasks(["traffic_simulation"], int(m.num_map_tokens), int(m.num_agents))
 
