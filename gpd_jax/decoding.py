@@ -32,9 +32,10 @@ agent cap removes slots like hidden agents, and its own vector map (`Prompt.lane
 `map_encoder` around the ego of every frame, history included. A task is converted with `as_prompt` and rolls
 out to the same arrays.
 
-Lane context (`model.agent_lane_context`, `lane_context`): such a model's agents read vector lanes in the history
-frames and every frame whose map is given: the prompt's own lanes where it has them, else the scene's polylines
-(`Scene.polylines`; a rollout handed a scene without them runs as if no frame had lanes).
+Lane context (`model.agent_lane_context` and `model.agent_lane_residual`, `lane_context`): such a model's agents read
+vector lanes in the history frames and every frame whose map is given: the prompt's own lanes where it has them,
+else the scene's polylines (`Scene.polylines`; a rollout handed a scene without them runs as if no frame had lanes).
+A lane-context model embeds them; a lane-residual model predicts over a step along them.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forward_cached
+from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forward_cached, reads_lanes
 from gpd_jax.prompts import Prompt, as_prompt
 from gpd_jax.scene import Scene
 from gpd_jax.tasks import Task
@@ -143,11 +144,11 @@ class RolloutCarry:
 
 
 def lane_context(model: GPD, scene: Scene, prompt: Prompt, num_history: int) -> LaneContext | None:
-    """The lanes an `agent_lane_context` model's agents read in a rollout (None for other models, or with no
+    """The lanes a model that reads lanes (`GPD.reads_lanes`) uses in a rollout (None for other models, or with no
     lanes at all): the prompt's own lanes where it uses them, else the scene's polylines (`Scene.polylines`), in
     the history frames and the frames whose every map slot comes from the given data (`on` bool[T]); frames whose
     map is generated get none, since the log's lanes would tell the model the map it is asked to generate."""
-    if not model.lane_context:
+    if not model.reads_lanes:
         return None
     own = prompt.lanes is not None
     if scene.polylines is None and not own:
@@ -169,9 +170,9 @@ def lane_context(model: GPD, scene: Scene, prompt: Prompt, num_history: int) -> 
 
 def drop_unread_lanes(model_config, scene: Scene) -> Scene:
     """`scene` without its lane polylines (smaller jit arguments) unless the model's agents read them
-    (`model_config.agent_lane_context`, `lane_context`): what evaluation, the API and the condition scores hand a
+    (`gpd_jax.model.reads_lanes`, `lane_context`): what evaluation, the API and the condition scores hand a
     rollout."""
-    if bool(model_config.get("agent_lane_context", False)):
+    if reads_lanes(model_config):
         return scene
     return scene.replace(polylines=None, polyline_valid=None)
 
@@ -313,13 +314,13 @@ def prefill(model: GPD, log: Frame, num_history: int, num_frames: int,
     """Pushes the history frames `log[:num_history]` (a `Frame` with a leading T >= num_history) through the
     transformer in one call into a fresh KV cache for `num_frames` frames; the returned state holds the
     prediction of frame `num_history`. The first half of every cached rollout (and of `gpd_jax.sim.reset`).
-    `lanes`: what an `agent_lane_context` model's agents read (`on` over all T frames or the history's)."""
+    `lanes`: what a model that reads lanes uses (`on` over all T frames or the history's)."""
     h = num_history
     tokens = model.embed(log.xy[:h], log.heading[:h], log.valid[:h], log.map_tokens[:h], jnp.arange(h),
                          log.velocity[:h], _context_at(lanes, jnp.arange(h)))
     hidden, cache = forward_cached(model, tokens, model.init_cache(num_frames), 0)
     pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
-                         *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h])
+                         *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h], _context_at(lanes, h - 1))
     return DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1],
                        hidden=hidden[-1])
 
@@ -327,13 +328,13 @@ def prefill(model: GPD, log: Frame, num_history: int, num_frames: int,
 def advance(model: GPD, state: DecodeState, frame: Frame, t, lanes: LaneContext | None = None) -> DecodeState:
     """Appends frame t (`frame`, unbatched: what the scene holds at t, however chosen) to the KV cache and
     predicts frame t + 1. `t` may be traced. One step of every cached rollout (and of `gpd_jax.sim.step`).
-    `lanes`: what an `agent_lane_context` model's agents read at frame t (`on` of that one frame)."""
+    `lanes`: what a model that reads lanes uses at frame t (`on` of that one frame)."""
     f = frame
     tok = model.embed(f.xy[None], f.heading[None], f.valid[None], f.map_tokens[None], jnp.asarray(t)[None],
                       f.velocity[None], lanes)
     hid, cache = forward_cached(model, tok, state.cache, t)
     pred = model.predict(hid, f.xy[None], f.heading[None], f.valid[None], state.last_xy[None],
-                         state.last_valid[None], f.velocity[None])
+                         state.last_valid[None], f.velocity[None], lanes)
     return DecodeState(cache=cache, pred=pred, last_xy=f.xy, last_valid=f.valid, hidden=hid[0])
 
 
@@ -391,7 +392,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
         pred = model.predict(sl(hid), sl(buf.xy), sl(buf.heading), sl(buf.valid), *_prev(buf.xy, buf.valid, prev),
-                             sl(buf.velocity))
+                             sl(buf.velocity), _context_at(given.context, prev))
         anchor = None
         if map_warp is not None:
             frames = jnp.arange(t_total)

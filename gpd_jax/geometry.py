@@ -321,8 +321,41 @@ def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: 
     else:
         out = jax.lax.map(lambda r: walk(r[None])[0][0], flat, batch_size=_BLOCK)
     out = out.reshape(lead + (num_steps + 1, 4))
-    headings = (out[..., 2] + jnp.pi) % (2 * jnp.pi) - jnp.pi
-    return out[..., :2], headings, out[..., 3]
+    return out[..., :2], wrap_to_pi(out[..., 2]), out[..., 3]
+
+
+# An agent farther than this from every lane running its way is not moved along the lanes by `lane_follow` (m).
+LANE_SNAP_M = 3.0
+
+
+def lane_follow(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, direction: jax.Array, step_m,
+                num_steps: int, stride: int = 1, snap_m: float = LANE_SNAP_M):
+    """Where an agent keeping its lane and its offset from it is after `num_steps` steps of `step_m` metres.
+
+    From each pose (`xy f32[..., 2]`, travel `direction f32[...]`, scene frame; `step_m` one length or f32[...] one
+    per pose) it walks the lanes (`lane_trace`, leaving a lane's clipped end straight: `max_gap_m` half a step and
+    at least 1 m, since on a curve of radius R a step s lands about s^2 / 2R off the lane, under s / 2 while
+    s < R) and adds the pose's current offset from the lane, turned with the lane. `lanes f32[L, Q, 2]` /
+    `lane_valid bool[L, Q]`: one scene's directed lane centrelines; `stride` as in `lane_trace`.
+
+    Returns (xy f32[..., K, 2] the positions after each step, turn f32[..., K] the lane's heading change from the
+    pose's lane segment to each step's (wrapped), lane heading f32[..., K] at each step, use bool[...]: a lane lies
+    within `snap_m`; where it does not, the caller keeps its own prediction)."""
+    step = jnp.asarray(step_m, jnp.float32)
+    pts, lane_h, dist = lane_trace(lanes, lane_valid, xy, direction, step, num_steps, stride=stride,
+                                   max_gap_m=jnp.maximum(0.5 * step, 1.0))
+    use = dist[..., 0] <= snap_m
+    off = xy.astype(jnp.float32) - pts[..., 0, :]
+    turn = wrap_to_pi(lane_h[..., 1:] - lane_h[..., :1])
+    c, s = jnp.cos(turn), jnp.sin(turn)
+    ox, oy = off[..., None, 0], off[..., None, 1]
+    rotated = jnp.stack([c * ox - s * oy, s * ox + c * oy], -1)
+    return pts[..., 1:, :] + rotated, turn, lane_h[..., 1:], use
+
+
+def wrap_to_pi(a: jax.Array) -> jax.Array:
+    """Angles wrapped into [-pi, pi)."""
+    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
 
 
 def road_from_arrays(arrays: dict[str, Any], lanes: Any, lane_valid: Any, prefix: str = "road_") -> RoadGeometry:

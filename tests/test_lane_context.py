@@ -56,9 +56,11 @@ def test_walk_without_lanes_stays_put_with_infinite_distance():
 
 
 # ------------------------------------------------------------------------------------------------ the model
-def _cfg(lanes: bool):
+def _cfg(lanes: bool, residual: bool = False):
     c = load_config(f"{ROOT}/configs/gpd_tiny.py")
     c.model.agent_lane_context = lanes
+    if residual:  # heads regress over a step along the lane (over constant velocity's from the last two frames)
+        c.model.predict_delta = c.model.velocity_residual = c.model.agent_lane_residual = True
     c.model.lane_context_steps = 3
     c.model.lane_context_step_m = 5.0
     c.model.lane_context_stride = 2
@@ -78,6 +80,23 @@ def _scenes(cfg, n=2):
     ok[3, :50] = True
     return sc.replace(polylines=np.broadcast_to(lines, (n,) + lines.shape).copy(),
                       polyline_valid=np.broadcast_to(ok, (n,) + ok.shape).copy())
+
+
+def _bends_through_agents(scenes, t: int, radius: float = 15.0):
+    """`scenes` whose lanes are one left bend per agent slot, tangent to its motion at frame t (its heading when it
+    stands; zero lanes for slots invalid there)."""
+    n, a = scenes.xy.shape[0], scenes.xy.shape[2]
+    lines, ok = np.zeros((n, a, 64, 2), np.float32), np.zeros((n, a, 64), bool)
+    for i in range(n):
+        for j in range(a):
+            if not (scenes.valid[i, t, j] and scenes.valid[i, t - 1, j]):
+                continue
+            d = scenes.xy[i, t, j] - scenes.xy[i, t - 1, j]
+            h = np.arctan2(d[1], d[0]) if np.hypot(*d) > 1e-6 else scenes.heading[i, t, j]
+            centre = scenes.xy[i, t, j] + radius * np.array([-np.sin(h), np.cos(h)])
+            start = h - np.pi / 2  # the agent's angle on the circle around the centre; counter-clockwise ahead
+            lines[i, j], ok[i, j] = _arc(radius, start - 0.5, start + np.pi, 64, centre), True
+    return scenes.replace(polylines=lines, polyline_valid=ok)
 
 
 def _trained(model: GPD) -> GPD:
@@ -110,11 +129,19 @@ def test_new_lane_context_starts_as_the_model_without_it_and_reads_only_where_on
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(g))
 
 
-def test_rollout_reads_lanes_where_the_map_is_given_cached_equals_recompute_one_compile():
-    cfg = _cfg(True)
+@pytest.mark.parametrize("context,residual", [(True, False), (False, True)])
+def test_rollout_reads_lanes_where_the_map_is_given_cached_equals_recompute_one_compile(context, residual):
+    chex.clear_trace_counter()  # the trace count is per test case
+    cfg = _cfg(context, residual)
     m = cfg.model
-    model = _trained(GPD(cfg.model, nnx.Rngs(0)))
-    scenes = jax.tree.map(jnp.asarray, _scenes(cfg))
+    model = GPD(cfg.model, nnx.Rngs(0))
+    if context:
+        _trained(model)
+    scenes = _scenes(cfg)
+    if residual:  # the synthetic agents stand off the arcs: give each a bend through where it is at frame H - 1
+        scenes = _bends_through_agents(scenes, m.num_history - 1)
+        model.valid_head.linears[-1].bias[...] = jnp.full((1,), 10.0)  # agents stay, so their lane steps add up
+    scenes = jax.tree.map(jnp.asarray, scenes)
     tasks = jax.tree.map(jnp.asarray, make_tasks(["all"], m.num_map_tokens, m.num_agents))
     h = m.num_history
     # the frames with lanes: every frame where the map comes from the log, the history only where generated
@@ -141,7 +168,13 @@ def test_rollout_reads_lanes_where_the_map_is_given_cached_equals_recompute_one_
 
     cached, rec, plain = both(state, scenes, tasks)
     both(state, scenes, tasks)  # the one trace serves again
-    np.testing.assert_allclose(cached.xy, rec.xy, atol=1e-3, rtol=1e-4)
+    if residual:
+        # which lane a walk takes, and whether one lies within LANE_SNAP_M, switch at thresholds: float-level
+        # differences between the batched paths can flip them for the random model's wandering agents, rarely
+        np.testing.assert_allclose(cached.xy[:, :, h], rec.xy[:, :, h], atol=1e-3, rtol=1e-4)
+        assert np.isclose(cached.xy, rec.xy, atol=1e-3, rtol=1e-4).mean() > 0.99
+    else:
+        np.testing.assert_allclose(cached.xy, rec.xy, atol=1e-3, rtol=1e-4)
     np.testing.assert_array_equal(cached.valid, rec.valid)
     np.testing.assert_array_equal(cached.map_tokens, rec.map_tokens)
     # in traffic simulation the lanes change the generated agents (the log's lanes are read), not the history
@@ -172,11 +205,62 @@ def test_a_prompts_own_lanes_replace_the_logs_for_its_agents():
     assert len(pts) > 10 and max(off_road(q) for q in pts) < 1e-3
 
 
+def test_lane_residual_moves_the_base_along_the_lane_keeping_the_offset():
+    """`agent_lane_residual`: the heads' base is constant velocity's step walked along the lane (the walk steps
+    along the tangent and projects back: on a circle of radius R a step s lands at angle atan(s / R)), the offset
+    from the lane kept, heading and velocity turned with it; far from lanes and in frames without lanes it stays
+    constant velocity's."""
+    cfg = _cfg(False, residual=True)
+    cfg.model.velocity_inputs = True
+    cfg.model.lane_context_stride = 1
+    plain_cfg = cfg.copy_and_resolve_references()
+    plain_cfg.model.agent_lane_residual = False
+    lane_model, plain = GPD(cfg.model, nnx.Rngs(0), frame_period_s=1.0), GPD(plain_cfg.model, nnx.Rngs(0),
+                                                                              frame_period_s=1.0)
+    r = 30.0
+    lanes = LaneContext(jnp.asarray(_arc(r, -np.pi / 2, np.pi, 512))[None], jnp.ones((1, 512), bool),
+                        jnp.array([True]))
+    a = cfg.model.num_agents
+    xy = np.full((1, a, 2), np.nan, np.float32)
+    xy[0, :3] = [[r, 0.0], [r + 1.0, 0.0], [100.0, 100.0]]  # on the lane, 1 m outside it, far from it
+    heading = np.zeros((1, a), np.float32)
+    heading[0, :3] = np.pi / 2
+    vel = np.zeros((1, a, 2), np.float32)
+    vel[0, :3] = [0.0, 10.0]
+    valid = np.zeros((1, a), bool)
+    valid[0, :3] = True
+    hidden = jax.random.normal(jax.random.key(2), (1, cfg.model.num_map_tokens + a, cfg.model.d_model))
+    args = (hidden, jnp.asarray(xy), jnp.asarray(heading), jnp.asarray(valid), None, None, jnp.asarray(vel))
+    on, cv = lane_model.predict(*args, lanes=lanes), plain.predict(*args)
+    # the base moved from constant velocity's (xy + v) to the lane's: the heads' outputs are the same
+    base = np.asarray(on.xy - cv.xy)[0, :3] + (xy[0, :3] + vel[0, :3])
+    turn = np.arctan(10.0 / r)
+    for i, radius in enumerate((r, r + 1.0)):
+        assert abs(np.hypot(*base[i]) - radius) < 0.02, (i, base[i])
+        assert abs(np.arctan2(base[i, 1], base[i, 0]) - turn) < 0.01, (i, base[i])
+    np.testing.assert_allclose(base[2], [100.0, 110.0], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(on.heading - cv.heading)[0, :3], [turn, turn, 0.0], atol=0.01)
+    dv = np.asarray(on.velocity - cv.velocity)[0, :3]
+    np.testing.assert_allclose(dv[:2], np.tile([-10 * np.sin(turn), 10 * np.cos(turn) - 10], (2, 1)), atol=0.1)
+    np.testing.assert_allclose(dv[2], 0.0, atol=1e-5)
+    assert np.isfinite(np.asarray(on.xy)[0, :3]).all()
+    # a frame without lanes is constant velocity's
+    off = lane_model.predict(*args, lanes=lanes.replace(on=jnp.array([False])))
+    np.testing.assert_array_equal(np.asarray(off.xy), np.asarray(cv.xy))
+    with pytest.raises(ValueError, match="velocity_residual"):
+        bad = _cfg(False, residual=True)
+        bad.model.velocity_residual = False
+        GPD(bad.model, nnx.Rngs(0))
+
+
 # ------------------------------------------------------------------------------------------------ training
-def test_training_reads_the_lanes_and_drops_them_from_a_share_of_the_futures():
-    cfg = _cfg(True)
+@pytest.mark.parametrize("context,residual", [(True, False), (False, True)])
+def test_training_reads_the_lanes_and_drops_them_from_a_share_of_the_futures(context, residual):
+    cfg = _cfg(context, residual)
     m = cfg.model
-    model = _trained(GPD(cfg.model, nnx.Rngs(0)))
+    model = GPD(cfg.model, nnx.Rngs(0))
+    if context:
+        _trained(model)
     scenes = jax.tree.map(jnp.asarray, _scenes(cfg, 4))
     loss = lambda sc, drop: float(batch_loss(model, sc, cfg.loss, m.num_history, 0, 0.0, drop)[1]["position"])
     full, none = loss(scenes, 0.0), loss(scenes, 1.0)
@@ -208,6 +292,14 @@ def test_fine_tune_adds_the_lane_context_to_a_model_without_it(tmp_path):
     cfg.model.num_layers = 1
     with pytest.raises(ValueError, match="num_layers"):
         initial_params(src, cfg, nnx.state(build_model(_cfg(True), seed=0), nnx.Param))
+    # the lane residual adds no parameters: a fine-tune that switches it on starts from the source's own
+    res = _cfg(False, residual=True)
+    src_res = str(tmp_path / "src_res")
+    res_plain = res.copy_and_resolve_references()
+    res_plain.model.agent_lane_residual = False
+    export_model(nnx.state(build_model(res_plain, seed=7), nnx.Param), res_plain, src_res)
+    got = initial_params(src_res, res, nnx.state(build_model(res, seed=0), nnx.Param))
+    chex.assert_trees_all_equal(got, initial_params(src_res, res_plain))
 
 
 # ------------------------------------------------------------------------------------------------ simulator

@@ -20,11 +20,8 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from gpd_jax.geometry import lane_trace
+from gpd_jax.geometry import LANE_SNAP_M, lane_follow
 from gpd_jax.scene import Scene
-
-# An agent farther than this from every lane running its way keeps constant velocity in `follow_lanes` (m).
-LANE_SNAP_M = 3.0
 
 
 @flax.struct.dataclass
@@ -112,20 +109,11 @@ def follow_lanes(cv: Trajectories, num_history: int, polylines: jax.Array, polyl
     p0, d = cv.xy[h - 1], cv.xy[h] - cv.xy[h - 1]  # [A, 2]
     speed = jnp.linalg.norm(d, axis=-1)
     direction = jnp.where(speed > 1e-6, jnp.arctan2(d[:, 1], d[:, 0]), cv.heading[h - 1])
-    # a step that lands more than half a step (and 1 m) from every lane left the lanes (their clipped ends): on
-    # a curve of radius R a step s lands about s^2 / 2R off, under s / 2 while s < R
-    pts, lane_h, dist = lane_trace(polylines, polyline_valid, p0, direction, speed, t_total - h, stride=stride,
-                                   max_gap_m=jnp.maximum(0.5 * speed, 1.0))
-    use = cv.valid[h - 1] & (dist[:, 0] <= LANE_SNAP_M)  # [A]
-    # the walk's points with the agent's offset from the lane, turned with the lane: [F, A, 2]
-    off = p0 - pts[:, 0]
-    turn = lane_h[:, 1:] - lane_h[:, :1]  # [A, F]
-    c, s = jnp.cos(turn)[..., None], jnp.sin(turn)[..., None]
-    ox, oy = off[:, None, :1], off[:, None, 1:]
-    rotated = jnp.concatenate([c * ox - s * oy, s * ox + c * oy], -1)
-    xy = jnp.swapaxes(pts[:, 1:] + rotated, 0, 1)
+    xy, _, lane_h, near = lane_follow(polylines, polyline_valid, p0, direction, speed, t_total - h, stride=stride)
+    use = cv.valid[h - 1] & near  # [A]
+    xy = jnp.swapaxes(xy, 0, 1)  # [F, A, 2]
     moving = speed > 1e-6
-    heading = jnp.where(moving[None], jnp.swapaxes(lane_h[:, 1:], 0, 1), cv.heading[h:])
+    heading = jnp.where(moving[None], jnp.swapaxes(lane_h, 0, 1), cv.heading[h:])
     fut_xy = jnp.where(use[None, :, None], xy, cv.xy[h:])
     fut_heading = jnp.where(use[None], heading, cv.heading[h:])
     return Trajectories(xy=jnp.concatenate([cv.xy[:h], fut_xy.astype(cv.xy.dtype)], 0),

@@ -35,6 +35,13 @@ map tokens of real roads decode poorly (the map tokenizer's README), and on them
 keep the path of constant velocity; the lanes give every agent the road's curve without the tokenizer. Frames whose
 map is generated get no lane context (the log's lanes would leak the answer), and training drops it from a share
 of the scenes' future frames (`train.lane_context_drop`) so the model works both ways.
+
+Option `agent_lane_residual` (not in the paper; needs `velocity_residual`, no parameters of its own): where a
+frame's agents read lanes (as `agent_lane_context`, which it does not need), the heads regress the residual over
+an agent that keeps its lane instead of its straight line: the base position is where the agent lands after
+covering constant velocity's step along the lane it is on, keeping its offset from the lane
+(`gpd_jax.geometry.lane_follow`), and the base heading and velocity turn with the lane (`lane_base`). Agents
+farther than `gpd_jax.geometry.LANE_SNAP_M` from a lane, and frames without lanes, keep the constant-velocity base.
 """
 
 from __future__ import annotations
@@ -48,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax.geometry import lane_trace
+from gpd_jax.geometry import lane_follow, lane_trace
 from gpd_jax.model.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
 from gpd_jax.model.agent_tokenizer import AgentTokenizer, sinusoid_table
@@ -181,6 +188,9 @@ class GPD(nnx.Module):
         if self.velocity_residual and not self.predict_delta:
             raise ValueError("model.velocity_residual needs model.predict_delta")
         self.velocity_inputs = bool(cfg.velocity_inputs)
+        self.lane_residual = bool(cfg.get("agent_lane_residual", False))
+        if self.lane_residual and not self.velocity_residual:
+            raise ValueError("model.agent_lane_residual needs model.velocity_residual (the step it moves along lanes)")
         self.frame_period_s = float(frame_period_s)
         self.tokenizer = AgentTokenizer.from_config(cfg)
         grid = int(round(math.sqrt(self.num_map)))
@@ -221,10 +231,10 @@ class GPD(nnx.Module):
             self.context_ln = nnx.LayerNorm(d, rngs=rngs)
             self.context_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
         self.lane_context = bool(cfg.get("agent_lane_context", False))
+        self.lane_stride = int(cfg.get("lane_context_stride", 4))  # every 4th stored 1 m point: 4 m segments
         if self.lane_context:
             self.lane_steps = int(cfg.get("lane_context_steps", 6))
             self.lane_step_m = float(cfg.get("lane_context_step_m", 5.0))
-            self.lane_stride = int(cfg.get("lane_context_stride", 4))  # every 4th stored 1 m point: 4 m segments
             gap = cfg.get("lane_context_max_gap_m", None)  # walks leave a lane's clipped end (None: they stall)
             self.lane_max_gap = None if gap is None else float(gap)
             n_in = (self.lane_steps + 1) * LANE_POINT_FEATURES
@@ -331,7 +341,13 @@ class GPD(nnx.Module):
                              "model's view with Scene.subsample(..., velocity_period_s=...))")
         return velocity
 
-    def predict(self, hidden, xy, heading, valid, prev_xy=None, prev_valid=None, velocity=None) -> Prediction:
+    @property
+    def reads_lanes(self) -> bool:
+        """Whether the model reads vector lanes (`agent_lane_context` or `agent_lane_residual`)."""
+        return self.lane_context or self.lane_residual
+
+    def predict(self, hidden, xy, heading, valid, prev_xy=None, prev_valid=None, velocity=None,
+                lanes: LaneContext | None = None) -> Prediction:
         """Next-frame predictions from hidden states `f32[F, N, d]` of frames whose inputs were
         xy f32[F, A, 2], heading f32[F, A], valid bool[F, A] (used when predicting displacements).
 
@@ -339,31 +355,60 @@ class GPD(nnx.Module):
         frame (invalid for frame 0): the position head then predicts the residual over constant velocity,
         xy + (xy - prev_xy) + head (plain displacement where the previous frame is missing). A
         `velocity_inputs` model takes `velocity f32[F, A, 2]` instead: the base is xy + velocity * frame period
-        and the predicted velocity is velocity + its head's output (both plain where the slot is invalid)."""
+        and the predicted velocity is velocity + its head's output (both plain where the slot is invalid).
+        An `agent_lane_residual` model moves that base along the lanes of the frames where `lanes` has them
+        (`lane_base`)."""
         h = self.final_ln(hidden)
         ha, hm = h[..., self.num_map:, :], h[..., : self.num_map, :]
         dxy = self.pos_head(ha)
         dh = self.heading_head(ha)[..., 0]
+        turn = None
         if self.predict_delta:
             base = valid[..., None]
             pxy = dxy + jnp.where(base, xy, 0.0)
+            step = None  # constant velocity's displacement over one frame
             if self.velocity_residual and self.velocity_inputs:
-                pxy = pxy + jnp.where(base, self.input_velocity(velocity) * self.frame_period_s, 0.0)
+                step = jnp.where(base, self.input_velocity(velocity) * self.frame_period_s, 0.0)
             elif self.velocity_residual:
                 if prev_xy is None or prev_valid is None:
                     raise ValueError("a velocity-residual model needs prev_xy and prev_valid")
-                moving = (valid & prev_valid)[..., None]
-                pxy = pxy + jnp.where(moving, xy - prev_xy, 0.0)
-            ph = wrap_angle(dh + jnp.where(valid, heading, 0.0))
+                step = jnp.where((valid & prev_valid)[..., None], xy - prev_xy, 0.0)
+            if step is not None:
+                pxy = pxy + step
+            heading_base = jnp.where(valid, heading, 0.0)
+            if self.lane_residual and lanes is not None:
+                lane_xy, turn, use = self.lane_base(xy, heading, valid, step, lanes)
+                pxy = jnp.where(use[..., None], dxy + lane_xy, pxy)
+                heading_base = heading_base + turn
+            ph = wrap_angle(dh + heading_base)
         else:
             pxy, ph = dxy, wrap_angle(dh)
         pv = None
         if self.velocity_inputs:
             pv = self.velocity_head(ha)
             if self.velocity_residual:
-                pv = pv + jnp.where(valid[..., None], self.input_velocity(velocity), 0.0)
+                v = jnp.where(valid[..., None], self.input_velocity(velocity), 0.0)
+                pv = pv + (v if turn is None else _rotate(v, turn))
         return Prediction(xy=pxy, heading=ph, valid_logit=self.valid_head(ha)[..., 0],
                           map_logits=self.map_head(hm), velocity=pv)
+
+    def lane_base(self, xy, heading, valid, step, lanes: LaneContext):
+        """Where each agent lands keeping its lane (`agent_lane_residual`): it covers |step| (f32[F, A, 2],
+        constant velocity's displacement) along the lane it is on, from xy f32[F, A, 2] in the direction of step
+        (its heading f32[F, A] when it stands), keeping its offset from the lane (`gpd_jax.geometry.lane_follow`).
+
+        Returns (xy f32[F, A, 2], turn f32[F, A]: the lane's heading change over the step, zero where unused,
+        use bool[F, A]: valid agents within `LANE_SNAP_M` of a lane in frames whose lanes are on). No gradient
+        flows through it (the lanes and poses are inputs)."""
+        xy = jax.lax.stop_gradient(jnp.where(valid[..., None], xy, 0.0))
+        heading = jax.lax.stop_gradient(jnp.where(valid, heading, 0.0))
+        step = jax.lax.stop_gradient(step)
+        dist = jnp.sqrt(jnp.sum(step * step, axis=-1))
+        direction = jnp.where(dist > 1e-6, jnp.arctan2(step[..., 1], step[..., 0]), heading)
+        pts, turn, _, near = lane_follow(lanes.polylines, lanes.valid, xy, direction, dist, 1,
+                                         stride=self.lane_stride)
+        use = valid & near & jnp.broadcast_to(jnp.asarray(lanes.on, bool).reshape(-1, 1), valid.shape)
+        return pts[..., 0, :], jnp.where(use, turn[..., 0], 0.0), use
 
     # ------------------------------------------------------------------ caches
     def padded_len(self, frames: int) -> int:
@@ -431,6 +476,17 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
         x = blk.finish(x, attend_dynamic(q, kc, vc, q_frame, num_chunks, n, model.chunk_len,
                                          model.decode_attention))
     return x.reshape(f, n, d), KVCache(k=tuple(ks), v=tuple(vs))
+
+
+def reads_lanes(model_config) -> bool:
+    """Whether a model of `model_config` reads vector lanes (`GPD.reads_lanes`, from the config alone)."""
+    return bool(model_config.get("agent_lane_context", False)) or bool(model_config.get("agent_lane_residual", False))
+
+
+def _rotate(v: jax.Array, angle: jax.Array) -> jax.Array:
+    """f32[..., 2] vectors turned by angle f32[...] (radians, counter-clockwise)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
 
 
 def count_params(model: nnx.Module) -> int:

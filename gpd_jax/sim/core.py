@@ -253,9 +253,9 @@ def _log_frame(parts: _Parts, view: Scene) -> Frame:
 
 
 def _lanes(parts: _Parts, scene: SimScene, frames: int) -> LaneContext | None:
-    """What an `agent_lane_context` model's agents read in `frames` frames: the log's lanes in every frame (the
+    """What a model that reads lanes (`GPD.reads_lanes`) uses in `frames` frames: the log's lanes in every frame (the
     simulator's map is always the log's, encoded around the ego). None for other models."""
-    if parts.module is None or not parts.module.lane_context:
+    if parts.module is None or not parts.module.reads_lanes:
         return None
     return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=jnp.ones((frames,), bool))
 

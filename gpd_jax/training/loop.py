@@ -48,7 +48,7 @@ from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import load_tokenizer
-from gpd_jax.model import count_params
+from gpd_jax.model import count_params, reads_lanes
 from gpd_jax.parallel import data_mesh
 from gpd_jax.scene import Scene
 from gpd_jax.spec import ModelSpec, spec_from_config
@@ -129,12 +129,14 @@ def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> Non
 
 
 # Model options a fine-tune may switch on over a model trained without them: their parameters start fresh, and
-# at their initialisation (a last layer at zero) the model computes exactly what the source model does.
+# at their initialisation (a last layer at zero) the model computes exactly what the source model does (except
+# `agent_lane_residual`, which adds no parameters and moves the source heads' base along the lanes).
 # (switch, the settings that come with it, a substring of the names of the parameters it adds)
 ADDABLE_OPTIONS = (("agent_map_context", ("map_extent_m",), "context_"),
                    ("agent_lane_context", ("lane_context_steps", "lane_context_step_m", "lane_context_stride",
                                            "lane_context_max_gap_m"),
-                    "lane_"))
+                    "lane_"),
+                   ("agent_lane_residual", ("lane_context_stride",), None))  # no parameters: the heads' base moves
 
 
 def initial_params(path: str, config, template=None):
@@ -154,7 +156,9 @@ def initial_params(path: str, config, template=None):
     if template is None:
         raise ValueError(f"initial_params: adding {[a[0] for a in added]} needs the new model's params as a "
                          "template")
-    marks = tuple(mark for _, _, mark in added)
+    marks = tuple(mark for _, _, mark in added if mark)
+    if not marks:
+        return src.params
     out, missing = graft_params(template, src.params,
                                 lambda p: any(m in jax.tree_util.keystr(p) for m in marks))
     if missing:
@@ -259,7 +263,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     Returns {"step", "train": last logged train metrics, "eval": last evaluation, "export": dir or None}."""
     tc = config.train
     bs, pcount, pindex = int(tc.batch_size), jax.process_count(), jax.process_index()
-    lanes = bool(config.model.get("agent_lane_context", False))  # its agents read the lane polylines
+    lanes = reads_lanes(config.model)  # its agents read the lane polylines
     it = None if next_batch is not None else data_loader.make_loader(
         data_dir, config.data.train_split, bs // pcount, seed=int(config.seed), process_index=pindex,
         process_count=pcount, start_step=start, num_threads=int(tc.loader_threads), with_polylines=lanes)

@@ -28,9 +28,9 @@ factor against stationary ones, as a weighted mean. With the Euclidean norm ever
 with the same force, so on real roads, where two thirds of the agents stand, most of the agent gradient comes
 from stopped cars; the weight hands it back to the moving ones. It needs the logged velocity (velocity inputs).
 
-An `agent_lane_context` model reads the scenes' lane polylines (`lane_context_of`, the batches must carry
-`Scene.polylines`) in every input frame, its own rollout passes included; `train.lane_context_drop` = f drops
-them from the future frames of the last round(f * B) scenes of each batch, as in the tasks that generate the map.
+A model that reads lanes (`agent_lane_context`, `agent_lane_residual`) reads the scenes' lane polylines
+(`lane_context_of`, the batches must carry `Scene.polylines`) in every input frame, its own rollout passes included;
+`train.lane_context_drop` = f drops them from the future frames of the last round(f * B) scenes of each batch, as in the tasks that generate the map.
 
 The step is a pure function of (params, opt_state, batch); NNX only defines the parameter tree.
 """
@@ -81,12 +81,12 @@ def teacher_forced(model: GPD, xy, heading, valid, map_tokens, velocity=None,
     """One teacher-forced pass: next-frame predictions from every frame's inputs.
 
     xy f32[F, A, 2], heading f32[F, A], valid bool[F, A], map_tokens i32[F, M], velocity f32[F, A, 2] or None
-    (frames [0, F) of a scene), lanes: what an `agent_lane_context` model's agents read -> Prediction of frames
+    (frames [0, F) of a scene), lanes: what a model that reads lanes uses -> Prediction of frames
     [1, F + 1)."""
     tokens = model.embed(xy, heading, valid, map_tokens, jnp.arange(xy.shape[0]), velocity, lanes)
     hidden = forward(model, tokens)
     prev_xy, prev_valid = previous_frames(xy, valid)
-    return model.predict(hidden, xy, heading, valid, prev_xy, prev_valid, velocity)
+    return model.predict(hidden, xy, heading, valid, prev_xy, prev_valid, velocity, lanes)
 
 
 def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int, feed_map=False,
@@ -150,13 +150,13 @@ def training_scene(batch) -> Scene:
 
 
 def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> LaneContext | None:
-    """The lanes an `agent_lane_context` model's agents read in training: the scene's polylines in every input
+    """The lanes a model that reads lanes (`GPD.reads_lanes`) uses in training: the scene's polylines in every input
     frame, or with `drop` (bool[], may be traced) in the history frames only, as in a task that generates the
     map. None for other models. A lane-context model needs the polylines (`Scene.polylines`)."""
-    if not model.lane_context:
+    if not model.reads_lanes:
         return None
     if scene.polylines is None or scene.polyline_valid is None:
-        raise ValueError("an agent_lane_context model trains on the scenes' lane polylines (Scene.polylines): "
+        raise ValueError("a model that reads lanes (agent_lane_context, agent_lane_residual) trains on the scenes' lane polylines (Scene.polylines): "
                          "load the batches with them")
     frames = jnp.arange(scene.num_frames - 1)
     on = (frames < num_history) | ~jnp.asarray(drop, bool)
@@ -172,7 +172,7 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
     agents moving at the input frame (`moving_weights`; the agent counts are weighted the same way).
     With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
     predictions (`free_running_inputs`; with `feed_map` the map tokens too) while the targets stay the log's:
-    the model learns to recover from its own errors, as it must in a rollout. An `agent_lane_context` model
+    the model learns to recover from its own errors, as it must in a rollout. A model that reads lanes
     reads the scene's lanes (`lane_context_of`; with `drop_lanes` in the history frames only)."""
     lanes = lane_context_of(model, scene, num_history, drop_lanes)
     xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map, lanes)
@@ -217,8 +217,8 @@ def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout
     """Weighted total loss over a batch of scenes (leading dim B) and its parts (see `loss_terms`).
 
     With `rollout_passes` > 0 the first round(map_feedback * B) scenes of the batch (a random subset: batches
-    are shuffled) also take their future map tokens from the model (`free_running_inputs`). For an
-    `agent_lane_context` model the last round(lane_drop * B) scenes read no lanes in their future frames."""
+    are shuffled) also take their future map tokens from the model (`free_running_inputs`). For a model
+    that reads lanes the last round(lane_drop * B) scenes read no lanes in their future frames."""
     b = scenes.xy.shape[0]
     idx = jnp.arange(b)
     feed = idx < round(float(map_feedback) * b)

@@ -11,6 +11,7 @@ from gpd_jax.data import loader as data_loader
 from gpd_jax.decoding import rollout_jit
 from gpd_jax.evaluation.scoring import baseline_predictions
 from gpd_jax.metrics import agents as agent_metrics_lib
+from gpd_jax.model import reads_lanes
 from gpd_jax.spec import EvalError, spec_from_config
 from gpd_jax.tasks import make_tasks
 from gpd_jax.training.step import training_scene
@@ -27,7 +28,7 @@ class Validator:
         n_val = len(data_loader.SplitSource(data_dir, split))
         bs = int(tc.batch_size)
         n_batches = min(int(tc.eval_batches), n_val // bs)
-        lanes = bool(m.get("agent_lane_context", False))  # its agents read the lane polylines
+        lanes = reads_lanes(m)  # its agents read the lane polylines
         self.loss_batches = []
         if n_batches:
             it = data_loader.make_loader(data_dir, split, bs, seed=12345, num_epochs=1, num_threads=2, prefetch=0,
