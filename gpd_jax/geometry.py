@@ -31,6 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpd_jax.scene import wrap_angle
+
 # Kinds of drivable area (index = `RoadGeometry.polygon_kind`).
 AREA_KINDS = ("lane", "junction", "other")
 AREA_KIND_ID = {name: i for i, name in enumerate(AREA_KINDS)}
@@ -321,7 +323,7 @@ def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: 
     else:
         out = jax.lax.map(lambda r: walk(r[None])[0][0], flat, batch_size=_BLOCK)
     out = out.reshape(lead + (num_steps + 1, 4))
-    return out[..., :2], wrap_to_pi(out[..., 2]), out[..., 3]
+    return out[..., :2], wrap_angle(out[..., 2]), out[..., 3]
 
 
 # An agent farther than this from every lane running its way is not moved along the lanes by `lane_follow` (m).
@@ -346,16 +348,14 @@ def lane_follow(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, directio
                                    max_gap_m=jnp.maximum(0.5 * step, 1.0))
     use = dist[..., 0] <= snap_m
     off = xy.astype(jnp.float32) - pts[..., 0, :]
-    turn = wrap_to_pi(lane_h[..., 1:] - lane_h[..., :1])
-    c, s = jnp.cos(turn), jnp.sin(turn)
-    ox, oy = off[..., None, 0], off[..., None, 1]
-    rotated = jnp.stack([c * ox - s * oy, s * ox + c * oy], -1)
-    return pts[..., 1:, :] + rotated, turn, lane_h[..., 1:], use
+    turn = wrap_angle(lane_h[..., 1:] - lane_h[..., :1])
+    return pts[..., 1:, :] + rotate(off[..., None, :], turn), turn, lane_h[..., 1:], use
 
 
-def wrap_to_pi(a: jax.Array) -> jax.Array:
-    """Angles wrapped into [-pi, pi)."""
-    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
+def rotate(v: jax.Array, angle: jax.Array) -> jax.Array:
+    """f32[..., 2] vectors turned by angle f32[...] (radians, counter-clockwise)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
 
 
 def road_from_arrays(arrays: dict[str, Any], lanes: Any, lane_valid: Any, prefix: str = "road_") -> RoadGeometry:

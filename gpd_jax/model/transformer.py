@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax.geometry import lane_follow, lane_trace
+from gpd_jax.geometry import lane_follow, lane_trace, rotate
 from gpd_jax.model.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
 from gpd_jax.model.agent_tokenizer import AgentTokenizer, sinusoid_table
@@ -388,7 +388,7 @@ class GPD(nnx.Module):
             pv = self.velocity_head(ha)
             if self.velocity_residual:
                 v = jnp.where(valid[..., None], self.input_velocity(velocity), 0.0)
-                pv = pv + (v if turn is None else _rotate(v, turn))
+                pv = pv + (v if turn is None else rotate(v, turn))
         return Prediction(xy=pxy, heading=ph, valid_logit=self.valid_head(ha)[..., 0],
                           map_logits=self.map_head(hm), velocity=pv)
 
@@ -481,12 +481,6 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
 def reads_lanes(model_config) -> bool:
     """Whether a model of `model_config` reads vector lanes (`GPD.reads_lanes`, from the config alone)."""
     return bool(model_config.get("agent_lane_context", False)) or bool(model_config.get("agent_lane_residual", False))
-
-
-def _rotate(v: jax.Array, angle: jax.Array) -> jax.Array:
-    """f32[..., 2] vectors turned by angle f32[...] (radians, counter-clockwise)."""
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
 
 
 def count_params(model: nnx.Module) -> int:
