@@ -102,6 +102,26 @@ def test_shipped_euclidean_loss_model_is_its_configs():
         k: v for k, v in cfg.train.to_dict().items() if k != "init_from"}
 
 
+def test_shipped_lane_residual_model_is_its_config():
+    """checkpoints/gpd_sumo_real_lane_residual: gpd_sumo_real_euclid's architecture with `agent_lane_residual` (no
+    parameters of its own), fine-tuned from it with configs/gpd_sumo_real_lane_residual.py, whose recipe is the
+    narrow Euclidean stage's plus the lanes."""
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_lane_residual/config.json"))
+    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_euclid/config.json"))
+    model = dict(ship["model"])
+    assert model.pop("agent_lane_residual") is True and model.pop("lane_context_stride") == 4
+    assert model == base["model"]
+    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual.py")
+    assert ship["train"] == cfg.train.to_dict() and ship["data"] == cfg.data.to_dict()
+    assert ship["loss"] == cfg.loss.to_dict()
+    assert cfg.train.init_from == "checkpoints/gpd_sumo_real_euclid" and cfg.train.lane_context_drop == 0.25
+    narrow = load_config(f"{ROOT}/configs/gpd_sumo_real_euclid_narrow.py")
+    assert {k: v for k, v in cfg.train.to_dict().items() if k not in ("init_from", "lane_context_drop")} == {
+        k: v for k, v in narrow.train.to_dict().items() if k != "init_from"}
+
+
 def test_shipped_tokenizer_is_the_decoder_config():
     """checkpoints/map_tokenizer is configs/map_tokenizer_tiny.py's model with the decoder deepened by
     configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's)."""
