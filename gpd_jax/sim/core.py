@@ -253,8 +253,8 @@ def _log_frame(parts: _Parts, view: Scene) -> Frame:
 
 
 def _lanes(parts: _Parts, scene: SimScene, frames: int) -> LaneContext | None:
-    """What a model that reads lanes (`GPD.reads_lanes`) uses in `frames` frames: the log's lanes in every frame (the
-    simulator's map is always the log's, encoded around the ego). None for other models."""
+    """What a model that reads lanes (`GPD.reads_lanes`) uses in `frames` frames: the log's lanes in every frame
+    (the simulator's map is always the log's, encoded around the ego). None for other models."""
     if parts.module is None or not parts.module.reads_lanes:
         return None
     return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=jnp.ones((frames,), bool))

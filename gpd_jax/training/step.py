@@ -29,8 +29,9 @@ with the same force, so on real roads, where two thirds of the agents stand, mos
 from stopped cars; the weight hands it back to the moving ones. It needs the logged velocity (velocity inputs).
 
 A model that reads lanes (`agent_lane_context`, `agent_lane_residual`) reads the scenes' lane polylines
-(`lane_context_of`, the batches must carry `Scene.polylines`) in every input frame, its own rollout passes included;
-`train.lane_context_drop` = f drops them from the future frames of the last round(f * B) scenes of each batch, as in the tasks that generate the map.
+(`lane_context_of`, the batches must carry `Scene.polylines`) in every input frame, its own rollout passes
+included; `train.lane_context_drop` = f drops them from the future frames of the last round(f * B) scenes of each
+batch, as in the tasks that generate the map.
 
 The step is a pure function of (params, opt_state, batch); NNX only defines the parameter tree.
 """
@@ -152,12 +153,12 @@ def training_scene(batch) -> Scene:
 def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> LaneContext | None:
     """The lanes a model that reads lanes (`GPD.reads_lanes`) uses in training: the scene's polylines in every input
     frame, or with `drop` (bool[], may be traced) in the history frames only, as in a task that generates the
-    map. None for other models. A lane-context model needs the polylines (`Scene.polylines`)."""
+    map. None for other models. Such a model needs the polylines (`Scene.polylines`)."""
     if not model.reads_lanes:
         return None
     if scene.polylines is None or scene.polyline_valid is None:
-        raise ValueError("a model that reads lanes (agent_lane_context, agent_lane_residual) trains on the scenes' lane polylines (Scene.polylines): "
-                         "load the batches with them")
+        raise ValueError("a model that reads lanes (agent_lane_context, agent_lane_residual) trains on the scenes' "
+                         "lane polylines (Scene.polylines): load the batches with them")
     frames = jnp.arange(scene.num_frames - 1)
     on = (frames < num_history) | ~jnp.asarray(drop, bool)
     return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=on)
