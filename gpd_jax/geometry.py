@@ -31,8 +31,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpd_jax.scene import wrap_angle
-
 # Kinds of drivable area (index = `RoadGeometry.polygon_kind`).
 AREA_KINDS = ("lane", "junction", "other")
 AREA_KIND_ID = {name: i for i, name in enumerate(AREA_KINDS)}
@@ -323,7 +321,7 @@ def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: 
     else:
         out = jax.lax.map(lambda r: walk(r[None])[0][0], flat, batch_size=_BLOCK)
     out = out.reshape(lead + (num_steps + 1, 4))
-    return out[..., :2], wrap_angle(out[..., 2]), out[..., 3]
+    return out[..., :2], _wrap(out[..., 2]), out[..., 3]
 
 
 # An agent farther than this from every lane running its way is not moved along the lanes by `lane_follow` (m).
@@ -348,8 +346,14 @@ def lane_follow(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, directio
                                    max_gap_m=jnp.maximum(0.5 * step, 1.0))
     use = dist[..., 0] <= snap_m
     off = xy.astype(jnp.float32) - pts[..., 0, :]
-    turn = wrap_angle(lane_h[..., 1:] - lane_h[..., :1])
+    turn = _wrap(lane_h[..., 1:] - lane_h[..., :1])
     return pts[..., 1:, :] + rotate(off[..., None, :], turn), turn, lane_h[..., 1:], use
+
+
+def _wrap(a: jax.Array) -> jax.Array:
+    """Angles wrapped to [-pi, pi) (`gpd_jax.scene.wrap_angle`; the bottom layer's modules do not import each
+    other)."""
+    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
 
 
 def rotate(v: jax.Array, angle: jax.Array) -> jax.Array:
