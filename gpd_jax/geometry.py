@@ -259,10 +259,10 @@ def lane_trace(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, heading: 
     distance + `turn_penalty_m` * (1 - cos(segment heading - travel direction)) / 2 (the nearest lane that runs
     the way the agent goes, rather than the opposing one beside it), projects onto it, and steps `step_m` along the
     segment's direction; `num_steps` times, each from the last point and along the last segment's heading.
-    `step_m` is one length for every pose or f32[...] one per pose. With `max_gap_m` (one or per pose), a step that lands farther
-    than that from every lane (the lane ended, as lanes clipped to a sample's region do) is not pulled back onto
-    one: the walk goes on straight from there along its last heading until a lane is near again (without it, the
-    walk stalls at the end of a lane).
+    `step_m` is one length for every pose or f32[...] one per pose. With `max_gap_m` (one or per pose), a step that
+    lands farther than that from every lane (the lane ended, as lanes clipped to a sample's region do) is not pulled
+    back onto one: the walk goes on straight from there along its last heading until a lane is near again (without
+    it, the walk stalls at the end of a lane).
     `lanes f32[L, Q, 2]` / `lane_valid bool[L, Q]` are one scene's (`RoadGeometry.lanes`); `stride` keeps every
     stride-th point of each line (coarser segments, cheaper queries; the last valid point is kept).
 

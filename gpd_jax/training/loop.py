@@ -151,14 +151,12 @@ def initial_params(path: str, config, template=None):
     diff = config_differences(config.model, src.config.model, ignore=ignore)
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-    if not added:
+    marks = tuple(mark for _, _, mark in added if mark)  # options with parameters of their own
+    if not marks:
         return src.params
     if template is None:
         raise ValueError(f"initial_params: adding {[a[0] for a in added]} needs the new model's params as a "
                          "template")
-    marks = tuple(mark for _, _, mark in added if mark)
-    if not marks:
-        return src.params
     out, missing = graft_params(template, src.params,
                                 lambda p: any(m in jax.tree_util.keystr(p) for m in marks))
     if missing:
