@@ -122,6 +122,29 @@ def test_shipped_lane_residual_model_is_its_config():
         k: v for k, v in narrow.train.to_dict().items() if k != "init_from"}
 
 
+def test_shipped_lane_residual_mix_model_is_its_configs():
+    """checkpoints/gpd_sumo_real_lane_residual_mix: gpd_sumo_real_lane_residual's architecture, fine-tuned in two
+    stages whose recipe is the lane-residual one with legacy-traffic scenes in the mixture; the export is the second
+    stage's config (its start, a workdir of this session, aside)."""
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_lane_residual_mix/config.json"))
+    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_lane_residual/config.json"))
+    assert ship["model"] == base["model"] and ship["loss"] == base["loss"]
+    first = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual_mix.py")
+    second = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual_mix_legacy.py")
+    assert first.train.init_from == "checkpoints/gpd_sumo_real_lane_residual"
+    assert second.train.init_from == "runs/lane_residual_mix/export"
+    assert ship["data"] == second.data.to_dict() and ship["loss"] == second.loss.to_dict()
+    assert "legacy_train" in first.data.dir and "legacy_train:0.4" in second.data.dir
+    lane = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual.py")
+    for cfg in (first, second):  # the lane-residual recipe, only the start and the mixture changed
+        assert {k: v for k, v in cfg.train.to_dict().items() if k != "init_from"} == {
+            k: v for k, v in lane.train.to_dict().items() if k != "init_from"}
+    assert {k: v for k, v in ship["train"].items() if k != "init_from"} == {
+        k: v for k, v in second.train.to_dict().items() if k != "init_from"}
+
+
 def test_shipped_tokenizer_is_the_decoder_config():
     """checkpoints/map_tokenizer is configs/map_tokenizer_tiny.py's model with the decoder deepened by
     configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's)."""
