@@ -1,6 +1,6 @@
 """First stage of checkpoints/gpd_sumo_real_lane_residual_mix: checkpoints/gpd_sumo_real_lane_residual fine-tuned 400
-more steps with its own recipe over a mixture that also holds legacy-traffic generated scenes (issue 24: "no worse
-on generated networks"). The second stage is configs/gpd_sumo_real_lane_residual_mix_legacy.py.
+more steps with its own recipe over a mixture that also holds legacy-traffic generated scenes (issue 24: on generated
+networks "no worse than today's"). The second stage is configs/gpd_sumo_real_lane_residual_mix_legacy.py.
 
 Why: every model since checkpoints/gpd_sumo_real trained only on the real-traffic SUMO defaults (parked and
 queued cars, heterogeneous drivers). On held-out generated networks with legacy traffic (uniform IDM drivers,
