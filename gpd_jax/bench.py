@@ -47,7 +47,7 @@ from flax import nnx
 
 from gpd_jax import parallel
 from gpd_jax.model import attention, native
-from gpd_jax.model.attention import KERNELS, use_native
+from gpd_jax.model.attention import KERNELS
 from gpd_jax.fsutil import atomic_write_json
 from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
@@ -135,7 +135,7 @@ def bench_rollout(args, overrides) -> dict:
     kernels = args.decode_attention or [m.decode_attention]
     marches = args.native_march or [native.march()]
     # a native build per target: native runs (and auto) are measured with each
-    variants = [(k, t) for k in kernels for t in (marches if k != "xla" else [None])]
+    variants = [(k, t) for k in kernels for t in (marches if k not in ("xla", "xla_batched") else [None])]
     for (kernel, target), batch in ((v, b) for v in variants for b in args.batch):
         if target is not None:
             os.environ["GPD_JAX_NATIVE_MARCH"] = target  # read while tracing
@@ -193,14 +193,13 @@ def _public(choice: dict) -> dict:
 
 
 def _label(kernel: str, choices: list) -> str:
-    """What ran: "xla", "native[-march]" or "auto->native[...]" (auto's choices at this run's shapes)."""
+    """What ran: "xla", "xla_batched", "native[-march]" or "auto->native[...]" (auto's choices at this run's
+    shapes)."""
     if kernel == "auto":
         picked = sorted({c["choice"] for c in choices}) or ["xla"]
         inner = "+".join(_label(p, []) for p in picked)
         return f"auto->{inner}"
-    if kernel == "native" or (kernel != "xla" and use_native(kernel)):
-        return f"native[{native.march()}]"
-    return "xla"
+    return f"native[{native.march()}]" if kernel == "native" else kernel
 
 
 RECOMPUTE_ATTENTION = ("dense", "chunked")  # the full-prefix forward's attention: one masked softmax, or flash

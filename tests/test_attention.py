@@ -28,7 +28,7 @@ def _kernel(kernel: str) -> str:
     return kernel
 
 
-KERNELS = pytest.mark.parametrize("kernel", ["xla", "native"])
+KERNELS = pytest.mark.parametrize("kernel", ["xla", "xla_batched", "native"])
 
 
 @KERNELS
@@ -138,8 +138,9 @@ def test_training_gradient_is_memory_linear(tiny_config):
 
 @KERNELS
 def test_vmapped_dynamic_attention_equals_per_scenario(kernel):
-    """The batching rules (XLA: one scenario at a time; native: batch dims passed to the kernel) match
-    unbatched calls, also for a batched chunk count and unbatched keys."""
+    """The batching rules (xla: one scenario at a time; xla_batched: all scenarios per chunk, to the largest
+    chunk count; native: batch dims passed to the kernel) match unbatched calls, also for a batched chunk count
+    and unbatched keys."""
     kernel = _kernel(kernel)
     n, frames, chunk, b = 5, 6, 10, 3
     s = n * frames
@@ -223,7 +224,8 @@ def test_auto_measures_once_caches_on_disk_and_matches_xla(fresh_auto, monkeypat
     assert len(calls) == 1
     (rec,) = attention.auto_choices()
     assert rec["source"] == "measured" and rec["choice"] in ("native", "xla")
-    assert set(rec["times_ms"]) == {"native", "xla"} and rec["choice"] == min(rec["times_ms"], key=rec["times_ms"].get)
+    assert set(rec["times_ms"]) == {"native", "xla", "xla_batched"} == set(rec["key"]["candidates"])
+    assert rec["choice"] == min(rec["times_ms"], key=rec["times_ms"].get)
     files = list((cache / "decode-attention").glob("*.json"))
     assert len(files) == 1 and not list((cache / "decode-attention").glob("*.tmp*"))
     key = rec["key"]
@@ -242,7 +244,7 @@ def test_auto_measures_once_caches_on_disk_and_matches_xla(fresh_auto, monkeypat
     assert len(calls) == 2 and calls[-1][0] == 4
 
 
-@pytest.mark.parametrize("forced", ["xla", "native"])
+@pytest.mark.parametrize("forced", ["xla", "xla_batched", "native"])
 def test_auto_forced_by_environment(fresh_auto, monkeypatch, forced):
     attention, calls, _ = fresh_auto
     if forced == "native":
@@ -256,7 +258,7 @@ def test_auto_forced_by_environment(fresh_auto, monkeypatch, forced):
     assert attention.auto_choices()[-1]["choice"] == forced and attention.auto_choices()[-1]["source"] == "forced"
     assert attention.use_native("auto") == (forced == "native")
     monkeypatch.setenv(attention.FORCE_ENV, "fastest")
-    with pytest.raises(ValueError, match="expected native, xla or auto"):
+    with pytest.raises(ValueError, match="expected native, xla, xla_batched or auto"):
         attention.use_native("auto")
 
 
@@ -355,3 +357,22 @@ def test_auto_inside_a_vmapped_scan_chooses_at_the_real_batch(fresh_auto):
     _close(got, ref)
     assert 3 in [args[0] for args in calls]
     assert any(r["key"]["batch_bucket"] == 4 for r in attention.auto_choices())
+
+
+def test_auto_without_the_native_kernel_measures_the_two_xla_batching_rules(fresh_auto, monkeypatch):
+    """Where the native kernel is no candidate (a GPU, GPD_JAX_NATIVE=0, no compiler), "auto" still measures at
+    a batch above 1: the scenario-by-scenario rule ("xla") against the all-scenarios one ("xla_batched"), which
+    a GPU needs (one scenario at a time leaves it idle). At batch 1 the two are the same path: no measurement."""
+    attention, calls, _ = fresh_auto
+    monkeypatch.setattr(native, "available", lambda *a, **k: False)
+    q, k, v, qf, chunks, n, c = _decode_case(b=3)
+    got = jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q, k, v, chunks)
+    _close(got, jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "xla")))(q, k, v, chunks))
+    (rec,) = attention.auto_choices()
+    assert rec["source"] == "measured" and set(rec["times_ms"]) == {"xla", "xla_batched"}
+    assert rec["choice"] == min(rec["times_ms"], key=rec["times_ms"].get) and len(calls) == 1
+    assert calls[0][-1] == ("xla", "xla_batched")
+    one = attend_dynamic(q[0], k[0], v[0], qf, chunks[0], n, c, "auto")
+    _close(one, got[0])
+    assert attention.auto_choices()[-1]["source"] == "only candidate" and len(calls) == 1
+    assert attention.candidates(1) == ["xla"] and attention.candidates(2) == ["xla", "xla_batched"]

@@ -13,15 +13,19 @@ recurrence). Two drivers share the chunk step:
 * `attend_dynamic`: a `lax.fori_loop` over the chunks that are filled so far (a traced trip count), used by
   the KV-cached rollout so a step never touches empty cache slots beyond the last partial chunk.
 
-On a CPU the KV-cached rollout can instead call a fused native kernel (`gpd_jax.model.native`, an XLA FFI custom
-call with the same semantics) that keeps score tiles in cache and uses every core: `kernel="native"`, or
-`"auto"` (the default), which chooses by measurement: the first time a shape is traced, a few calls of both
-paths at that shape (batch, heads, queries, cache length, head size, devices running it side by side) are
-timed outside the traced computation and the faster one is used; the choice is kept per process and on disk
-beside the built kernel (`native.cache_dir()/decode-attention/`, keyed by CPU, JAX version, kernel build,
-shapes and batch bucket), so a machine measures each shape once. `GPD_JAX_DECODE_ATTENTION=native|xla`
-forces the choice of "auto"; `GPD_JAX_NATIVE=0` (or no C++ compiler) leaves only the XLA path;
-`auto_choices()` says what was chosen and why.
+Under `vmap` (a batch of scenarios) the XLA path has two batching rules: `"xla"` runs the scenarios one after
+another (each score block stays in a CPU's caches), `"xla_batched"` runs every scenario's chunk at once (one
+bigger matmul per chunk: what a GPU needs; one scenario at a time leaves it idle). On a CPU the KV-cached rollout
+can instead call a fused native kernel (`gpd_jax.model.native`, an XLA FFI custom call with the same semantics)
+that keeps score tiles in cache and uses every core: `kernel="native"`. `"auto"` (the default) chooses among the
+candidates of this backend (`candidates()`: the native kernel on a CPU where it builds, the two XLA rules where
+the batch is above 1) by measurement: the first time a shape is traced, a few calls of each path at that shape
+(batch, heads, queries, cache length, head size, devices running it side by side) are timed outside the traced
+computation and the fastest is used; the choice is kept per process and on disk
+(`native.cache_dir()/decode-attention/`, keyed by CPU, backend, JAX version, kernel build, shapes, batch bucket
+and candidates), so a machine measures each shape once. `GPD_JAX_DECODE_ATTENTION=native|xla|xla_batched` forces
+the choice of "auto"; `GPD_JAX_NATIVE=0` (or no C++ compiler) leaves only the XLA paths; `auto_choices()` says
+what was chosen and why.
 """
 
 from __future__ import annotations
@@ -144,17 +148,17 @@ def _flash_bwd(n, c, res, dout):
 _flash.defvjp(_flash_fwd, _flash_bwd)
 
 
-KERNELS = ("auto", "xla", "native")
+KERNELS = ("auto", "xla", "xla_batched", "native")
 FORCE_ENV = "GPD_JAX_DECODE_ATTENTION"
 
 
 def use_native(kernel: str) -> bool:
     """Whether `attend_dynamic(..., kernel=kernel)` may call the native kernel: always for "native" (an error
-    where it cannot), never for "xla"; for "auto", whether it is a candidate here (a CPU backend, the kernel
+    where it cannot), never for "xla" and "xla_batched"; for "auto", whether it is a candidate here (a CPU backend, the kernel
     built, not forced to "xla"); which path "auto" takes at a given shape is measured (`auto_choices()`)."""
     if kernel not in KERNELS:
         raise ValueError(f"attention kernel {kernel!r}: expected one of {KERNELS}")
-    if kernel == "xla":
+    if kernel in ("xla", "xla_batched"):
         return False
     if kernel == "native":
         if jax.default_backend() != "cpu":
@@ -172,8 +176,8 @@ def _forced() -> str | None:
     value = os.environ.get(FORCE_ENV, "").strip().lower()
     if value in ("", "auto"):
         return None
-    if value not in ("native", "xla"):
-        raise ValueError(f"{FORCE_ENV}={value!r}: expected native, xla or auto")
+    if value not in ("native", "xla", "xla_batched"):
+        raise ValueError(f"{FORCE_ENV}={value!r}: expected native, xla, xla_batched or auto")
     return value
 
 
@@ -184,29 +188,31 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
     `num_chunks: i32[]`, how many chunks of the cache are filled (at least partly). Not
     reverse-differentiable (a loop with a traced trip count); used for inference.
 
-    Under `jax.vmap` a custom batching rule processes the batch one scenario after another, slicing each
+    Under `jax.vmap` the "xla" batching rule processes the batch one scenario after another, slicing each
     key chunk straight out of the batched cache: the score block of one scenario ([H, Sq, chunk], about a
     megabyte at paper size) stays in the CPU caches, where the memory-bound softmax runs several times
     faster per element than on a [B, H, Sq, chunk] block. The linear layers around it still see the batch.
+    The "xla_batched" rule runs every scenario's chunk in one step (the loop over chunks goes to the largest
+    filled count; later chunks are masked, so the result is the same): on a GPU the per-scenario loop
+    serializes the batch.
 
-    `kernel`: "xla" (the above), "native" (the fused CPU kernel of `gpd_jax.model.native`, float32 only; same
-    results within float rounding) or "auto" (the faster of the two at this shape and batch, measured once per
-    machine and shape, when the native kernel is available, the backend is a CPU and q, k, v are float32;
-    otherwise "xla"). The choice is made while tracing, never inside the compiled computation.
+    `kernel`: "xla", "xla_batched" (the above; the same without `vmap`), "native" (the fused CPU kernel of
+    `gpd_jax.model.native`, float32 only; same results within float rounding) or "auto" (the fastest of
+    `candidates()` at this shape and batch, measured once per machine and shape). The choice is made while
+    tracing, never inside the compiled computation.
     """
     q = q * (q.shape[-1] ** -0.5)
     f32 = all(x.dtype == jnp.float32 for x in (q, k, v))
     if kernel == "native" and not f32:
         raise ValueError(f"the native attention kernel takes float32, got q {q.dtype}, k {k.dtype}, v {v.dtype}")
-    if kernel == "auto" and f32:
-        if _forced() is None and jax.default_backend() == "cpu" and native.available():
-            return _auto(q, k, v, q_frame, num_chunks, tokens_per_frame, chunk_len)
-        # forced, or only one candidate: logged for auto_choices()
-        h, sq, dh = q.shape[-3:]
+    if kernel == "auto":
+        if _forced() is None:
+            return _auto(q, k, v, q_frame, num_chunks, tokens_per_frame, chunk_len, f32)
+        h, sq, dh = q.shape[-3:]  # forced: logged for auto_choices()
         kernel = choose(1, h, sq, k.shape[-2], dh, tokens_per_frame, chunk_len)["choice"]
     if f32 and use_native(kernel):
         return native.block_causal_attention(q, k, v, q_frame, num_chunks, tokens_per_frame, chunk_len)
-    return _dynamic_kernel(tokens_per_frame, chunk_len)(q, k, v, q_frame, num_chunks)
+    return _dynamic_kernel(tokens_per_frame, chunk_len, kernel == "xla_batched")(q, k, v, q_frame, num_chunks)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -239,12 +245,19 @@ def _concurrent_devices() -> int:
     return n
 
 
-def _choice_key(batch, h, sq, s, dh, n, c, ndev) -> dict:
+def candidates(batch: int, f32: bool = True) -> list[str]:
+    """The decode attention paths "auto" chooses among at this batch: "native" on a CPU where the kernel builds
+    (float32 only), "xla", and "xla_batched" where a batch makes its batching rule differ from "xla"'s."""
+    out = ["native"] if f32 and jax.default_backend() == "cpu" and native.available() else []
+    return out + (["xla", "xla_batched"] if batch > 1 else ["xla"])
+
+
+def _choice_key(batch, h, sq, s, dh, n, c, ndev, kinds) -> dict:
     build = native.build_info() or {}
     return {"cpu": hashlib.sha256(native._cpu_id().encode()).hexdigest()[:12], "jax": jax.__version__,
             "backend": jax.default_backend(), "kernel_build": build.get("key"), "march": build.get("target"),
             "batch_bucket": _bucket(batch), "heads": h, "queries": sq, "cache_len": s, "head_dim": dh,
-            "tokens_per_frame": n, "chunk_len": c, "devices": ndev}
+            "tokens_per_frame": n, "chunk_len": c, "devices": ndev, "candidates": list(kinds)}
 
 
 def choice_path(key: dict):
@@ -264,23 +277,24 @@ def _write_atomic(path, record: dict) -> None:
             os.remove(tmp)
 
 
-def choose(batch: int, h: int, sq: int, s: int, dh: int, n: int, c: int, ndev: int = 1) -> dict:
-    """The "auto" choice for one shape: {"choice": "native"|"xla", "why", "source", "times_ms", ...}.
+def choose(batch: int, h: int, sq: int, s: int, dh: int, n: int, c: int, ndev: int = 1, f32: bool = True) -> dict:
+    """The "auto" choice for one shape: {"choice": one of `candidates()`, "why", "source", "times_ms", ...}.
 
-    Looked up in this process, then on disk; otherwise both paths are timed (in a separate thread, so that no
-    enclosing trace stages the measurement) and the result is written atomically (temp file + rename)."""
+    Looked up in this process, then on disk; otherwise every candidate is timed (in a separate thread, so that
+    no enclosing trace stages the measurement) and the result is written atomically (temp file + rename)."""
     forced = _forced()
     if forced is not None:
         rec = {"choice": forced, "source": "forced", "why": f"{FORCE_ENV}={forced}"}
         _choice_log.append(rec)
         return rec
-    if jax.default_backend() != "cpu" or not native.available():
-        why = "GPD_JAX_NATIVE=0" if native.disabled() else (
-            "the backend is not a CPU" if jax.default_backend() != "cpu" else "the native kernel did not build")
-        rec = {"choice": "xla", "source": "only candidate", "why": why}
+    kinds = candidates(batch, f32)
+    if len(kinds) == 1:
+        why = ("float16/bfloat16 inputs" if not f32 else "GPD_JAX_NATIVE=0" if native.disabled() else
+               "the backend is not a CPU" if jax.default_backend() != "cpu" else "the native kernel did not build")
+        rec = {"choice": kinds[0], "source": "only candidate", "why": why}
         _choice_log.append(rec)
         return rec
-    key = _choice_key(batch, h, sq, s, dh, n, c, ndev)
+    key = _choice_key(batch, h, sq, s, dh, n, c, ndev, kinds)
     digest = json.dumps(key, sort_keys=True)
     with _choice_lock:
         rec = _choices.get(digest)
@@ -288,13 +302,13 @@ def choose(batch: int, h: int, sq: int, s: int, dh: int, n: int, c: int, ndev: i
             path = choice_path(key)
             rec = _read(path, key)
             if rec is None:
-                times = _measure_in_thread(batch, h, sq, s, dh, n, c, ndev)
+                times = _measure_in_thread(batch, h, sq, s, dh, n, c, ndev, tuple(kinds))
                 best = min(times, key=times.get)
-                other = max(times, key=times.get)
+                others = ", ".join(f"{k} {t * 1e3:.2f} ms ({t / times[best]:.2f}x)" for k, t in
+                                   sorted(times.items(), key=lambda kv: kv[1]) if k != best)
                 rec = {"key": key, "choice": best, "times_ms": {k: round(t * 1e3, 3) for k, t in times.items()},
                        "measured_batch": batch, "measured_at": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                       "why": f"{best} {times[best] * 1e3:.2f} ms vs {other} {times[other] * 1e3:.2f} ms per call "
-                              f"({times[other] / times[best]:.2f}x) at batch {batch}"}
+                       "why": f"{best} {times[best] * 1e3:.2f} ms vs {others} per call at batch {batch}"}
                 try:
                     _write_atomic(path, rec)
                 except OSError:
@@ -313,7 +327,7 @@ def _read(path, key) -> dict | None:
             rec = json.load(f)
     except (OSError, ValueError):
         return None
-    if rec.get("key") != key or rec.get("choice") not in ("native", "xla"):
+    if rec.get("key") != key or rec.get("choice") not in key["candidates"]:
         return None
     return rec
 
@@ -346,9 +360,11 @@ def _measure_in_thread(*args) -> dict:
     return box["times"]
 
 
-def _measure(batch, h, sq, s, dh, n, c, ndev, budget_s: float = 0.25, max_repeats: int = 7) -> dict:
-    """Seconds per call (the fastest of a few) of each path on random data of this shape, with the cache
-    filled to about 60 % and the queries in the frames just before the filled end (a mid-rollout step)."""
+def _measure(batch, h, sq, s, dh, n, c, ndev, kinds=("native", "xla"), budget_s: float = 0.25,
+             max_repeats: int = 7) -> dict:
+    """Seconds per call (the fastest of a few) of each path in `kinds` on random float32 data of this shape,
+    with the cache filled to about 60 % and the queries in the frames just before the filled end (a mid-rollout
+    step)."""
     devices = jax.devices()[:ndev]
     total = batch * len(devices)
     rng = np.random.default_rng(0)
@@ -362,7 +378,7 @@ def _measure(batch, h, sq, s, dh, n, c, ndev, budget_s: float = 0.25, max_repeat
 
     def make(kind):
         one = (lambda q, k, v, f, m: native.block_causal_attention(q, k, v, f, m, n, c)) if kind == "native" \
-            else _dynamic_kernel(n, c)
+            else _dynamic_kernel(n, c, kind == "xla_batched")
         f = jax.vmap(one, in_axes=(0, 0, 0, None, 0))
         if len(devices) > 1:
             from jax.sharding import Mesh, PartitionSpec as P
@@ -378,7 +394,7 @@ def _measure(batch, h, sq, s, dh, n, c, ndev, budget_s: float = 0.25, max_repeat
 
         mesh = Mesh(np.array(devices), ("data",))
         args = [jax.device_put(x, NamedSharding(mesh, P() if i == 3 else P("data"))) for i, x in enumerate(args)]
-    fns = {kind: make(kind).lower(*args).compile() for kind in ("native", "xla")}
+    fns = {kind: make(kind).lower(*args).compile() for kind in kinds}
     best = {}
     spent, rounds = 0.0, 0
     # Rounds alternate the candidates, so a change of load hits both. The first call of each is already a
@@ -392,7 +408,7 @@ def _measure(batch, h, sq, s, dh, n, c, ndev, budget_s: float = 0.25, max_repeat
             spent += dt
             best[kind] = min(best.get(kind, dt), dt)
         rounds += 1
-        clear = max(best.values()) > 2 * min(best.values())
+        clear = len(best) == 2 and max(best.values()) > 2 * min(best.values())
         if (rounds >= max_repeats or (rounds >= 2 and (clear or spent > budget_s))
                 or (clear and spent > 4 * budget_s)):
             return best
@@ -414,7 +430,7 @@ def _batch_size(x) -> int:
         return 1
 
 
-def _auto(q, k, v, q_frame, num_chunks, n: int, c: int):
+def _auto(q, k, v, q_frame, num_chunks, n: int, c: int, f32: bool = True):
     """attend_dynamic's "auto" path: decides while tracing, where shapes and the vmap batch are known.
 
     Directly under `vmap` the batch is read from the tracers. Inside a `lax.scan` body (the rollout's decode
@@ -424,24 +440,24 @@ def _auto(q, k, v, q_frame, num_chunks, n: int, c: int):
     h, sq, dh = q.shape[-3:]
     batch = max(_batch_size(q), _batch_size(k))
     if batch > 1:
-        return _run(choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices())["choice"], n, c, None,
+        return _run(choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices(), f32)["choice"], n, c, None,
                     q, k, v, q_frame, num_chunks)
-    return _auto_kernel(n, c)(q, k, v, q_frame, num_chunks)
+    return _auto_kernel(n, c, f32)(q, k, v, q_frame, num_chunks)
 
 
 def _run(kind, n, c, in_axes, q, k, v, q_frame, num_chunks):
     one = (lambda q, k, v, f, m: native.block_causal_attention(q, k, v, f, m, n, c)) if kind == "native" \
-        else _dynamic_kernel(n, c)
+        else _dynamic_kernel(n, c, kind == "xla_batched")
     if in_axes is None:
         return one(q, k, v, q_frame, num_chunks)
     return jax.vmap(one, in_axes=in_axes)(q, k, v, q_frame, num_chunks)
 
 
 @functools.lru_cache(maxsize=None)
-def _auto_kernel(n: int, c: int):
+def _auto_kernel(n: int, c: int, f32: bool = True):
     def decide(batch, q, k):
         h, sq, dh = q.shape[-3:]
-        return choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices())["choice"]
+        return choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices(), f32)["choice"]
 
     def one(q, k, v, q_frame, num_chunks):
         return _run(decide(1, q, k), n, c, None, q, k, v, q_frame, num_chunks)
@@ -467,11 +483,25 @@ def _attend_one(q, q_frame, num_chunks, n, c, kv_slice):
 
 
 @functools.lru_cache(maxsize=None)
-def _dynamic_kernel(n: int, c: int):
+def _dynamic_kernel(n: int, c: int, batched: bool = False):
+    """The XLA decode attention of one scenario; under `vmap` its batching rule runs the scenarios one after
+    another (`batched` False: "xla") or all of them in each chunk step ("xla_batched")."""
     def one(q, k, v, q_frame, num_chunks):
         return _attend_one(q, q_frame, num_chunks, n, c, lambda start: _chunk(k, v, start, c))
 
     kernel = jax.custom_batching.custom_vmap(one)
+
+    if batched:
+        @kernel.def_vmap
+        def _all_scenarios(axis_size, in_batched, q, k, v, q_frame, num_chunks):
+            qb, kb, vb, fb, nb = in_batched
+            if nb:  # chunks beyond a scenario's filled part hold later frames and are masked: the max is exact
+                num_chunks = jnp.max(num_chunks)
+            axes = tuple(0 if b else None for b in (qb, kb, vb, fb))
+            each = lambda q, k, v, f: _attend_one(q, f, num_chunks, n, c, lambda start: _chunk(k, v, start, c))
+            return jax.vmap(each, in_axes=axes, axis_size=axis_size)(q, k, v, q_frame), True
+
+        return kernel
 
     @kernel.def_vmap
     def _scenario_by_scenario(axis_size, in_batched, q, k, v, q_frame, num_chunks):
