@@ -27,7 +27,8 @@ def get_config() -> ml_collections.ConfigDict:
     m.heading_code_dim = 32
     m.attn_chunk_frames = 8     # key chunk (in frames) of the chunked attention (measured best on CPU)
     m.train_attention = "flash"  # "flash": chunked, memory-linear; "dense": one masked softmax (short sequences)
-    m.decode_attention = "auto"  # KV-cached rollout: "native" fused CPU kernel, "xla", or "auto" (native on a CPU)
+    m.decode_attention = "auto"  # KV-cached rollout: "native" (fused CPU kernel), "xla" / "xla_batched" (scenario by
+                                 # scenario / all at once under vmap) or "auto" (the fastest, measured here)
     m.predict_delta = False     # regress absolute positions (official) or displacements from frame t
     m.velocity_residual = False  # with predict_delta: regress the residual over constant velocity instead
     m.velocity_inputs = False   # not in the paper: tokens also encode velocity; a head predicts the next one

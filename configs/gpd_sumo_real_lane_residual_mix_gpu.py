@@ -14,6 +14,10 @@ traffic_simulation`); the lowest mean is chosen, and it ships only if it is belo
 checkpoints/gpd_sumo_real_lane_residual_mix scored the same way in the same session. The test stores are read
 after that choice, once.
 
+Outcome (2026-11-26, one H200): 4,496 of 5,400 steps in the lease; no checkpoint beat the model it started from
+on dev, and the real training tiles were memorized (checkpoints/gpd_sumo_real_lane_residual_mix/README.md, "At GPU
+scale").
+
     python train.py --config configs/gpd_sumo_real_lane_residual_mix_gpu.py --workdir runs/mix_gpu \\
         --config.train.steps=N --config.train.checkpoint_every=N/4
 """
