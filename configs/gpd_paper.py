@@ -40,7 +40,7 @@ def get_config() -> ml_collections.ConfigDict:
     d = c.data = ml_collections.ConfigDict()
     d.dir = ""                  # a data store (python -m gpd_jax.data build) with map tokens encoded into it, or a
                                 # weighted mixture of stores "DIR:0.7,DIR:0.3" (gpd_jax.data.loader.parse_mixture)
-    d.val_dir = ""              # where validation reads val_split ("" : the first store of d.dir)
+    d.val_dir = ""              # where validation reads val_split ("" : the first store of d.dir; "A,B": each)
     d.train_split = "train"
     d.val_split = "val"
     d.frame_stride = 1          # model frame k is stored frame k * stride (stored data is 10 Hz, 101 frames)
@@ -68,6 +68,8 @@ def get_config() -> ml_collections.ConfigDict:
     t.eval_every = 1_000        # validation loss + validation rollouts
     t.eval_batches = 8          # validation loss over this many batches
     t.eval_rollout_scenarios = 32  # traffic_simulation rollouts (ADE vs constant velocity) at each evaluation
+    t.best_metric = ""          # a validation key, lower is better (e.g. "rollout_agent_ade_vs_cv_mean"): the best
+                                # validation's parameters are exported to WORKDIR/best (with WORKDIR/best.json)
     t.checkpoint_every = 500
     t.keep_checkpoints = 2
     t.loader_threads = 4

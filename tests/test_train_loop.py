@@ -251,3 +251,57 @@ def test_a_mixture_of_stores_trains_and_validates_on_val_dir(store_dir, tmp_path
     c.data.val_dir = store_dir
     out = train_and_evaluate(c, str(tmp_path / "w2"), quiet=True)
     assert out["step"] == 2 and np.isfinite(out["eval"]["loss"]) and out["export"]
+
+
+def test_best_validation_is_exported_and_kept_on_resume_over_several_val_stores(store_dir, tmp_path):
+    """`data.val_dir` with two stores validates on each (keys prefixed by store name, the ratios' mean
+    unprefixed); `train.best_metric` exports the best validation's parameters to WORKDIR/best with best.json,
+    which a resumed run keeps and only a lower value replaces."""
+    import shutil
+
+    from gpd_jax.checkpoint import load_model
+    from gpd_jax.training.loop import train_and_evaluate
+
+    second = str(tmp_path / "second_val")
+    shutil.copytree(store_dir, second)
+    w = str(tmp_path / "w")
+    metric = "rollout_agent_ade_vs_cv_mean"
+    c = _config(store_dir, steps=6, eval_every=1, best_metric=metric)
+    c.data.val_dir = f"{store_dir},{second}"
+    assert train_and_evaluate(c, w, stop_after=3, quiet=True)["step"] == 3
+    evals = [json.loads(l) for l in open(os.path.join(w, "metrics.jsonl"))]
+    evals = [r for r in evals if r["split"] == "val"]
+    name = os.path.basename(store_dir)
+    for r in evals:
+        own = [r[f"{n}/rollout_agent_ade_{h}_vs_cv"] for n in (name, "second_val") for h in ("3s",)]
+        assert all(np.isfinite(own))
+        ratios = [v for k, v in r.items() if k.endswith("_vs_cv")]
+        assert len(ratios) == 2 * len([k for k in r if k.startswith(name + "/") and k.endswith("_vs_cv")]) > 0
+        np.testing.assert_allclose(r[metric], np.mean(ratios), rtol=1e-6)
+        # the same store twice: the same figures
+        np.testing.assert_allclose(r[f"{name}/rollout_agent_ade_3s"], r["second_val/rollout_agent_ade_3s"], rtol=1e-6)
+    best = json.load(open(os.path.join(w, "best.json")))
+    values = [r[metric] for r in evals]
+    assert best["metric"] == metric and best["value"] == pytest.approx(min(values))
+    assert best["step"] == evals[int(np.argmin(values))]["step"]
+    # the export is the parameters of that step: equal to the checkpoint at best["step"] when that is the last
+    exported = load_model(os.path.join(w, "best")).params
+    if best["step"] == 3:
+        for x, y in zip(jax.tree.leaves(exported), jax.tree.leaves(load_model(w).params)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # resume: the best so far is read back; only a lower value replaces it
+    assert train_and_evaluate(c, w, quiet=True)["step"] == 6
+    evals = [r for r in (json.loads(l) for l in open(os.path.join(w, "metrics.jsonl"))) if r["split"] == "val"]
+    assert [r["step"] for r in evals] == [1, 2, 3, 4, 5, 6]
+    values = [r[metric] for r in evals]
+    after = json.load(open(os.path.join(w, "best.json")))
+    assert after["value"] == pytest.approx(min(values)) and after["step"] == evals[int(np.argmin(values))]["step"]
+    # another metric in the same workdir is refused, naming both
+    c2 = _config(store_dir, steps=8, eval_every=1, best_metric="loss")
+    c2.data.val_dir = c.data.val_dir
+    with pytest.raises(ValueError, match="rollout_agent_ade_vs_cv_mean.*'loss'"):
+        train_and_evaluate(c2, w, quiet=True)
+    # a metric the validation does not compute is refused at the first validation, naming the keys there
+    c3 = _config(store_dir, steps=2, eval_every=1, best_metric="no_such_key")
+    with pytest.raises(ValueError, match="no_such_key.*rollout_agent_ade_vs_cv_mean"):
+        train_and_evaluate(c3, str(tmp_path / "w3"), quiet=True)

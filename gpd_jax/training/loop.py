@@ -3,7 +3,7 @@
 * Data: `gpd_jax.data.loader.make_loader` (grain; seeded shuffle, a new permutation per epoch), every batch cut
   to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. `data.dir` is one
   store or a weighted mixture of stores (`DIR:0.7,DIR:0.3`, `loader.parse_mixture`); validation reads
-  `data.val_dir` (default: the first store). Map tokens must have been encoded into every store
+  `data.val_dir` (default: the first store; several stores separated by commas are each validated). Map tokens must have been encoded into every store
   (`python -m gpd_jax.map_tokenizer encode --data DIR`).
 * Step: teacher forcing (`gpd_jax.training.step`): AdamW, linear warm-up then cosine decay, global-norm clipping;
   with `train.rollout_passes` > 0 the future frames' agent inputs are the model's own predictions.
@@ -21,6 +21,10 @@
   `train.eval_batches` fixed batches and `traffic_simulation` rollouts of the first
   `train.eval_rollout_scenarios` validation scenes, scored (agent ADE/FDE at 3/5/8 s, agents valid at the
   current frame) against constant velocity computed at the stored frame rate.
+* `train.best_metric` (a key of the validation record, lower is better, e.g. `rollout_agent_ade_vs_cv_mean`):
+  the parameters of the best validation so far are exported to `WORKDIR/best` (atomically) with
+  `WORKDIR/best.json` ({"metric", "value", "step"}), and a resumed run keeps its best: the checkpoint a run
+  chooses on its validation stores, when longer training starts to overfit.
 * At the end the model is exported to `WORKDIR/export` (`gpd_jax.checkpoint.export_model`, with its map
   tokenizer), which `rollout.py --checkpoint` loads.
 """
@@ -55,7 +59,7 @@ from gpd_jax.spec import ModelSpec, spec_from_config
 from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, graft_params, restore_state,
                                      save_state)
 from gpd_jax.training.step import TrainState, make_trainer, training_scene
-from gpd_jax.training.validation import Validator
+from gpd_jax.training.validation import Validators
 
 
 # ----------------------------------------------------------------------------------------------- data
@@ -75,10 +79,18 @@ def store_dirs(data_dir: str) -> list[str]:
     return [d for d, _ in data_loader.parse_mixture(data_dir)]
 
 
+def validation_dirs(config: ml_collections.ConfigDict, data_dir: str) -> list[str]:
+    """Where validation reads `data.val_split`: the stores of `data.val_dir` (one, or several separated by
+    commas) if set, else the (first) training store."""
+    val = str(config.data.get("val_dir") or "")
+    if not val:
+        return [store_dirs(data_dir)[0]]
+    return [resolve_data_dir(v.strip()) for v in val.split(",") if v.strip()]
+
+
 def validation_dir(config: ml_collections.ConfigDict, data_dir: str) -> str:
-    """Where validation reads `data.val_split`: `data.val_dir` if set, else the (first) training store."""
-    val = config.data.get("val_dir")
-    return resolve_data_dir(val) if val else store_dirs(data_dir)[0]
+    """The first of `validation_dirs` (the planning head validates on one store)."""
+    return validation_dirs(config, data_dir)[0]
 
 
 def _check_store(config, data_dir: str, split: str) -> int:
@@ -125,7 +137,8 @@ def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> Non
     for d in store_dirs(data_dir):
         _check_token_source(d, (config.data.train_split,), config.model.map_tokenizer)
     if int(config.train.eval_every) > 0:
-        _check_token_source(validation_dir(config, data_dir), (config.data.val_split,), config.model.map_tokenizer)
+        for d in validation_dirs(config, data_dir):
+            _check_token_source(d, (config.data.val_split,), config.model.map_tokenizer)
 
 
 # Model options a fine-tune may switch on over a model trained without them: their parameters start fresh, and
@@ -219,10 +232,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     elif lead:
         print(f"training {count_params(model):,} parameters on {n_train} scenes, {mesh.devices.size} device(s)")
 
-    validator = Validator(config, validation_dir(config, data_dir), trainer) if int(tc.eval_every) > 0 else None
+    validator = (Validators(config, validation_dirs(config, data_dir), trainer) if int(tc.eval_every) > 0
+                 else None)
 
     def summary(ev: dict[str, float]) -> str:
-        keys = [k for k in ev if k in ("loss", "position") or k.endswith("_vs_cv")]
+        keys = [k for k in ev if k in ("loss", "position") or k.endswith(("_vs_cv", "_vs_cv_mean"))]
         return ", ".join(f"{k}={ev[k]:.4g}" for k in keys)
 
     return run_steps(config, trainer, state, data_dir=data_dir, workdir=workdir, mesh=mesh, spec=spec, mgr=mgr,
@@ -244,6 +258,42 @@ def prepare_run(config: ml_collections.ConfigDict) -> tuple[str, int, Any, int]:
         raise ValueError(f"train.batch_size {bs} must be divisible by the {mesh.devices.size} devices and "
                          f"{pcount} processes")
     return data_dir, n_train, mesh, jax.process_index()
+
+
+class BestTracker:
+    """The best validation so far by `metric` (lower is better) of a run in `workdir`: `WORKDIR/best.json`
+    ({"metric", "value", "step"}) beside the exported parameters in `WORKDIR/best`, read back on resume."""
+
+    def __init__(self, workdir: str, metric: str, enabled: bool = True):
+        self.metric, self.enabled = metric, bool(metric) and enabled
+        self.path = os.path.join(workdir, "best.json")
+        self.export_dir = os.path.join(workdir, "best")
+        self.value, self.step, self._pending = None, None, None
+        if self.enabled and os.path.exists(self.path):
+            with open(self.path) as f:
+                rec = json.load(f)
+            if rec.get("metric") != metric:
+                raise ValueError(f"{self.path}: the run chose its best by {rec.get('metric')!r}, this config by "
+                                 f"{metric!r}; use a new --workdir")
+            self.value, self.step = float(rec["value"]), int(rec["step"])
+
+    def update(self, step: int, record: dict[str, float]) -> bool:
+        """Whether the validation `record` of `step` is the best so far (then export, then `commit()`)."""
+        if not self.enabled:
+            return False
+        if self.metric not in record:
+            raise ValueError(f"train.best_metric {self.metric!r} is not in the validation record (keys: "
+                             f"{', '.join(sorted(record))})")
+        v = float(record[self.metric])
+        if not np.isfinite(v) or (self.value is not None and v >= self.value):
+            return False
+        self._pending = (v, int(step))
+        return True
+
+    def commit(self) -> None:
+        """Records the pending best after its parameters are exported (so best.json never names a missing export)."""
+        self.value, self.step = self._pending
+        atomic_write_text(self.path, json.dumps({"metric": self.metric, "value": self.value, "step": self.step}))
 
 
 def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, data_dir: str, workdir: str, mesh,
@@ -269,6 +319,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     end = total if stop_after is None else min(total, start + int(stop_after))
     last_train: dict[str, float] = {}
     last_eval: dict[str, float] = {}
+    best = BestTracker(workdir, str(tc.get("best_metric", "") or ""), enabled=lead and validate is not None)
     bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True, mininterval=2.0, disable=quiet or not lead,
                     desc=desc)
     step = start
@@ -301,6 +352,11 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
                     log.write(step, config.data.val_split, last_eval)
                     if lead:
                         bar.write(f"step {step} val: " + summary(last_eval))
+                    if best.update(step, last_eval):
+                        export_model(jax.device_get(state.params), config, best.export_dir,
+                                     tokenizer_dir=config.model.map_tokenizer or None)
+                        best.commit()
+                        bar.write(f"step {step}: best {best.metric} so far ({best.value:.4g}) -> {best.export_dir}")
                     window_t, window_n = time.perf_counter(), 0
                 if step % int(tc.checkpoint_every) == 0 or step == total:
                     save_state(mgr, step, state._asdict())

@@ -4,6 +4,8 @@ velocity computed at the stored frame rate, as `gpd_jax.evaluate` scores it."""
 
 from __future__ import annotations
 
+import os
+
 import jax
 
 from gpd_jax.checkpoint import model_spec
@@ -81,4 +83,38 @@ class Validator:
                 out[f"cv_{k}"] = cv[k]
                 if k.startswith("agent_ade") and cv[k] > 0:
                     out[f"rollout_{k}_vs_cv"] = v / cv[k]
+            ratios = [v for k, v in out.items() if k.endswith("_vs_cv")]
+            if ratios:
+                out["rollout_agent_ade_vs_cv_mean"] = sum(ratios) / len(ratios)
+        return out
+
+
+class Validators:
+    """`Validator`s of one or several stores. One store: its record as is. Several: each store's keys prefixed
+    by the store's name (`name/rollout_agent_ade_3s_vs_cv`), and unprefixed the means over the stores of the
+    validation loss and of every agent ADE / constant-velocity ratio (`rollout_agent_ade_vs_cv_mean`: the mean
+    of all stores' ratios at all horizons)."""
+
+    def __init__(self, config, data_dirs, trainer):
+        dirs = list(data_dirs)
+        names = [os.path.basename(os.path.normpath(d)) for d in dirs]
+        if len(set(names)) != len(names):
+            names = dirs  # two stores of one name: their full paths
+        self.parts = [(n, Validator(config, d, trainer)) for n, d in zip(names, dirs)]
+
+    def __call__(self, params, step: int) -> dict[str, float]:
+        if len(self.parts) == 1:
+            return self.parts[0][1](params, step)
+        out: dict[str, float] = {}
+        losses, ratios = [], []
+        for name, v in self.parts:
+            rec = v(params, step)
+            out.update({f"{name}/{k}": x for k, x in rec.items()})
+            if "loss" in rec:
+                losses.append(rec["loss"])
+            ratios += [x for k, x in rec.items() if k.endswith("_vs_cv")]
+        if losses:
+            out["loss"] = sum(losses) / len(losses)
+        if ratios:
+            out["rollout_agent_ade_vs_cv_mean"] = sum(ratios) / len(ratios)
         return out
