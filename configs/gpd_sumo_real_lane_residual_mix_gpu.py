@@ -16,7 +16,12 @@ after that choice, once.
 
 Outcome (2026-11-26, one H200): 4,496 of 5,400 steps in the lease; no checkpoint beat the model it started from
 on dev, and the real training tiles were memorized (checkpoints/gpd_sumo_real_lane_residual_mix/README.md, "At GPU
-scale").
+scale"). A next run should choose its step on dev while it trains:
+
+    --config.data.val_dir=data/mix_real_dev,data/gen_dev_curved,data/gen_dev_legacy --config.train.eval_every=250 \
+    --config.train.eval_rollout_scenarios=150 --config.train.best_metric=rollout_agent_ade_vs_cv_mean
+
+(the rule's nine ratios, in the corrected metric variant, with the best step exported to WORKDIR/best).
 
     python train.py --config configs/gpd_sumo_real_lane_residual_mix_gpu.py --workdir runs/mix_gpu \\
         --config.train.steps=N --config.train.checkpoint_every=N/4
