@@ -10,6 +10,7 @@
   inspect DIR [--json PATH] [--no-lanes]
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
   near-duplicates --eval STORE_OR_NET ... --reference STORE_OR_NET ... [--tol METRES]
+  mirror DIR --out DIR2 [--split NAME ...]     (the mirror image of every scene: gpd_jax.data.augment)
 
 A stopped build started again with the same arguments resumes where it left off.
 """
@@ -137,6 +138,11 @@ def main(argv=None) -> int:
     bl.add_argument("--batches", type=int, default=200)
     bl.add_argument("--threads", type=int, default=4)
     bl.add_argument("--with-lanes", action="store_true")
+    mi = sub.add_parser("mirror", help="a new store of the mirror images of a store's scenes (y -> -y: left-hand "
+                                       "traffic on mirrored roads); encode its map tokens afterwards")
+    mi.add_argument("dir")
+    mi.add_argument("--out", required=True)
+    mi.add_argument("--split", nargs="+", default=None, help="default: every split")
     nd = sub.add_parser("near-duplicates", help="networks whose lane geometry nearly matches (exit 1 if any)")
     nd.add_argument("--eval", nargs="+", required=True, metavar="STORE_OR_NET",
                     help="SUMO stores (their networks outside --reference-splits) or network files")
@@ -183,6 +189,12 @@ def main(argv=None) -> int:
             print(json.dumps({"num_samples": man["num_samples"],
                               "splits": {k: v["num_samples"] for k, v in man["splits"].items()},
                               "build_wall_s": round(man["build"]["build_wall_s"], 1)}))
+        elif args.cmd == "mirror":
+            from gpd_jax.data.augment import mirror_store
+
+            man = mirror_store(args.dir, args.out, args.split)
+            print(json.dumps({"num_samples": man["num_samples"],
+                              "splits": {k: v["num_samples"] for k, v in man["splits"].items()}}))
         elif args.cmd == "near-duplicates":
             import os
 
