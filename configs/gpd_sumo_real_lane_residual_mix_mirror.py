@@ -16,6 +16,9 @@ Dev rule, fixed before the run: the candidates are the run's final export and WO
 data/gen_dev_legacy, and the mean of the nine agent ADE / constant-velocity ratios at 3 / 5 / 8 s decides; the
 lower ships only if it is below checkpoints/gpd_sumo_real_lane_residual_mix's (0.6866, re-scored this session).
 The test stores are read after that choice, once.
+
+Outcome (2026-11-26, CPU): step 400 was the run's best validation, 0.6887 by the rule against 0.6866: level, not
+shipped (checkpoints/gpd_sumo_real_lane_residual_mix/README.md, "Mirrored real tiles").
 """
 
 import os
