@@ -3,8 +3,8 @@
 * Data: `gpd_jax.data.loader.make_loader` (grain; seeded shuffle, a new permutation per epoch), every batch cut
   to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. `data.dir` is one
   store or a weighted mixture of stores (`DIR:0.7,DIR:0.3`, `loader.parse_mixture`); validation reads
-  `data.val_dir` (default: the first store; several stores separated by commas are each validated). Map tokens must have been encoded into every store
-  (`python -m gpd_jax.map_tokenizer encode --data DIR`).
+  `data.val_dir` (default: the first store; several stores separated by commas are each validated). Map tokens
+  must have been encoded into every store (`python -m gpd_jax.map_tokenizer encode --data DIR`).
 * Step: teacher forcing (`gpd_jax.training.step`): AdamW, linear warm-up then cosine decay, global-norm clipping;
   with `train.rollout_passes` > 0 the future frames' agent inputs are the model's own predictions.
   `train.init_from` (an exported model or a workdir) starts a new run from its parameters (fine-tuning).
