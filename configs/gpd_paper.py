@@ -70,6 +70,8 @@ def get_config() -> ml_collections.ConfigDict:
     t.eval_rollout_scenarios = 32  # traffic_simulation rollouts (ADE vs constant velocity) at each evaluation
     t.best_metric = ""          # a validation key, lower is better (e.g. "rollout_agent_ade_vs_cv_mean"): the best
                                 # validation's parameters are exported to WORKDIR/best (with WORKDIR/best.json)
+    t.eval_at_start = False     # also validate before the first step (step 0; with best_metric, where a fine-tune
+                                # started can stay its best)
     t.checkpoint_every = 500
     t.keep_checkpoints = 2
     t.loader_threads = 4

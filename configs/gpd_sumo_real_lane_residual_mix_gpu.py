@@ -19,7 +19,8 @@ on dev, and the real training tiles were memorized (checkpoints/gpd_sumo_real_la
 scale"). A next run should choose its step on dev while it trains:
 
     --config.data.val_dir=data/mix_real_dev,data/gen_dev_curved,data/gen_dev_legacy --config.train.eval_every=250 \
-    --config.train.eval_rollout_scenarios=150 --config.train.best_metric=rollout_agent_ade_vs_cv_mean
+    --config.train.eval_rollout_scenarios=150 --config.train.best_metric=rollout_agent_ade_vs_cv_mean \
+    --config.train.eval_at_start=True
 
 (the rule's nine ratios, in the corrected metric variant, with the best step exported to WORKDIR/best).
 

@@ -39,6 +39,7 @@ def _train(cfg) -> dict:
     defaults) left out."""
     t = cfg.train.to_dict()
     assert t.pop("best_metric") == ""
+    assert t.pop("eval_at_start") is False
     return t
 
 

@@ -305,3 +305,26 @@ def test_best_validation_is_exported_and_kept_on_resume_over_several_val_stores(
     c3 = _config(store_dir, steps=2, eval_every=1, best_metric="no_such_key")
     with pytest.raises(ValueError, match="no_such_key.*rollout_agent_ade_vs_cv_mean"):
         train_and_evaluate(c3, str(tmp_path / "w3"), quiet=True)
+
+
+def test_eval_at_start_validates_step_0_and_it_can_stay_the_best(store_dir, tmp_path):
+    """`train.eval_at_start` validates the starting parameters (logged as step 0) and lets them be the best; a
+    resumed run does not validate step 0 again."""
+    from gpd_jax.checkpoint import load_model
+    from gpd_jax.training.loop import train_and_evaluate
+
+    src = str(tmp_path / "src")
+    train_and_evaluate(_config(store_dir, steps=2, eval_every=0), src, quiet=True)
+    w = str(tmp_path / "w")
+    # a learning rate this high makes the first steps worse than where the run started
+    c = _config(store_dir, steps=2, eval_every=2, eval_at_start=True, best_metric="loss",
+                init_from=os.path.join(src, "export"), learning_rate=50.0, warmup_steps=1)
+    assert train_and_evaluate(c, w, stop_after=1, quiet=True)["step"] == 1
+    assert train_and_evaluate(c, w, quiet=True)["step"] == 2
+    evals = [r for r in (json.loads(l) for l in open(os.path.join(w, "metrics.jsonl"))) if r["split"] == "val"]
+    assert [r["step"] for r in evals] == [0, 2]
+    best = json.load(open(os.path.join(w, "best.json")))
+    assert best["step"] == 0 and best["value"] == pytest.approx(evals[0]["loss"]) and evals[1]["loss"] > evals[0]["loss"]
+    for x, y in zip(jax.tree.leaves(load_model(os.path.join(w, "best")).params),
+                    jax.tree.leaves(load_model(os.path.join(src, "export")).params)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

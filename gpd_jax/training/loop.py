@@ -24,7 +24,8 @@
 * `train.best_metric` (a key of the validation record, lower is better, e.g. `rollout_agent_ade_vs_cv_mean`):
   the parameters of the best validation so far are exported to `WORKDIR/best` (atomically) with
   `WORKDIR/best.json` ({"metric", "value", "step"}), and a resumed run keeps its best: the checkpoint a run
-  chooses on its validation stores, when longer training starts to overfit.
+  chooses on its validation stores, when longer training starts to overfit. `train.eval_at_start` also
+  validates before the first step (step 0: a fine-tune's starting point, which may stay the best).
 * At the end the model is exported to `WORKDIR/export` (`gpd_jax.checkpoint.export_model`, with its map
   tokenizer), which `rollout.py --checkpoint` loads.
 """
@@ -322,6 +323,21 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     best = BestTracker(workdir, str(tc.get("best_metric", "") or ""), enabled=lead and validate is not None)
     bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True, mininterval=2.0, disable=quiet or not lead,
                     desc=desc)
+
+    def evaluate(step: int, params) -> dict[str, float]:
+        ev = validate(params, step)
+        log.write(step, config.data.val_split, ev)
+        if lead:
+            bar.write(f"step {step} val: " + summary(ev))
+        if best.update(step, ev):
+            export_model(jax.device_get(params), config, best.export_dir,
+                         tokenizer_dir=config.model.map_tokenizer or None)
+            best.commit()
+            bar.write(f"step {step}: best {best.metric} so far ({best.value:.4g}) -> {best.export_dir}")
+        return ev
+
+    if validate is not None and start == 0 and bool(tc.get("eval_at_start", False)):
+        last_eval = evaluate(0, state.params)  # a fine-tune's starting point: its best may be where it started
     step = start
     window_t, window_n = time.perf_counter(), 0
     with StopOnSigterm() as stop:
@@ -348,15 +364,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
                     log.write(step, "train", parts)
                     bar.set_postfix(loss=f"{parts['loss']:.3f}", **postfix(parts))
                 if validate is not None and (step % int(tc.eval_every) == 0 or step == total):
-                    last_eval = validate(state.params, step)
-                    log.write(step, config.data.val_split, last_eval)
-                    if lead:
-                        bar.write(f"step {step} val: " + summary(last_eval))
-                    if best.update(step, last_eval):
-                        export_model(jax.device_get(state.params), config, best.export_dir,
-                                     tokenizer_dir=config.model.map_tokenizer or None)
-                        best.commit()
-                        bar.write(f"step {step}: best {best.metric} so far ({best.value:.4g}) -> {best.export_dir}")
+                    last_eval = evaluate(step, state.params)
                     window_t, window_n = time.perf_counter(), 0
                 if step % int(tc.checkpoint_every) == 0 or step == total:
                     save_state(mgr, step, state._asdict())
