@@ -5,7 +5,7 @@ networks (`gpd_jax.data.realnets`), on its own rollouts with its own map tokens 
 configs/gpd_sumo_map_feedback.py). Validation reads the real development tiles (`data.val_dir`).
 
     python -m gpd_jax.data.realnets --cache data/realnets
-    python -m gpd_jax.data build --source sumo --net data/realnets/train/*.net.xml.gz --net-layout real \\
+    python -m gpd_jax.data build --source sumo --net data/realnets/train/{drt_nw,drt_se,drt_sw,fin_se_east,fin_se_west,helsinki_south}.net.xml.gz --net-layout real \\
         --split train --scenarios 600 --per-job 10 --seed 71 --out data/mix_real_train
     python -m gpd_jax.data build --source sumo --net data/realnets/dev/*.net.xml.gz --net-layout real \\
         --split val --scenarios 150 --per-job 10 --seed 73 --out data/mix_real_dev --against data/mix_real_train

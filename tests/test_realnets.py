@@ -89,3 +89,22 @@ def test_chain_statistics_matches_the_data_layer_and_turnarounds_cut():
     assert t["chains"] == len(sumo.read_network_lanes(net, ignore_turnarounds=True))
     assert s["turnaround_connections"] > 0 and t["chains"] < s["chains"]
     assert t["chain_length_m"]["p10"] > s["chain_length_m"]["p10"]
+
+
+def test_resco_tiles_from_the_sumo_rl_wheel_stay_clear_of_ingolstadt_test_network(tmp_path):
+    # ingolstadt21 (sumo-rl's RESCO networks) reaches the test network fkk_in: the tile nearest it must stay
+    # 300 m clear of it (the boxes stop 330 m west of it), and a whole-network Cologne crop is kept whole.
+    out = realnets.prepare_real_networks(str(tmp_path), splits=("train",), names=["ingolstadt_ne", "cologne1"])
+    paths = dict(zip(["ingolstadt_ne", "cologne1"], sorted(out["train"], key=lambda p: "cologne" in p)))
+    assert "ingolstadt_ne" in paths["ingolstadt_ne"] and "cologne1" in paths["cologne1"]
+    fkk = next(p for p in realnets.test_networks() if "fkk_in" in p)
+    realnets.check_disjoint(list(paths.values()), [fkk], margin_m=300.0)  # no exception
+    full, sha = realnets.source_network(realnets.SOURCES["resco_cologne1"], str(tmp_path))
+    kept, whole = realnets._lane_km(paths["cologne1"]), realnets._lane_km(full)
+    assert 0.9 * whole <= kept <= 1.01 * whole and len(sha) == 64
+    man = json.load(open(tmp_path / "manifest.json"))["tiles"]
+    assert man["cologne1"]["shipped_by"].startswith("sumo-rl") and "ODbL" in man["cologne1"]["licence"]
+    # the whole ingolstadt21 network is not clear of fkk_in: the check that guards the tiles would catch it
+    big, _ = realnets.source_network(realnets.SOURCES["resco_ingolstadt21"], str(tmp_path))
+    with pytest.raises(DataError, match="overlaps"):
+        realnets.check_disjoint([big], [fkk])

