@@ -9,6 +9,8 @@
     model.spec                                            # its view of a stored scene (gpd_jax.spec)
     model.tokenizer                                       # its map tokenizer (or None)
 
+    soup = average_models(["checkpoints/gpd_sumo", "checkpoints/gpd_sumo_real_lane_residual_mix"], [0.25, 0.75])
+
 An exported model is a directory with `config.json` (the full training config) and `params.npz` (the model's
 `nnx.Param` leaves keyed by their path, float32 or float16). The map tokenizer whose frozen codebook embeds
 map tokens is named by `config.model.map_tokenizer`; a relative path is looked up next to the checkpoint
@@ -28,7 +30,8 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax.config import config_from_json
-from gpd_jax.fsutil import atomic_directory, flatten_params, load_params_npz, restore_params
+from gpd_jax.fsutil import (atomic_directory, atomic_write_json, flatten_params, load_params_npz, restore_params,
+                            unflatten_params)
 from gpd_jax.map_tokenizer import MapTokenizer, load_tokenizer
 from gpd_jax.model import GPD, PlanningHead
 from gpd_jax.spec import EvalError, ModelSpec, model_frame_period_s, spec_from_config
@@ -179,8 +182,58 @@ def load_model(path: str | None = None, step: int | None = None) -> Model:
                  tokenizer=tokenizer, path=path)
 
 
+SOUP_FILE = "soup.json"
+
+
+def average_models(paths: list[str], weights: list[float] | None = None, config_from: int = 0) -> Model:
+    """A weight-space average of GPDs ("model soup"; WiSE-FT's interpolation between a model and its fine-tune):
+    params = sum_i weights[i] * params_i, computed in float64.
+
+    The models must share one parameter structure (names and shapes) and one map codebook (the same tokenizer's
+    tokens); averaging is meaningful between models fine-tuned from a common ancestor. The result takes the
+    config (architecture options such as the lane residual, spec, tokenizer) of `paths[config_from]`.
+
+    Args:
+      paths: exported model directories or train.py workdirs (latest step), two or more.
+      weights: one per model, >= 0, summing to 1 (within 1e-6); default equal weights.
+      config_from: index of the model whose config the average uses.
+    Raises ValueError naming the offending model or parameter.
+    """
+    if len(paths) < 2:
+        raise ValueError(f"averaging needs two or more models, got {len(paths)}")
+    weights = [1.0 / len(paths)] * len(paths) if weights is None else [float(w) for w in weights]
+    if len(weights) != len(paths):
+        raise ValueError(f"{len(weights)} weights for {len(paths)} models")
+    if any(not np.isfinite(w) or w < 0 for w in weights) or abs(sum(weights) - 1.0) > 1e-6:
+        raise ValueError(f"weights must be >= 0 and sum to 1, got {weights}")
+    if not 0 <= config_from < len(paths):
+        raise ValueError(f"config_from {config_from} is not one of the {len(paths)} models")
+    models = [load_model(p) for p in paths]
+    base = models[config_from]
+    flats = [flatten_params(m.params) for m in models]
+    for m, flat in zip(models, flats):
+        if set(flat) != set(flats[config_from]):
+            diff = sorted(set(flat) ^ set(flats[config_from]))
+            raise ValueError(f"{m.path}: parameters differ from {base.path}'s (e.g. {diff[:3]})")
+        for k, v in flat.items():
+            if v.shape != flats[config_from][k].shape:
+                raise ValueError(f"{m.path}: parameter {k} has shape {v.shape}, {base.path} has "
+                                 f"{flats[config_from][k].shape}")
+        fp = None if m.tokenizer is None else m.tokenizer.fingerprint()
+        base_fp = None if base.tokenizer is None else base.tokenizer.fingerprint()
+        if fp != base_fp:
+            raise ValueError(f"{m.path}: map tokenizer {fp} differs from {base.path}'s {base_fp}: its tokens mean "
+                             "other things")
+    avg = {k: sum(w * f[k].astype(np.float64) for w, f in zip(weights, flats)).astype(v.dtype)
+           for k, v in flats[config_from].items()}
+    params = unflatten_params(base.params, avg, where="average")
+    return dataclasses.replace(base, params=params, path=None)
+
+
 def main(argv=None) -> int:
-    """`python -m gpd_jax.checkpoint export WORKDIR OUT [--step N] [--tokenizer-ref PATH] [--float16]`."""
+    """`python -m gpd_jax.checkpoint export WORKDIR OUT [--step N] [--tokenizer-ref PATH] [--float16]`;
+    `python -m gpd_jax.checkpoint average MODEL MODEL [...] --out OUT [--weights W W ...] [--config-from I]
+    [--tokenizer-ref PATH]` (a weight-space average, `average_models`; OUT/soup.json records the sources)."""
     import argparse
     import sys
 
@@ -194,7 +247,16 @@ def main(argv=None) -> int:
                    help="write this map-tokenizer path into the exported config instead of copying the tokenizer "
                         "(relative paths are resolved next to the export first, e.g. ../map_tokenizer)")
     e.add_argument("--float16", action="store_true", help="store parameters as float16 (half the size)")
+    a = sub.add_parser("average", help="a weight-space average of models fine-tuned from a common ancestor")
+    a.add_argument("models", nargs="+")
+    a.add_argument("--out", required=True)
+    a.add_argument("--weights", type=float, nargs="+", default=None, help="one per model, summing to 1 (equal)")
+    a.add_argument("--config-from", type=int, default=0, help="index of the model whose config is used (0)")
+    a.add_argument("--tokenizer-ref", default=None,
+                   help="write this map-tokenizer path into the config instead of copying the tokenizer")
     args = p.parse_args(argv)
+    if args.cmd == "average":
+        return _average_cli(args)
     try:
         model = load_model(args.workdir, args.step)
     except (FileNotFoundError, ValueError) as err:
@@ -211,6 +273,39 @@ def main(argv=None) -> int:
         out = export_model(model.params, config, args.out, dtype=dtype,
                            tokenizer_dir=resolve_tokenizer_path(tok, args.workdir) if tok else None)
     print(f"exported {args.workdir} -> {out}")
+    return 0
+
+
+def _average_cli(args) -> int:
+    import hashlib
+    import json
+    import sys
+
+    try:
+        model = average_models(args.models, args.weights, args.config_from)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    config = model.config
+    src = args.models[args.config_from]
+    if args.tokenizer_ref is not None:
+        config.model.map_tokenizer = args.tokenizer_ref
+        out = export_model(model.params, config, args.out)
+        resolve_tokenizer_path(args.tokenizer_ref, out)
+    else:
+        tok = config.model.map_tokenizer or None
+        out = export_model(model.params, config, args.out,
+                           tokenizer_dir=resolve_tokenizer_path(tok, src) if tok else None)
+    weights = args.weights or [1.0 / len(args.models)] * len(args.models)
+
+    def sha(path):
+        f = os.path.join(path, PARAMS_FILE)
+        return hashlib.sha256(open(f, "rb").read()).hexdigest() if os.path.isfile(f) else None
+
+    atomic_write_json(os.path.join(out, SOUP_FILE), {
+        "sources": [{"path": m, "weight": w, "params_sha256": sha(m)} for m, w in zip(args.models, weights)],
+        "config_from": src})
+    print(f"averaged {len(args.models)} models -> {out}")
     return 0
 
 
