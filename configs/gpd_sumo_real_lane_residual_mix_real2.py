@@ -21,6 +21,10 @@ Dev rule, fixed before the run: the candidates are the run's final export and WO
 data/gen_dev_legacy, and the mean of the nine agent ADE / constant-velocity ratios at 3 / 5 / 8 s decides; the
 lower ships only if it is below checkpoints/gpd_sumo_real_lane_residual_mix's (0.6866) by more than the 0.006 that
 repeats of one fine-tune differ by. The test stores are read after that choice, once.
+
+Outcome (2026-11-26, CPU, 37 min): validations 0.7001 (step 200) and 0.6834 (step 400, the final export and its
+best; rollout.py agrees): 0.0032 below 0.6866, inside the margin, so it does not ship alone. It is one third of
+checkpoints/gpd_sumo_real_lane_residual_soup (its README, "Chosen on dev").
 """
 
 import os
