@@ -9,7 +9,9 @@
     model.spec                                            # its view of a stored scene (gpd_jax.spec)
     model.tokenizer                                       # its map tokenizer (or None)
 
-    soup = average_models(["checkpoints/gpd_sumo", "checkpoints/gpd_sumo_real_lane_residual_mix"], [0.25, 0.75])
+    soup = average_models(["checkpoints/gpd_sumo_real_lane_residual",     # a weight-space average of two
+                           "checkpoints/gpd_sumo_real_lane_residual_mix"], # fine-tunes of one ancestor, with
+                          [0.5, 0.5], config_from=1)                       # the second one's config
 
 An exported model is a directory with `config.json` (the full training config) and `params.npz` (the model's
 `nnx.Param` leaves keyed by their path, float32 or float16). The map tokenizer whose frozen codebook embeds
