@@ -15,6 +15,10 @@ checkpoints/gpd_sumo_real_lane_residual_soup at 0.5 / 0.5 and 0.25 / 0.75 (fine-
 `rollout.py --split val --tasks traffic_simulation` on data/mix_real_dev, data/gen_dev_curved and
 data/gen_dev_legacy, the mean of the nine agent ADE / constant-velocity ratios at 3 / 5 / 8 s decides, and the
 lowest ships only if it is below the soup's 0.6821. The test stores are read after that choice, once.
+
+Outcome (2026-11-26, CPU, 30 min): validations 0.7025 (step 200) and 0.6836 (step 400, final = best); the averages
+0.6808 (0.5 / 0.5) and 0.6812 (0.25 / 0.75). The 0.5 / 0.5 average shipped as
+checkpoints/gpd_sumo_real_lane_residual_soup_legacy (its README has the test figures).
 """
 
 import os
