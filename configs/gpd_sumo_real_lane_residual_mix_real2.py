@@ -31,16 +31,12 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
-import gpd_sumo_real_lane_residual_mix_legacy  # noqa: E402
+import gpd_sumo_real_lane_residual_mix_mirror  # noqa: E402
 
 
 def get_config():
-    c = gpd_sumo_real_lane_residual_mix_legacy.get_config()
+    # the mirrored-tiles run's set-up (from the mix model, validating on the three dev stores, best export)
+    c = gpd_sumo_real_lane_residual_mix_mirror.get_config()
     c.data.dir = "data/gen_curved_train:0.2,data/legacy_train:0.4,data/mix_real_train:0.2,data/real2_train:0.2"
-    c.data.val_dir = "data/mix_real_dev,data/gen_dev_curved,data/gen_dev_legacy"
-    c.train.init_from = "checkpoints/gpd_sumo_real_lane_residual_mix"
-    t = c.train
-    t.eval_every = 200
-    t.eval_rollout_scenarios = 150
-    t.best_metric = "rollout_agent_ade_vs_cv_mean"
+    c.train.eval_every = 200
     return c
