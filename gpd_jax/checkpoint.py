@@ -266,16 +266,22 @@ def main(argv=None) -> int:
         return 2
     config = model.config
     dtype = np.float16 if args.float16 else np.float32
-    if args.tokenizer_ref is not None:
-        config.model.map_tokenizer = args.tokenizer_ref
-        out = export_model(model.params, config, args.out, dtype=dtype)
-        resolve_tokenizer_path(args.tokenizer_ref, out)  # fails loudly if the reference does not resolve
-    else:
-        tok = config.model.map_tokenizer or None
-        out = export_model(model.params, config, args.out, dtype=dtype,
-                           tokenizer_dir=resolve_tokenizer_path(tok, args.workdir) if tok else None)
+    out = _export_cli(model.params, config, args.out, args.tokenizer_ref, args.workdir, dtype)
     print(f"exported {args.workdir} -> {out}")
     return 0
+
+
+def _export_cli(params, config, out: str, tokenizer_ref: str | None, source: str, dtype=np.float32) -> str:
+    """Exports for the command line: with `tokenizer_ref` the config names that tokenizer path (which must resolve
+    from `out`), else the source's tokenizer is copied in."""
+    if tokenizer_ref is not None:
+        config.model.map_tokenizer = tokenizer_ref
+        out = export_model(params, config, out, dtype=dtype)
+        resolve_tokenizer_path(tokenizer_ref, out)  # fails loudly if the reference does not resolve
+        return out
+    tok = config.model.map_tokenizer or None
+    return export_model(params, config, out, dtype=dtype,
+                        tokenizer_dir=resolve_tokenizer_path(tok, source) if tok else None)
 
 
 def _average_cli(args) -> int:
@@ -290,14 +296,7 @@ def _average_cli(args) -> int:
         return 2
     config = model.config
     src = args.models[args.config_from]
-    if args.tokenizer_ref is not None:
-        config.model.map_tokenizer = args.tokenizer_ref
-        out = export_model(model.params, config, args.out)
-        resolve_tokenizer_path(args.tokenizer_ref, out)
-    else:
-        tok = config.model.map_tokenizer or None
-        out = export_model(model.params, config, args.out,
-                           tokenizer_dir=resolve_tokenizer_path(tok, src) if tok else None)
+    out = _export_cli(model.params, config, args.out, args.tokenizer_ref, src)
     weights = args.weights or [1.0 / len(args.models)] * len(args.models)
 
     def sha(path):
