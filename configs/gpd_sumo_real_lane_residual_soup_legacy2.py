@@ -10,7 +10,7 @@ Mixture: 0.10 curved real-traffic generated / 0.65 legacy generated / 0.125 the 
 seven new ones (the first round had 0.15 / 0.55 / 0.15 / 0.15); everything else is the first round's recipe
 (400 steps, lr 3e-4 cosine to 1e-5, batch 8, whole rollouts of 8 passes, validation at steps 200 and 400).
 
-Dev rule, fixed before the run (2026-11-26 06:25; no figure of this run seen): candidates are the run's final
+Dev rule, fixed before the run (2026-11-26 06:11; no figure of this run seen): candidates are the run's final
 export, WORKDIR/best, and the final export averaged with checkpoints/gpd_sumo_real_lane_residual_soup_legacy at
 0.5 / 0.5 and 0.25 / 0.75 (fine-tune / soup_legacy). Each is scored by `rollout.py --split val --tasks
 traffic_simulation` on data/mix_real_dev, data/gen_dev_curved and data/gen_dev_legacy; the mean of the nine agent
