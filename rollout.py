@@ -8,9 +8,10 @@
 
 Runs every task (gpd_jax/tasks.py) on the first N scenarios of the split in one compiled rollout per batch, scores
 them at 3 / 5 / 8 s next to the constant-velocity, log-replay and map baselines, prints tables shaped like the
-paper's Tables 1 and 2 and writes OUT/metrics.json, OUT/tables.txt and, with --render K, pictures of the first K
-scenarios under OUT/render/ (definitions and layout: gpd_jax/evaluation/__init__.py). Bad input exits with
-status 2 and a message naming the problem, before anything is written.
+paper's Tables 1 and 2 and writes OUT/metrics.json, OUT/tables.txt, OUT/scene_sums.npz (each scenario's sums:
+`python -m gpd_jax.evaluation compare` turns them into scene-bootstrap intervals) and, with --render K, pictures
+of the first K scenarios under OUT/render/ (definitions and layout: gpd_jax/evaluation/__init__.py). Bad input
+exits with status 2 and a message naming the problem, before anything is written.
 """
 
 from __future__ import annotations

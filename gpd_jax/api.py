@@ -248,7 +248,8 @@ def evaluate(model: Model, scenes_or_dir: Scene | str, tasks: str | Sequence[str
     """Scores every task (and the constant-velocity, log-replay and map baselines) at 3 / 5 / 8 s on stored-rate
     scenes Scene [n, ...] or the split of a store directory: the content of `rollout.py`'s metrics.json
     (`results["tasks"][task]["3s"]["agent_ade"]`, ...). Other keyword arguments as `gpd_jax.evaluation.evaluate`
-    (batch_size, seed, variant, horizons_s, log_map, gen_map, temperature, progress, log)."""
+    (batch_size, seed, variant, horizons_s, log_map, gen_map, temperature, progress, log; scene_sums=True adds
+    `results["scene_sums"]`, each scenario's sums, for `gpd_jax.evaluation.bootstrap.compare_runs`)."""
     kwargs.setdefault("progress", False)
     kwargs.setdefault("log", lambda _msg: None)
     results, _ = _evaluate(model, scenes_or_dir, split, task_names=tasks, num_scenarios=num_scenarios, **kwargs)

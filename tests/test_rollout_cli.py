@@ -232,3 +232,30 @@ def test_bad_input_exits_2_and_writes_nothing(setup, capsys, case, args, message
     err = capsys.readouterr().err
     assert message in err, err
     assert not out.exists()
+
+
+def test_scene_sums_add_up_to_the_run_and_compare_reads_them(run_ok, capsys, tmp_path):
+    """Every run keeps each scenario's sums (scene_sums.npz): with every scene drawn once they give back the
+    run's ratios, and `python -m gpd_jax.evaluation compare` reads them (a run against itself differs by 0)."""
+    from gpd_jax.evaluation import __main__ as cli
+    from gpd_jax.evaluation.bootstrap import compare_runs, load_scene_sums
+
+    rc, out = run_ok
+    m = _strict_json(os.path.join(out, "metrics.json"))
+    ss = load_scene_sums(out)
+    assert ss.num_scenarios == 3 and len(set(ss.scenario_ids)) == 3
+    assert ss.sums["counts/scenarios"].tolist() == [1.0, 1.0, 1.0]
+    for base, key in (("constant_velocity", "traffic_simulation_agent_ade_over_constant_velocity"),
+                      ("constant_velocity_lanes", "traffic_simulation_agent_ade_over_constant_velocity_lanes")):
+        res = compare_runs([ss, ss], baseline=base, resamples=200)
+        for lb in ("3s", "5s", "8s"):
+            assert res["runs"][0][lb]["ratio"] == pytest.approx(m["ratios"][key][lb], rel=1e-6)
+            lo, hi = res["runs"][0][lb]["interval"]
+            assert lo <= hi and np.isfinite([lo, hi]).all()
+            assert res["versus_first"][0][lb]["difference"] == 0.0
+            assert res["versus_first"][0][lb]["interval"] == [0.0, 0.0]
+    js = str(tmp_path / "cmp.json")
+    assert cli.main(["compare", out, out, "--names", "a,b", "--resamples", "200", "--json", js]) == 0
+    assert "a |" in capsys.readouterr().out and _strict_json(js)["names"] == ["a", "b"]
+    assert cli.main(["compare", out, str(tmp_path)]) == 2  # no scene_sums.npz there
+    assert "no per-scene sums" in capsys.readouterr().err

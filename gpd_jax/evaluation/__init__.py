@@ -3,7 +3,8 @@
 Modules, by job: `driver` (the batched loop: `evaluate`), `preflight` (every check before a model loads),
 `scoring` (metric sums of a batch, jitted), `reduce` (sums -> metrics), `report` (tables, strict JSON), `maps`
 (lane ground truth, map encode / decode), `baselines` (constant velocity, log replay), `render` (pictures),
-`keys` (the names of what is reported).
+`keys` (the names of what is reported), `bootstrap` (each scenario's sums: scene-bootstrap intervals and paired
+comparisons of runs on the same scenes; `python -m gpd_jax.evaluation compare`).
 
 What `evaluate` does (the command line is `rollout.py` at the repository root):
 
@@ -106,6 +107,7 @@ metres (corrected).
 """
 
 from gpd_jax.evaluation.baselines import constant_velocity, log_replay
+from gpd_jax.evaluation.bootstrap import SceneSums, compare_runs, load_scene_sums
 from gpd_jax.evaluation.driver import RenderItem, evaluate
 from gpd_jax.evaluation.preflight import SceneRecords, check_compatible, preflight
 from gpd_jax.evaluation.reduce import reduce_results
@@ -114,6 +116,7 @@ from gpd_jax.evaluation.report import format_tables, to_json_compatible
 from gpd_jax.evaluation.scoring import add_sums, baseline_predictions, score_batch
 from gpd_jax.spec import EvalError
 
-__all__ = ["EvalError", "RenderItem", "SceneRecords", "add_sums", "baseline_predictions", "check_compatible",
-           "constant_velocity", "evaluate", "format_tables", "log_replay", "preflight", "reduce_results",
-           "render_items", "render_rollout", "score_batch", "to_json_compatible"]
+__all__ = ["EvalError", "RenderItem", "SceneRecords", "SceneSums", "add_sums", "baseline_predictions",
+           "check_compatible", "compare_runs", "constant_velocity", "evaluate", "format_tables", "load_scene_sums",
+           "log_replay", "preflight", "reduce_results", "render_items", "render_rollout", "score_batch",
+           "to_json_compatible"]

@@ -12,6 +12,7 @@ import time
 
 from gpd_jax.checkpoint import CONFIG_FILE, load_model, resolve_tokenizer_path
 from gpd_jax.config import apply_overrides, config_from_json, split_config_args
+from gpd_jax.evaluation.bootstrap import SCENE_SUMS_FILE, save_scene_sums
 from gpd_jax.evaluation.driver import evaluate
 from gpd_jax.evaluation.outputs import write_evaluation
 from gpd_jax.evaluation.preflight import preflight
@@ -179,7 +180,8 @@ def run(args: argparse.Namespace, overrides: list[str]) -> int:
         results, items = evaluate(model, args.data, args.split, task_names=args.task_names,
                                   num_scenarios=args.scenarios, batch_size=args.batch, seed=args.seed,
                                   variant=args.variant, horizons_s=args.horizons, render_count=args.render,
-                                  log_map=args.log_map, gen_map=args.gen_map, progress=not args.no_progress)
+                                  log_map=args.log_map, gen_map=args.gen_map, progress=not args.no_progress,
+                                  scene_sums=True)
     except EvalError as e:
         raise UsageError(str(e)) from None
     if args.render > len(items):
@@ -187,8 +189,10 @@ def run(args: argparse.Namespace, overrides: list[str]) -> int:
     results = {"checkpoint": args.checkpoint, **results}
     tables = format_tables(results, args.variant)
     print(tables, flush=True)
+    per_scene = results.pop("scene_sums")
     write_evaluation(args.out, results, tables, items, args.task_names, tokenizer=model.tokenizer,
                      size_px=args.render_size)
+    save_scene_sums(os.path.join(args.out, SCENE_SUMS_FILE), per_scene)
     if items:
         print(f"rendered {len(results['render']['files'])} files to {os.path.join(args.out, 'render')} in "
               f"{results['timing_s']['render']:.1f} s", flush=True)

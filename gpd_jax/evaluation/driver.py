@@ -19,6 +19,7 @@ from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import to_scene
 from gpd_jax.data.store import foreign_map_token_shards, sample_layouts
 from gpd_jax.decoding import LogLanes, RolloutOutput, drop_unread_lanes, rollout_jit
+from gpd_jax.evaluation.bootstrap import scene_sums_from_batches
 from gpd_jax.evaluation.keys import GEN_MAP_SOURCES, LOG_MAP_SOURCES, RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import (decode_map_tokens, encode_map_frames, gt_future_lanes,
                                      persistence_future_lanes)
@@ -44,7 +45,8 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
              num_scenarios: int | None = None, batch_size: int = 8, seed: int = 0, variant: str = "paper",
              horizons_s: Sequence[float] = HORIZONS_S, render_count: int = 0, log_map: str = "tokens",
              temperature: float | None = None, progress: bool = True, log: Callable[[str], None] = print,
-             layouts: Sequence[str] | None = None, gen_map: str = "model") -> tuple[dict[str, Any], list[RenderItem]]:
+             layouts: Sequence[str] | None = None, gen_map: str = "model", scene_sums: bool = False
+             ) -> tuple[dict[str, Any], list[RenderItem]]:
     """Rolls out every task on the first `num_scenarios` scenarios of a split (or of given scenes) and scores
     them.
 
@@ -68,6 +70,9 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
       layouts: the road-network layout of every scenario (grid, spider, random, real, ...), for figures per
         layout beside the overall ones (`results["by_layout"]`, when there are two or more). Default: read from
         the store (`gpd_jax.data.store.sample_layouts`; SUMO builds record it), none for in-memory scenes.
+      scene_sums: also keep every scenario's own metric sums, as `results["scene_sums"]` (a
+        `gpd_jax.evaluation.bootstrap.SceneSums`, not JSON: `rollout.py` writes it to scene_sums.npz) for
+        scene-bootstrap intervals and paired comparisons (`bootstrap.compare_runs`).
 
     Returns:
       (results dict as written to metrics.json, render items). Raises EvalError on bad input.
@@ -108,6 +113,7 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
         raise EvalError(f"layouts: {len(layouts)} labels for {n} scenarios")
     per_layout = layouts is not None and len(set(layouts)) > 1
     layout_acc: dict[str, Any] = {}
+    per_scene: list[dict[str, Any]] = []
 
     acc = None
     render_items: list[RenderItem] = []
@@ -163,13 +169,16 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
                                           jnp.asarray(scene.map_tokens)[:, None, fut]], axis=1)
                 map_pred = decode_map_tokens(tokenizer, tokenizer.params, tokens)
             sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes, kept_lanes,
-                               per_scenario=per_layout)
-            if per_layout:  # each scenario's sums: the batch's total and each layout's part
-                sums = jax.tree.map(np.asarray, jax.device_get(sums))
-                labels = np.array([layouts[i] for i in idx])
-                for g in sorted(set(labels[:real])):
-                    part = (labels == g) & weight
-                    layout_acc[g] = add_sums(layout_acc.get(g), jax.tree.map(lambda x: x[part].sum(0), sums))
+                               per_scenario=per_layout or scene_sums)
+            if per_layout or scene_sums:  # each scenario's sums: the batch's total, each layout's part, each scene's
+                sums = jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(sums))
+                if scene_sums:
+                    per_scene.append(jax.tree.map(lambda x: x[:real], sums))
+                if per_layout:
+                    labels = np.array([layouts[i] for i in idx])
+                    for g in sorted(set(labels[:real])):
+                        part = (labels == g) & weight
+                        layout_acc[g] = add_sums(layout_acc.get(g), jax.tree.map(lambda x: x[part].sum(0), sums))
                 sums = jax.tree.map(lambda x: x[weight].sum(0), sums)
             acc = add_sums(acc, sums)
             t_score += time.perf_counter() - tc
@@ -219,6 +228,9 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
         "timing_s": {"total": round(wall, 2), "rollout": round(t_roll, 2), "scoring": round(t_score, 2),
                      "data": round(t_data, 2), "batches": num_batches, "batch_size": bs},
     }
+    if scene_sums:
+        ids = list(prep.scenario_ids[:n]) + [""] * max(0, n - len(prep.scenario_ids))
+        results["scene_sums"] = scene_sums_from_batches(per_scene, ids)
     return results, render_items
 
 
