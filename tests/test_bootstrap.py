@@ -11,18 +11,19 @@ from gpd_jax.spec import EvalError
 N = 40
 
 
-def run(model_err, cv_err, agents=None, ids=None, labels=("3s", "8s")) -> SceneSums:
+def run(model_err, cv_err, agents=None, ids=None, labels=("3s", "8s"), locations=()) -> SceneSums:
     """Per-scene sums: scene i has agents[i] agents, each with model error model_err[i] and CV error cv_err[i]."""
     agents = np.full(N, 5.0) if agents is None else np.asarray(agents, float)
     sums = {}
     for lb in labels:
-        for where, err in (("tasks/traffic_simulation/paper", model_err), ("baselines/constant_velocity/paper", cv_err)):
+        for where, err in (("tasks/traffic_simulation/paper", model_err),
+                           ("baselines/constant_velocity/paper", cv_err)):
             sums[f"{where}/{lb}/agent_ade_num"] = np.asarray(err, float) * agents
             sums[f"{where}/{lb}/agent_ade_den"] = agents
             sums[f"{where}/{lb}/agent_ade_along_moving_num"] = 0.5 * np.asarray(err, float) * agents
             sums[f"{where}/{lb}/agent_ade_moving_num"] = np.asarray(err, float) * agents
             sums[f"{where}/{lb}/agent_ade_moving_den"] = agents
-    return SceneSums(tuple(ids or (f"s{i}" for i in range(N))), sums)
+    return SceneSums(tuple(ids or (f"s{i}" for i in range(N))), sums, tuple(locations))
 
 
 def test_the_ratio_is_a_ratio_of_sums_over_the_drawn_scenes():
@@ -34,7 +35,8 @@ def test_the_ratio_is_a_ratio_of_sums_over_the_drawn_scenes():
     w[1, :3] = [2, 0, 1]
     got = ratio_draws(ss, w, label="8s")
     want0 = (m * a).sum() / a.sum() / ((c * a).sum() / a.sum())
-    want1 = ((2 * m[0] * a[0] + m[2] * a[2]) / (2 * a[0] + a[2])) / ((2 * c[0] * a[0] + c[2] * a[2]) / (2 * a[0] + a[2]))
+    den = 2 * a[0] + a[2]
+    want1 = ((2 * m[0] * a[0] + m[2] * a[2]) / den) / ((2 * c[0] * a[0] + c[2] * a[2]) / den)
     np.testing.assert_allclose(got, [want0, want1], rtol=1e-12)
     # a track component shares the moving class's denominator
     np.testing.assert_allclose(ratio_draws(ss, w[:1], metric="agent_ade_along_moving"), [want0], rtol=1e-12)
@@ -90,14 +92,43 @@ def test_save_load_round_trip_and_batches_concatenate(tmp_path):
           "counts": {"scenarios": np.ones(2)}}
     b2 = {"tasks": {"t": {"paper": {"3s": {"agent_ade_num": np.array([3.0]), "agent_ade_den": np.ones(1)}}}},
           "counts": {"scenarios": np.ones(1)}}
-    ss = scene_sums_from_batches([b1, b2], ["a", "", "c"])
-    assert ss.scenario_ids == ("a", "1", "c")
+    ss = scene_sums_from_batches([b1, b2], ["a", "", "c"], ["r1", "r1", "r2"])
+    assert ss.scenario_ids == ("a", "1", "c") and ss.locations == ("r1", "r1", "r2")
     np.testing.assert_array_equal(ss.sums["tasks/t/paper/3s/agent_ade_num"], [1.0, 2.0, 3.0])
     path = str(tmp_path / "s.npz")
     save_scene_sums(path, ss)
     back = load_scene_sums(path)
     assert back.scenario_ids == ss.scenario_ids and back.sums.keys() == ss.sums.keys()
+    assert back.locations == ss.locations
     for k in ss.sums:
         np.testing.assert_array_equal(back.sums[k], ss.sums[k])
     with pytest.raises(EvalError, match="has 2 scenarios, the run 3"):
         scene_sums_from_batches([b1], ["a", "b", "c"])
+
+
+def test_a_location_bootstrap_draws_whole_networks_and_is_wider_when_networks_differ():
+    groups = ["net_a"] * 10 + ["net_b"] * 10 + ["net_c"] * 20
+    w = draws(N, 300, 4, groups)
+    for lo, hi in ((0, 10), (10, 20), (20, 40)):  # a network's scenes are drawn together
+        assert (w[:, lo:hi] == w[:, lo:lo + 1]).all()
+    picks = w[:, 0] + w[:, 10] + w[:, 20]
+    assert (picks == 3).all()  # three of the three networks, with replacement
+    # each network has its own level of difficulty for the model: scenes inside one agree, networks disagree
+    rng = np.random.default_rng(5)
+    level = {"net_a": 0.55, "net_b": 0.75, "net_c": 0.65}
+    c = rng.uniform(2, 4, N)
+    m = np.array([level[g] for g in groups]) * c * rng.uniform(0.97, 1.03, N)
+    locs = [f"{g}_{i % 2}" for i, g in enumerate(groups)]  # 6 networks, so a draw has some variety
+    ss = run(m, c, locations=locs)
+    by_scene = compare_runs([ss], resamples=1000)["runs"][0]["3s"]
+    res = compare_runs([ss], resamples=1000, unit="location")
+    by_loc = res["runs"][0]["3s"]
+    assert by_loc["ratio"] == by_scene["ratio"] and res["locations"] == 6 and res["unit"] == "location"
+    width = lambda r: r["interval"][1] - r["interval"][0]  # noqa: E731
+    assert width(by_loc) > 1.2 * width(by_scene)
+    with pytest.raises(EvalError, match="needs every scenario's road network"):
+        compare_runs([run(m, c)], resamples=100, unit="location")
+    with pytest.raises(EvalError, match="at least 2 locations"):
+        compare_runs([run(m, c, locations=["x"] * N)], resamples=100, unit="location")
+    with pytest.raises(EvalError, match="unit must be one of"):
+        compare_runs([ss], resamples=100, unit="network")

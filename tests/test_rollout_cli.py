@@ -239,12 +239,16 @@ def test_scene_sums_add_up_to_the_run_and_compare_reads_them(run_ok, capsys, tmp
     run's ratios, and `python -m gpd_jax.evaluation compare` reads them (a run against itself differs by 0)."""
     from gpd_jax.evaluation import __main__ as cli
     from gpd_jax.evaluation.bootstrap import compare_runs, load_scene_sums
+    from gpd_jax.spec import EvalError
 
     rc, out = run_ok
     m = _strict_json(os.path.join(out, "metrics.json"))
     ss = load_scene_sums(out)
     assert ss.num_scenarios == 3 and len(set(ss.scenario_ids)) == 3
     assert ss.sums["counts/scenarios"].tolist() == [1.0, 1.0, 1.0]
+    assert ss.locations == ("road_a",) * 3  # the store's per-sample road networks
+    with pytest.raises(EvalError, match="at least 2 locations"):
+        compare_runs([ss], resamples=200, unit="location")
     for base, key in (("constant_velocity", "traffic_simulation_agent_ade_over_constant_velocity"),
                       ("constant_velocity_lanes", "traffic_simulation_agent_ade_over_constant_velocity_lanes")):
         res = compare_runs([ss, ss], baseline=base, resamples=200)

@@ -1,12 +1,14 @@
 """Command line: `python -m gpd_jax.evaluation compare RUN [RUN ...]`.
 
   compare RUN_A [RUN_B ...] [--names A,B,...] [--task traffic_simulation] [--baseline constant_velocity]
-          [--metric agent_ade] [--variant paper] [--resamples 2000] [--level 0.95] [--seed 0] [--json PATH]
+          [--metric agent_ade] [--variant paper] [--unit scene|location] [--resamples 2000] [--level 0.95]
+          [--seed 0] [--json PATH]
 
 RUN is a `rollout.py --out` directory (its scene_sums.npz) or the .npz itself. Prints each run's model / baseline
 ratio at every horizon with a scene-bootstrap interval and, for runs after the first (which must be on the same
 scenes), the paired difference to the first with its interval and the share of draws where it is lower
-(`gpd_jax.evaluation.bootstrap`). `--metric` is any summed ADE / FDE key: agent_ade, agent_fde, ego_ade,
+(`gpd_jax.evaluation.bootstrap`). `--unit location` draws whole road networks instead of scenes: the interval
+for "on networks it never saw". `--metric` is any summed ADE / FDE key: agent_ade, agent_fde, ego_ade,
 agent_ade_moving, agent_ade_stationary, agent_ade_along_moving, ... Bad input exits with status 2.
 """
 
@@ -32,6 +34,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--baseline", default="constant_velocity")
     c.add_argument("--metric", default="agent_ade")
     c.add_argument("--variant", default="paper", choices=("paper", "corrected"))
+    c.add_argument("--unit", default="scene", choices=("scene", "location"),
+                   help="what a bootstrap draw resamples: scenes, or whole road networks (the store's locations)")
     c.add_argument("--resamples", type=int, default=2000)
     c.add_argument("--level", type=float, default=0.95)
     c.add_argument("--seed", type=int, default=0, help="seed of the bootstrap draws")
@@ -47,7 +51,7 @@ def main(argv=None) -> int:
             raise EvalError(f"--names has {len(names)} names for {len(args.runs)} runs")
         runs = [load_scene_sums(r) for r in args.runs]
         res = compare_runs(runs, task=args.task, baseline=args.baseline, metric=args.metric, variant=args.variant,
-                           resamples=args.resamples, level=args.level, seed=args.seed)
+                           resamples=args.resamples, level=args.level, seed=args.seed, unit=args.unit)
     except EvalError as e:
         print(f"python -m gpd_jax.evaluation compare: error: {e}", file=sys.stderr)
         return 2

@@ -5,12 +5,15 @@ An evaluation's figures are ratios of sums over scenes (ADE = sum of per-agent e
 the traffic-simulation ratio divides the model's ADE by constant velocity's on the same agents). Scenes, not
 agents, are the independent draws (agents of one scene share its road and its traffic), so the intervals here
 resample scenes: each bootstrap draw picks n of the n scenes with replacement and recomputes every ratio from
-the drawn scenes' sums. Two runs on the same scenes (the same store, split and scenario ids) are compared with
-the same draws for both (a paired bootstrap), so what the scenes have in common cancels.
+the drawn scenes' sums. Scenes simulated on one road network are not independent of each other either, and
+held-out figures are about other roads: `unit="location"` draws whole road networks (the store's per-sample
+locations) instead, the honest interval for "on networks it never saw" (wide, with few networks). Two runs on the
+same scenes (the same store, split and scenario ids) are compared with the same draws for both (a paired
+bootstrap), so what the scenes have in common cancels.
 
 `evaluate(..., scene_sums=True)` (and every `rollout.py` run, as OUT/scene_sums.npz) keeps each scenario's sums:
 
-    python -m gpd_jax.evaluation compare RUN_A RUN_B [RUN_C ...] [--metric agent_ade] [--json OUT]
+    python -m gpd_jax.evaluation compare RUN_A RUN_B [RUN_C ...] [--unit scene|location] [--json OUT]
 
 prints each run's ratio with its interval and every later run's difference to the first (`compare_runs`).
 """
@@ -30,6 +33,9 @@ from gpd_jax.spec import EvalError
 
 SCENE_SUMS_FILE = "scene_sums.npz"
 _IDS = "__scenario_ids__"
+_LOCATIONS = "__locations__"
+UNITS = ("scene", "location")
+FEW_LOCATIONS = 10  # below this many networks a location bootstrap's interval is rough (said in the table)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,10 +46,12 @@ class SceneSums:
     sums: {path: f64[n, ...]}, path "tasks/<task>/<variant>/<horizon>/<key>" (agent sums: `<key>` ends in
       `_num` / `_den`), "baselines/<name>/<variant>/<horizon>/<key>", "counts/<key>"; summed over the scenarios
       they are the sums the run's metrics were reduced from.
+    locations: n road-network names ('' where unknown; empty when none is known), for `unit="location"`.
     """
 
     scenario_ids: tuple[str, ...]
     sums: Mapping[str, np.ndarray]
+    locations: tuple[str, ...] = ()
 
     @property
     def num_scenarios(self) -> int:
@@ -62,7 +70,8 @@ def flatten_sums(tree: Mapping[str, Any], prefix: str = "") -> dict[str, np.ndar
     return out
 
 
-def scene_sums_from_batches(batches: Sequence[Mapping[str, Any]], scenario_ids: Sequence[str]) -> SceneSums:
+def scene_sums_from_batches(batches: Sequence[Mapping[str, Any]], scenario_ids: Sequence[str],
+                            locations: Sequence[str] = ()) -> SceneSums:
     """Per-scenario sums pytrees of consecutive batches (leaves [b_i, ...], padding already dropped) -> SceneSums."""
     flat = [flatten_sums(b) for b in batches]
     sums = {k: np.concatenate([f[k] for f in flat], axis=0) for k in flat[0]} if flat else {}
@@ -71,13 +80,17 @@ def scene_sums_from_batches(batches: Sequence[Mapping[str, Any]], scenario_ids: 
         if v.shape[0] != n:
             raise EvalError(f"scene sums: {k} has {v.shape[0]} scenarios, the run {n}")
     ids = tuple(s if s else str(i) for i, s in enumerate(scenario_ids))
-    return SceneSums(ids, sums)
+    locs = tuple(str(x) for x in locations)
+    if locs and len(locs) != n:
+        raise EvalError(f"scene sums: {len(locs)} locations for {n} scenarios")
+    return SceneSums(ids, sums, locs if any(locs) else ())
 
 
 def save_scene_sums(path: str, ss: SceneSums) -> None:
     """Writes `ss` as an .npz (no pickles: ids are a unicode array), to a temporary file renamed into place."""
     arrays = {k.replace("/", "|"): v for k, v in ss.sums.items()}
     arrays[_IDS] = np.asarray(ss.scenario_ids, dtype=np.str_)
+    arrays[_LOCATIONS] = np.asarray(ss.locations, dtype=np.str_)
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
 
@@ -94,13 +107,16 @@ def load_scene_sums(path: str) -> SceneSums:
             if _IDS not in z.files:
                 raise EvalError(f"{path}: not a scene-sums file (no scenario ids)")
             ids = tuple(str(s) for s in z[_IDS])
-            sums = {k.replace("|", "/"): np.asarray(z[k], np.float64) for k in z.files if k != _IDS}
+            locs = tuple(str(s) for s in z[_LOCATIONS]) if _LOCATIONS in z.files else ()
+            sums = {k.replace("|", "/"): np.asarray(z[k], np.float64) for k in z.files if k not in (_IDS, _LOCATIONS)}
     except (OSError, ValueError) as e:
         raise EvalError(f"{path}: cannot read the per-scene sums: {e}") from None
     for k, v in sums.items():
         if v.ndim == 0 or v.shape[0] != len(ids):
             raise EvalError(f"{path}: {k} has shape {v.shape}, expected {len(ids)} scenarios first")
-    return SceneSums(ids, sums)
+    if locs and len(locs) != len(ids):
+        raise EvalError(f"{path}: {len(locs)} locations for {len(ids)} scenarios")
+    return SceneSums(ids, sums, locs)
 
 
 def _metric_sums(ss: SceneSums, where: str, metric: str, label: str) -> tuple[np.ndarray, np.ndarray]:
@@ -141,27 +157,44 @@ def ratio_draws(ss: SceneSums, weights: np.ndarray, *, task: str = "traffic_simu
         return (weights @ tn / (weights @ td)) / (weights @ bn / (weights @ bd))
 
 
-def draws(n: int, resamples: int, seed: int) -> np.ndarray:
-    """f64[resamples, n]: how often each of n scenes is drawn in each bootstrap resample (a multinomial)."""
-    if n < 2:
-        raise EvalError(f"a bootstrap needs at least 2 scenes, got {n}")
+def draws(n: int, resamples: int, seed: int, groups: Sequence[str] | None = None) -> np.ndarray:
+    """f64[resamples, n]: how often each of n scenes is drawn in each bootstrap resample.
+
+    Without `groups` scenes are drawn (n of n with replacement, a multinomial); with `groups` (one label per scene)
+    whole groups are (G of the G groups with replacement), and each scene counts as often as its group."""
     if resamples < 100:
         raise EvalError(f"resamples must be >= 100, got {resamples}")
-    return np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=resamples).astype(np.float64)
+    rng = np.random.default_rng(seed)
+    if groups is None:
+        if n < 2:
+            raise EvalError(f"a bootstrap needs at least 2 scenes, got {n}")
+        return rng.multinomial(n, np.full(n, 1.0 / n), size=resamples).astype(np.float64)
+    if len(groups) != n:
+        raise EvalError(f"{len(groups)} group labels for {n} scenes")
+    names, member = np.unique(np.asarray(groups, dtype=np.str_), return_inverse=True)
+    g = len(names)
+    if g < 2:
+        raise EvalError(f"a location bootstrap needs at least 2 locations, the scenes have {g} ({names[0]!r})")
+    return rng.multinomial(g, np.full(g, 1.0 / g), size=resamples).astype(np.float64)[:, member]
 
 
 def compare_runs(runs: Sequence[SceneSums], *, task: str = "traffic_simulation",
                  baseline: str = "constant_velocity", metric: str = "agent_ade", variant: str = "paper",
-                 resamples: int = 2000, level: float = 0.95, seed: int = 0) -> dict[str, Any]:
-    """Each run's model / baseline ratio with a scene-bootstrap interval, and each later run against the first.
+                 resamples: int = 2000, level: float = 0.95, seed: int = 0, unit: str = "scene") -> dict[str, Any]:
+    """Each run's model / baseline ratio with a bootstrap interval, and each later run against the first.
+
+    `unit`: what a draw resamples, "scene" or "location" (whole road networks: needs the runs' locations).
 
     Runs after the first must be on the same scenes in the same order (paired draws). Returns
     {"runs": [{label: {"ratio", "interval": [lo, hi]}}], "versus_first": [{label: {"difference" (this run's
     ratio minus the first's), "interval", "share_lower" (share of draws where this run's ratio is lower)}}],
-    "scenarios", "resamples", "level", ...}. Percentile intervals; deterministic for a given `seed`.
+    "scenarios", "locations" (how many), "unit", "resamples", "level", ...}. Percentile intervals; deterministic
+    for a given `seed`.
     """
     if not runs:
         raise EvalError("compare_runs needs at least one run")
+    if unit not in UNITS:
+        raise EvalError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}")
     if not 0.5 < level < 1.0:
         raise EvalError(f"level must be in (0.5, 1), got {level}")
     first = runs[0]
@@ -174,7 +207,11 @@ def compare_runs(runs: Sequence[SceneSums], *, task: str = "traffic_simulation",
             raise EvalError(f"run {i} differs from run 0 at scenario {j} ({r.scenario_ids[j]!r} against "
                             f"{first.scenario_ids[j]!r}): a paired comparison needs the same scenes in the same order")
     labels = horizon_labels(first, task, variant)
-    w = draws(first.num_scenarios, resamples, seed)
+    locs = first.locations
+    if unit == "location" and (not locs or "" in locs):
+        raise EvalError("unit='location' needs every scenario's road network, and these sums do not have them "
+                        "(stores record them per shard: `locations` in meta.json; rerun rollout.py on a store)")
+    w = draws(first.num_scenarios, resamples, seed, locs if unit == "location" else None)
     ones = np.ones((1, first.num_scenarios))
     q = [(1 - level) / 2, 1 - (1 - level) / 2]
     kw = dict(task=task, baseline=baseline, metric=metric, variant=variant)
@@ -191,8 +228,9 @@ def compare_runs(runs: Sequence[SceneSums], *, task: str = "traffic_simulation",
                 d[lb] = {"difference": point[lb][i] - point[lb][0], "interval": _interval(diff, q),
                          "share_lower": float(np.mean(diff[ok] < 0)) if ok.any() else float("nan")}
             versus.append(d)
-    return {"task": task, "baseline": baseline, "metric": metric, "variant": variant,
-            "scenarios": first.num_scenarios, "resamples": int(resamples), "level": level, "seed": seed,
+    return {"task": task, "baseline": baseline, "metric": metric, "variant": variant, "unit": unit,
+            "scenarios": first.num_scenarios, "locations": len(set(locs)) if locs else None,
+            "resamples": int(resamples), "level": level, "seed": seed,
             "runs": per_run, "versus_first": versus}
 
 
@@ -205,8 +243,12 @@ def format_comparison(res: dict[str, Any], names: Sequence[str]) -> str:
     """A text table of `compare_runs`' result; `names` label the runs."""
     labels = list(res["runs"][0])
     pct = f"{100 * res['level']:g} %"
-    head = (f"{res['task']} {res['metric']} / {res['baseline']} ({res['variant']}), {res['scenarios']} scenes, "
-            f"{res['resamples']} scene-bootstrap draws, {pct} intervals")
+    nloc = res.get("locations")
+    where = f"{res['scenarios']} scenes" + (f" on {nloc} road networks" if nloc else "")
+    head = (f"{res['task']} {res['metric']} / {res['baseline']} ({res['variant']}), {where}, "
+            f"{res['resamples']} {res['unit']}-bootstrap draws, {pct} intervals")
+    if res["unit"] == "location" and nloc < FEW_LOCATIONS:
+        head += f" (only {nloc} networks: the intervals are rough)"
     w = max(len(n) for n in names)
     lines = [head, f"{'run'.ljust(w)} | " + " | ".join(f"{lb:>24}" for lb in labels)]
     for n, r in zip(names, res["runs"]):

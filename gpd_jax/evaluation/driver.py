@@ -229,8 +229,8 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
                      "data": round(t_data, 2), "batches": num_batches, "batch_size": bs},
     }
     if scene_sums:
-        ids = list(prep.scenario_ids[:n]) + [""] * max(0, n - len(prep.scenario_ids))
-        results["scene_sums"] = scene_sums_from_batches(per_scene, ids)
+        pad = lambda x: list(x[:n]) + [""] * max(0, n - len(x))  # noqa: E731
+        results["scene_sums"] = scene_sums_from_batches(per_scene, pad(prep.scenario_ids), pad(prep.locations))
     return results, render_items
 
 

@@ -73,15 +73,24 @@ class SceneRecords:
 
 def scenario_ids(src) -> list[str]:
     """The scenario id of every sample of a split (from each shard's meta.json; '' where unknown)."""
-    ids: list[str] = []
+    return _per_sample(src, "scenario_ids")
+
+
+def scenario_locations(src) -> list[str]:
+    """The location (road network) of every sample of a split (from each shard's meta.json; '' where unknown)."""
+    return _per_sample(src, "locations")
+
+
+def _per_sample(src, key: str) -> list[str]:
+    out: list[str] = []
     for p, c in zip(getattr(src, "paths", ()), src.counts):
         try:
             with open(os.path.join(p, "meta.json")) as f:
-                got = list(json.load(f).get("scenario_ids", []))
+                got = [str(x) for x in json.load(f).get(key, [])]
         except (OSError, ValueError):
             got = []
-        ids += (got + [""] * int(c))[: int(c)]
-    return ids
+        out += (got + [""] * int(c))[: int(c)]
+    return out
 
 
 @dataclasses.dataclass
@@ -96,6 +105,7 @@ class Prepared:
     store_has_tokens: bool
     where: str  # the split directory, or "the given scenes"
     scenario_ids: list[str]
+    locations: list[str]  # each scenario's road network ('' where unknown)
 
 
 def preflight(config, data: str | Scene, split: str = "test", *, task_names: Sequence[str] = ("all",),
@@ -150,4 +160,5 @@ def preflight(config, data: str | Scene, split: str = "test", *, task_names: Seq
         raise EvalError(f"{where} has no map tokens and the model has no map tokenizer to encode them "
                         "(config.model.map_tokenizer is empty); run `python -m gpd_jax.map_tokenizer encode` first")
     return Prepared(spec=spec, task_names=names, source=src, num_scenarios=n, skipped_horizons=skipped,
-                    store_has_tokens=store_has_tokens, where=where, scenario_ids=scenario_ids(src))
+                    store_has_tokens=store_has_tokens, where=where, scenario_ids=scenario_ids(src),
+                    locations=scenario_locations(src))
