@@ -107,12 +107,13 @@ def test_save_load_round_trip_and_batches_concatenate(tmp_path):
 
 
 def test_a_location_bootstrap_draws_whole_networks_and_is_wider_when_networks_differ():
-    groups = ["net_a"] * 10 + ["net_b"] * 10 + ["net_c"] * 20
+    groups = ["net_a"] * 10 + ["net_b"] * 10 + ["net_c"] * 10 + ["net_d"] * 5 + ["net_e"] * 5
     w = draws(N, 300, 4, groups)
-    for lo, hi in ((0, 10), (10, 20), (20, 40)):  # a network's scenes are drawn together
+    starts = (0, 10, 20, 30, 35)
+    for lo, hi in zip(starts, starts[1:] + (40,)):  # a network's scenes are drawn together
         assert (w[:, lo:hi] == w[:, lo:lo + 1]).all()
-    picks = w[:, 0] + w[:, 10] + w[:, 20]
-    assert (picks == 3).all()  # three of the three networks, with replacement
+    assert (w[:, list(starts)].sum(1) == 5).all()  # five of the five networks, with replacement
+    groups = ["net_a"] * 10 + ["net_b"] * 10 + ["net_c"] * 20
     # each network has its own level of difficulty for the model: scenes inside one agree, networks disagree
     rng = np.random.default_rng(5)
     level = {"net_a": 0.55, "net_b": 0.75, "net_c": 0.65}
@@ -128,7 +129,7 @@ def test_a_location_bootstrap_draws_whole_networks_and_is_wider_when_networks_di
     assert width(by_loc) > 1.2 * width(by_scene)
     with pytest.raises(EvalError, match="needs every scenario's road network"):
         compare_runs([run(m, c)], resamples=100, unit="location")
-    with pytest.raises(EvalError, match="at least 2 locations"):
-        compare_runs([run(m, c, locations=["x"] * N)], resamples=100, unit="location")
+    with pytest.raises(EvalError, match="at least 5 locations, the scenes have 4"):
+        compare_runs([run(m, c, locations=[f"n{i % 4}" for i in range(N)])], resamples=100, unit="location")
     with pytest.raises(EvalError, match="unit must be one of"):
         compare_runs([ss], resamples=100, unit="network")

@@ -247,7 +247,7 @@ def test_scene_sums_add_up_to_the_run_and_compare_reads_them(run_ok, capsys, tmp
     assert ss.num_scenarios == 3 and len(set(ss.scenario_ids)) == 3
     assert ss.sums["counts/scenarios"].tolist() == [1.0, 1.0, 1.0]
     assert ss.locations == ("road_a",) * 3  # the store's per-sample road networks
-    with pytest.raises(EvalError, match="at least 2 locations"):
+    with pytest.raises(EvalError, match="at least 5 locations, the scenes have 1 \\('road_a'\\)"):
         compare_runs([ss], resamples=200, unit="location")
     for base, key in (("constant_velocity", "traffic_simulation_agent_ade_over_constant_velocity"),
                       ("constant_velocity_lanes", "traffic_simulation_agent_ade_over_constant_velocity_lanes")):

@@ -35,6 +35,7 @@ SCENE_SUMS_FILE = "scene_sums.npz"
 _IDS = "__scenario_ids__"
 _LOCATIONS = "__locations__"
 UNITS = ("scene", "location")
+MIN_LOCATIONS = 5  # a location bootstrap over fewer networks cannot see how much networks differ: refused
 FEW_LOCATIONS = 10  # below this many networks a location bootstrap's interval is rough (said in the table)
 
 
@@ -173,8 +174,10 @@ def draws(n: int, resamples: int, seed: int, groups: Sequence[str] | None = None
         raise EvalError(f"{len(groups)} group labels for {n} scenes")
     names, member = np.unique(np.asarray(groups, dtype=np.str_), return_inverse=True)
     g = len(names)
-    if g < 2:
-        raise EvalError(f"a location bootstrap needs at least 2 locations, the scenes have {g} ({names[0]!r})")
+    if g < MIN_LOCATIONS:
+        raise EvalError(f"a location bootstrap needs at least {MIN_LOCATIONS} locations, the scenes have {g} "
+                        f"({', '.join(repr(str(x)) for x in names)}): with so few, its draws cannot show how much "
+                        "networks differ; use unit='scene' and say how many networks the figure stands on")
     return rng.multinomial(g, np.full(g, 1.0 / g), size=resamples).astype(np.float64)[:, member]
 
 
