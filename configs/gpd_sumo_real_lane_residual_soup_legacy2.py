@@ -16,6 +16,10 @@ export, WORKDIR/best, and the final export averaged with checkpoints/gpd_sumo_re
 traffic_simulation` on data/mix_real_dev, data/gen_dev_curved and data/gen_dev_legacy; the mean of the nine agent
 ADE / constant-velocity ratios at 3 / 5 / 8 s decides, and the lowest ships only if it is below soup_legacy's
 0.6808. The test stores are read after that choice, once.
+
+Outcome (2026-11-26, CPU, 34 min): validations 0.7042 (step 200) and 0.6841 (step 400, final = best); the averages
+0.68019 (0.5 / 0.5) and 0.68024 (0.25 / 0.75). The 0.5 / 0.5 average shipped as
+checkpoints/gpd_sumo_real_lane_residual_soup_legacy2 (its README has the test figures).
 """
 
 import os
