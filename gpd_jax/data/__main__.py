@@ -11,6 +11,8 @@
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
   near-duplicates --eval STORE_OR_NET ... --reference STORE_OR_NET ... [--tol METRES]
   mirror DIR --out DIR2 [--split NAME ...]     (the mirror image of every scene: gpd_jax.data.augment)
+  pack DIR [DIR ...] --out FOLDER [--splits train ...] [--frame-stride S] [--agents A] [--drop-road]
+                                               (one .tar.xz per store, only what a model reads: gpd_jax.data.pack)
 
 A stopped build started again with the same arguments resumes where it left off.
 """
@@ -143,6 +145,15 @@ def main(argv=None) -> int:
     mi.add_argument("dir")
     mi.add_argument("--out", required=True)
     mi.add_argument("--split", nargs="+", default=None, help="default: every split")
+    pk = sub.add_parser("pack", help="one .tar.xz per store with only what a model reads, to carry it elsewhere "
+                                     "(gpd_jax.data.pack); tar xf it there")
+    pk.add_argument("dirs", nargs="+", metavar="DIR")
+    pk.add_argument("--out", required=True, help="folder of the archives (DIR's name + .tar.xz)")
+    pk.add_argument("--splits", nargs="+", default=["train"])
+    pk.add_argument("--frame-stride", type=_count, default=None,
+                    help="keep only the stored frames a model at this stride reads (k S and k S - 1)")
+    pk.add_argument("--agents", type=_count, default=None, help="keep only the first this-many agent slots")
+    pk.add_argument("--drop-road", action="store_true", help="leave out the road geometry (training does not read it)")
     nd = sub.add_parser("near-duplicates", help="networks whose lane geometry nearly matches (exit 1 if any)")
     nd.add_argument("--eval", nargs="+", required=True, metavar="STORE_OR_NET",
                     help="SUMO stores (their networks outside --reference-splits) or network files")
@@ -195,6 +206,12 @@ def main(argv=None) -> int:
             man = mirror_store(args.dir, args.out, args.split)
             print(json.dumps({"num_samples": man["num_samples"],
                               "splits": {k: v["num_samples"] for k, v in man["splits"].items()}}))
+        elif args.cmd == "pack":
+            from gpd_jax.data.pack import pack_store
+
+            for d in args.dirs:
+                pack_store(d, args.out, splits=args.splits, frame_stride=args.frame_stride, num_agents=args.agents,
+                           drop_road=args.drop_road)
         elif args.cmd == "near-duplicates":
             import os
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import SplitSource
+from gpd_jax.data.pack import check_packed
 from gpd_jax.data.store import list_splits
 from gpd_jax.metrics import VARIANTS
 from gpd_jax.scene import Scene
@@ -136,6 +137,7 @@ def preflight(config, data: str | Scene, split: str = "test", *, task_names: Seq
             raise EvalError(f"split {split!r} not found in {data_dir} "
                             f"(splits: {', '.join(list_splits(data_dir)) or 'none'})")
         try:
+            check_packed(data_dir, spec.frame_stride, spec.num_agents)
             src = SplitSource(data_dir, split, with_polylines=True)
             first = src[0]
         except DataError as e:

@@ -51,6 +51,7 @@ from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.pack import check_packed
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import load_tokenizer
 from gpd_jax.model import count_params, reads_lanes
@@ -95,6 +96,7 @@ def validation_dir(config: ml_collections.ConfigDict, data_dir: str) -> str:
 
 
 def _check_store(config, data_dir: str, split: str) -> int:
+    check_packed(data_dir, int(config.data.frame_stride), int(config.model.num_agents))
     src = data_loader.SplitSource(data_dir, split)
     rec = src[0]
     t, a = rec["xy"].shape[:2]
@@ -252,6 +254,9 @@ def prepare_run(config: ml_collections.ConfigDict) -> tuple[str, int, Any, int]:
     mesh, process index)."""
     data_dir = resolve_data_dir(config.data.dir)
     n_train = sum(_check_store(config, d, config.data.train_split) for d in store_dirs(data_dir))
+    if int(config.train.eval_every) > 0:
+        for d in validation_dirs(config, data_dir):
+            check_packed(d, int(config.data.frame_stride), int(config.model.num_agents))
     pcount = jax.process_count()
     mesh = data_mesh()
     bs = int(config.train.batch_size)
