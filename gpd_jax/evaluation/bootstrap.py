@@ -140,7 +140,7 @@ def horizon_labels(ss: SceneSums, task: str, variant: str) -> list[str]:
     """The horizon labels ("3s", ...) the sums hold for `task`, in time order."""
     pre = f"tasks/{task}/{variant}/"
     labels = sorted({k[len(pre):].split("/")[0] for k in ss.sums if k.startswith(pre)},
-                    key=lambda s: float(s.rstrip("s")) if s.rstrip("s").replace(".", "", 1).isdigit() else 0.0)
+                    key=lambda s: float(s[:-1]))  # "3s", "0.5s": `gpd_jax.metrics.horizon_label`
     if not labels:
         tasks = sorted({k.split("/")[1] for k in ss.sums if k.startswith("tasks/")})
         raise EvalError(f"no sums of task {task!r} (variant {variant!r}); the run has: {', '.join(tasks)}")
