@@ -71,7 +71,7 @@ def pack_store(data_dir: str, out_dir: str, *, splits: Sequence[str] = ("train",
                log: Callable[[str], None] = print) -> str:
     """Writes `out_dir/<store name>.tar.xz` (members under `<store name>/`) and returns its path; an archive that
     exists is kept. Raises DataError naming the store on bad input (no manifest, a split it lacks, a stride or slot
-    count below 1, or a store already packed more coarsely than asked)."""
+    count below 1, or a store that is itself a pack: pack its source instead)."""
     data_dir = os.path.normpath(data_dir)
     name = os.path.basename(data_dir)
     manifest = read_manifest(data_dir)
@@ -84,19 +84,16 @@ def pack_store(data_dir: str, out_dir: str, *, splits: Sequence[str] = ("train",
         raise DataError(data_dir, f"frame_stride must be >= 1, got {frame_stride}")
     if num_agents is not None and num_agents < 1:
         raise DataError(data_dir, f"num_agents must be >= 1, got {num_agents}")
-    before = manifest.get(PACKED)
-    if before:  # packing a packed store again: it cannot bring back what was cleared
-        check_packed(data_dir, frame_stride or 1, num_agents or 10 ** 9)
+    if manifest.get(PACKED):
+        raise DataError(data_dir, f"this store is a pack already; pack its source, {manifest[PACKED].get('source')}")
     path = os.path.join(out_dir, f"{name}.tar.xz")
     if os.path.exists(path):
         log(f"{path} exists; kept (delete it to pack {data_dir} again)")
         return path
     dropped = list(ROAD_KEYS) if drop_road else []
-    record = {"frame_stride": frame_stride or (before or {}).get("frame_stride"),
-              "num_agents": num_agents if num_agents is not None else (before or {}).get("num_agents"),
+    record = {"frame_stride": frame_stride, "num_agents": num_agents,
               "frames_kept": "k * frame_stride and k * frame_stride - 1" if frame_stride else "all",
-              "dropped_keys": sorted(set(dropped) | set((before or {}).get("dropped_keys", []))),
-              "splits": list(splits), "source": os.path.abspath(data_dir)}
+              "dropped_keys": sorted(dropped), "splits": list(splits), "source": os.path.abspath(data_dir)}
     with atomic_path(path, suffix=".tar.xz") as tmp:
         with tarfile.open(tmp, "w:xz", preset=preset) as tf:
             m = dict(manifest)
