@@ -5,6 +5,7 @@
   python -m gpd_jax.map_tokenizer encode [--checkpoint DIR] --data DIR [--splits train val test] [--force]
   python -m gpd_jax.map_tokenizer export --workdir WORKDIR [--out checkpoints/map_tokenizer]
   python -m gpd_jax.map_tokenizer bench [--batch 64]
+  python -m gpd_jax.map_tokenizer netframes --out DIR [--generated N] [--seed S] [--real NET ...] [--real-lefthand]
 
 `evaluate` reconstructs frames (raster -> tokens -> lanes) and reports the map metrics of
 `gpd_jax.metrics.map` against the frames' SLEDGE vector lanes: f1 (paper-faithful, 1.5 m), precision, recall,
@@ -21,7 +22,9 @@ records the tokenizer's fingerprint with them; shards this tokenizer already enc
 more) are skipped, so an interrupted run resumes (`--force` re-encodes). `--frame-stride S` encodes only
 frames 0, S, 2S, ... (S times faster): enough for a model that reads every S-th frame
 (`config.data.frame_stride` a multiple of S); the other frames are stored as not encoded.
-The checkpoint defaults to the shipped one, `checkpoints/map_tokenizer/`.
+The checkpoint defaults to the shipped one, `checkpoints/map_tokenizer/`. `netframes` builds map-only
+training frames (`gpd_jax.map_tokenizer.netframes`: many networks, poses drawn on their lanes, no traffic) that
+stand in a training mixture beside stores; it resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -131,6 +134,20 @@ def cmd_bench(args) -> None:
     print(json.dumps(run(batch=args.batch), indent=2))
 
 
+def cmd_netframes(args) -> None:
+    from gpd_jax.data.errors import DataError
+    from gpd_jax.map_tokenizer.netframes import build_netframes
+
+    try:
+        man = build_netframes(args.out, args.generated, args.seed, args.real, args.real_lefthand,
+                              args.lefthand_share, args.curved_share, args.ignore_turnarounds)
+    except DataError as e:
+        raise SystemExit(f"error: {e}") from None
+    gen = [r for r in man["networks"] if r["source"] == "generated"]
+    print(f"{man['num_networks']} networks ({len(gen)} generated, {man['num_networks'] - len(gen)} real), "
+          f"{sum(r['lane_km'] for r in man['networks']):.0f} lane km -> {args.out}")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m gpd_jax.map_tokenizer", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -166,8 +183,18 @@ def main(argv=None) -> int:
     x.add_argument("--out", default=DEFAULT_CHECKPOINT)
     b = sub.add_parser("bench", help="rasterizer and matching throughput")
     b.add_argument("--batch", type=int, default=64)
+    n = sub.add_parser("netframes", help="map-only training frames: many networks, poses on their lanes")
+    n.add_argument("--out", required=True)
+    n.add_argument("--generated", type=int, default=0, help="generated networks (sumo.random_net_spec)")
+    n.add_argument("--seed", type=int, default=0)
+    n.add_argument("--real", nargs="*", default=[], help="SUMO network files used as they are")
+    n.add_argument("--real-lefthand", action="store_true", help="also a left-hand copy of each --real network")
+    n.add_argument("--lefthand-share", type=float, default=0.25)
+    n.add_argument("--curved-share", type=float, default=0.5)
+    n.add_argument("--ignore-turnarounds", action="store_true")
     args = p.parse_args(argv)
-    {"evaluate": cmd_evaluate, "diagnose": cmd_diagnose, "encode": cmd_encode, "export": cmd_export, "bench": cmd_bench}[args.cmd](args)
+    {"evaluate": cmd_evaluate, "diagnose": cmd_diagnose, "encode": cmd_encode, "export": cmd_export,
+     "bench": cmd_bench, "netframes": cmd_netframes}[args.cmd](args)
     return 0
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from gpd_jax.data.lanes import vector_lanes
 from gpd_jax.data.loader import parse_mixture
 from gpd_jax.data.store import Shard, list_shards
+from gpd_jax.map_tokenizer.netframes import NetFrames, is_netframes
 
 _KEYS = ("polylines", "polyline_valid", "ego_pose")
 
@@ -49,9 +50,9 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
     store walks its own permutations (`sample` then indexes that store).
     """
     mixture = parse_mixture(data_dir)
-    if len(mixture) > 1:
+    if len(mixture) > 1 or is_netframes(mixture[0][0]):
         if not (shuffle and repeat) or all_frames or frame_stride:
-            raise ValueError(f"a mixture of stores ({data_dir}) is for training batches (shuffled, repeated, one "
+            raise ValueError(f"a mixture of stores or a netframes directory ({data_dir}) is for training batches (shuffled, repeated, one "
                              "random frame per sample); evaluate one store at a time")
         yield from _mixture_batches(mixture, split, batch_size, seed, max_batches)
         return
@@ -84,26 +85,26 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
 
 def _mixture_batches(mixture, split: str, batch_size: int, seed: int,
                      max_batches: int | None) -> Iterator[dict[str, np.ndarray]]:
-    """Endless training batches from a mixture of stores (see `frame_batches`), deterministic in `seed`."""
-    stores = [open_split(d, split) for d, _ in mixture]
+    """Endless training batches from a mixture of stores and netframes directories (`netframes`; `split` does
+    not apply to them) (see `frame_batches`), deterministic in `seed`."""
     weights = np.asarray([w for _, w in mixture], np.float64)
-    pick = np.random.default_rng((seed, len(stores)))
+    pick = np.random.default_rng((seed, len(mixture)))
 
-    def walk(k: int) -> Iterator[tuple[int, int, int]]:
+    def walk(k: int, d: str) -> Iterator[dict[str, np.ndarray]]:
+        if is_netframes(d):
+            yield from NetFrames(d).walk(seed + 1000 * k)
+            return
+        shards = open_split(d, split)
         rng = np.random.default_rng((seed, k))
-        index = [(s, i) for s in range(len(stores[k])) for i in range(stores[k][s].num_samples)]
-        num_frames = stores[k][0].arrays["ego_pose"].shape[1]
+        index = [(s, i) for s in range(len(shards)) for i in range(shards[s].num_samples)]
+        num_frames = shards[0].arrays["ego_pose"].shape[1]
         while True:
             for j in rng.permutation(len(index)):
                 s, i = index[j]
-                yield s, i, int(rng.integers(num_frames))
+                yield _item(shards[s], i, int(rng.integers(num_frames)))
 
-    walks = [walk(k) for k in range(len(stores))]
+    walks = [walk(k, d) for k, (d, _) in enumerate(mixture)]
     made = 0
     while max_batches is None or made < max_batches:
-        items = []
-        for k in pick.choice(len(stores), size=batch_size, p=weights):
-            s, i, t = next(walks[k])
-            items.append(_item(stores[k][s], i, t))
-        yield _stack(items)
+        yield _stack([next(walks[k]) for k in pick.choice(len(walks), size=batch_size, p=weights)])
         made += 1

@@ -1,0 +1,184 @@
+"""Map-only training frames for the map tokenizer: many road networks, ego poses drawn on their lanes, no traffic.
+
+The lane decoder has to learn where a road's lines start and end from the raster alone, and a store built from
+simulated traffic shows it few networks (data/legacy_train: 60; the shipped tokenizer's sumo6k: 192). On the
+networks it trained on the shipped tokenizer reaches a paper F1 of 0.88; on held-out ones 0.65 (generated) and
+0.07-0.13 (real). A map needs no traffic: a network costs ~0.4 s of netgenerate, so thousands of them, plus the
+real training tiles from every angle, are cheap.
+
+A netframes directory holds one `<name>.lanes.npz` per network (its lane centrelines resampled every 1 m,
+chained as the stores chain them: `sumo.read_network_lanes`, `preprocess.lane_points`; no pickles) and
+`netframes.json` (per network: source, layout, left-hand, lane km, file). `build_netframes` makes it (resumes:
+networks already there are kept). `frame_batches` draws a network uniformly, a point uniformly along its lanes,
+the ego pose on it (heading along the lane plus N(0, `heading_sd`), a lateral offset N(0, `lateral_sd`)), and
+clips the lanes to the ego window exactly as a store sample does (`preprocess.clip_lanes`); the items are those of
+`gpd_jax.map_tokenizer.store` (polylines and pose in one frame, SLEDGE vector lanes as targets), so a netframes
+directory can stand in a training mixture beside stores (`--config.data.dir=NETFRAMES:0.5,STORE:0.5`).
+
+Generated networks come from `sumo.random_net_spec` with seeds drawn from `SeedSequence([seed, 4321])`, a stream
+no store build uses (stores draw theirs from `[seed, 1234]`); real networks are given files (keep test networks
+out: `gpd_jax.data.realnets.TEST_ONLY`), optionally with a left-hand copy each (`sumo.make_lefthand`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from gpd_jax.data.errors import DataError
+from gpd_jax.data.lanes import vector_lanes
+from gpd_jax.data.preprocess import SampleConfig, clip_lanes, lane_points, LanePoints
+from gpd_jax.data.store import atomic_write_json
+
+MANIFEST = "netframes.json"
+
+
+def is_netframes(path: str) -> bool:
+    """Whether `path` is a netframes directory (holds `netframes.json`)."""
+    return os.path.isfile(os.path.join(path, MANIFEST))
+
+
+def _save_lanes(lp: LanePoints, path: str) -> None:
+    tmp = path + f".tmp-{os.getpid()}.npz"
+    np.savez_compressed(tmp, xy=lp.xy.astype(np.float32), line=lp.line.astype(np.int32))
+    os.replace(tmp, path)
+
+
+def _network_record(name: str, net_path: str, out_dir: str, source: str, layout: str, spacing: float,
+                    ignore_turnarounds: bool) -> dict:
+    from gpd_jax.data import sumo
+
+    lanes = sumo.read_network_lanes(net_path, ignore_turnarounds=ignore_turnarounds)
+    lp = lane_points(lanes, spacing)
+    if len(lp.xy) < 2:
+        raise DataError(net_path, "network has no lane of 2 m or more")
+    f = f"{name}.lanes.npz"
+    _save_lanes(lp, os.path.join(out_dir, f))
+    km = float(sum(np.linalg.norm(np.diff(p, axis=0), axis=-1).sum() for p in lanes)) / 1000.0
+    return {"name": name, "file": f, "source": source, "layout": layout, "lefthand": sumo.is_lefthand(net_path),
+            "lane_km": round(km, 3), "points": int(len(lp.xy))}
+
+
+def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_nets: Sequence[str] = (),
+                    real_lefthand: bool = False, lefthand_share: float = 0.25, curved_share: float = 0.5,
+                    ignore_turnarounds: bool = False, log=print) -> dict:
+    """Builds (or completes) a netframes directory; returns its manifest.
+
+    Args:
+      num_generated: generated networks (`sumo.random_net_spec` over grid / spider / random layouts).
+      seed: their seed stream (`SeedSequence([seed, 4321])`).
+      real_nets: SUMO network files used as they are (e.g. `gpd_jax.data.realnets` training tiles).
+      real_lefthand: also a left-hand copy of each real network (`sumo.make_lefthand`).
+      lefthand_share / curved_share: probabilities for generated networks (`sumo.random_net_spec`).
+      ignore_turnarounds: chain lanes through SUMO's turnaround connectors (`sumo.read_network_lanes`); the
+        stores do not, so keep the default for a tokenizer whose targets must match theirs.
+    """
+    import tempfile
+
+    from gpd_jax.data import sumo
+
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, MANIFEST)
+    settings = {"num_generated": int(num_generated), "seed": int(seed), "lefthand_share": float(lefthand_share),
+                "curved_share": float(curved_share), "real_nets": [os.path.basename(p) for p in real_nets],
+                "real_lefthand": bool(real_lefthand), "ignore_turnarounds": bool(ignore_turnarounds),
+                "lane_spacing": SampleConfig().lane_spacing}
+    old = {}
+    if os.path.isfile(path):
+        with open(path) as f:
+            man = json.load(f)
+        if man.get("settings") != settings:
+            raise DataError(out_dir, f"holds netframes built with other settings ({man.get('settings')}); "
+                                     "use another directory")
+        old = {r["name"]: r for r in man.get("networks", [])}
+    records = dict(old)
+    t0 = time.time()
+
+    def save():
+        atomic_write_json(path, {"format_version": 1, "settings": settings,
+                                 "networks": [records[k] for k in sorted(records)],
+                                 "num_networks": len(records)})
+
+    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence([seed, 4321]).spawn(num_generated)]
+    with tempfile.TemporaryDirectory(prefix="netframes_", dir=out_dir) as tmp:
+        for i, s in enumerate(seeds):
+            name = f"gen_{seed}_{i:05d}"
+            if name in records and os.path.isfile(os.path.join(out_dir, records[name]["file"])):
+                continue
+            spec = sumo.random_net_spec(s, None, lefthand_share, 0.0, curved_share)
+            net = sumo.generate_network(spec, os.path.join(tmp, "net.net.xml"))
+            records[name] = _network_record(name, net, out_dir, "generated", spec.layout, settings["lane_spacing"],
+                                            ignore_turnarounds)
+            records[name]["bend"] = round(spec.bend, 4)
+            if (i + 1) % 50 == 0:
+                save()
+                log(f"netframes: {i + 1} / {num_generated} generated networks ({time.time() - t0:.0f} s)")
+        for p in real_nets:
+            base = os.path.basename(p).split(".")[0]
+            for lh in ([False, True] if real_lefthand else [False]):
+                name = f"real_{base}" + ("_lh" if lh else "")
+                if name in records and os.path.isfile(os.path.join(out_dir, records[name]["file"])):
+                    continue
+                net = sumo.make_lefthand(p, os.path.join(tmp, "lh.net.xml")) if lh else p
+                records[name] = _network_record(name, net, out_dir, "real", "real", settings["lane_spacing"],
+                                                ignore_turnarounds)
+                save()
+    save()
+    log(f"netframes: {len(records)} networks in {out_dir} ({time.time() - t0:.0f} s)")
+    with open(path) as f:
+        return json.load(f)
+
+
+class NetFrames:
+    """The networks of a netframes directory, loaded once (lane points f32, ~0.1 MB per generated network)."""
+
+    def __init__(self, path: str):
+        if not is_netframes(path):
+            raise DataError(path, f"not a netframes directory (no {MANIFEST}); build one with "
+                                  "`python -m gpd_jax.map_tokenizer netframes`")
+        with open(os.path.join(path, MANIFEST)) as f:
+            self.manifest = json.load(f)
+        self.lanes: list[LanePoints] = []
+        self.names: list[str] = []
+        for r in self.manifest["networks"]:
+            try:
+                with np.load(os.path.join(path, r["file"]), allow_pickle=False) as z:
+                    xy, line = np.asarray(z["xy"], np.float64), np.asarray(z["line"], np.int32)
+            except (OSError, KeyError, ValueError) as e:
+                raise DataError(os.path.join(path, r["file"]), f"unreadable lane file: {e}") from None
+            if xy.ndim != 2 or xy.shape[1:] != (2,) or len(line) != len(xy) or len(xy) < 2:
+                raise DataError(os.path.join(path, r["file"]), f"lane points of shape {xy.shape} / {line.shape}")
+            self.lanes.append(LanePoints(xy, line))
+            self.names.append(r["name"])
+        if not self.lanes:
+            raise DataError(path, "holds no network")
+
+    def item(self, rng: np.random.Generator, heading_sd: float = 0.05, lateral_sd: float = 0.3,
+             cfg: SampleConfig = SampleConfig()) -> dict[str, np.ndarray]:
+        """One frame (the items of `gpd_jax.map_tokenizer.store`): a random network, a pose on one of its lanes."""
+        k = int(rng.integers(len(self.lanes)))
+        lp = self.lanes[k]
+        while True:  # a point with a successor on its own line gives the lane's heading there
+            j = int(rng.integers(len(lp.xy) - 1))
+            if lp.line[j + 1] == lp.line[j]:
+                break
+        d = lp.xy[j + 1] - lp.xy[j]
+        h = float(np.arctan2(d[1], d[0]) + rng.normal(0.0, heading_sd))
+        off = rng.normal(0.0, lateral_sd)
+        xy = lp.xy[j] + rng.uniform() * d + off * np.array([-np.sin(h), np.cos(h)])
+        world_pose = np.array([xy[0], xy[1], h])
+        pose = np.zeros((1, 3))
+        poly, ok = clip_lanes(lp, world_pose, pose, cfg)
+        lanes, lvalid = vector_lanes(poly, ok, pose[0])
+        return dict(polylines=poly, polyline_valid=ok, pose=pose[0].astype(np.float32),
+                    lanes=lanes.astype(np.float32), lanes_valid=lvalid, sample=np.int32(k), frame=np.int32(0))
+
+    def walk(self, seed: int, **kw) -> Iterator[dict[str, np.ndarray]]:
+        """Endless items, deterministic in `seed`."""
+        rng = np.random.default_rng((seed, 77))
+        while True:
+            yield self.item(rng, **kw)

@@ -1,0 +1,90 @@
+"""Map-only tokenizer frames (`gpd_jax.map_tokenizer.netframes`): built from generated networks, resumed, drawn
+with the ego on a lane, mixed with stores, and refused with a clear error when broken."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from gpd_jax.data.errors import DataError
+from gpd_jax.map_tokenizer import netframes
+from gpd_jax.map_tokenizer.store import frame_batches
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    d = str(tmp_path_factory.mktemp("nf") / "nets")
+    man = netframes.build_netframes(d, num_generated=2, seed=5, log=lambda *a: None)
+    return d, man
+
+
+def test_build_writes_a_manifest_and_resumes(built):
+    d, man = built
+    assert man["num_networks"] == 2 and netframes.is_netframes(d)
+    for r in man["networks"]:
+        assert r["source"] == "generated" and r["layout"] in ("grid", "spider", "random") and r["lane_km"] > 1.0
+        with np.load(os.path.join(d, r["file"]), allow_pickle=False) as z:
+            assert z["xy"].shape == (r["points"], 2) and z["line"].shape == (r["points"],)
+    stamps = {f: os.path.getmtime(os.path.join(d, f)) for f in os.listdir(d)}
+    again = netframes.build_netframes(d, num_generated=2, seed=5, log=lambda *a: None)
+    assert again["networks"] == man["networks"]
+    assert all(os.path.getmtime(os.path.join(d, f)) == t for f, t in stamps.items() if f.endswith(".npz"))
+    with pytest.raises(DataError, match="other settings"):
+        netframes.build_netframes(d, num_generated=3, seed=5, log=lambda *a: None)
+
+
+def test_items_put_the_ego_on_a_lane_heading_along_it(built):
+    d, _ = built
+    nf = netframes.NetFrames(d)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        it = nf.item(rng, heading_sd=0.0, lateral_sd=0.0)
+        assert it["polylines"].shape == (96, 128, 2) and it["lanes"].shape == (50, 20, 2)
+        np.testing.assert_array_equal(it["pose"], 0.0)
+        lanes, ok = it["lanes"][it["lanes_valid"]], it["polyline_valid"]
+        assert len(lanes) >= 1 and ok.any()
+        pts = it["polylines"][ok]
+        assert np.linalg.norm(pts, axis=-1).min() < 0.6  # on a lane point (1 m spacing: at most 0.5 m off one)
+        along = []  # lines through the ego (junctions cross several): one of them runs along +x there
+        for line, v in zip(it["polylines"], ok):
+            line = line[v]
+            if len(line) < 2 or np.linalg.norm(line, axis=-1).min() >= 0.6:
+                continue
+            j = int(np.argmin(np.linalg.norm(line, axis=-1)))
+            step = line[min(j + 1, len(line) - 1)] - line[max(j - 1, 0)]
+            along.append(step[0] > 0.95 * np.linalg.norm(step))
+        assert any(along)
+        assert np.abs(pts).max() <= 32.0 + 1.5 + 1.0  # clipped to the window (+ margin, + one spacing)
+
+
+def test_netframes_mix_with_stores_deterministically(built, tmp_path):
+    from data_fixtures import write_small_store
+
+    d, _ = built
+    s = str(tmp_path / "store")
+    write_small_store(s, n_shards=1, per_shard=3, offset=500.0)  # the store's poses lie 500 m along x
+    mix = f"{d}:1,{s}:1"
+    first = list(frame_batches(mix, "train", 8, seed=2, max_batches=10))
+    from_store = np.concatenate([b["pose"][:, 0] > 250.0 for b in first])
+    assert 0.3 <= from_store.mean() <= 0.7
+    again = list(frame_batches(mix, "train", 8, seed=2, max_batches=10))
+    for x, y in zip(first, again):
+        np.testing.assert_array_equal(x["lanes"], y["lanes"])
+    alone = next(frame_batches(d, "train", 4, seed=0))  # a netframes directory alone is a training source
+    assert alone["lanes"].shape == (4, 50, 20, 2)
+    with pytest.raises(ValueError, match="evaluate one store"):
+        next(frame_batches(d, "val", 4, shuffle=False, repeat=False))
+
+
+def test_broken_netframes_are_refused_by_name(built, tmp_path):
+    d, man = built
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / netframes.MANIFEST).write_text(json.dumps(man))
+    r0 = man["networks"][0]
+    (bad / r0["file"]).write_bytes(b"not an npz")
+    with pytest.raises(DataError, match=r0["file"]):
+        netframes.NetFrames(str(bad))
+    with pytest.raises(DataError, match="not a netframes directory"):
+        netframes.NetFrames(str(tmp_path))
