@@ -20,21 +20,17 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
-import map_tokenizer_tiny  # noqa: E402
+import map_tokenizer_tiny_decoder  # noqa: E402
 
 
 def get_config():
-    c = map_tokenizer_tiny.get_config()
+    c = map_tokenizer_tiny_decoder.get_config()  # 6-layer decoder, decoder only, warm-up 100
     c.data.dir = ("data/netframes_gen:0.4,data/netframes_real:0.2,data/legacy_train:0.15,"
                   "data/gen_curved_train:0.1,data/mix_real_train:0.075,data/real2_train:0.075")
     c.data.eval_dir = "data/gen_dev_legacy"
-    c.model.decoder.num_layers = 6
     t = c.train
     t.init_from = "checkpoints/map_tokenizer"
-    t.decoder_only = True
     t.num_steps = 5000
-    t.warmup_steps = 100
     t.lr = 3e-4
     t.eval_every = 1000
-    t.checkpoint_every = 250
     return c
