@@ -21,6 +21,9 @@ def get_config() -> ml_collections.ConfigDict:
     c.data.eval_dir = ""  # where validation reads eval_split ("" : the first store of data.dir, which may be a
     #                       weighted mixture "DIR:0.7,DIR:0.3" for training)
     c.data.num_workers = 1  # loader prefetch threads
+    # the decoder's targets: "" the stored cut of the lanes into lines (the paper's setting), or a
+    # `gpd_jax.data.lanes.RECUT_MODES` mode, e.g. "join_ends" (lines joined where one-to-one)
+    c.data.gt_recut = ""
 
     c.raster = ml_collections.ConfigDict()
     c.raster.size = 256

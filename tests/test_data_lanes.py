@@ -90,3 +90,29 @@ def test_carried_lanes_persist_but_never_extend():
     # nothing visible at the source pose: nothing carried
     l, ok = lanes.vector_lanes_carried(p, v, np.array([0.0, 500.0, 0.0]), poses)
     assert not ok.any() and (l == 0).all()
+
+
+def test_store_chunks_of_one_run_are_one_line():
+    """Rule 0: the data store splits a run longer than P points into chunks sharing their end points
+    (`preprocess.clip_lanes`); they are one lane, not two (the cut shows in no raster). A full polyline that
+    ends where two lines start (a fork) and a short line ending where another starts stay cut."""
+    x = np.arange(-30.0, 31.0)  # 61 points at 1 m
+    road = np.stack([x, np.full_like(x, 2.0)], -1)
+    p, v = _poly([road[:33], road[32:]], P=33)  # chunk 1 full (33 points), chunk 2 starts at its last point
+    l, ok = lanes.vector_lanes(p, v, np.zeros(3))
+    assert ok.sum() == 1
+    np.testing.assert_allclose(l[0, [0, -1], 0], [-30.0, 30.0], atol=1e-4)
+    c, cv = lanes.vector_lanes_carried(p, v, np.zeros(3), np.zeros((1, 3)))
+    assert cv[0].sum() == 1
+    short = np.zeros((2, 40, 2), np.float32)  # the same two pieces in wider arrays: not chunks, kept apart
+    sv = np.zeros((2, 40), bool)
+    short[0, :33], short[1, :29] = road[:33], road[32:]
+    sv[0, :33], sv[1, :29] = True, True
+    assert lanes.vector_lanes(short, sv, np.zeros(3))[1].sum() == 2
+    branch = np.stack([np.full(10, 2.0), 2.0 + np.arange(10.0)], -1)  # a fork at the chunk's end
+    f = np.zeros((3, 33, 2), np.float32)
+    fv = np.zeros((3, 33), bool)
+    f[0], fv[0] = road[:33], True
+    f[1, :29], fv[1, :29] = road[32:], True
+    f[2, :10], fv[2, :10] = branch, True
+    assert lanes.vector_lanes(f, fv, np.zeros(3))[1].sum() == 3

@@ -1,6 +1,8 @@
 """Map tokenizer: straight-through VQ, k-means, dead codes, loss, training, encode/decode, checkpoints."""
 
+import json
 import os
+import shutil
 
 import chex
 import jax
@@ -217,6 +219,15 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
                                     "--config.train.restart_every=1"), ft)
     tok4 = load_tokenizer(ft)
     assert tok4.fingerprint() == tok2.fingerprint()
+    # a config written before `raster.direction` existed (binary raster, the key absent) makes the same tokens
+    old = str(tmp_path / "old_export")
+    shutil.copytree(out, old)
+    with open(os.path.join(old, "config.json")) as f:
+        cfg = json.load(f)
+    assert cfg["raster"].pop("direction") is False
+    with open(os.path.join(old, "config.json"), "w") as f:
+        json.dump(cfg, f)
+    assert load_tokenizer(old).fingerprint() == tok2.fingerprint()
     assert not np.allclose(tok4.params["decoder"]["points_head"]["kernel"],
                            np.asarray(tok2.params["decoder"]["points_head"]["kernel"], np.float32))
     assert '"event": "kmeans_init"' not in open(os.path.join(ft, "metrics.jsonl")).read()

@@ -88,3 +88,29 @@ def test_broken_netframes_are_refused_by_name(built, tmp_path):
         netframes.NetFrames(str(bad))
     with pytest.raises(DataError, match="not a netframes directory"):
         netframes.NetFrames(str(tmp_path))
+
+
+def test_gt_recut_changes_the_targets_not_the_input(built, tmp_path):
+    """`gt_recut` (config `data.gt_recut`): the decoder's targets are the lanes re-cut, the raster's polylines are
+    as stored, for stores and netframes alike; the same frames are drawn either way."""
+    from data_fixtures import write_small_store
+
+    from gpd_jax.metrics.map import map_metrics
+
+    d, _ = built
+    s = str(tmp_path / "store")
+    write_small_store(s, n_shards=1, per_shard=3)
+    for src in (s, d, f"{d}:1,{s}:1"):
+        plain = list(frame_batches(src, "train", 8, seed=4, max_batches=4))
+        split = list(frame_batches(src, "train", 8, seed=4, max_batches=4, gt_recut="split_mid"))
+        for p, j in zip(plain, split):
+            np.testing.assert_array_equal(p["polylines"], j["polylines"])
+            np.testing.assert_array_equal(p["pose"], j["pose"])
+            assert (j["lanes_valid"].sum(-1) > p["lanes_valid"].sum(-1)).any()
+            for i in range(len(p["pose"])):  # the same road: cut-free F1 1 between the two cuts
+                if p["lanes_valid"][i].any():
+                    r = map_metrics(j["lanes"][i], np.where(j["lanes_valid"][i], 10.0, -10.0).astype(np.float32),
+                                    p["lanes"][i], p["lanes_valid"][i])
+                    assert r["map_f1_cutfree"] == pytest.approx(1.0, abs=0.02)
+    with pytest.raises(ValueError, match="gt_recut"):
+        next(frame_batches(d, "train", 4, gt_recut="nope"))

@@ -2,6 +2,10 @@
 
 The rules (SLEDGE `process_lines`, without its training-time pose noise):
 
+0. join the chunks the data store cut a long lane run into (`preprocess.clip_lanes`: a polyline of all P
+   points continues in the polyline that starts at its last point): they are one lane, and the cut between
+   them is an artifact of the store's array width that no raster shows (until 2026-11-26 it was kept, and
+   about a third of the frames of generated networks had a lane cut there);
 1. express the polylines in the frame's ego frame (x forward, y left);
 2. resample every polyline at 0.25 m of arc length (from its first point; its last point kept);
 3. keep the points with |x| <= 32 and |y| <= 32;
@@ -28,7 +32,10 @@ MIN_RUN = 3
 
 
 def _resample_all(polylines: np.ndarray, valid: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Resamples every valid polyline at `step` m -> (points f64[R, 2], line index i64[R])."""
+    """Resamples every valid polyline at `step` m -> (points f64[R, 2], line index i64[R]); the data store's
+    chunks of one run are joined first (rule 0)."""
+    if valid.shape[-1] and valid.all(-1).any():
+        polylines, valid = recut_polylines(polylines, valid, "join_chunks")
     pts, ids = [], []
     for i in range(polylines.shape[0]):
         p = np.asarray(polylines[i][valid[i]], np.float64)
@@ -149,8 +156,13 @@ def vector_lanes_carried(polylines: np.ndarray, valid: np.ndarray, from_pose: np
     return _frame_lanes(pts[inside], run[inside], poses, num_lines, num_points, half, min_run)
 
 
-def vector_lanes(polylines: np.ndarray, valid: np.ndarray, pose: np.ndarray, **kw) -> tuple[np.ndarray, np.ndarray]:
-    """One frame: polylines f32[L, P, 2], valid bool[L, P], pose f32[3] -> (f32[50, 20, 2], bool[50])."""
+def vector_lanes(polylines: np.ndarray, valid: np.ndarray, pose: np.ndarray, recut: str | None = None, **kw
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """One frame: polylines f32[L, P, 2], valid bool[L, P], pose f32[3] -> (f32[50, 20, 2], bool[50]).
+
+    `recut` (one of `RECUT_MODES`, or None for the stored cut) re-cuts the polylines first (`recut_polylines`)."""
+    if recut:
+        polylines, valid = recut_polylines(polylines, valid, recut)
     lanes, ok = vector_lanes_frames(polylines, valid, np.asarray(pose)[None], **kw)
     return lanes[0], ok[0]
 
@@ -160,3 +172,82 @@ def vector_lanes_batch(polylines: np.ndarray, valid: np.ndarray, poses: np.ndarr
     """Batched over samples: f32[B, L, P, 2], bool[B, L, P], f32[B, T, 3] -> f32[B, T, 50, 20, 2], bool[B, T, 50]."""
     res = [vector_lanes_frames(p, v, q, **kw) for p, v, q in zip(polylines, valid, poses)]
     return np.stack([r[0] for r in res]), np.stack([r[1] for r in res])
+
+
+# ------------------------------------------------------------------------------------------ other cuts of the GT
+RECUT_MODES = ("split_mid", "join_chunks", "join_ends", "no_turnarounds")
+TURNAROUND_MAX_LENGTH = 30.0  # metres: a stored polyline this short that turns by more than 135 degrees is a U-turn
+
+
+def _is_turnaround(ln: np.ndarray) -> bool:
+    """A short polyline (< TURNAROUND_MAX_LENGTH m) whose end heading is more than 135 degrees from its start's."""
+    seg = np.diff(ln, axis=0)
+    seg = seg[np.linalg.norm(seg, axis=-1) > 1e-6]
+    if len(seg) < 2 or np.linalg.norm(seg, axis=-1).sum() >= TURNAROUND_MAX_LENGTH:
+        return False
+    a, b = seg[0] / np.linalg.norm(seg[0]), seg[-1] / np.linalg.norm(seg[-1])
+    return float(a @ b) < np.cos(np.radians(135.0))
+
+
+def recut_polylines(polylines: np.ndarray, valid: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """The same road geometry cut into lines differently (the learnability probe of
+    `gpd_jax.map_tokenizer.evaluation.cut_diagnostics`, and the map tokenizer's `data.gt_recut` targets).
+
+    Args:
+      polylines: f32[L, P, 2] a sample's stored polylines (valid points a prefix); valid: bool[L, P].
+      mode: "split_mid" cuts every polyline of >= 4 points in two at its middle point (both halves keep it);
+        "join_chunks" joins only the chunks the data store cut a long run into (`preprocess.clip_lanes`: a
+        polyline of all P points whose last point is the next chunk's first), one-to-one as "join_ends";
+        "join_ends" joins polylines where one's last point is another's first (within 1 mm) and the pair is
+        one-to-one there (the stored chunks of a long lane, chains the network cut at a one-to-one point);
+        "no_turnarounds" drops the U-turn connectors (`_is_turnaround`) and then joins as "join_ends": the cut
+        a chain merge that ignores SUMO's turnaround connections would give (it changes the geometry by the
+        U-turn arcs, so its cut-invariant F1 is below 1).
+
+    Returns:
+      (f32[L', P', 2], bool[L', P']) the re-cut polylines, same geometry.
+    """
+    full = [bool(valid[i].all()) for i in range(polylines.shape[0]) if valid[i].sum() >= 2]
+    lines = [np.asarray(polylines[i][valid[i]], np.float64) for i in range(polylines.shape[0]) if valid[i].sum() >= 2]
+    if mode == "split_mid":
+        out = []
+        for ln in lines:
+            if len(ln) >= 4:
+                k = len(ln) // 2
+                out += [ln[:k + 1], ln[k:]]
+            else:
+                out.append(ln)
+    elif mode in ("join_chunks", "join_ends", "no_turnarounds"):
+        if mode == "no_turnarounds":
+            full = [f for f, ln in zip(full, lines) if not _is_turnaround(ln)]
+            lines = [ln for ln in lines if not _is_turnaround(ln)]
+        starts = np.array([ln[0] for ln in lines]).reshape(-1, 2)
+        ends = np.array([ln[-1] for ln in lines]).reshape(-1, 2)
+        close = np.linalg.norm(ends[:, None] - starts[None], axis=-1) < 1e-3  # [i end, j start]
+        np.fill_diagonal(close, False)
+        if mode == "join_chunks":  # only a polyline of all P points continues: the store's chunks of one run
+            close &= np.asarray(full, bool)[:, None]
+        nxt = {i: int(np.argmax(close[i])) for i in range(len(lines))
+               if close[i].sum() == 1 and close[:, int(np.argmax(close[i]))].sum() == 1}
+        has_prev = set(nxt.values())
+        out, done = [], set()
+        heads = [i for i in range(len(lines)) if i not in has_prev]
+        for i in heads + list(range(len(lines))):  # chain heads first, then what is left (pure cycles)
+            if i in done:
+                continue
+            chain, cur = [lines[i]], i
+            done.add(i)
+            while cur in nxt and nxt[cur] not in done:
+                cur = nxt[cur]
+                done.add(cur)
+                chain.append(lines[cur][1:])
+            out.append(np.concatenate(chain))
+    else:
+        raise ValueError(f"recut mode must be one of {RECUT_MODES}, got {mode!r}")
+    p = max(len(ln) for ln in out) + 1 if out else 2  # + 1: no output is full, so never taken for a store chunk
+    pts = np.zeros((max(len(out), 1), p, 2), np.float32)
+    ok = np.zeros((max(len(out), 1), p), bool)
+    for i, ln in enumerate(out):
+        pts[i, :len(ln)] = ln
+        ok[i, :len(ln)] = True
+    return pts, ok

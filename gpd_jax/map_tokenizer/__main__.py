@@ -44,13 +44,11 @@ def cmd_evaluate(args) -> dict:
 
     from gpd_jax.map_tokenizer.store import frame_batches
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
-    from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step, recut_batches
+    from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step
 
     tok = load_tokenizer(args.checkpoint)
     batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
-                            frame_stride=args.frame_stride, max_batches=args.max_batches)
-    if args.gt_recut:
-        batches = recut_batches(batches, args.gt_recut)
+                            frame_stride=args.frame_stride, max_batches=args.max_batches, gt_recut=args.gt_recut)
     t0 = time.perf_counter()
     m = evaluate(tok.graphdef, tok.params, tok.config, batches, jax.jit(make_eval_step(tok.graphdef, tok.config)))
     m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=os.path.abspath(args.checkpoint),
@@ -166,7 +164,8 @@ def main(argv=None) -> int:
     split_args(e)
     e.add_argument("--gt-recut", default=None, choices=("split_mid", "join_ends", "no_turnarounds"),
                    help="score against the GT of the polylines re-cut this way (the raster stays as stored): a "
-                        "probe of how much the GT's cut costs, never the tokenizer's figure")
+                        "probe of how much the GT's cut costs, or the figure of a tokenizer trained on that cut "
+                        "(config data.gt_recut); beside the stored cut's, never instead of it")
     split_args(sub.add_parser("diagnose", help="how the GT vector lanes cut the road; the paper F1 of the GT re-cut"))
     c = sub.add_parser("encode", help="write map tokens of every frame next to the samples")
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)

@@ -6,7 +6,8 @@ A batch is a dict of numpy arrays with a leading batch dim B:
   plus `sample` i32[B] and `frame` i32[B] saying where each came from.
 
 `config.data.dir == "synthetic"` gives hand-built maps (`synthetic.py`, tests only); otherwise frames come from
-the processed data store (`gpd_jax.data`), one random frame per sample during training.
+the processed data store (`gpd_jax.data`), one random frame per sample during training. `config.data.gt_recut`
+(a `gpd_jax.data.lanes.RECUT_MODES` mode, "" for none) trains and validates on the lanes re-cut that way.
 """
 
 from __future__ import annotations
@@ -73,5 +74,6 @@ def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: b
         return _prefetch(_synthetic(split, batch_size, seed, repeat, max_batches))
     from gpd_jax.map_tokenizer import store  # the data-store adapter (needs gpd_jax.data)
     return _prefetch(store.frame_batches(data_dir, split, batch_size, seed=seed, shuffle=shuffle,
-                                         repeat=repeat, max_batches=max_batches, all_frames=all_frames),
+                                         repeat=repeat, max_batches=max_batches, all_frames=all_frames,
+                                         gt_recut=config.data.get("gt_recut") or None),
                      size=max(2, int(config.data.num_workers) + 1))

@@ -16,6 +16,7 @@ import numpy as np
 
 import jax.numpy as jnp
 
+from gpd_jax.data.lanes import RECUT_MODES, recut_polylines  # noqa: F401  (re-exported)
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.raster import raster_channels, rasterize
 from gpd_jax.metrics.matching import match_lines
@@ -168,75 +169,8 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
 
 
 # ------------------------------------------------------------------------------------------ GT cut diagnostics
-RECUT_MODES = ("split_mid", "join_ends", "no_turnarounds")
-TURNAROUND_MAX_LENGTH = 30.0  # metres: a stored polyline this short that turns by more than 135 degrees is a U-turn
-
-
-def _is_turnaround(ln: np.ndarray) -> bool:
-    """A short polyline (< TURNAROUND_MAX_LENGTH m) whose end heading is more than 135 degrees from its start's."""
-    seg = np.diff(ln, axis=0)
-    seg = seg[np.linalg.norm(seg, axis=-1) > 1e-6]
-    if len(seg) < 2 or np.linalg.norm(seg, axis=-1).sum() >= TURNAROUND_MAX_LENGTH:
-        return False
-    a, b = seg[0] / np.linalg.norm(seg[0]), seg[-1] / np.linalg.norm(seg[-1])
-    return float(a @ b) < np.cos(np.radians(135.0))
-
-
-def recut_polylines(polylines: np.ndarray, valid: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray]:
-    """The same road geometry cut into lines differently (for the learnability probe of `cut_diagnostics`).
-
-    Args:
-      polylines: f32[L, P, 2] a sample's stored polylines (valid points a prefix); valid: bool[L, P].
-      mode: "split_mid" cuts every polyline of >= 4 points in two at its middle point (both halves keep it);
-        "join_ends" joins polylines where one's last point is another's first (within 1 mm) and the pair is
-        one-to-one there (the stored chunks of a long lane, chains the network cut at a one-to-one point);
-        "no_turnarounds" drops the U-turn connectors (`_is_turnaround`) and then joins as "join_ends": the cut
-        a chain merge that ignores SUMO's turnaround connections would give (it changes the geometry by the
-        U-turn arcs, so its cut-invariant F1 is below 1).
-
-    Returns:
-      (f32[L', P', 2], bool[L', P']) the re-cut polylines, same geometry.
-    """
-    lines = [np.asarray(polylines[i][valid[i]], np.float64) for i in range(polylines.shape[0]) if valid[i].sum() >= 2]
-    if mode == "split_mid":
-        out = []
-        for ln in lines:
-            if len(ln) >= 4:
-                k = len(ln) // 2
-                out += [ln[:k + 1], ln[k:]]
-            else:
-                out.append(ln)
-    elif mode in ("join_ends", "no_turnarounds"):
-        if mode == "no_turnarounds":
-            lines = [ln for ln in lines if not _is_turnaround(ln)]
-        starts = np.array([ln[0] for ln in lines]).reshape(-1, 2)
-        ends = np.array([ln[-1] for ln in lines]).reshape(-1, 2)
-        close = np.linalg.norm(ends[:, None] - starts[None], axis=-1) < 1e-3  # [i end, j start]
-        np.fill_diagonal(close, False)
-        nxt = {i: int(np.argmax(close[i])) for i in range(len(lines))
-               if close[i].sum() == 1 and close[:, int(np.argmax(close[i]))].sum() == 1}
-        has_prev = set(nxt.values())
-        out, done = [], set()
-        heads = [i for i in range(len(lines)) if i not in has_prev]
-        for i in heads + list(range(len(lines))):  # chain heads first, then what is left (pure cycles)
-            if i in done:
-                continue
-            chain, cur = [lines[i]], i
-            done.add(i)
-            while cur in nxt and nxt[cur] not in done:
-                cur = nxt[cur]
-                done.add(cur)
-                chain.append(lines[cur][1:])
-            out.append(np.concatenate(chain))
-    else:
-        raise ValueError(f"recut mode must be one of {RECUT_MODES}, got {mode!r}")
-    p = max(len(ln) for ln in out) if out else 2
-    pts = np.zeros((max(len(out), 1), p, 2), np.float32)
-    ok = np.zeros((max(len(out), 1), p), bool)
-    for i, ln in enumerate(out):
-        pts[i, :len(ln)] = ln
-        ok[i, :len(ln)] = True
-    return pts, ok
+# The re-cut rules (`RECUT_MODES`, `recut_polylines`) live in the data layer: the tokenizer can also train on
+# them (`data.gt_recut`).
 
 
 def cut_diagnostics(batches, threshold: float = 1.5, dense_points: int = 80) -> dict:
@@ -320,17 +254,3 @@ def _cutfree_only(pred, pred_ok, gt, gt_ok, threshold):
     s = jax.vmap(lambda a, b, c, d: cutfree_frame_sums(a, b, c, d, threshold=threshold))(
         jnp.asarray(pred, jnp.float32), pred_ok, jnp.asarray(gt, jnp.float32), gt_ok)
     return {k: jnp.sum(v)[None] for k, v in s.items()}
-
-
-def recut_batches(batches, mode: str):
-    """`frame_batches` dicts whose GT lanes are those of the polylines re-cut by `recut_polylines(mode)`; the
-    polylines (hence the input raster) stay as stored. Scoring a tokenizer on them asks how it would score if the
-    ground truth were cut that way."""
-    from gpd_jax.data.lanes import vector_lanes
-
-    if mode not in RECUT_MODES:
-        raise ValueError(f"recut mode must be one of {RECUT_MODES}, got {mode!r}")
-    for b in batches:
-        lanes, ok = zip(*(vector_lanes(*recut_polylines(b["polylines"][i], b["polyline_valid"][i], mode),
-                                       b["pose"][i]) for i in range(b["pose"].shape[0])))
-        yield {**b, "lanes": np.stack(lanes).astype(np.float32), "lanes_valid": np.stack(ok)}

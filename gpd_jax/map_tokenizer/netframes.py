@@ -158,8 +158,9 @@ class NetFrames:
             raise DataError(path, "holds no network")
 
     def item(self, rng: np.random.Generator, heading_sd: float = 0.05, lateral_sd: float = 0.3,
-             cfg: SampleConfig = SampleConfig()) -> dict[str, np.ndarray]:
-        """One frame (the items of `gpd_jax.map_tokenizer.store`): a random network, a pose on one of its lanes."""
+             cfg: SampleConfig = SampleConfig(), gt_recut: str | None = None) -> dict[str, np.ndarray]:
+        """One frame (the items of `gpd_jax.map_tokenizer.store`): a random network, a pose on one of its lanes;
+        `gt_recut` as in `gpd_jax.map_tokenizer.store.frame_batches`."""
         k = int(rng.integers(len(self.lanes)))
         lp = self.lanes[k]
         while True:  # a point with a successor on its own line gives the lane's heading there
@@ -173,7 +174,7 @@ class NetFrames:
         world_pose = np.array([xy[0], xy[1], h])
         pose = np.zeros((1, 3))
         poly, ok = clip_lanes(lp, world_pose, pose, cfg)
-        lanes, lvalid = vector_lanes(poly, ok, pose[0])
+        lanes, lvalid = vector_lanes(poly, ok, pose[0], recut=gt_recut)
         return dict(polylines=poly, polyline_valid=ok, pose=pose[0].astype(np.float32),
                     lanes=lanes.astype(np.float32), lanes_valid=lvalid, sample=np.int32(k), frame=np.int32(0))
 

@@ -50,8 +50,12 @@ class MapTokenizer:
     def fingerprint(self) -> str:
         """16 hex digits identifying the tokens this tokenizer produces: a SHA-256 over the raster settings and
         the encoder and codebook parameters (float32; the decoder does not change tokens). An export and the
-        workdir it came from share it."""
-        h = hashlib.sha256(repr(sorted(self.config.raster.to_dict().items())).encode())
+        workdir it came from share it. `raster.direction` False is the binary raster of configs written before
+        that setting existed, so it hashes as absent (an export of a binary tokenizer keeps its fingerprint)."""
+        raster = self.config.raster.to_dict()
+        if not raster.get("direction", False):
+            raster.pop("direction", None)
+        h = hashlib.sha256(repr(sorted(raster.items())).encode())
         flat = flatten_params(jax.device_get(self.params))
         for k in sorted(flat):
             if k.startswith(("encoder/", "codebook/")):
