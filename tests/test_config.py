@@ -156,7 +156,8 @@ def test_shipped_lane_residual_mix_model_is_its_configs():
 
 def test_shipped_tokenizer_is_the_decoder_config():
     """checkpoints/map_tokenizer is configs/map_tokenizer_tiny.py's model with the decoder deepened by
-    configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's)."""
+    configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's), and its last
+    decoder stage is configs/map_tokenizer_decoder_netframes.py."""
     import json
 
     ship = json.load(open(f"{ROOT}/checkpoints/map_tokenizer/config.json"))
@@ -166,3 +167,6 @@ def test_shipped_tokenizer_is_the_decoder_config():
     first = json.loads(load_config(f"{ROOT}/configs/map_tokenizer_tiny.py").model.to_json())
     first["decoder"]["num_layers"] = dec.model.decoder.num_layers
     assert first == ship["model"]
+    last = json.loads(load_config(f"{ROOT}/configs/map_tokenizer_decoder_netframes.py").to_json())
+    assert {k: last[k] for k in ("data", "train", "model", "raster", "loss")} == {
+        k: ship[k] for k in ("data", "train", "model", "raster", "loss")}
