@@ -35,6 +35,8 @@ import os
 import sys
 import time
 
+from gpd_jax.data.lanes import RECUT_MODES
+
 DEFAULT_CHECKPOINT = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
                                   "checkpoints", "map_tokenizer")
 
@@ -162,7 +164,7 @@ def main(argv=None) -> int:
     e = sub.add_parser("evaluate", help="reconstruction metrics of a checkpoint on a data split")
     e.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     split_args(e)
-    e.add_argument("--gt-recut", default=None, choices=("split_mid", "join_ends", "no_turnarounds"),
+    e.add_argument("--gt-recut", default=None, choices=RECUT_MODES,
                    help="score against the GT of the polylines re-cut this way (the raster stays as stored): a "
                         "probe of how much the GT's cut costs, or the figure of a tokenizer trained on that cut "
                         "(config data.gt_recut); beside the stored cut's, never instead of it")

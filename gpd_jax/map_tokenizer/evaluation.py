@@ -170,7 +170,8 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
 
 # ------------------------------------------------------------------------------------------ GT cut diagnostics
 # The re-cut rules (`RECUT_MODES`, `recut_polylines`) live in the data layer: the tokenizer can also train on
-# them (`data.gt_recut`).
+# them (`data.gt_recut`). "join_chunks" is left out of the probe: the vector lanes join the store's chunks anyway.
+PROBE_MODES = tuple(m for m in RECUT_MODES if m != "join_chunks")
 
 
 def cut_diagnostics(batches, threshold: float = 1.5, dense_points: int = 80) -> dict:
@@ -181,7 +182,7 @@ def cut_diagnostics(batches, threshold: float = 1.5, dense_points: int = 80) -> 
         dropped by that cap; GT line lengths (quantiles, share < 5 m);
       * the 20-point representation: the cut-invariant score of the 20-point GT against the same runs at
         `dense_points` points (what resampling each line to 20 points loses on curves);
-      * the learnability probe: for each `RECUT_MODES` mode, the same road re-cut (`recut_polylines`) and
+      * the learnability probe: for each `PROBE_MODES` mode, the same road re-cut (`recut_polylines`) and
         turned into vector lanes by the same rules, scored as a perfect prediction (logit +10) against the GT:
         the paper's F1 (and with exact hits counted), the cut-invariant F1, and the share of frames whose lines
         changed.
@@ -192,7 +193,7 @@ def cut_diagnostics(batches, threshold: float = 1.5, dense_points: int = 80) -> 
     sums_fn = jax.jit(map_metric_sums, static_argnames=("threshold", "count_exact_hits", "length_edges"))
     acc: dict = {}
     runs, lengths, frames = [], [], 0
-    changed = {m: 0 for m in RECUT_MODES}
+    changed = {m: 0 for m in PROBE_MODES}
 
     def add(name, s):
         s = jax.device_get(s)
@@ -214,7 +215,7 @@ def cut_diagnostics(batches, threshold: float = 1.5, dense_points: int = 80) -> 
         # 20 points against the same runs at dense_points points: resample both to the dense count's line set
         dense, dense_ok = np.stack(dense), np.stack(dense_ok)
         add("dense", _cutfree_only(gt, gv, dense, dense_ok, 0.25))
-        for mode in RECUT_MODES:
+        for mode in PROBE_MODES:
             rl, rok = [], []
             for i in range(n):
                 pp, pv = recut_polylines(b["polylines"][i], b["polyline_valid"][i], mode)
@@ -240,7 +241,7 @@ def cut_diagnostics(batches, threshold: float = 1.5, dense_points: int = 80) -> 
     d = reduce_cutfree(acc["dense"])
     out[f"gt{NUM_POINTS}_vs_{dense_points}pts"] = {"f1_cutfree_at_0.25m": d["map_f1_cutfree"],
                                                    "chamfer_cutfree_m": d["map_chamfer_cutfree"]}
-    for mode in RECUT_MODES:
+    for mode in PROBE_MODES:
         r, rx = reduce_map_metrics(acc[mode]), reduce_map_metrics(acc[mode + "_exact"])
         out[f"recut_{mode}"] = {"paper_f1": r["map_f1"], "paper_f1_exact_hits": rx["map_f1"],
                                 "f1_cutfree": r["map_f1_cutfree"], "chamfer_cutfree_m": r["map_chamfer_cutfree"],
