@@ -99,7 +99,9 @@ def test_gt_recut_changes_the_targets_not_the_input(built, tmp_path):
 
     d, _ = built
     s = str(tmp_path / "store")
-    write_small_store(s, n_shards=1, per_shard=3)
+    write_small_store(s, n_shards=2, per_shard=4)
+    with pytest.raises(ValueError, match="fewer than a batch of 9"):
+        next(frame_batches(s, "train", 9))  # 8 samples: it never yields a full batch, so it says so
     for src in (s, d, f"{d}:1,{s}:1"):
         plain = list(frame_batches(src, "train", 8, seed=4, max_batches=4))
         split = list(frame_batches(src, "train", 8, seed=4, max_batches=4, gt_recut="split_mid"))
@@ -107,10 +109,10 @@ def test_gt_recut_changes_the_targets_not_the_input(built, tmp_path):
             np.testing.assert_array_equal(p["polylines"], j["polylines"])
             np.testing.assert_array_equal(p["pose"], j["pose"])
             assert (j["lanes_valid"].sum(-1) > p["lanes_valid"].sum(-1)).any()
-            for i in range(len(p["pose"])):  # the same road: cut-free F1 1 between the two cuts
-                if p["lanes_valid"][i].any():
+            for i in range(len(p["pose"])):  # the same road: cut-free F1 ~1 between the two cuts (a half of
+                if p["lanes_valid"][i].any():  # under 3 points inside the window is dropped, as any short run)
                     r = map_metrics(j["lanes"][i], np.where(j["lanes_valid"][i], 10.0, -10.0).astype(np.float32),
                                     p["lanes"][i], p["lanes_valid"][i])
-                    assert r["map_f1_cutfree"] == pytest.approx(1.0, abs=0.02)
+                    assert r["map_f1_cutfree"] == pytest.approx(1.0, abs=0.05)
     with pytest.raises(ValueError, match="gt_recut"):
         next(frame_batches(d, "train", 4, gt_recut="nope"))

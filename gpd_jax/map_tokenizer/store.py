@@ -64,6 +64,11 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
     shards = open_split(data_dir, split)
     index = [(s, i) for s in range(len(shards)) for i in range(shards[s].num_samples)]
     num_frames = shards[0].arrays["ego_pose"].shape[1]
+    per_pass = len(index) * (len(range(0, num_frames, 1 if all_frames else frame_stride))
+                             if (all_frames or frame_stride) else 1)
+    if repeat and per_pass < batch_size:  # every pass would end before a full batch: it would never yield
+        raise ValueError(f"{data_dir} split {split!r} gives {per_pass} frames per pass, fewer than a batch of "
+                         f"{batch_size}: lower the batch size or add samples")
     rng = np.random.default_rng(seed)
     made = 0
     while True:
