@@ -64,8 +64,8 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
     shards = open_split(data_dir, split)
     index = [(s, i) for s in range(len(shards)) for i in range(shards[s].num_samples)]
     num_frames = shards[0].arrays["ego_pose"].shape[1]
-    per_pass = len(index) * (len(range(0, num_frames, 1 if all_frames else frame_stride))
-                             if (all_frames or frame_stride) else 1)
+    frames = range(0, num_frames, 1 if all_frames else frame_stride) if (all_frames or frame_stride) else None
+    per_pass = len(index) * (len(frames) if frames else 1)
     if repeat and per_pass < batch_size:  # every pass would end before a full batch: it would never yield
         raise ValueError(f"{data_dir} split {split!r} gives {per_pass} frames per pass, fewer than a batch of "
                          f"{batch_size}: lower the batch size or add samples")
@@ -76,8 +76,8 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
         pairs = []
         for j in order:
             s, i = index[j]
-            if all_frames or frame_stride:
-                pairs.extend((s, i, t) for t in range(0, num_frames, 1 if all_frames else frame_stride))
+            if frames:
+                pairs.extend((s, i, t) for t in frames)
             else:
                 pairs.append((s, i, int(rng.integers(num_frames))))
         for k in range(0, len(pairs), batch_size):
