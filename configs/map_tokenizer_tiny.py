@@ -21,6 +21,7 @@ def get_config() -> ml_collections.ConfigDict:
     c.data.eval_dir = ""  # where validation reads eval_split ("" : the first store of data.dir, which may be a
     #                       weighted mixture "DIR:0.7,DIR:0.3" for training)
     c.data.num_workers = 1  # loader prefetch threads
+    c.data.processes = 0  # training-stream loader processes (0: one thread); an accelerator needs several
     # the decoder's targets: "" the stored cut of the lanes into lines (the paper's setting), or a
     # `gpd_jax.data.lanes.RECUT_MODES` mode, e.g. "join_ends" (lines joined where one-to-one)
     c.data.gt_recut = ""
@@ -83,8 +84,14 @@ def get_config() -> ml_collections.ConfigDict:
     # quantizer from the start learns far slower: validation F1 after 1,500 steps 0.16, against 0.58 with
     # k-means and the switch at step 600 (sumo1k, otherwise this config).
     t.continuous_warmup = True
+    # False: a probe, not a tokenizer: the decoder always reads the encoder's continuous outputs (no codebook
+    # bottleneck); compared with the same run quantized it measures what the 128 codes cost
+    t.quantize = True
     t.init_from = ""  # start from this tokenizer (an export or a workdir), keeping its codebook
     t.decoder_only = False  # with init_from: train only the decoder (the tokens stay those of init_from)
+    # False: take only the encoder and codebook from init_from and start a fresh decoder, of any size (with
+    # decoder_only: the same tokens, a new decoder)
+    t.init_decoder = True
     t.usage_decay = 0.99
     t.restart_every = 100  # dead-code restart period in steps (0: never)
     t.restart_threshold = 0.03  # a code is dead below threshold / K of the recent tokens

@@ -16,8 +16,12 @@ import ml_collections
 
 
 def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> ml_collections.ConfigDict:
-    """Loads `get_config()` from a python file and applies `--config.key=value` style overrides."""
+    """Loads `get_config()` from a python file and applies `--config.key=value` style overrides. `FILE.py:ARG`
+    calls `get_config(ARG)` (a config file with variants, as ml_collections' config flags do)."""
     path = os.fspath(path)
+    arg = None
+    if not os.path.isfile(path) and ":" in path:
+        path, arg = path.rsplit(":", 1)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"config file not found: {path}")
     spec = importlib.util.spec_from_file_location(f"_gpd_config_{abs(hash(path))}", path)
@@ -25,7 +29,7 @@ def load_config(path: str | os.PathLike, overrides: Sequence[str] = ()) -> ml_co
     spec.loader.exec_module(module)
     if not hasattr(module, "get_config"):
         raise ValueError(f"config file {path} defines no get_config()")
-    cfg = module.get_config()
+    cfg = module.get_config() if arg is None else module.get_config(arg)
     apply_overrides(cfg, overrides, source=path)
     return cfg
 

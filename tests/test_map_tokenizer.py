@@ -378,3 +378,108 @@ def test_frame_batches_from_a_mixture_of_stores(tmp_path):
         next(frame_batches(mix, "train", 8, shuffle=False, repeat=False))
     single = next(frame_batches(f"{a}:1", "train", 4, seed=0))  # a one-store "mixture" reads that store
     assert not (single["pose"][:, 0] > 250.0).any()
+
+
+def test_loader_processes_give_a_deterministic_stream(tmp_path):
+    """`data.processes`: the training stream from worker processes (each its own seed, taken in turn) is the same
+    for the same seed and count, differs from the one-thread stream, has the batch layout, and a worker's failure
+    reaches the consumer by name."""
+    from data_fixtures import write_small_store
+    from gpd_jax.map_tokenizer.data import frame_batches
+
+    a = str(tmp_path / "a")
+    write_small_store(a, n_shards=2, per_shard=3)
+    cfg = small_config(f"--config.data.dir={a}", "--config.data.processes=2")
+    first = list(frame_batches(cfg, "train", 4, seed=3, max_batches=4))
+    again = list(frame_batches(cfg, "train", 4, seed=3, max_batches=4))
+    for x, y in zip(first, again, strict=True):
+        assert x.keys() == y.keys()
+        for k in x:
+            np.testing.assert_array_equal(x[k], y[k])
+    assert first[0]["lanes"].shape == (4, 50, 20, 2) and first[0]["polylines"].dtype == np.float32
+    one = list(frame_batches(small_config(f"--config.data.dir={a}"), "train", 4, seed=3, max_batches=4))
+    assert any(not np.array_equal(x["frame"], y["frame"]) or not np.array_equal(x["sample"], y["sample"])
+               for x, y in zip(first, one))
+    # a finite pass (evaluation) keeps the one-process order
+    ev = list(frame_batches(cfg, "train", 4, seed=0, shuffle=False, repeat=False))
+    ev1 = list(frame_batches(small_config(f"--config.data.dir={a}"), "train", 4, seed=0, shuffle=False,
+                             repeat=False))
+    for x, y in zip(ev, ev1, strict=True):
+        np.testing.assert_array_equal(x["pose"], y["pose"])
+    bad = small_config(f"--config.data.dir={tmp_path / 'missing'}", "--config.data.processes=1")
+    with pytest.raises(RuntimeError, match="loader process .* failed: FileNotFoundError"):
+        next(frame_batches(bad, "train", 4, seed=0))
+
+
+def test_continuous_probe_trains_evaluates_and_cannot_encode(tmp_path):
+    """`train.quantize = False` (the autoencoder probe): its decoder always reads the encoder's continuous
+    outputs, in training and in evaluation, and its export refuses to make map tokens."""
+    from gpd_jax.map_tokenizer.__main__ import main as tok_main
+    from gpd_jax.map_tokenizer.evaluation import is_quantized, make_eval_step, rasterize_batch
+    from gpd_jax.training.map_tokenizer import TrainState, build_model, make_optimizer, make_train_step
+
+    probe = small_config("--config.train.quantize=False")
+    assert not is_quantized(probe) and is_quantized(small_config()) and is_quantized(None)
+    graphdef, params = build_model(probe)
+    batch = synthetic_lanes(0, 2)
+    raster = rasterize_batch(probe, batch)
+    sums_p, _ = make_eval_step(graphdef, probe)(params, raster, batch["lanes"], batch["lanes_valid"])
+    sums_c, _ = make_eval_step(graphdef, small_config(), quantized=False)(params, raster, batch["lanes"],
+                                                                         batch["lanes_valid"])
+    sums_q, _ = make_eval_step(graphdef, small_config())(params, raster, batch["lanes"], batch["lanes_valid"])
+    assert sums_p.keys() == sums_q.keys()
+    for k in sums_p:
+        np.testing.assert_allclose(sums_p[k], sums_c[k], rtol=1e-5, atol=1e-6)
+    assert any(not np.allclose(sums_p[k], sums_q[k]) for k in sums_p)
+    tx = make_optimizer(probe.train, params)
+    state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params), jnp.full((16,), 1 / 16),
+                       jnp.ones((), bool))  # even after k-means, the probe stays continuous
+    new, metrics, _ = jax.jit(make_train_step(graphdef, probe, tx))(state, batch)
+    assert float(metrics["vq"]) == 0.0
+    assert float(jnp.abs(new.params["codebook"]["embedding"] - params["codebook"]["embedding"]).max()) == 0.0
+    out = str(tmp_path / "probe")
+    export_tokenizer(params, probe, out, dtype=np.float32)
+    with pytest.raises(SystemExit, match="continuous autoencoder probe"):
+        tok_main(["encode", "--checkpoint", out, "--data", str(tmp_path)])
+
+
+def test_fresh_decoder_on_a_tokenizers_tokens(tmp_path):
+    """`train.init_decoder = False`: the source's encoder and codebook (its tokens, its fingerprint) with a new
+    decoder of another size; the encoder must still match."""
+    from gpd_jax.map_tokenizer.tokenizer import MapTokenizer
+    from gpd_jax.training.map_tokenizer import build_model, initial_params
+    cfg = small_config()
+    _, params = build_model(cfg)
+    out = str(tmp_path / "src")
+    export_tokenizer(params, cfg, out, dtype=np.float32)
+    src = load_tokenizer(out)
+    wide = small_config("--config.model.decoder.d_model=48", "--config.model.decoder.ffn_dim=96",
+                        "--config.model.decoder.num_layers=2", f"--config.train.init_from={out}",
+                        "--config.train.decoder_only=True", "--config.train.init_decoder=False")
+    p = initial_params(wide, out)
+    graphdef, fresh = build_model(wide)
+    assert jax.tree.structure(p) == jax.tree.structure(fresh)
+    tok = MapTokenizer(wide, graphdef, p)
+    assert tok.fingerprint() == src.fingerprint()
+    batch = synthetic_lanes(0, 3)
+    poses = jnp.asarray(batch["pose"])
+    np.testing.assert_array_equal(tok.encode_lanes(p, batch["polylines"], batch["polyline_valid"], poses),
+                                  src.encode_lanes(src.params, batch["polylines"], batch["polyline_valid"], poses))
+    assert p["decoder"]["points_head"]["kernel"].shape[0] == 48
+    with pytest.raises(ValueError, match="model config differs in num_codes"):
+        initial_params(small_config("--config.model.num_codes=8", f"--config.train.init_from={out}",
+                                    "--config.train.init_decoder=False"), out)
+
+
+def test_config_file_variants():
+    """`FILE.py:ARG` calls get_config(ARG); the accelerator config's three variants differ where they say."""
+    d = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:decoder512"))
+    f = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:full"))
+    p = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:probe"))
+    assert d.model.decoder.d_model == 512 and d.train.decoder_only and not d.train.init_decoder
+    assert not f.train.decoder_only and f.train.quantize and not p.train.quantize
+    assert f.data.dir == d.data.dir == p.data.dir and f.train.num_steps == p.train.num_steps
+    with pytest.raises(ValueError, match="variant 'nope'"):
+        load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:nope"))
+    with pytest.raises(FileNotFoundError, match="config file not found"):
+        load_config(os.path.join(ROOT, "configs/missing.py:x"))

@@ -46,7 +46,7 @@ def cmd_evaluate(args) -> dict:
 
     from gpd_jax.map_tokenizer.store import frame_batches
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
-    from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step
+    from gpd_jax.map_tokenizer.evaluation import evaluate, is_quantized, make_eval_step
 
     tok = load_tokenizer(args.checkpoint)
     batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
@@ -55,6 +55,7 @@ def cmd_evaluate(args) -> dict:
     m = evaluate(tok.graphdef, tok.params, tok.config, batches, jax.jit(make_eval_step(tok.graphdef, tok.config)))
     m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=os.path.abspath(args.checkpoint),
              frame_stride=args.frame_stride, f1_threshold_m=1.5, gt_recut=args.gt_recut,
+             quantized=is_quantized(tok.config),
              wall_s=round(time.perf_counter() - t0, 1))
     print(json.dumps(m, indent=2))
     if args.json:
@@ -88,7 +89,12 @@ def cmd_encode(args) -> None:
                                     save_map_tokens, shard_dir, shard_indices)
     from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
 
+    from gpd_jax.map_tokenizer.evaluation import is_quantized
+
     tok = load_tokenizer(args.checkpoint)
+    if not is_quantized(tok.config):
+        raise SystemExit(f"{args.checkpoint}: trained with train.quantize=False (a continuous autoencoder probe); its "
+                         "codes are not what its decoder reads, so it cannot make map tokens")
     fingerprint = tok.fingerprint()
 
     stride = int(args.frame_stride)

@@ -70,6 +70,9 @@ def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: b
       all_frames: every frame of every sample in order (token extraction) instead of one random frame per sample.
     """
     data_dir = config.data.dir if data_dir is None else data_dir
+    processes = int(config.data.get("processes", 0) or 0)
+    if processes > 0 and repeat and not all_frames and data_dir != "synthetic":
+        return _process_batches(config, split, batch_size, seed, shuffle, max_batches, data_dir, processes)
     if data_dir == "synthetic":
         return _prefetch(_synthetic(split, batch_size, seed, repeat, max_batches))
     from gpd_jax.map_tokenizer import store  # the data-store adapter (needs gpd_jax.data)
@@ -77,3 +80,80 @@ def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: b
                                          repeat=repeat, max_batches=max_batches, all_frames=all_frames,
                                          gt_recut=config.data.get("gt_recut") or None),
                      size=max(2, int(config.data.num_workers) + 1))
+
+
+# ------------------------------------------------------------------------------------------ loader processes
+# Building a frame (cropping a network's lanes, resampling them into vector lanes) is many small numpy calls that
+# hold the GIL, so threads do not speed it up: one loader thread gives ~400 frames/s, which starves an accelerator.
+# With `data.processes = N` the training stream comes from N worker processes, each walking the same data with
+# its own seed (`seed * 1009 + k + 1` for worker k), and batches are taken from the workers in turn, so the stream
+# is deterministic for a given N. Evaluation (finite passes) keeps the single-process path and its frame order.
+
+def _worker(config, split, batch_size, seed, shuffle, data_dir, out, stop, parent: int) -> None:
+    import os
+
+    from gpd_jax.map_tokenizer import store
+    try:
+        it = store.frame_batches(data_dir, split, batch_size, seed=seed, shuffle=shuffle, repeat=True,
+                                 gt_recut=config.data.get("gt_recut") or None)
+        for batch in it:
+            while not stop.is_set() and os.getppid() == parent:  # the consumer stopped, or was killed
+                try:
+                    out.put(batch, timeout=0.5)
+                    break
+                except queue.Full:
+                    continue
+            if stop.is_set() or os.getppid() != parent:
+                return
+    except BaseException as e:  # surfaced in the consumer
+        out.put(RuntimeError(f"map-tokenizer loader process (seed {seed}) failed: {type(e).__name__}: {e}"))
+
+
+def _process_batches(config, split, batch_size, seed, shuffle, max_batches, data_dir, processes):
+    import multiprocessing as mp
+    import os
+
+    ctx = mp.get_context("spawn")  # never fork a process that has started JAX's threads
+    stop = ctx.Event()
+    queues, procs = [], []
+    saved = os.environ.get("JAX_PLATFORMS")
+    os.environ["JAX_PLATFORMS"] = "cpu"  # the workers only run numpy; keep them off the accelerator
+    try:
+        for k in range(processes):
+            q = ctx.Queue(maxsize=4)
+            p = ctx.Process(target=_worker, args=(config, split, batch_size, seed * 1009 + k + 1, shuffle, data_dir,
+                                                  q, stop, os.getpid()), daemon=True)
+            p.start()
+            queues.append(q)
+            procs.append(p)
+    finally:
+        if saved is None:
+            os.environ.pop("JAX_PLATFORMS", None)
+        else:
+            os.environ["JAX_PLATFORMS"] = saved
+
+    def gen():
+        try:
+            i = 0
+            while max_batches is None or i < max_batches:
+                k = i % processes
+                while True:
+                    try:
+                        item = queues[k].get(timeout=5.0)
+                        break
+                    except queue.Empty:
+                        if not procs[k].is_alive():
+                            raise RuntimeError(f"map-tokenizer loader process {k} exited "
+                                               f"(exit code {procs[k].exitcode})") from None
+                if isinstance(item, BaseException):
+                    raise item
+                yield item
+                i += 1
+        finally:
+            stop.set()
+            for p in procs:
+                p.join(timeout=2.0)
+                if p.is_alive():
+                    p.terminate()
+
+    return gen()

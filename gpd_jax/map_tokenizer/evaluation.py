@@ -112,12 +112,22 @@ def reduce_pairs(t: dict) -> dict[str, float]:
             "pairs_pred_shorter_1.5x_share": f("pair_shorter")}
 
 
-def make_eval_step(graphdef, config=None):
+def is_quantized(config) -> bool:
+    """False for the continuous autoencoder probe (`train.quantize = False`): its codes are not its input."""
+    return config is None or "train" not in config or bool(config.train.get("quantize", True))
+
+
+def make_eval_step(graphdef, config=None, quantized: bool | None = None):
     """eval_step(params, raster, lanes, lanes_valid) -> (map metric sums, token indices); with `config` (the
     tokenizer's), the sums also hold the raster-level reconstruction (`raster_sums` of the decoded lines drawn
-    with `config.raster` against the input raster) and the matched-pair diagnostics (`pair_sums`)."""
+    with `config.raster` against the input raster) and the matched-pair diagnostics (`pair_sums`).
+    `quantized` (default: the config's `train.quantize`, else True) False decodes the encoder's continuous outputs:
+    the autoencoder probe trained with `train.quantize = False`."""
+    if quantized is None:
+        quantized = is_quantized(config)
+
     def eval_step(params, raster, lanes, lanes_valid):
-        out = core.forward(graphdef, params, raster)
+        out = core.forward(graphdef, params, raster, False, quantized)
         sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M)
         if config is not None:
             occupancy = raster[..., 0] if raster.ndim == 4 else raster

@@ -99,9 +99,10 @@ def make_train_step(graphdef, config, tx):
 
     # With continuous warm-up the decoder reads the encoder's continuous outputs until k-means has run.
     warmup = bool(config.train.continuous_warmup)
+    probe = not bool(config.train.get("quantize", True))  # the continuous autoencoder probe
 
     def train_step(state: TrainState, batch):
-        quantized = state.kmeans_done if warmup else True
+        quantized = False if probe else (state.kmeans_done if warmup else True)
         grad_fn = jax.value_and_grad(lambda p: loss_fn(graphdef, config, p, batch, quantized), has_aux=True)
         (_, aux), grads = grad_fn(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -157,6 +158,9 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     (its attention output and second FFN projections are zero, the rest freshly initialised), so training
     starts from the source's reconstructions, with its tokens, and only gains capacity. `fresh`: freshly
     initialised params of `config`'s model to take the added layers from (built here when not given).
+
+    `train.init_decoder = False` takes only the encoder and codebook from the source and keeps `fresh`'s decoder,
+    whatever its size (with `train.decoder_only`: the source's tokens and a new decoder trained on them).
     """
     src = load_tokenizer(path)
     mine, theirs = raster_channels(config.raster), raster_channels(src.config.raster)
@@ -164,10 +168,18 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     if raster_diff or mine < theirs:
         raise ValueError(f"train.init_from {path}: its raster config differs in "
                          f"{raster_diff or 'direction (a directional source cannot start a binary tokenizer)'}")
-    extra = _added_decoder_layers(config, src.config, path)
     params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
     if mine > theirs:
         params = _with_direction_channels(params, mine)
+    if not config.train.get("init_decoder", True):
+        # only the encoder and codebook (the tokens) come from the source; the decoder, of any size, starts fresh
+        diff = config_differences(config.model, src.config.model, ignore=("decoder",))
+        if diff:
+            raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
+        if fresh is None:
+            _, fresh = build_model(config)
+        return {**params, "decoder": fresh["decoder"]}
+    extra = _added_decoder_layers(config, src.config, path)
     if not extra:
         return params
     if fresh is None:
@@ -244,7 +256,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
                              repeat=False, max_batches=tcfg.eval_batches, data_dir=eval_dir)
 
     train_step = jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,))
-    eval_step = jax.jit(make_eval_step(graphdef))
+    eval_step = jax.jit(make_eval_step(graphdef, quantized=bool(tcfg.get("quantize", True))))
     restart = jax.jit(core.restart_dead_codes, static_argnums=(4,))
 
     last_eval: dict[str, float] = {}
