@@ -168,5 +168,10 @@ def test_shipped_tokenizer_is_the_decoder_config():
     first["decoder"]["num_layers"] = dec.model.decoder.num_layers
     assert first == ship["model"]
     last = json.loads(load_config(f"{ROOT}/configs/map_tokenizer_decoder_netframes.py").to_json())
+    # fields added after the export, at values that reproduce it (loader processes, the probe, a fresh decoder)
+    for section, key, neutral in (("data", "processes", 0), ("train", "quantize", True),
+                                  ("train", "init_decoder", True)):
+        if key not in ship[section]:
+            assert last[section].pop(key) == neutral
     assert {k: last[k] for k in ("data", "train", "model", "raster", "loss")} == {
         k: ship[k] for k in ("data", "train", "model", "raster", "loss")}
