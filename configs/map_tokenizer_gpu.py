@@ -13,8 +13,7 @@ loader processes so the accelerator is fed (`data.processes`):
   probe       `full` with `train.quantize = False`: the decoder reads the encoder's continuous outputs. Not a
               tokenizer; against `full` it measures what the 128-code bottleneck costs.
 
-    python train.py --config configs/map_tokenizer_gpu.py:decoder512 --workdir runs/tok_gpu_dec512 \\
-        --config.train.num_steps=N
+    python train.py --config configs/map_tokenizer_gpu.py:decoder512 --workdir runs/tok_gpu_dec512
     python -m gpd_jax.map_tokenizer export --workdir runs/tok_gpu_dec512 --out runs/tok_gpu_dec512/export
     python -m gpd_jax.map_tokenizer evaluate --checkpoint runs/tok_gpu_dec512/export --data data/mix_real_dev \\
         --split val --json ...
@@ -43,10 +42,11 @@ def get_config(variant: str = "decoder512"):
     t = c.train
     t.init_from = "checkpoints/map_tokenizer"
     t.batch_size = 64
-    t.num_steps = 6000
-    t.eval_every = 6000
+    # the steps the H200 run fitted into its lease (its probe of the step rates sized them; 2026-11-26)
+    t.num_steps = 4400 if variant == "decoder512" else 4000
+    t.eval_every = t.num_steps
     t.eval_batches = 20
-    t.checkpoint_every = 3000
+    t.checkpoint_every = t.num_steps // 4
     t.keep_checkpoints = 2
     t.log_every = 100
     if variant == "decoder512":
