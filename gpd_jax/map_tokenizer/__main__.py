@@ -6,6 +6,7 @@
   python -m gpd_jax.map_tokenizer export --workdir WORKDIR [--out checkpoints/map_tokenizer]
   python -m gpd_jax.map_tokenizer bench [--batch 64]
   python -m gpd_jax.map_tokenizer netframes --out DIR [--generated N] [--seed S] [--real NET ...] [--real-lefthand]
+  python -m gpd_jax.map_tokenizer pack-netframes DIR [DIR ...] --out OUTDIR [--networks N]
 
 `evaluate` reconstructs frames (raster -> tokens -> lanes) and reports the map metrics of
 `gpd_jax.metrics.map` against the frames' SLEDGE vector lanes: f1 (paper-faithful, 1.5 m), precision, recall,
@@ -24,7 +25,9 @@ frames 0, S, 2S, ... (S times faster): enough for a model that reads every S-th 
 (`config.data.frame_stride` a multiple of S); the other frames are stored as not encoded.
 The checkpoint defaults to the shipped one, `checkpoints/map_tokenizer/`. `netframes` builds map-only
 training frames (`gpd_jax.map_tokenizer.netframes`: many networks, poses drawn on their lanes, no traffic) that
-stand in a training mixture beside stores; it resumes where it stopped.
+stand in a training mixture beside stores; it resumes where it stopped. `pack-netframes` writes each as
+OUTDIR/<name>.tar.xz (centimetre-rounded, ~13x smaller) to carry to another machine: `tar xf` gives the directory
+back (stores: `python -m gpd_jax.data pack STORE --agents 1 --drop-road` keeps what the tokenizer reads).
 """
 
 from __future__ import annotations
@@ -154,6 +157,18 @@ def cmd_netframes(args) -> None:
           f"{sum(r['lane_km'] for r in man['networks']):.0f} lane km -> {args.out}")
 
 
+def cmd_pack_netframes(args) -> None:
+    from gpd_jax.data.errors import DataError
+    from gpd_jax.map_tokenizer.netframes import pack_netframes
+
+    for d in args.dirs:
+        try:
+            path = pack_netframes(d, args.out, args.networks)
+        except DataError as e:
+            raise SystemExit(f"error: {e}") from None
+        print(f"{d} -> {path} ({os.path.getsize(path) / 1e6:.1f} MB)")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m gpd_jax.map_tokenizer", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -199,9 +214,14 @@ def main(argv=None) -> int:
     n.add_argument("--lefthand-share", type=float, default=0.25)
     n.add_argument("--curved-share", type=float, default=0.5)
     n.add_argument("--ignore-turnarounds", action="store_true")
+    k = sub.add_parser("pack-netframes", help="netframes directories as .tar.xz archives to carry elsewhere")
+    k.add_argument("dirs", nargs="+", metavar="DIR")
+    k.add_argument("--out", required=True, help="folder of the archives (DIR's name + .tar.xz)")
+    k.add_argument("--networks", type=int, default=None, help="only the first N networks of each")
     args = p.parse_args(argv)
     {"evaluate": cmd_evaluate, "diagnose": cmd_diagnose, "encode": cmd_encode, "export": cmd_export,
-     "bench": cmd_bench, "netframes": cmd_netframes}[args.cmd](args)
+     "bench": cmd_bench, "netframes": cmd_netframes,
+     "pack-netframes": cmd_pack_netframes}[args.cmd](args)
     return 0
 
 

@@ -8,7 +8,9 @@ real training tiles from every angle, are cheap.
 
 A netframes directory holds one `<name>.lanes.npz` per network (its lane centrelines resampled every 1 m,
 chained as the stores chain them: `sumo.read_network_lanes`, `preprocess.lane_points`; no pickles) and
-`netframes.json` (per network: source, layout, left-hand, lane km, file). `build_netframes` makes it (resumes:
+`netframes.json` (per network: source, layout, left-hand, lane km, file). `pack_netframes` makes it a `.tar.xz`
+that `tar xf` turns back into a netframes directory, ~13x smaller (coordinates rounded to the centimetre, stored
+as deltas), to carry it to another machine. `build_netframes` makes it (resumes:
 networks already there are kept). `frame_batches` draws a network uniformly, a point uniformly along its lanes,
 the ego pose on it (heading along the lane plus N(0, `heading_sd`), a lateral offset N(0, `lateral_sd`)), and
 clips the lanes to the ego window exactly as a store sample does (`preprocess.clip_lanes`); the items are those of
@@ -147,7 +149,11 @@ class NetFrames:
         for r in self.manifest["networks"]:
             try:
                 with np.load(os.path.join(path, r["file"]), allow_pickle=False) as z:
-                    xy, line = np.asarray(z["xy"], np.float64), np.asarray(z["line"], np.int32)
+                    line = np.asarray(z["line"], np.int32)
+                    if "dxy_cm" in z:  # a packed network (`pack_netframes`): centimetre deltas
+                        xy = np.cumsum(np.asarray(z["dxy_cm"], np.int64), axis=0) / 100.0
+                    else:
+                        xy = np.asarray(z["xy"], np.float64)
             except (OSError, KeyError, ValueError) as e:
                 raise DataError(os.path.join(path, r["file"]), f"unreadable lane file: {e}") from None
             if xy.ndim != 2 or xy.shape[1:] != (2,) or len(line) != len(xy) or len(xy) < 2:
@@ -183,3 +189,60 @@ class NetFrames:
         rng = np.random.default_rng((seed, 77))
         while True:
             yield self.item(rng, **kw)
+
+
+def pack_netframes(path: str, out_dir: str, max_networks: int | None = None, preset: int = 6) -> str:
+    """Writes `out_dir/<name>.tar.xz` holding the netframes directory `path` (named `<name>`, its basename): its
+    manifest (the first `max_networks` networks, with a "packed" record) and each network's lane points as
+    centimetre-rounded deltas (`dxy_cm` i32[N, 2], `line` i32[N]; at most 5 mm off, which `NetFrames` reads like
+    the original). `tar xf ARCHIVE -C DIR` gives DIR/<name>, a netframes directory. Written to a temporary file
+    and renamed; an archive already there is kept (a stopped packing resumes). Returns the archive's path."""
+    import io
+    import tarfile
+
+    if not is_netframes(path):
+        raise DataError(path, f"not a netframes directory (no {MANIFEST})")
+    name = os.path.basename(os.path.normpath(path))
+    archive = os.path.join(out_dir, f"{name}.tar.xz")
+    if os.path.exists(archive):
+        return archive
+    with open(os.path.join(path, MANIFEST)) as f:
+        manifest = json.load(f)
+    if max_networks is not None:
+        if max_networks < 1:
+            raise DataError(path, f"max_networks must be >= 1, got {max_networks}")
+        manifest["networks"] = manifest["networks"][:max_networks]
+        manifest["num_networks"] = len(manifest["networks"])
+    manifest["packed"] = {"source": os.path.abspath(path), "coordinates": "centimetre deltas (dxy_cm)"}
+
+    def add(tf, arc: str, data: bytes) -> None:
+        info = tarfile.TarInfo(arc)
+        info.size = len(data)
+        info.mtime = int(time.time())
+        tf.addfile(info, io.BytesIO(data))
+
+    os.makedirs(out_dir, exist_ok=True)
+    tmp = archive + f".tmp-{os.getpid()}"
+    try:
+        with tarfile.open(tmp, "w:xz", preset=preset) as tf:
+            add(tf, f"{name}/{MANIFEST}", json.dumps(manifest, indent=1).encode())
+            for r in manifest["networks"]:
+                f = os.path.join(path, r["file"])
+                try:
+                    with np.load(f, allow_pickle=False) as z:
+                        line = np.asarray(z["line"], np.int32)
+                        q = (np.cumsum(np.asarray(z["dxy_cm"], np.int64), axis=0) if "dxy_cm" in z
+                             else np.round(np.asarray(z["xy"], np.float64) * 100.0).astype(np.int64))
+                except (OSError, KeyError, ValueError) as e:
+                    raise DataError(f, f"unreadable lane file: {e}") from None
+                if np.abs(q).max(initial=0) >= 2**31 // 2:
+                    raise DataError(f, "coordinates beyond the packable range (+-10,000 km)")
+                d = np.diff(q, axis=0, prepend=np.zeros((1, 2), np.int64)).astype(np.int32)
+                buf = io.BytesIO()
+                np.savez(buf, dxy_cm=d, line=line)  # uncompressed: xz compresses the small deltas
+                add(tf, f"{name}/{r['file']}", buf.getvalue())
+        os.replace(tmp, archive)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return archive
