@@ -187,7 +187,8 @@ def load_model(path: str | None = None, step: int | None = None) -> Model:
 SOUP_FILE = "soup.json"
 
 
-def average_models(paths: list[str], weights: list[float] | None = None, config_from: int = 0) -> Model:
+def average_models(paths: list[str], weights: list[float] | None = None, config_from: int = 0,
+                   mixed_tokenizers: bool = False) -> Model:
     """A weight-space average of GPDs ("model soup"; WiSE-FT's interpolation between a model and its fine-tune):
     params = sum_i weights[i] * params_i, computed in float64.
 
@@ -199,6 +200,9 @@ def average_models(paths: list[str], weights: list[float] | None = None, config_
       paths: exported model directories or train.py workdirs (latest step), two or more.
       weights: one per model, >= 0, summing to 1 (within 1e-6); default equal weights.
       config_from: index of the model whose config the average uses.
+      mixed_tokenizers: allow models whose map tokenizers differ; the average reads the tokens of
+        `paths[config_from]`'s. Meaningful only when one model was fine-tuned onto those tokens from the others
+        (a GPD moved to a re-fitted tokenizer, averaged back with its parent).
     Raises ValueError naming the offending model or parameter.
     """
     if len(paths) < 2:
@@ -223,9 +227,10 @@ def average_models(paths: list[str], weights: list[float] | None = None, config_
                                  f"{flats[config_from][k].shape}")
         fp = None if m.tokenizer is None else m.tokenizer.fingerprint()
         base_fp = None if base.tokenizer is None else base.tokenizer.fingerprint()
-        if fp != base_fp:
+        if fp != base_fp and not mixed_tokenizers:
             raise ValueError(f"{m.path}: map tokenizer {fp} differs from {base.path}'s {base_fp}: its tokens mean "
-                             "other things")
+                             "other things (--mixed-tokenizers: average anyway, reading the tokens of the "
+                             "--config-from model's tokenizer)")
     avg = {k: sum(w * f[k].astype(np.float64) for w, f in zip(weights, flats)).astype(v.dtype)
            for k, v in flats[config_from].items()}
     params = unflatten_params(base.params, avg, where="average")
@@ -254,6 +259,9 @@ def main(argv=None) -> int:
     a.add_argument("--out", required=True)
     a.add_argument("--weights", type=float, nargs="+", default=None, help="one per model, summing to 1 (equal)")
     a.add_argument("--config-from", type=int, default=0, help="index of the model whose config is used (0)")
+    a.add_argument("--mixed-tokenizers", action="store_true",
+                   help="allow models on different map tokenizers (a model fine-tuned onto new tokens averaged back "
+                        "with its parent); the average reads the --config-from model's tokens")
     a.add_argument("--tokenizer-ref", default=None,
                    help="write this map-tokenizer path into the config instead of copying the tokenizer")
     args = p.parse_args(argv)
@@ -290,7 +298,7 @@ def _average_cli(args) -> int:
     import sys
 
     try:
-        model = average_models(args.models, args.weights, args.config_from)
+        model = average_models(args.models, args.weights, args.config_from, args.mixed_tokenizers)
     except (FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -305,7 +313,7 @@ def _average_cli(args) -> int:
 
     atomic_write_json(os.path.join(out, SOUP_FILE), {
         "sources": [{"path": m, "weight": w, "params_sha256": sha(m)} for m, w in zip(args.models, weights)],
-        "config_from": src})
+        "config_from": src, **({"mixed_tokenizers": True} if args.mixed_tokenizers else {})})
     print(f"averaged {len(args.models)} models -> {out}")
     return 0
 

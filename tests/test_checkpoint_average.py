@@ -61,3 +61,28 @@ def test_average_cli_writes_the_model_and_its_sources(tmp_path, capsys):
         np.testing.assert_array_equal(got[k], ref[k])
     assert main(["average", a, b, "--weights", "0.9", "0.9", "--out", str(tmp_path / "bad")]) == 2
     assert "sum to 1" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_average_across_map_tokenizers_only_when_asked(tmp_path):
+    """Models reading different map tokenizers' tokens are refused, unless `mixed_tokenizers` (a GPD moved to a
+    re-fitted tokenizer averaged back with its parent): then the average reads the --config-from model's."""
+    from gpd_jax.map_tokenizer.tokenizer import export_tokenizer
+    from gpd_jax.training.map_tokenizer import build_model as build_tokenizer
+    from test_map_tokenizer import small_config
+
+    toks = []
+    for seed in (1, 2):
+        tcfg = small_config("--config.model.num_codes=32")
+        _, tparams = build_tokenizer(tcfg, seed=seed)
+        toks.append(export_tokenizer(tparams, tcfg, str(tmp_path / f"tok{seed}"), dtype=np.float32) or
+                    str(tmp_path / f"tok{seed}"))
+    a = _export(tmp_path, "a", 1, map_tokenizer=toks[0])
+    b = _export(tmp_path, "b", 2, map_tokenizer=toks[1])
+    assert load_model(a).tokenizer.fingerprint() != load_model(b).tokenizer.fingerprint()
+    with pytest.raises(ValueError, match="tokens mean other things"):
+        average_models([a, b])
+    soup = average_models([a, b], config_from=1, mixed_tokenizers=True)
+    assert soup.tokenizer.fingerprint() == load_model(b).tokenizer.fingerprint()
+    out = tmp_path / "soup"
+    assert main(["average", a, b, "--config-from", "1", "--mixed-tokenizers", "--out", str(out)]) == 0
+    assert json.load(open(out / "soup.json"))["mixed_tokenizers"] is True
