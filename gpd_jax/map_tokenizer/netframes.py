@@ -8,10 +8,9 @@ real training tiles from every angle, are cheap.
 
 A netframes directory holds one `<name>.lanes.npz` per network (its lane centrelines resampled every 1 m,
 chained as the stores chain them: `sumo.read_network_lanes`, `preprocess.lane_points`; no pickles) and
-`netframes.json` (per network: source, layout, left-hand, lane km, file). `pack_netframes` makes it a `.tar.xz`
-that `tar xf` turns back into a netframes directory, ~13x smaller (coordinates rounded to the centimetre, stored
-as deltas), to carry it to another machine. `build_netframes` makes it (resumes:
-networks already there are kept). `frame_batches` draws a network uniformly, a point uniformly along its lanes,
+`netframes.json` (per network: source, layout, left-hand, lane km, file). `build_netframes` makes it (resumes:
+networks already there are kept); `pack_netframes` makes it a `.tar.xz` that `tar xf` turns back into a netframes
+directory, ~13x smaller (coordinates rounded to the centimetre, stored as deltas), to carry to another machine. `frame_batches` draws a network uniformly, a point uniformly along its lanes,
 the ego pose on it (heading along the lane plus N(0, `heading_sd`), a lateral offset N(0, `lateral_sd`)), and
 clips the lanes to the ego window exactly as a store sample does (`preprocess.clip_lanes`); the items are those of
 `gpd_jax.map_tokenizer.store` (polylines and pose in one frame, SLEDGE vector lanes as targets), so a netframes
@@ -135,6 +134,19 @@ def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_ne
         return json.load(f)
 
 
+def _read_lanes(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(xy f64[N, 2], line i32[N]) of a network's lane file, built (`xy`) or packed (`dxy_cm`, centimetre
+    deltas: `pack_netframes`). Raises DataError naming the file."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            line = np.asarray(z["line"], np.int32)
+            if "dxy_cm" in z:
+                return np.cumsum(np.asarray(z["dxy_cm"], np.int64), axis=0) / 100.0, line
+            return np.asarray(z["xy"], np.float64), line
+    except (OSError, KeyError, ValueError) as e:
+        raise DataError(path, f"unreadable lane file: {e}") from None
+
+
 class NetFrames:
     """The networks of a netframes directory, loaded once (lane points f32, ~0.1 MB per generated network)."""
 
@@ -147,15 +159,7 @@ class NetFrames:
         self.lanes: list[LanePoints] = []
         self.names: list[str] = []
         for r in self.manifest["networks"]:
-            try:
-                with np.load(os.path.join(path, r["file"]), allow_pickle=False) as z:
-                    line = np.asarray(z["line"], np.int32)
-                    if "dxy_cm" in z:  # a packed network (`pack_netframes`): centimetre deltas
-                        xy = np.cumsum(np.asarray(z["dxy_cm"], np.int64), axis=0) / 100.0
-                    else:
-                        xy = np.asarray(z["xy"], np.float64)
-            except (OSError, KeyError, ValueError) as e:
-                raise DataError(os.path.join(path, r["file"]), f"unreadable lane file: {e}") from None
+            xy, line = _read_lanes(os.path.join(path, r["file"]))
             if xy.ndim != 2 or xy.shape[1:] != (2,) or len(line) != len(xy) or len(xy) < 2:
                 raise DataError(os.path.join(path, r["file"]), f"lane points of shape {xy.shape} / {line.shape}")
             self.lanes.append(LanePoints(xy, line))
@@ -228,13 +232,8 @@ def pack_netframes(path: str, out_dir: str, max_networks: int | None = None, pre
             add(tf, f"{name}/{MANIFEST}", json.dumps(manifest, indent=1).encode())
             for r in manifest["networks"]:
                 f = os.path.join(path, r["file"])
-                try:
-                    with np.load(f, allow_pickle=False) as z:
-                        line = np.asarray(z["line"], np.int32)
-                        q = (np.cumsum(np.asarray(z["dxy_cm"], np.int64), axis=0) if "dxy_cm" in z
-                             else np.round(np.asarray(z["xy"], np.float64) * 100.0).astype(np.int64))
-                except (OSError, KeyError, ValueError) as e:
-                    raise DataError(f, f"unreadable lane file: {e}") from None
+                xy, line = _read_lanes(f)
+                q = np.round(xy * 100.0).astype(np.int64)
                 if np.abs(q).max(initial=0) >= 2**31 // 2:
                     raise DataError(f, "coordinates beyond the packable range (+-10,000 km)")
                 d = np.diff(q, axis=0, prepend=np.zeros((1, 2), np.int64)).astype(np.int32)
