@@ -22,6 +22,12 @@ Rule, written before the run: `decoder512` replaces the shipped decoder if the m
 stores (gen_dev_legacy, gen_dev_curved, mix_real_dev; split val; every 10th frame; corrected ground truth) beats
 the shipped decoder's 0.421. `full` and `probe` are diagnostics (`full` would need a GPD retrained on its tokens to
 ship). The test stores are read once, after that choice.
+
+Outcome (2026-11-26, one H200, ~6 min a run; checkpoints/map_tokenizer/README.md, "At accelerator scale"): dev
+mean 0.452 (decoder512), 0.493 (full), 0.585 (probe). The rule picked decoder512, but it is not committed: its
+params are 49 MB, over the repository's 20 MiB a file (a constraint the rule did not name). `full` ships as
+checkpoints/map_tokenizer_refit with a GPD on its tokens (configs/gpd_sumo_refit.py). `init_from` is the shipped
+tokenizer, unchanged by this.
 """
 
 import os
