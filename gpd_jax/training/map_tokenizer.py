@@ -35,7 +35,7 @@ from gpd_jax.data.loader import parse_mixture
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import core, load_tokenizer
 from gpd_jax.map_tokenizer.data import frame_batches
-from gpd_jax.map_tokenizer.evaluation import evaluate, make_eval_step, rasterize_batch
+from gpd_jax.map_tokenizer.evaluation import evaluate, is_quantized, make_eval_step, rasterize_batch
 from gpd_jax.map_tokenizer.model import MapVQVAE
 from gpd_jax.map_tokenizer.raster import raster_channels
 from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state, save_state
@@ -99,7 +99,7 @@ def make_train_step(graphdef, config, tx):
 
     # With continuous warm-up the decoder reads the encoder's continuous outputs until k-means has run.
     warmup = bool(config.train.continuous_warmup)
-    probe = not bool(config.train.get("quantize", True))  # the continuous autoencoder probe
+    probe = not is_quantized(config)  # the continuous autoencoder probe (train.quantize=False)
 
     def train_step(state: TrainState, batch):
         quantized = False if probe else (state.kmeans_done if warmup else True)
@@ -256,7 +256,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
                              repeat=False, max_batches=tcfg.eval_batches, data_dir=eval_dir)
 
     train_step = jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,))
-    eval_step = jax.jit(make_eval_step(graphdef, quantized=bool(tcfg.get("quantize", True))))
+    eval_step = jax.jit(make_eval_step(graphdef, quantized=is_quantized(config)))
     restart = jax.jit(core.restart_dead_codes, static_argnums=(4,))
 
     last_eval: dict[str, float] = {}
