@@ -40,7 +40,29 @@ def test_same_road_cut_differently_scores_one_and_paper_f1_does_not():
     assert r["map_f1"] < 0.1  # the paper's F1 compares points by index: the cut alone ruins it
     # the line reversed: the same road again
     rev, _, _ = _frame([_arc(0, 60)[::-1]])
-    assert map_metrics(rev, logits, gt, gv)["map_f1_cutfree"] == pytest.approx(1.0, abs=1e-4)
+    r = map_metrics(rev, logits, gt, gv)
+    assert r["map_f1_cutfree"] == pytest.approx(1.0, abs=1e-4)
+    # ... unless the direction counts: the reversed road is found but runs the wrong way
+    assert r["map_f1_cutfree_directed"] == 0.0 and r["map_f1"] == 0.0
+    assert map_metrics(pred, logits, gt, gv)["map_f1_cutfree_directed"] == pytest.approx(1.0, abs=1e-4)
+
+
+def test_directed_cutfree_counts_only_the_length_running_the_same_way():
+    # two lanes 3.5 m apart: the decoded right lane is right, the left one reversed (a binary raster's guess)
+    right, left = _arc(0, 60), _arc(0, 60, offset=3.5)
+    gt, gv, _ = _frame([right, left])
+    pred, _, logits = _frame([right, left[::-1]])
+    r = map_metrics(pred, logits, gt, gv)
+    assert r["map_f1_cutfree"] == pytest.approx(1.0, abs=1e-4)
+    share = 40.0 / (40.0 + 36.5)  # the right lane's share of the length (the left one is the inner arc)
+    assert r["map_precision_cutfree_directed"] == pytest.approx(share, abs=0.01)
+    assert r["map_recall_cutfree_directed"] == pytest.approx(share, abs=0.01)
+    # a reversed line right beside a same-way one still finds it: the nearest same-way segment within 1.5 m counts
+    gt1, gv1, _ = _frame([right])
+    pred2, _, logits2 = _frame([right[::-1], _arc(0, 60, offset=1.0)])
+    r = map_metrics(pred2, logits2, gt1, gv1)
+    assert r["map_recall_cutfree_directed"] == pytest.approx(1.0, abs=1e-4)
+    assert r["map_precision_cutfree_directed"] == pytest.approx(0.5, abs=0.02)
 
 
 def test_shifted_and_partial_roads_drop():

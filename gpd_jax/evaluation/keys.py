@@ -22,7 +22,8 @@ SCORED_AGENTS = "valid at the current frame"
 AGENT_METRICS = ("ade", "fde", "collision", "collision_frames")
 MAP_METRICS = ("map_f1", "map_precision", "map_recall", "map_lateral")
 # Cut-invariant map score (gpd_jax.metrics.map.reduce_cutfree), beside the paper's F1 when the sums carry it.
-MAP_CUTFREE_METRICS = ("map_f1_cutfree", "map_precision_cutfree", "map_recall_cutfree", "map_chamfer_cutfree")
+MAP_CUTFREE_METRICS = ("map_f1_cutfree", "map_precision_cutfree", "map_recall_cutfree", "map_chamfer_cutfree",
+                       "map_f1_cutfree_directed")
 # The paper-table targets of the traffic-simulation agent ADE relative to constant velocity.
 RATIO_TARGETS = {"3s": 0.8, "5s": 0.75, "8s": 0.7}
 RATIO_KEY = "traffic_simulation_agent_ade_over_constant_velocity"

@@ -32,6 +32,8 @@ sampled along their arc length (`cutfree_frame_sums`); precision is the share of
 threshold (1.5 m) of any GT segment, recall the share of GT length within it of any predicted segment, F1 their
 harmonic mean; the Chamfer is the symmetric length-weighted mean point-to-segment distance (metres), and
 chamfer_within the same mean over the length within the threshold only. Lengths are pooled per step like TP.
+"map_*_cutfree_directed" counts a hit only where the segment within the threshold runs the same way: the paper's
+F1 also scores a line decoded the wrong way round as missed, and a binary raster cannot show the direction.
 
 Aggregation: `map_metric_sums` sums over every leading batch dim except an optional step axis (the future frame,
 kept when `step_axis` is given); `reduce_map_metrics` forms the ratios per step (TP/FP/FN and lateral / Chamfer
@@ -128,7 +130,7 @@ def set_chamfer(a: jax.Array, a_valid: jax.Array, b: jax.Array, b_valid: jax.Arr
 CUTFREE_SAMPLES = 2  # samples per polyline segment of the cut-invariant score (at (k + 0.5) / S of its length)
 _CUTFREE_KEYS = ("cf_pred_len", "cf_pred_hit_len", "cf_gt_len", "cf_gt_hit_len", "cf_pred_dist_sum",
                  "cf_pred_dist_len", "cf_gt_dist_sum", "cf_gt_dist_len", "cf_pred_hit_dist_sum",
-                 "cf_gt_hit_dist_sum")
+                 "cf_gt_hit_dist_sum", "cf_pred_hit_len_directed", "cf_gt_hit_len_directed")
 
 
 def point_to_segments_distance(p: jax.Array, a: jax.Array, b: jax.Array, seg_valid: jax.Array) -> jax.Array:
@@ -140,6 +142,13 @@ def point_to_segments_distance(p: jax.Array, a: jax.Array, b: jax.Array, seg_val
     Returns:
       f32[N] min over valid segments of the distance from p to the closed segment [a, b] (inf if none is valid).
     """
+    return _point_to_segments(p, a, b, seg_valid)[0]
+
+
+def _point_to_segments(p: jax.Array, a: jax.Array, b: jax.Array, seg_valid: jax.Array,
+                       p_dir: jax.Array | None = None) -> tuple[jax.Array, jax.Array | None]:
+    """`point_to_segments_distance`, and with `p_dir` f32[N, 2] (each point's direction of travel) also the
+    distance to the nearest valid segment running the same way (p_dir . (b - a) > 0), from the same pass."""
     # x and y as separate [N, M] planes (not a trailing axis of 2): XLA fuses them into one loop, ~8x faster on CPU
     px, py = p[:, 0:1], p[:, 1:2]
     ax, ay = a[None, :, 0], a[None, :, 1]
@@ -149,19 +158,25 @@ def point_to_segments_distance(p: jax.Array, a: jax.Array, b: jax.Array, seg_val
     t = jnp.clip((apx * abx + apy * aby) / jnp.where(den > 0, den, 1.0), 0.0, 1.0)
     dx, dy = apx - t * abx, apy - t * aby
     d2 = jnp.where(seg_valid[None], dx * dx + dy * dy, jnp.inf)
-    return jnp.sqrt(jnp.min(d2, -1))
+    if p_dir is None:
+        return jnp.sqrt(jnp.min(d2, -1)), None
+    same = p_dir[:, 0:1] * abx + p_dir[:, 1:2] * aby > 0
+    return jnp.sqrt(jnp.min(d2, -1)), jnp.sqrt(jnp.min(jnp.where(same, d2, jnp.inf), -1))
 
 
 def _segment_samples(lines: jax.Array, line_valid: jax.Array, samples: int):
     """lines f32[L, P, 2], line_valid bool[L] -> (segment starts f32[L*(P-1), 2], ends, valid bool[L*(P-1)],
-    sample points f32[L*(P-1)*S, 2], their weights f32[L*(P-1)*S] = segment length / S (0 where invalid))."""
+    sample points f32[L*(P-1)*S, 2], their weights f32[L*(P-1)*S] = segment length / S (0 where invalid), their
+    segment's direction f32[L*(P-1)*S, 2] (end - start, the line's point order))."""
     a, b = lines[:, :-1], lines[:, 1:]  # [L, P-1, 2]
     seg_len = jnp.linalg.norm(b - a, axis=-1)
     sv = jnp.broadcast_to(line_valid[:, None], seg_len.shape)
     t = (jnp.arange(samples, dtype=lines.dtype) + 0.5) / samples  # [S]
     pts = a[..., None, :] + t[:, None] * (b - a)[..., None, :]  # [L, P-1, S, 2]
     w = jnp.where(sv, seg_len, 0.0)[..., None] / samples * jnp.ones((samples,), lines.dtype)
-    return a.reshape(-1, 2), b.reshape(-1, 2), sv.reshape(-1), pts.reshape(-1, 2), w.reshape(-1)
+    direction = jnp.broadcast_to((b - a)[..., None, :], pts.shape)
+    return (a.reshape(-1, 2), b.reshape(-1, 2), sv.reshape(-1), pts.reshape(-1, 2), w.reshape(-1),
+            direction.reshape(-1, 2))
 
 
 def cutfree_frame_sums(pred: jax.Array, pred_exists: jax.Array, gt: jax.Array, gt_valid: jax.Array, *,
@@ -179,14 +194,15 @@ def cutfree_frame_sums(pred: jax.Array, pred_exists: jax.Array, gt: jax.Array, g
         (a point exactly on the other set is a hit, unlike the paper's F1).
 
     Returns:
-      {key: f32[]} for `_CUTFREE_KEYS`: predicted / GT length, the length within the threshold of the other set,
+      {key: f32[]} for `_CUTFREE_KEYS`: predicted / GT length, the length within the threshold of the other set
+      (*_directed: of a segment of the other set running the same way),
       length-weighted distance sums to the other set (counted only when both sets are non-empty, with the length
       they cover in *_dist_len), and the same distance sums restricted to the hits.
     """
-    pa, pb, psv, pp, pw = _segment_samples(pred, pred_exists, samples)
-    ga, gb, gsv, gp, gw = _segment_samples(gt, gt_valid, samples)
-    d_pred = point_to_segments_distance(pp, ga, gb, gsv)  # predicted samples -> GT segments
-    d_gt = point_to_segments_distance(gp, pa, pb, psv)  # GT samples -> predicted segments
+    pa, pb, psv, pp, pw, pdir = _segment_samples(pred, pred_exists, samples)
+    ga, gb, gsv, gp, gw, gdir = _segment_samples(gt, gt_valid, samples)
+    d_pred, dd_pred = _point_to_segments(pp, ga, gb, gsv, pdir)  # predicted samples -> GT segments
+    d_gt, dd_gt = _point_to_segments(gp, pa, pb, psv, gdir)  # GT samples -> predicted segments
     both = jnp.any(pred_exists) & jnp.any(gt_valid)
     hit_p, hit_g = d_pred <= threshold, d_gt <= threshold
     fin_p = jnp.where(both, d_pred, 0.0)
@@ -198,19 +214,25 @@ def cutfree_frame_sums(pred: jax.Array, pred_exists: jax.Array, gt: jax.Array, g
         "cf_gt_dist_sum": jnp.sum(gw * fin_g), "cf_gt_dist_len": jnp.where(both, jnp.sum(gw), 0.0),
         "cf_pred_hit_dist_sum": jnp.sum(jnp.where(hit_p, pw * fin_p, 0.0)),
         "cf_gt_hit_dist_sum": jnp.sum(jnp.where(hit_g, gw * fin_g, 0.0)),
+        "cf_pred_hit_len_directed": jnp.sum(jnp.where(dd_pred <= threshold, pw, 0.0)),
+        "cf_gt_hit_len_directed": jnp.sum(jnp.where(dd_gt <= threshold, gw, 0.0)),
     }
 
 
 def reduce_cutfree(s: dict[str, np.ndarray]) -> dict[str, float]:
     """Cut-invariant sums (f32[S] per key, S steps) -> {map_f1_cutfree, map_precision_cutfree, map_recall_cutfree,
-    map_chamfer_cutfree, map_chamfer_within_cutfree}, each the mean over the steps where it is defined (NaN if
-    none).
+    map_chamfer_cutfree, map_chamfer_within_cutfree} + {map_f1_cutfree_directed, map_precision_cutfree_directed,
+    map_recall_cutfree_directed} when the sums carry the directed hits, each the mean over the steps where it is
+    defined (NaN if none).
 
     precision = predicted length within the threshold of the GT / predicted length; recall = GT length within
     the threshold of the prediction / GT length; F1 = 2PR/(P+R) (0 when one of them is 0);
     chamfer = 0.5 (mean distance of predicted arc length to the GT + mean distance of GT arc length to the
     prediction), metres, over frames with both sets non-empty; chamfer_within = the same means over the arc
-    length within the threshold only (how close what is found is).
+    length within the threshold only (how close what is found is). The *_directed scores count a sample as a hit
+    only where a segment of the other set within the threshold runs the same way (positive dot product of the
+    segment directions, in point order): the cut still does not matter, the direction does; the gap to the plain
+    cut-free score is the length found but decoded the wrong way round.
     """
     s = {k: np.asarray(v, np.float64) for k, v in s.items()}
 
@@ -220,8 +242,6 @@ def reduce_cutfree(s: dict[str, np.ndarray]) -> dict[str, float]:
 
     prec = ratio(s["cf_pred_hit_len"], s["cf_pred_len"])
     rec = ratio(s["cf_gt_hit_len"], s["cf_gt_len"])
-    p0, r0 = np.nan_to_num(prec), np.nan_to_num(rec)
-    f1 = np.where(np.isnan(prec) & np.isnan(rec), np.nan, np.nan_to_num(ratio(2 * p0 * r0, p0 + r0)))
     cham = 0.5 * (ratio(s["cf_pred_dist_sum"], s["cf_pred_dist_len"]) + ratio(s["cf_gt_dist_sum"], s["cf_gt_dist_len"]))
     within = 0.5 * (ratio(s["cf_pred_hit_dist_sum"], s["cf_pred_hit_len"])
                     + ratio(s["cf_gt_hit_dist_sum"], s["cf_gt_hit_len"]))
@@ -230,8 +250,18 @@ def reduce_cutfree(s: dict[str, np.ndarray]) -> dict[str, float]:
         x = x[~np.isnan(x)]
         return float(x.mean()) if x.size else float("nan")
 
-    return {"map_f1_cutfree": mean(f1), "map_precision_cutfree": mean(prec), "map_recall_cutfree": mean(rec),
-            "map_chamfer_cutfree": mean(cham), "map_chamfer_within_cutfree": mean(within)}
+    def f1_of(prec, rec):
+        p0, r0 = np.nan_to_num(prec), np.nan_to_num(rec)
+        return np.where(np.isnan(prec) & np.isnan(rec), np.nan, np.nan_to_num(ratio(2 * p0 * r0, p0 + r0)))
+
+    out = {"map_f1_cutfree": mean(f1_of(prec, rec)), "map_precision_cutfree": mean(prec),
+           "map_recall_cutfree": mean(rec), "map_chamfer_cutfree": mean(cham), "map_chamfer_within_cutfree": mean(within)}
+    if "cf_pred_hit_len_directed" in s:  # sums made before the directed hits existed lack them
+        dprec = ratio(s["cf_pred_hit_len_directed"], s["cf_pred_len"])
+        drec = ratio(s["cf_gt_hit_len_directed"], s["cf_gt_len"])
+        out.update({"map_f1_cutfree_directed": mean(f1_of(dprec, drec)), "map_precision_cutfree_directed": mean(dprec),
+                    "map_recall_cutfree_directed": mean(drec)})
+    return out
 
 
 def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: jax.Array, gt_valid: jax.Array, *,
@@ -356,7 +386,7 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         "map_chamfer_corrected_skipped": float(s["chamfer_corrected_skipped"].sum()),
         **({"map_recall_by_length": [float(x) for x in ratio(s["length_tp"].sum(0), s["length_gt"].sum(0))],
             "map_gt_points_by_length": [float(x) for x in s["length_gt"].sum(0)]} if "length_tp" in s else {}),
-        **(reduce_cutfree({k: s[k] for k in _CUTFREE_KEYS}) if "cf_pred_len" in s else {}),
+        **(reduce_cutfree({k: s[k] for k in _CUTFREE_KEYS if k in s}) if "cf_pred_len" in s else {}),
     }
 
 
