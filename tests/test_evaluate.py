@@ -212,9 +212,10 @@ def test_map_metrics_of_laterally_shifted_lines():
         assert m["map_chamfer_corrected"] == pytest.approx(0.5, abs=1e-5)  # set-based, metres
         # the cut-invariant score reaches the results beside the paper's: lines 0.5 m off lie within 1.5 m
         assert m["map_f1_cutfree"] == pytest.approx(1.0) and m["map_chamfer_cutfree"] == pytest.approx(0.5, rel=1e-3)
+        assert m["map_f1_cutfree_directed"] == pytest.approx(1.0)  # shifted, not reversed
         assert m["map_chamfer_corrected_skipped"] == 0
         assert not any(k.startswith("map_") for k in res["tasks"]["traffic_simulation"][lb])
-    assert "F1 cutfr" in format_tables(res)
+    assert "F1 cutfr" in format_tables(res) and "F1 cfdir" in format_tables(res)
 
 
 def test_persistence_lanes_are_the_current_window_seen_from_the_logged_future_poses():

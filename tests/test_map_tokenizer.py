@@ -472,13 +472,16 @@ def test_fresh_decoder_on_a_tokenizers_tokens(tmp_path):
 
 
 def test_config_file_variants():
-    """`FILE.py:ARG` calls get_config(ARG); the accelerator config's three variants differ where they say."""
+    """`FILE.py:ARG` calls get_config(ARG); the accelerator config's variants differ where they say."""
     d = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:decoder512"))
     f = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:full"))
     p = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:probe"))
     assert d.model.decoder.d_model == 512 and d.train.decoder_only and not d.train.init_decoder
     assert not f.train.decoder_only and f.train.quantize and not p.train.quantize
     assert f.data.dir == d.data.dir == p.data.dir and f.train.num_steps == p.train.num_steps
+    r = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:directional"))
+    assert r.raster.direction and not f.raster.direction and r.train.quantize and not r.train.decoder_only
+    assert r.train.init_from == "checkpoints/map_tokenizer_refit" and r.data.dir == f.data.dir
     with pytest.raises(ValueError, match="variant 'nope'"):
         load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:nope"))
     with pytest.raises(FileNotFoundError, match="config file not found"):

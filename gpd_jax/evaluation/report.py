@@ -38,7 +38,7 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
              ("ag Col%", "agent_collision"), ("ag Cf%", "agent_collision_frames"),
              ("map F1", "map_f1"), ("map Lat", "map_lateral"), ("map Ch", "map_chamfer")]
     cols2 = [("F1", "map_f1"), ("Prec", "map_precision"), ("Rec", "map_recall"), ("F1 cutfr", "map_f1_cutfree"),
-             ("Lat", "map_lateral"),
+             ("F1 cfdir", "map_f1_cutfree_directed"), ("Lat", "map_lateral"),
              ("Ch", "map_chamfer"), ({"paper": "Ch paper", "corrected": "Ch corr"}[other_variant(variant)], f"map_chamfer_{other_variant(variant)}")]
 
     def table(title, rows: list[tuple[str, dict]], cols) -> list[str]:
