@@ -36,12 +36,23 @@ sys.path.insert(0, os.path.dirname(__file__))
 import gpd_sumo_real_lane_residual_mix_gpu  # noqa: E402
 
 
-def get_config():
+TOKENS = ("refit", "directional")
+
+
+def get_config(tokens: str = "refit"):
+    """`tokens` "directional" (`configs/gpd_sumo_refit.py:directional`, not run yet: no accelerator was lent when
+    that tokenizer was made): the same recipe from checkpoints/gpd_sumo_refit onto the tokens of
+    checkpoints/map_tokenizer_directional (63 % of the training stores' tokens equal the refit ones), on copies
+    of the training stores encoded with it (data/directional/*, made as above)."""
+    if tokens not in TOKENS:
+        raise ValueError(f"configs/gpd_sumo_refit.py: tokens {tokens!r} is not one of {TOKENS}")
     c = gpd_sumo_real_lane_residual_mix_gpu.get_config()
-    c.data.dir = "data/refit/gen_curved_train:0.2,data/refit/legacy_train:0.4,data/refit/mix_real_train:0.4"
-    c.model.map_tokenizer = "checkpoints/map_tokenizer_refit"
+    c.data.dir = ",".join(f"data/{tokens}/{s}:{w}" for s, w in
+                          (("gen_curved_train", 0.2), ("legacy_train", 0.4), ("mix_real_train", 0.4)))
+    c.model.map_tokenizer = f"checkpoints/map_tokenizer_{tokens}"
     t = c.train
-    t.init_from = "checkpoints/gpd_sumo_real_lane_residual_soup_legacy2"
+    t.init_from = ("checkpoints/gpd_sumo_real_lane_residual_soup_legacy2" if tokens == "refit"
+                   else "checkpoints/gpd_sumo_refit")
     t.steps = 2400
     t.checkpoint_every = 600
     return c

@@ -175,3 +175,17 @@ def test_shipped_tokenizer_is_the_decoder_config():
             assert last[section].pop(key) == neutral
     assert {k: last[k] for k in ("data", "train", "model", "raster", "loss")} == {
         k: ship[k] for k in ("data", "train", "model", "raster", "loss")}
+
+
+def test_refit_gpd_config_tokens():
+    """configs/gpd_sumo_refit.py: the shipped refit recipe by default; `:directional` the same recipe moved onto the
+    directional tokenizer's tokens (stores and tokenizer named alike), from the refit GPD."""
+    r = load_config(os.path.join(ROOT, "configs/gpd_sumo_refit.py"))
+    d = load_config(os.path.join(ROOT, "configs/gpd_sumo_refit.py:directional"))
+    assert r.model.map_tokenizer == "checkpoints/map_tokenizer_refit"
+    assert r.train.init_from == "checkpoints/gpd_sumo_real_lane_residual_soup_legacy2"
+    assert r.data.dir == "data/refit/gen_curved_train:0.2,data/refit/legacy_train:0.4,data/refit/mix_real_train:0.4"
+    assert d.model.map_tokenizer == "checkpoints/map_tokenizer_directional"
+    assert d.train.init_from == "checkpoints/gpd_sumo_refit" and d.data.dir == r.data.dir.replace("refit", "directional")
+    with pytest.raises(ValueError, match="tokens 'x'"):
+        load_config(os.path.join(ROOT, "configs/gpd_sumo_refit.py:x"))

@@ -486,3 +486,19 @@ def test_config_file_variants():
         load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:nope"))
     with pytest.raises(FileNotFoundError, match="config file not found"):
         load_config(os.path.join(ROOT, "configs/missing.py:x"))
+
+
+def test_shipped_directional_tokenizer_sees_which_way_lanes_run():
+    """checkpoints/map_tokenizer_directional reads SLEDGE's heading channels: the same road with every lane turned
+    the other way gets other tokens; the binary refit tokenizer it started from cannot tell them apart."""
+    x = np.linspace(-60.0, 60.0, 128, dtype=np.float32)
+    road = np.stack([np.stack([x, np.full_like(x, 0.0)], -1), np.stack([x[::-1], np.full_like(x, 3.5)], -1)])
+    valid, pose = np.ones(road.shape[:2], bool), np.zeros(3, np.float32)
+    diff = {}
+    for name in ("map_tokenizer_directional", "map_tokenizer_refit"):
+        tok = load_tokenizer(os.path.join(ROOT, "checkpoints", name))
+        a, b = (np.asarray(tok.encode_lanes(tok.params, jnp.asarray(r), valid, pose)) for r in (road, road[:, ::-1]))
+        diff[name] = int((a != b).sum())
+    assert diff["map_tokenizer_refit"] == 0 and diff["map_tokenizer_directional"] > 0
+    directional = load_tokenizer(os.path.join(ROOT, "checkpoints", "map_tokenizer_directional"))
+    assert directional.config.raster.direction and directional.fingerprint() == "ab468f23bfb2789e"
