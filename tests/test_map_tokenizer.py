@@ -177,6 +177,10 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     metrics = train_and_evaluate(cfg, wd)
     for key in ("f1", "lateral", "chamfer", "chamfer_corrected", "codebook_usage", "perplexity"):
         assert key in metrics
+    # the recall by GT line ends inside the window: every GT line in exactly one group
+    from gpd_jax.metrics.map import END_LABELS
+    assert list(metrics["recall_by_gt_ends"]) == list(END_LABELS)
+    assert sum(metrics["gt_lines_by_ends"].values()) == sum(metrics["gt_lines_by_length"].values()) > 0
     tok = load_tokenizer(wd)
     cfg3 = small_config("--config.train.num_steps=3", "--config.train.checkpoint_every=1",
                         "--config.train.eval_every=100")

@@ -9,7 +9,7 @@ import pytest
 from gpd_jax.metrics import (accumulate, agent_metric_sums, agent_metrics, box_corners, box_overlap_pairwise,
                              lateral_distances, map_metric_sums, map_metrics, reduce_agent_metrics,
                              reduce_map_metrics, set_chamfer)
-from gpd_jax.metrics.map import LENGTH_EDGES_M, length_labels
+from gpd_jax.metrics.map import END_LABELS, LENGTH_EDGES_M, length_labels
 
 SIZE = np.array([4.5, 1.9], np.float32)
 
@@ -246,6 +246,22 @@ def test_map_recall_by_gt_length():
     assert np.isnan(r["map_recall_by_length"][1]) and np.isnan(r["map_recall_by_length"][3])  # no GT lines there
     assert r["map_gt_points_by_length"] == [20.0, 0.0, 20.0, 0.0]
     assert r["map_recall"] == pytest.approx(0.5)  # the groups split the overall recall
+
+
+def test_map_recall_by_gt_ends():
+    gt, gv, pred, logits = _map_case()
+    gv[2] = True
+    gt[0] = np.stack([np.linspace(-32.0, 32.0, 20), np.full(20, 3.0)], -1)  # clipped by the window at both ends
+    gt[1] = np.stack([np.linspace(-31.8, 10.0, 20), np.full(20, -3.0)], -1)  # clipped at one end (within 0.5 m)
+    gt[2] = np.stack([np.full(20, 5.0), np.linspace(-10.0, 10.0, 20)], -1)  # both ends inside (a junction)
+    pred[:3] = gt[:3] + np.array([0.0, 0.5])
+    pred[1, :, 1] += 2.0  # the one-end line missed
+    logits[:3] = 5.0
+    r = map_metrics(pred, logits, gt, gv, window_half=32.0)
+    assert r["map_recall_by_ends"] == [1.0, 0.0, 1.0]
+    assert r["map_gt_points_by_ends"] == [20.0, 20.0, 20.0]
+    assert len(END_LABELS) == 3
+    assert "map_recall_by_ends" not in map_metrics(pred, logits, gt, gv)  # only with window_half
 
 
 def test_lateral_hand_computed():

@@ -15,7 +15,8 @@ f1/precision/recall/chamfer/chamfer_within_cutfree (lengths of line within 1.5 m
 the cut into lines; *_cutfree_directed: only where the other set runs the same way), the raster-level
 reconstruction raster_iou and raster_precision/recall/f1 (decoded lines drawn with the tokenizer's rasterizer
 against its input raster, 1.5 m tolerance), plus codebook_usage (fraction of codes used by the evaluated tokens)
-and perplexity. Frames 0, s, 2s, ... (`--frame-stride s`) of every
+and perplexity, and the paper's recall by GT line length and by how many of a line's ends lie inside the window
+rather than on its border (recall_by_gt_ends). Frames 0, s, 2s, ... (`--frame-stride s`) of every
 sample are evaluated. `diagnose` (no tokenizer) describes the GT cut of the same frames: lines per frame before and after the 50-line cap,
 line lengths, what 20 points per line lose, and the learnability probe: the paper's F1 of the GT re-cut
 (`recut_polylines`: lines split at their middle, or joined where one-to-one) against the GT, beside the cut-invariant

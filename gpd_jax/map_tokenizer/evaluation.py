@@ -16,11 +16,11 @@ import numpy as np
 
 import jax.numpy as jnp
 
-from gpd_jax.data.lanes import RECUT_MODES, recut_polylines  # noqa: F401  (re-exported)
+from gpd_jax.data.lanes import HALF, RECUT_MODES, recut_polylines  # noqa: F401  (re-exported)
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.raster import raster_channels, rasterize
 from gpd_jax.metrics.matching import match_lines
-from gpd_jax.metrics.map import (LENGTH_EDGES_M, cutfree_frame_sums, length_labels, map_metric_sums,
+from gpd_jax.metrics.map import (END_LABELS, LENGTH_EDGES_M, cutfree_frame_sums, length_labels, map_metric_sums,
                                  reduce_map_metrics)
 
 
@@ -128,7 +128,8 @@ def make_eval_step(graphdef, config=None, quantized: bool | None = None):
 
     def eval_step(params, raster, lanes, lanes_valid):
         out = core.forward(graphdef, params, raster, False, quantized)
-        sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M)
+        sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M,
+                               window_half=HALF)
         if config is not None:
             occupancy = raster[..., 0] if raster.ndim == 4 else raster
             sums.update(raster_sums(decoded_raster(config, out["points"], out["logits"]), occupancy))
@@ -178,6 +179,10 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
         "recall_by_gt_length": dict(zip(length_labels(), m["map_recall_by_length"])),
         "gt_lines_by_length": dict(zip(length_labels(), (int(round(x / lanes_points)) for x in
                                                          m["map_gt_points_by_length"]))),
+        # ... and for GT lines by how many ends lie inside the window (junctions, lane ends) rather than on its
+        # border: where the paper's F1 loses its points (checkpoints/map_tokenizer/README.md)
+        "recall_by_gt_ends": dict(zip(END_LABELS, m["map_recall_by_ends"])),
+        "gt_lines_by_ends": dict(zip(END_LABELS, (int(round(x / lanes_points)) for x in m["map_gt_points_by_ends"]))),
     }
 
 

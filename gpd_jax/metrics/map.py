@@ -22,7 +22,9 @@ counted in `map_chamfer_corrected_skipped`.
 
 Diagnostic ("map_recall_by_length", with `length_edges`): the paper's per-point recall, TP / (P * #GT lines),
 separately for GT lines grouped by arc length (e.g. short junction connectors against long through lanes),
-pooled over all frames and steps.
+pooled over all frames and steps. "map_recall_by_ends" (with `window_half`): the same recall for GT lines grouped
+by how many of their two ends lie inside the frame's window rather than where the window clips them (0: a line
+through the window, cut by its border only; 1; 2: a line that starts and ends at junctions or lane ends inside).
 
 Cut-invariant score ("map_f1_cutfree", "map_precision_cutfree", "map_recall_cutfree", "map_chamfer_cutfree",
 "map_chamfer_within_cutfree"; not in the paper, reported beside its F1, never instead): the paper's F1 compares
@@ -50,6 +52,8 @@ import numpy as np
 from gpd_jax.metrics.matching import match_lines
 
 LENGTH_EDGES_M = (5.0, 15.0, 30.0, 60.0)  # default GT line length groups of the recall diagnostic, metres
+END_LABELS = ("no end inside (through the window)", "one end inside", "both ends inside")
+BORDER_TOLERANCE_M = 0.5  # a GT line end this close to the window's border is where the window clipped it
 
 
 def length_labels(edges=LENGTH_EDGES_M) -> list[str]:
@@ -267,8 +271,8 @@ def reduce_cutfree(s: dict[str, np.ndarray]) -> dict[str, float]:
 def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: jax.Array, gt_valid: jax.Array, *,
                     threshold: float = 1.5, step_axis: int | None = None,
                     count_exact_hits: bool = False,
-                    length_edges: tuple[float, ...] | None = None, cutfree: bool = True,
-                    cutfree_samples: int = CUTFREE_SAMPLES) -> dict[str, jax.Array]:
+                    length_edges: tuple[float, ...] | None = None, window_half: float | None = None,
+                    cutfree: bool = True, cutfree_samples: int = CUTFREE_SAMPLES) -> dict[str, jax.Array]:
     """Sums and counts of the map metrics for a batch of decoded frames.
 
     Args:
@@ -283,6 +287,9 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         every frame as one step.
       length_edges: ascending GT line lengths (metres, e.g. `LENGTH_EDGES_M`) that split the GT lines into
         len + 1 groups; adds the sums of the recall-by-length diagnostic ("length_tp", "length_gt": f32[S, G]).
+      window_half: the half size of the frames' square window (32 m for SLEDGE lanes); adds the sums of the
+        recall-by-ends diagnostic ("ends_tp", "ends_gt": f32[S, 3], GT lines by how many ends lie more than
+        `BORDER_TOLERANCE_M` inside the window).
       cutfree: also the sums of the cut-invariant score (`cutfree_frame_sums` at the same threshold, keys "cf_*"),
         reported beside the paper's F1 as map_f1_cutfree etc.; cutfree_samples: its samples per segment.
 
@@ -348,13 +355,19 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         onehot = jax.nn.one_hot(group, len(length_edges) + 1) * gv[..., None]  # [..., L, G]
         out["length_tp"] = reduce(jnp.einsum("...l,...lg->...g", tp_line, onehot), groups=1)
         out["length_gt"] = reduce(p * jnp.sum(onehot, -2), groups=1)
+    if window_half is not None:
+        ends = gt_points[..., (0, -1), :]  # [..., L, 2, 2]
+        inside = jnp.max(jnp.abs(ends), -1) < window_half - BORDER_TOLERANCE_M
+        onehot = jax.nn.one_hot(jnp.sum(inside, -1), len(END_LABELS)) * gv[..., None]  # [..., L, 3]
+        out["ends_tp"] = reduce(jnp.einsum("...l,...lg->...g", tp_line, onehot), groups=1)
+        out["ends_gt"] = reduce(p * jnp.sum(onehot, -2), groups=1)
     return out
 
 
 def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
     """Sums -> {map_f1, map_precision, map_recall, map_lateral, map_chamfer, map_chamfer_corrected,
     map_chamfer_corrected_skipped} (+ map_recall_by_length and map_gt_points_by_length, lists over the length
-    groups, when the sums have them; + the cut-invariant map_*_cutfree of `reduce_cutfree` when they have its
+    groups, and map_recall_by_ends / map_gt_points_by_ends over `END_LABELS`, when the sums have them; + the cut-invariant map_*_cutfree of `reduce_cutfree` when they have its
     "cf_*" sums).
 
     Per step: precision = TP/(TP+FP), recall = TP/(TP+FN), F1 = 2TP/(2TP+FP+FN) (= 2PR/(P+R)), lateral = sum/TP,
@@ -386,12 +399,15 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         "map_chamfer_corrected_skipped": float(s["chamfer_corrected_skipped"].sum()),
         **({"map_recall_by_length": [float(x) for x in ratio(s["length_tp"].sum(0), s["length_gt"].sum(0))],
             "map_gt_points_by_length": [float(x) for x in s["length_gt"].sum(0)]} if "length_tp" in s else {}),
+        **({"map_recall_by_ends": [float(x) for x in ratio(s["ends_tp"].sum(0), s["ends_gt"].sum(0))],
+            "map_gt_points_by_ends": [float(x) for x in s["ends_gt"].sum(0)]} if "ends_tp" in s else {}),
         **(reduce_cutfree({k: s[k] for k in _CUTFREE_KEYS if k in s}) if "cf_pred_len" in s else {}),
     }
 
 
 _map_metric_sums_jit = jax.jit(map_metric_sums, static_argnames=("threshold", "step_axis", "count_exact_hits",
-                                                                 "length_edges", "cutfree", "cutfree_samples"))
+                                                                 "length_edges", "window_half", "cutfree",
+                                                                 "cutfree_samples"))
 
 
 def map_metrics(*args, **kwargs) -> dict[str, float]:
