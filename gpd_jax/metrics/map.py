@@ -349,26 +349,27 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
                          batch_size=min(n, 4))
         per_frame.update({k: v.reshape(lead_shape) for k, v in cf.items()})
     out = {k: reduce(v) for k, v in per_frame.items()}
+
+    def recall_groups(name, group, num_groups):  # TP and GT points of the GT lines in each group i32[..., L]
+        onehot = jax.nn.one_hot(group, num_groups) * gv[..., None]  # [..., L, G]
+        out[name + "_tp"] = reduce(jnp.einsum("...l,...lg->...g", tp_line, onehot), groups=1)
+        out[name + "_gt"] = reduce(p * jnp.sum(onehot, -2), groups=1)
+
     if length_edges is not None:
         glen = jnp.sum(jnp.linalg.norm(jnp.diff(gt_points, axis=-2), axis=-1), -1)  # [..., L]
-        group = jnp.searchsorted(jnp.asarray(length_edges, glen.dtype), glen, side="right")
-        onehot = jax.nn.one_hot(group, len(length_edges) + 1) * gv[..., None]  # [..., L, G]
-        out["length_tp"] = reduce(jnp.einsum("...l,...lg->...g", tp_line, onehot), groups=1)
-        out["length_gt"] = reduce(p * jnp.sum(onehot, -2), groups=1)
+        recall_groups("length", jnp.searchsorted(jnp.asarray(length_edges, glen.dtype), glen, side="right"),
+                      len(length_edges) + 1)
     if window_half is not None:
-        ends = gt_points[..., (0, -1), :]  # [..., L, 2, 2]
-        inside = jnp.max(jnp.abs(ends), -1) < window_half - BORDER_TOLERANCE_M
-        onehot = jax.nn.one_hot(jnp.sum(inside, -1), len(END_LABELS)) * gv[..., None]  # [..., L, 3]
-        out["ends_tp"] = reduce(jnp.einsum("...l,...lg->...g", tp_line, onehot), groups=1)
-        out["ends_gt"] = reduce(p * jnp.sum(onehot, -2), groups=1)
+        inside = jnp.max(jnp.abs(gt_points[..., (0, -1), :]), -1) < window_half - BORDER_TOLERANCE_M  # [..., L, 2]
+        recall_groups("ends", jnp.sum(inside, -1), len(END_LABELS))
     return out
 
 
 def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
     """Sums -> {map_f1, map_precision, map_recall, map_lateral, map_chamfer, map_chamfer_corrected,
     map_chamfer_corrected_skipped} (+ map_recall_by_length and map_gt_points_by_length, lists over the length
-    groups, and map_recall_by_ends / map_gt_points_by_ends over `END_LABELS`, when the sums have them; + the cut-invariant map_*_cutfree of `reduce_cutfree` when they have its
-    "cf_*" sums).
+    groups, and map_recall_by_ends / map_gt_points_by_ends over `END_LABELS`, when the sums have them; + the
+    cut-invariant map_*_cutfree of `reduce_cutfree` when they have its "cf_*" sums).
 
     Per step: precision = TP/(TP+FP), recall = TP/(TP+FN), F1 = 2TP/(2TP+FP+FN) (= 2PR/(P+R)), lateral = sum/TP,
     Chamfer = sum/(2 P #GT lines), corrected Chamfer = mean over frames with both sets non-empty. Each is then the
@@ -397,10 +398,9 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         "map_chamfer": mean(ratio(s["chamfer_sum"], s["chamfer_den"])),
         "map_chamfer_corrected": mean(ratio(s["chamfer_corrected_sum"], s["chamfer_corrected_count"])),
         "map_chamfer_corrected_skipped": float(s["chamfer_corrected_skipped"].sum()),
-        **({"map_recall_by_length": [float(x) for x in ratio(s["length_tp"].sum(0), s["length_gt"].sum(0))],
-            "map_gt_points_by_length": [float(x) for x in s["length_gt"].sum(0)]} if "length_tp" in s else {}),
-        **({"map_recall_by_ends": [float(x) for x in ratio(s["ends_tp"].sum(0), s["ends_gt"].sum(0))],
-            "map_gt_points_by_ends": [float(x) for x in s["ends_gt"].sum(0)]} if "ends_tp" in s else {}),
+        **{f"map_{k}_by_{name}": v for name in ("length", "ends") if name + "_tp" in s
+           for k, v in (("recall", [float(x) for x in ratio(s[name + "_tp"].sum(0), s[name + "_gt"].sum(0))]),
+                        ("gt_points", [float(x) for x in s[name + "_gt"].sum(0)]))},
         **(reduce_cutfree({k: s[k] for k in _CUTFREE_KEYS if k in s}) if "cf_pred_len" in s else {}),
     }
 
