@@ -390,6 +390,11 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         x = x[~np.isnan(x)]
         return float(x.mean()) if x.size else float("nan")
 
+    def groups(name):  # the recall diagnostic of `map_metric_sums`'s groups "length" / "ends", pooled over steps
+        tp, gt = s[name + "_tp"].sum(0), s[name + "_gt"].sum(0)
+        return {f"map_recall_by_{name}": [float(x) for x in ratio(tp, gt)],
+                f"map_gt_points_by_{name}": [float(x) for x in gt]}
+
     return {
         "map_f1": mean(f1),
         "map_precision": mean(prec),
@@ -398,9 +403,7 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         "map_chamfer": mean(ratio(s["chamfer_sum"], s["chamfer_den"])),
         "map_chamfer_corrected": mean(ratio(s["chamfer_corrected_sum"], s["chamfer_corrected_count"])),
         "map_chamfer_corrected_skipped": float(s["chamfer_corrected_skipped"].sum()),
-        **{f"map_{k}_by_{name}": v for name in ("length", "ends") if name + "_tp" in s
-           for k, v in (("recall", [float(x) for x in ratio(s[name + "_tp"].sum(0), s[name + "_gt"].sum(0))]),
-                        ("gt_points", [float(x) for x in s[name + "_gt"].sum(0)]))},
+        **{k: v for name in ("length", "ends") if name + "_tp" in s for k, v in groups(name).items()},
         **(reduce_cutfree({k: s[k] for k in _CUTFREE_KEYS if k in s}) if "cf_pred_len" in s else {}),
     }
 
