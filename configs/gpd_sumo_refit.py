@@ -36,23 +36,41 @@ sys.path.insert(0, os.path.dirname(__file__))
 import gpd_sumo_real_lane_residual_mix_gpu  # noqa: E402
 
 
-TOKENS = ("refit", "directional")
+TOKENS = ("refit", "directional", "directional_cpu")
 
 
 def get_config(tokens: str = "refit"):
-    """`tokens` "directional" (`configs/gpd_sumo_refit.py:directional`, not run yet: no accelerator was lent when
-    that tokenizer was made): the same recipe from checkpoints/gpd_sumo_refit onto the tokens of
+    """`tokens` "directional" (`configs/gpd_sumo_refit.py:directional`, the accelerator recipe, not run: no
+    accelerator was lent): the same recipe from checkpoints/gpd_sumo_refit onto the tokens of
     checkpoints/map_tokenizer_directional (63 % of the training stores' tokens equal the refit ones), on copies
-    of the training stores encoded with it (data/directional/*, made as above)."""
+    of the training stores encoded with it (data/directional/*, made as above).
+
+    "directional_cpu" is what made checkpoints/gpd_sumo_directional on the 2-core CPU (2026-11-27, 53 min): the
+    CPU recipe's batch of 8 (configs/gpd_sumo_real_lane_residual_mix_legacy.py), 2 rollout passes with map
+    feedback instead of 8 (8.3 s a step with 8, 4.0 s with 2), 800 steps, shipped alone (not averaged back: its
+    dev rule, in checkpoints/gpd_sumo_directional/README.md, scored both and chose it).
+
+        python train.py --config configs/gpd_sumo_refit.py:directional_cpu --workdir runs/directional
+        python -m gpd_jax.checkpoint export runs/directional checkpoints/gpd_sumo_directional --step 800 \\
+            --tokenizer-ref ../map_tokenizer_directional"""
     if tokens not in TOKENS:
         raise ValueError(f"configs/gpd_sumo_refit.py: tokens {tokens!r} is not one of {TOKENS}")
     c = gpd_sumo_real_lane_residual_mix_gpu.get_config()
-    c.data.dir = ",".join(f"data/{tokens}/{s}:{w}" for s, w in
+    stores = tokens.removesuffix("_cpu")
+    c.data.dir = ",".join(f"data/{stores}/{s}:{w}" for s, w in
                           (("gen_curved_train", 0.2), ("legacy_train", 0.4), ("mix_real_train", 0.4)))
-    c.model.map_tokenizer = f"checkpoints/map_tokenizer_{tokens}"
+    c.model.map_tokenizer = f"checkpoints/map_tokenizer_{stores}"
     t = c.train
     t.init_from = ("checkpoints/gpd_sumo_real_lane_residual_soup_legacy2" if tokens == "refit"
                    else "checkpoints/gpd_sumo_refit")
     t.steps = 2400
     t.checkpoint_every = 600
+    if tokens == "directional_cpu":
+        t.batch_size = 8
+        t.rollout_passes = 2
+        t.steps = 800
+        t.warmup_steps = 50
+        t.checkpoint_every = 400
+        t.loader_threads = 2
+        t.log_every = 25
     return c

@@ -189,3 +189,17 @@ def test_refit_gpd_config_tokens():
     assert d.train.init_from == "checkpoints/gpd_sumo_refit" and d.data.dir == r.data.dir.replace("refit", "directional")
     with pytest.raises(ValueError, match="tokens 'x'"):
         load_config(os.path.join(ROOT, "configs/gpd_sumo_refit.py:x"))
+
+
+def test_shipped_directional_gpd_is_its_config():
+    """checkpoints/gpd_sumo_directional: configs/gpd_sumo_refit.py:directional_cpu as run (the CPU settings on the
+    directional stores, from the refit GPD), reading the directional tokenizer next to it."""
+    import json
+
+    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_directional/config.json"))
+    cfg = json.loads(load_config(f"{ROOT}/configs/gpd_sumo_refit.py:directional_cpu").to_json())
+    assert ship["model"].pop("map_tokenizer") == "../map_tokenizer_directional"
+    assert cfg["model"].pop("map_tokenizer") == "checkpoints/map_tokenizer_directional"
+    for section in ("data", "loss", "model", "rollout", "train"):
+        assert ship[section] == cfg[section], section
+    assert (cfg["train"]["batch_size"], cfg["train"]["rollout_passes"]) == (8, 2)
