@@ -15,7 +15,7 @@ Measures, in one run (so ratios are meaningful on a noisy shared machine):
 * `machine`: CPU model, instruction-set level (avx512/avx2/...), cores, JAX version and backend, so figures
   from different machines are never compared by accident; per run the native kernel's build target
   (`native_march`, `--native-march` to compare several in one run) and vector width, and for `auto` what it
-  chose at each shape and why (`auto_choices`: timings of both paths, measured or read from the cache).
+  chose at each shape and why (`auto_choices`: timings of every candidate path, measured or read from the cache).
 * the recompute rollout (the official method: a full forward over the whole prefix for every future frame,
   same model and weights) at batch 1, with the fastest full-prefix forward this machine has: dense attention
   (one masked softmax per layer, as the official code) and the chunked flash one are both timed at every prefix
