@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpd_jax.data import gpkg as gp
+from gpd_jax.data.sources import gpkg as gp
 
 MAP_NAME = "us-nv-las-vegas-strip"
 MAP_VERSION_DIR = "9.15.1915"

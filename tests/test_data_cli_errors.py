@@ -5,9 +5,10 @@ import os
 
 import pytest
 
-from gpd_jax.data import build
+from gpd_jax.data import jobs, store
 from gpd_jax.data.__main__ import main
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.sources import nuplan, sumo
 
 
 @pytest.mark.parametrize("content", ["<net><edge id='a'><lane", "<routes></routes>\n", "\x1f\x8b garbage"])
@@ -48,21 +49,30 @@ def test_nuplan_wrong_db_leaves_no_settings_and_retry_works(tmp_path, capsys):
 
 def test_settings_of_a_build_without_finished_jobs_are_replaced(tmp_path):
     out = str(tmp_path / "o")
-    assert build._check_settings(out, {"source": "sumo", "seed": 0}) is False  # recorded
-    assert build._check_settings(out, {"source": "sumo", "seed": 1}) is True  # nothing finished: replaced
-    assert build._check_settings(out, {"source": "sumo", "seed": 1}) is False  # the same: resumed
-    build.store.atomic_write_json(build._job_marker(out, 0), {"index": 0})
+    assert jobs.check_settings(out, {"source": "sumo", "seed": 0}) is False  # recorded
+    assert jobs.check_settings(out, {"source": "sumo", "seed": 1}) is True  # nothing finished: replaced
+    assert jobs.check_settings(out, {"source": "sumo", "seed": 1}) is False  # the same: resumed
+    store.atomic_write_json(jobs.job_marker(out, 0), {"index": 0})
     with pytest.raises(DataError, match="differing: seed"):
-        build._check_settings(out, {"source": "sumo", "seed": 2})
+        jobs.check_settings(out, {"source": "sumo", "seed": 2})
 
 
 @pytest.mark.parametrize("flag,value", [("--per-job", "0"), ("--scenarios", "0"), ("--scenarios", "-5"),
                                         ("--workers", "0"), ("--max-per-log", "0"), ("--per-job", "x")])
 def test_counts_must_be_positive(tmp_path, capsys, flag, value):
-    with pytest.raises(SystemExit) as e:
-        main(["build", "--out", str(tmp_path / "o"), flag, value])
-    assert e.value.code == 2
-    assert f"argument {flag}" in capsys.readouterr().err
+    assert main(["build", "--out", str(tmp_path / "o"), flag, value]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"error: argument {flag}" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("source", ["sumo", "nuplan", "scenarionet"])
+def test_split_must_be_train_val_or_test(tmp_path, capsys, source):
+    assert main(["build", "--source", source, "--out", str(tmp_path / "o"), "--split", "tset"]) == 2
+    errors = capsys.readouterr().err.splitlines()
+    assert len(errors) == 1  # one line, naming the flag, the value and what is allowed
+    assert "argument --split" in errors[0] and "'tset'" in errors[0]
+    assert all(f"'{s}'" in errors[0] for s in ("train", "val", "test"))
     assert not (tmp_path / "o").exists()
 
 
@@ -70,7 +80,7 @@ def test_counts_must_be_positive(tmp_path, capsys, flag, value):
 def test_counts_must_be_positive_in_the_library(tmp_path, kw):
     args = {"num_scenarios": 4, "per_job": 2, "workers": 1, **kw}
     with pytest.raises(DataError, match=next(iter(kw))):
-        build.build_sumo(str(tmp_path / "o"), args.pop("num_scenarios"), **args)
+        sumo.build_sumo(str(tmp_path / "o"), args.pop("num_scenarios"), **args)
     assert not os.path.exists(tmp_path / "o")
     with pytest.raises(DataError, match="max_per_log"):
-        build.build_nuplan(str(tmp_path / "n"), str(tmp_path), str(tmp_path), max_per_log=0)
+        nuplan.build_nuplan(str(tmp_path / "n"), str(tmp_path), str(tmp_path), max_per_log=0)

@@ -7,7 +7,7 @@ import pytest
 
 from data_fixtures import THETA, straight_road_log
 from gpd_jax.data import preprocess as pp
-from gpd_jax.data import sumo
+from gpd_jax.data.sources import sumo_traffic
 from gpd_jax.scene import TYPE_ID
 
 
@@ -89,7 +89,7 @@ def test_windows_and_iter_samples_deterministic():
 def test_bumper_to_centre_and_compass():
     front = np.array([[10.0, 0.0], [10.0, 0.0], [10.0, 0.0], [0.0, 0.0]])
     compass = np.array([90.0, 0.0, 180.0, 45.0])  # east, north, south, north-east
-    centre, h = sumo.bumper_to_centre(front, compass, np.array([4.0, 4.0, 4.0, 2.0 * np.sqrt(2)]))
+    centre, h = sumo_traffic.bumper_to_centre(front, compass, np.array([4.0, 4.0, 4.0, 2.0 * np.sqrt(2)]))
     np.testing.assert_allclose(h, [0.0, np.pi / 2, -np.pi / 2, np.pi / 4], atol=1e-12)
     np.testing.assert_allclose(centre, [[8.0, 0.0], [10.0, -2.0], [10.0, 2.0], [-1.0, -1.0]], atol=1e-12)
 
@@ -100,7 +100,7 @@ def test_fcd_parsing(tmp_path):
     f.write_text("timestep_time;vehicle_id;vehicle_x;vehicle_y;vehicle_angle;vehicle_speed\n"
                  "100.00;3;10.0;5.0;90.0;1.0\n100.00;7;50.0;0.0;270.0;2.0\n"
                  "100.10;3;10.1;5.0;90.0;1.0\n")
-    raw = sumo._fcd_to_rawlog(str(f), {"3": "g_car", "7": "g_bus"}, "x", "loc", sumo.SimConfig())
+    raw = sumo_traffic._fcd_to_rawlog(str(f), {"3": "g_car", "7": "g_bus"}, "x", "loc", sumo_traffic.SimConfig())
     assert raw.agent_ids == ("3", "7") and raw.num_frames == 2
     np.testing.assert_allclose(raw.agent_xy[0, 0], [10.0 - 2.3, 5.0])
     np.testing.assert_allclose(raw.agent_xy[0, 1], [56.0, 0.0], atol=1e-9)

@@ -10,7 +10,8 @@ import pytest
 
 from data_fixtures import straight_road_log, write_small_store
 from gpd_jax import geometry as geo
-from gpd_jax.data import loader, preprocess, roadgeom, store, sumo
+from gpd_jax.data import loader, preprocess, roadgeom, store
+from gpd_jax.data.sources import sumo_networks
 
 on_road = jax.jit(geo.on_road)
 area_kinds = jax.jit(geo.area_kinds)
@@ -113,10 +114,10 @@ def test_sumo_network_areas(tmp_path):
     """Lane `width` (A: 3.5 m, B: SUMO's default 3.2 m), a sidewalk left out, the junction `shape`."""
     net = tmp_path / "t.net.xml"
     net.write_text(NET)
-    areas = sumo.read_network_areas(str(net))
+    areas = sumo_networks.read_network_areas(str(net))
     kinds = sorted(a.kind for a in areas)
     assert kinds == [0, 0, 0, 1]  # A_0, A_1, B_0 lanes; junction J (dead end S has a degenerate shape)
-    lanes = sumo.read_network_lanes(str(net))
+    lanes = sumo_networks.read_network_lanes(str(net))
     idx = roadgeom.RoadIndex(areas)
     ego = np.zeros((11, 3))
     ego[:, 0] = np.linspace(-40, 40, 11)

@@ -193,7 +193,7 @@ def test_inspect_keys(small_store, tmp_path):
 
 
 def test_box_overlap():
-    from gpd_jax.data.geometry import boxes_overlap
+    from gpd_jax.data.boxes import boxes_overlap
     size = np.array([4.0, 2.0])
     assert boxes_overlap([0, 0], 0.0, size, [3.9, 0], 0.0, size)
     assert not boxes_overlap([0, 0], 0.0, size, [4.1, 0], 0.0, size)

@@ -9,9 +9,9 @@ import struct
 import numpy as np
 import pytest
 
-from gpd_jax.data import gpkg, nuplan
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.raw import RawLog
+from gpd_jax.data.sources import gpkg, nuplan
 from gpd_jax.scene import TYPE_ID
 
 import nuplan_fixtures as fx

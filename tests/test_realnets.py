@@ -6,7 +6,8 @@ import os
 import numpy as np
 import pytest
 
-from gpd_jax.data import realnets, sumo
+from gpd_jax.data.__main__ import main as data_main
+from gpd_jax.data.sources import realnets, sumo_networks
 from gpd_jax.data.errors import DataError
 
 
@@ -34,7 +35,7 @@ def test_catalogue_splits_and_boxes():
 
 
 def test_edges_inside_boxes_are_disjoint():
-    net = os.path.join(sumo.sumo_home(), "tools", "game", "DRT", "osm.net.xml")
+    net = os.path.join(sumo_networks.sumo_home(), "tools", "game", "DRT", "osm.net.xml")
     a = realnets.edges_inside(net, (400.0, -10.0, 1330.0, 700.0))
     b = realnets.edges_inside(net, (1430.0, -10.0, 2400.0, 700.0))
     wide = realnets.edges_inside(net, (400.0, -10.0, 2400.0, 700.0))
@@ -46,7 +47,7 @@ def test_prepare_tile_cached_inside_its_box_and_clear_of_test_networks(tmp_path)
     assert list(out) == ["dev"] and len(out["dev"]) == 1
     path = out["dev"][0]
     tile = next(t for t in realnets.TILES if t.name == "drt_ne")
-    pts = np.concatenate(sumo.read_network_lanes(path, merge_chains=False))
+    pts = np.concatenate(sumo_networks.read_network_lanes(path, merge_chains=False))
     x0, y0, x1, y1 = tile.box
     tol = 5.0  # netconvert rebuilds junction shapes and connectors (a few cm past the box here); boxes are 100 m apart
     assert np.all((pts[:, 0] >= x0 - tol) & (pts[:, 0] <= x1 + tol) & (pts[:, 1] >= y0 - tol)
@@ -67,7 +68,7 @@ def test_prepare_tile_cached_inside_its_box_and_clear_of_test_networks(tmp_path)
 
 def test_overlap_with_a_test_network_is_caught():
     # SUMO's bs3d (Braunschweig centre) contains the test network fokr_bs_demo: the check must say so
-    game = os.path.join(sumo.sumo_home(), "tools", "game")
+    game = os.path.join(sumo_networks.sumo_home(), "tools", "game")
     with pytest.raises(DataError, match="overlaps"):
         realnets.check_disjoint([os.path.join(game, "bs3d", "bs.net.xml")],
                                 [os.path.join(game, "fokr_bs_demo", "fokr_bs.net.xml.gz")])
@@ -78,15 +79,15 @@ def test_bad_requests(tmp_path):
         realnets.prepare_real_networks(str(tmp_path), splits=("test",))
     with pytest.raises(DataError, match="unknown tile"):
         realnets.prepare_real_networks(str(tmp_path), names=["A10KW"])
-    assert realnets.main(["--cache", str(tmp_path), "--splits", "test"]) == 2
+    assert data_main(["realnets", "--cache", str(tmp_path), "--splits", "test"]) == 2
 
 
 def test_chain_statistics_matches_the_data_layer_and_turnarounds_cut():
-    net = os.path.join(sumo.sumo_home(), "tools", "game", "fkk_in", "ingolstadt.net.xml.gz")
+    net = os.path.join(sumo_networks.sumo_home(), "tools", "game", "fkk_in", "ingolstadt.net.xml.gz")
     s = realnets.chain_statistics(net)
-    assert s["chains"] == len(sumo.read_network_lanes(net))
+    assert s["chains"] == len(sumo_networks.read_network_lanes(net))
     t = realnets.chain_statistics(net, ignore_turnarounds=True)
-    assert t["chains"] == len(sumo.read_network_lanes(net, ignore_turnarounds=True))
+    assert t["chains"] == len(sumo_networks.read_network_lanes(net, ignore_turnarounds=True))
     assert s["turnaround_connections"] > 0 and t["chains"] < s["chains"]
     assert t["chain_length_m"]["p10"] > s["chain_length_m"]["p10"]
 

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import scenarionet_fixtures as fx
-from gpd_jax.data import build, inspection, preprocess, safe_pickle, scenarionet, store
+from gpd_jax.data import inspection, preprocess, safe_pickle, store
+from gpd_jax.data.sources import scenarionet
 from gpd_jax.data.__main__ import main as data_main
 from gpd_jax.data.errors import DataError
 from gpd_jax.scene import TYPE_ID
@@ -136,7 +137,7 @@ def test_windows_every_stride_where_the_ego_is_present():
     assert ids == [f"x/{s}/{fx.SDC}" for s in (0, 10, 20, 30)]
     assert stats["skip_ego_not_present"] == 3  # starts 40, 50, 60
     # the build's window choice makes the same samples as preprocess.iter_samples ...
-    every = build._scenario_samples(raw, preprocess.SampleConfig(), None, 0, Counter())
+    every = scenarionet._scenario_samples(raw, preprocess.SampleConfig(), None, 0, Counter())
     assert [sid for sid, _ in every] == ids
     for (_, a), (_, b) in zip(every, preprocess.iter_samples(raw, preprocess.SampleConfig())):
         for key in a:
@@ -144,7 +145,7 @@ def test_windows_every_stride_where_the_ego_is_present():
     # ... and --max-per-log draws among the windows that have the ego (never fewer than there are)
     for n in (1, 2, 4, 9):
         stats = Counter()
-        pairs = build._scenario_samples(raw, preprocess.SampleConfig(), n, 0, stats)
+        pairs = scenarionet._scenario_samples(raw, preprocess.SampleConfig(), n, 0, stats)
         assert len(pairs) == min(n, 4) and stats["samples"] == min(n, 4)
         assert {sid for sid, _ in pairs} <= set(ids)
 
@@ -285,7 +286,7 @@ def test_hostile_pickle_is_refused_and_never_runs(tmp_path, payload, where, monk
         fx.write_scenario(target, obj)
     with pytest.raises(DataError, match=r"refused to unpickle: the pickle names the global '(scenarionet_fixtures\."
                                         r"touch_marker|posix\.mkdir|builtins\.exec)'") as ei:
-        build.build_scenarionet(str(tmp_path / "out"), db, split="test")
+        scenarionet.build_scenarionet(str(tmp_path / "out"), db, split="test")
     assert ei.value.path == target
     assert not os.path.exists(marker) and fx.MARKER_ENV not in os.environ
 
@@ -347,7 +348,7 @@ def test_find_scenarios_errors(tmp_path):
 def test_build_splits_by_map_and_summary_counts(tmp_path, layout):
     db = _dataset(tmp_path, layout)
     out = str(tmp_path / "out")
-    man = build.build_scenarionet(out, db, seed=0, max_per_log=2, per_job=1)
+    man = scenarionet.build_scenarionet(out, db, seed=0, max_per_log=2, per_job=1)
     assert man["num_samples"] == 6 * 2
     split_of = {}
     for sp, v in man["splits"].items():
@@ -368,16 +369,16 @@ def test_build_splits_by_map_and_summary_counts(tmp_path, layout):
 def test_build_resumes_and_refuses_other_settings_or_files(tmp_path, monkeypatch):
     db = _dataset(tmp_path, maps=("m_a",), per_map=4)
     out = str(tmp_path / "out")
-    man = build.build_scenarionet(out, db, split="train", max_per_log=1, per_job=2)
+    man = scenarionet.build_scenarionet(out, db, split="train", max_per_log=1, per_job=2)
     assert man["num_samples"] == 4 and man["build"]["jobs"] == 2
     calls = []
-    real = build.run_scenarionet_job
-    monkeypatch.setattr(build, "run_scenarionet_job", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = scenarionet.run_scenarionet_job
+    monkeypatch.setattr(scenarionet, "run_scenarionet_job", lambda *a, **k: calls.append(1) or real(*a, **k))
     os.remove(os.path.join(out, "_jobs", "job_00001.json"))  # as if stopped during the second job
-    man2 = build.build_scenarionet(out, db, split="train", max_per_log=1, per_job=2)
+    man2 = scenarionet.build_scenarionet(out, db, split="train", max_per_log=1, per_job=2)
     assert len(calls) == 1 and man2["num_samples"] == 4
     with pytest.raises(ValueError, match="other settings"):
-        build.build_scenarionet(out, db, split="train", max_per_log=2, per_job=2)
+        scenarionet.build_scenarionet(out, db, split="train", max_per_log=2, per_job=2)
     fx.write_scenario(os.path.join(db, "part_0", "sd_extra.pkl"), fx.make_scenario())
     summary = safe_pickle.load(os.path.join(db, "dataset_summary.pkl"))
     summary["sd_extra.pkl"] = {"map": "m_a"}
@@ -386,7 +387,7 @@ def test_build_resumes_and_refuses_other_settings_or_files(tmp_path, monkeypatch
     fx.write_scenario(os.path.join(db, "dataset_summary.pkl"), summary)
     fx.write_scenario(os.path.join(db, "dataset_mapping.pkl"), mapping)
     with pytest.raises(ValueError, match="other settings"):
-        build.build_scenarionet(out, db, split="train", max_per_log=1, per_job=2)
+        scenarionet.build_scenarionet(out, db, split="train", max_per_log=1, per_job=2)
 
 
 def test_bad_file_stops_build_or_is_skipped(tmp_path):
@@ -396,16 +397,16 @@ def test_bad_file_stops_build_or_is_skipped(tmp_path):
     del sc["metadata"]["sdc_id"]
     fx.write_scenario(bad, sc)
     with pytest.raises(DataError, match="sdc_id") as ei:
-        build.build_scenarionet(str(tmp_path / "o1"), db, split="train")
+        scenarionet.build_scenarionet(str(tmp_path / "o1"), db, split="train")
     assert ei.value.path == bad
-    man = build.build_scenarionet(str(tmp_path / "o2"), db, split="train", skip_bad=True, max_per_log=1)
+    man = scenarionet.build_scenarionet(str(tmp_path / "o2"), db, split="train", skip_bad=True, max_per_log=1)
     assert man["num_samples"] == 2 and man["build"]["stats"]["scenarios_skipped_bad"] == 1
     assert any(bad in r for r in man["build"]["rejections"])
 
 
 def test_short_scenarios_are_counted(tmp_path, caplog):
     db = _dataset(tmp_path, maps=("m_a",), per_map=2, frames=91)  # Waymo length
-    man = build.build_scenarionet(str(tmp_path / "o"), db, split="train")
+    man = scenarionet.build_scenarionet(str(tmp_path / "o"), db, split="train")
     assert man["num_samples"] == 0 and man["build"]["stats"]["skip_log_too_short"] == 2
     assert "shorter than the 101 frames" in caplog.text
 
@@ -421,20 +422,20 @@ def test_cli_build_ok_and_exit_status_2(tmp_path, capsys):
                       "--workers", "1"]) == 2
     err = capsys.readouterr().err
     assert "sd_20hz_bad.pkl" in err and "4.00 Hz" in err
-    with pytest.raises(SystemExit):
-        data_main(["build", "--source", "scenarionet", "--out", str(tmp_path / "o3")])
+    assert data_main(["build", "--source", "scenarionet", "--out", str(tmp_path / "o3")]) == 2
+    assert "needs --db" in capsys.readouterr().err
 
 
 def test_build_with_two_workers(tmp_path):
     db = _dataset(tmp_path, maps=("m_a", "m_b", "m_c"), per_map=1)
-    man = build.build_scenarionet(str(tmp_path / "o"), db, workers=2, per_job=1, max_per_log=1)
+    man = scenarionet.build_scenarionet(str(tmp_path / "o"), db, workers=2, per_job=1, max_per_log=1)
     assert man["num_samples"] == 3
 
 
 def test_inspect_reports_per_source(tmp_path):
     db = _dataset(tmp_path, maps=("m_a",), per_map=2)
     out = str(tmp_path / "o")
-    build.build_scenarionet(out, db, split="train", max_per_log=2)
+    scenarionet.build_scenarionet(out, db, split="train", max_per_log=2)
     s = inspection.inspect(out, with_lanes=False)
     per = s["per_source"]["scenarionet/testset"]
     assert per["scenarios"] == 4 == s["scenarios"]
@@ -457,7 +458,7 @@ def test_rollout_cli_on_a_scenarionet_store(tmp_path):
 
     db = _dataset(tmp_path, maps=("m_a",), per_map=2)
     data = str(tmp_path / "store")
-    build.build_scenarionet(data, db, split="test", max_per_log=1)
+    scenarionet.build_scenarionet(data, db, split="test", max_per_log=1)
     config = tiny_config()
     _, params, _ = nnx.split(build_model(config), nnx.Param, ...)
     model = export_model(params, config, str(tmp_path / "model"))

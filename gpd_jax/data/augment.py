@@ -9,7 +9,7 @@ are unchanged. Map tokens are not carried over (the tokenizer is not mirror-equi
 ones already there.
 
 Why: a model that trains long on a handful of real road networks memorizes their geometry
-(checkpoints/gpd_sumo_real_lane_residual_mix/README.md, "At GPU scale"); mirroring doubles the geometry of the
+(docs/results.md); mirroring doubles the geometry of the
 networks there are, and is the left-hand traffic that real logs from Singapore or the UK hold.
 """
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from gpd_jax.data import lanes as lanes_lib
 from gpd_jax.data import store
-from gpd_jax.data.geometry import boxes_overlap, sample_has_overlap  # noqa: F401 (re-exported)
+from gpd_jax.data.boxes import boxes_overlap, sample_has_overlap  # noqa: F401 (re-exported)
 from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import AGENT_TYPES
 

@@ -5,8 +5,8 @@ generated networks (or two copies of a real one under different names) can have 
 finds such pairs, within a build (every val/test network against every train network) or across two stores.
 
 Fingerprint (`NetFingerprint`): the network's lane centrelines (normal and internal junction lanes open to
-passenger cars, as `sumo.read_network_lanes` reads them) resampled every `spacing` = 2 m, centred on their mean
-(which removes translation), plus a length-weighted histogram of lane directions (0.5 degree bins, smoothed),
+passenger cars, as `sumo_networks.read_network_lanes` reads them) resampled every `spacing` = 2 m, centred on their
+mean (which removes translation), plus a length-weighted histogram of lane directions (0.5 degree bins, smoothed),
 the total lane length and the radius of gyration. Nothing in it depends on where the network lies; rotation
 is resolved when two fingerprints are compared.
 
@@ -34,8 +34,8 @@ ignores --seed for them) 0.0 m, two grids whose nodes are perturbed with sigma =
 with a different number of lanes is also caught (its centrelines are within a lane width), on purpose: it
 is the same road.
 
-With the generator of `gpd_jax.data.sumo.NetSpec`, the closest same-layout pair among 48 generated networks
-(16 per layout) measured 11 m apart, and seeds 7 and 11 share no near-duplicate (tests/test_data_netgeom.py).
+With the generator of `gpd_jax.data.sources.sumo_networks.NetSpec`, the closest same-layout pair among 48 generated
+networks (16 per layout) measured 11 m apart, and seeds 7 and 11 share no near-duplicate (tests/test_data_netgeom.py).
 
 Cost (2-core machine, shared): a fingerprint ~0.05-0.1 s for a generated network and ~1 s for SUMO's largest
 real one (reading the XML dominates); a comparison that passes the screens ~0.1 s, one that fails them
@@ -137,7 +137,7 @@ def fingerprint_lanes(lanes: Sequence[np.ndarray], name: str = "") -> NetFingerp
 
 def fingerprint_network(net_path: str, name: str | None = None) -> NetFingerprint:
     """Fingerprint of a SUMO network file (`.net.xml[.gz]`); DataError if it is missing or unreadable."""
-    from gpd_jax.data.sumo import read_network_lanes
+    from gpd_jax.data.sources.sumo_networks import read_network_lanes
 
     return fingerprint_lanes(read_network_lanes(net_path, merge_chains=False), name or net_path)
 

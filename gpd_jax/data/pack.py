@@ -1,6 +1,6 @@
 """Packing stores to carry them to another machine: one `.tar.xz` per store, holding only what a model reads.
 
-A store is about 175 kB a sample, most of it frames and slots a 1 Hz, 17-slot model never reads, lanes and road
+A store is about 190 kB a sample, most of it frames and slots a 1 Hz, 17-slot model never reads, lanes and road
 geometry. `pack_store` keeps the splits asked for and, optionally:
 
 - `frame_stride=S`: the stored frames a model at that stride reads, k S, and the frame before each, k S - 1 (its

@@ -35,7 +35,7 @@ from typing import Iterator
 import numpy as np
 
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.geometry import sample_has_overlap
+from gpd_jax.data.boxes import sample_has_overlap
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import RoadIndex, clip_road
 from gpd_jax.scene import TYPE_ID

@@ -29,14 +29,14 @@ Sample keys (paper configuration T=101, A=33, L=96, P=128; see `gpd_jax.data.pre
     polylines       f32[n, L, P, 2]   lane centrelines in the scene frame, 1 m spacing, clipped to what the
                                       ego's 64x64 m window sees over the sample
     polyline_valid  bool[n, L, P]     which polyline points exist (a prefix of each row)
-    road_polygons   f32[n, G, V, 2]   drivable-area rings in the scene frame (G=48 rings of V=32 vertices; a
+    road_polygons   f32[n, G, V, 2]   drivable-area rings in the scene frame (G=64 rings of V=32 vertices; a
                                       prefix of each row valid, closed implicitly): per kind the rings of the
                                       union of that kind's areas, clipped to the sample's region; even-odd
                                       rule per kind (see `gpd_jax.geometry`, `gpd_jax.data.roadgeom`)
     road_polygon_valid bool[n, G, V]  which ring vertices exist
     road_polygon_kind  i8[n, G]       index into gpd_jax.geometry.AREA_KINDS (lane, junction, other)
     road_edges      f32[n, E, Pe, 2]  road edges (boundary of the union of all areas) in the scene frame,
-                                      E=32 runs of Pe=48 points
+                                      E=64 runs of Pe=32 points
     road_edge_valid bool[n, E, Pe]    which edge points exist (a prefix of each row)
 
 The loader makes `Scene.road` (`gpd_jax.geometry.RoadGeometry`) from the road keys with the polylines as its
@@ -45,7 +45,7 @@ lane centrelines. Stores built before the road geometry existed lack the five ro
 `gpd_jax.geometry.ROAD_MISSING` ("rebuild with python -m gpd_jax.data build ..."). A source without map
 geometry writes all-invalid road arrays (counted as `samples_without_road_geometry` in the build statistics).
 
-About 175 kB per sample (98 kB of it lanes, 30 kB road geometry). Shards are written to a hidden temporary directory in the split directory and
+About 190 kB per sample (98 kB of it lanes, 37 kB road geometry). Shards are written to a hidden temporary directory in the split directory and
 renamed into place when complete (`os.replace`), so a shard directory that exists is complete; leftover
 temporaries from a killed build are ignored and removed by the next build. Files are plain `.npy` so
 that readers memory-map them (memory stays flat whatever the dataset size).

@@ -7,7 +7,7 @@ networks it trained on the shipped tokenizer reaches a paper F1 of 0.88; on held
 real training tiles from every angle, are cheap.
 
 A netframes directory holds one `<name>.lanes.npz` per network (its lane centrelines resampled every 1 m,
-chained as the stores chain them: `sumo.read_network_lanes`, `preprocess.lane_points`; no pickles) and
+chained as the stores chain them: `sumo_networks.read_network_lanes`, `preprocess.lane_points`; no pickles) and
 `netframes.json` (per network: source, layout, left-hand, lane km, file). `build_netframes` makes it (resumes:
 networks already there are kept); `pack_netframes` makes it a `.tar.xz` that `tar xf` turns back into a netframes
 directory, ~13x smaller (coordinates rounded to the centimetre, stored as deltas), to carry to another machine. `frame_batches` draws a network uniformly, a point uniformly along its lanes,
@@ -16,9 +16,10 @@ clips the lanes to the ego window exactly as a store sample does (`preprocess.cl
 `gpd_jax.map_tokenizer.store` (polylines and pose in one frame, SLEDGE vector lanes as targets), so a netframes
 directory can stand in a training mixture beside stores (`--config.data.dir=NETFRAMES:0.5,STORE:0.5`).
 
-Generated networks come from `sumo.random_net_spec` with seeds drawn from `SeedSequence([seed, 4321])`, a stream
-no store build uses (stores draw theirs from `[seed, 1234]`); real networks are given files (keep test networks
-out: `gpd_jax.data.realnets.TEST_ONLY`), optionally with a left-hand copy each (`sumo.make_lefthand`).
+Generated networks come from `sumo_networks.random_net_spec` with seeds drawn from `SeedSequence([seed, 4321])`, a
+stream no store build uses (stores draw theirs from `[seed, 1234]`); real networks are given files (keep test
+networks out: `gpd_jax.data.sources.realnets.TEST_ONLY`), optionally with a left-hand copy each
+(`sumo_networks.make_lefthand`).
 """
 
 from __future__ import annotations
@@ -51,16 +52,17 @@ def _save_lanes(lp: LanePoints, path: str) -> None:
 
 def _network_record(name: str, net_path: str, out_dir: str, source: str, layout: str, spacing: float,
                     ignore_turnarounds: bool) -> dict:
-    from gpd_jax.data import sumo
+    from gpd_jax.data.sources import sumo_networks
 
-    lanes = sumo.read_network_lanes(net_path, ignore_turnarounds=ignore_turnarounds)
+    lanes = sumo_networks.read_network_lanes(net_path, ignore_turnarounds=ignore_turnarounds)
     lp = lane_points(lanes, spacing)
     if len(lp.xy) < 2:
         raise DataError(net_path, "network has no lane of 2 m or more")
     f = f"{name}.lanes.npz"
     _save_lanes(lp, os.path.join(out_dir, f))
     km = float(sum(np.linalg.norm(np.diff(p, axis=0), axis=-1).sum() for p in lanes)) / 1000.0
-    return {"name": name, "file": f, "source": source, "layout": layout, "lefthand": sumo.is_lefthand(net_path),
+    return {"name": name, "file": f, "source": source, "layout": layout,
+            "lefthand": sumo_networks.is_lefthand(net_path),
             "lane_km": round(km, 3), "points": int(len(lp.xy))}
 
 
@@ -70,17 +72,17 @@ def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_ne
     """Builds (or completes) a netframes directory; returns its manifest.
 
     Args:
-      num_generated: generated networks (`sumo.random_net_spec` over grid / spider / random layouts).
+      num_generated: generated networks (`sumo_networks.random_net_spec` over grid / spider / random layouts).
       seed: their seed stream (`SeedSequence([seed, 4321])`).
-      real_nets: SUMO network files used as they are (e.g. `gpd_jax.data.realnets` training tiles).
-      real_lefthand: also a left-hand copy of each real network (`sumo.make_lefthand`).
-      lefthand_share / curved_share: probabilities for generated networks (`sumo.random_net_spec`).
-      ignore_turnarounds: chain lanes through SUMO's turnaround connectors (`sumo.read_network_lanes`); the
+      real_nets: SUMO network files used as they are (e.g. `gpd_jax.data.sources.realnets` training tiles).
+      real_lefthand: also a left-hand copy of each real network (`sumo_networks.make_lefthand`).
+      lefthand_share / curved_share: probabilities for generated networks (`sumo_networks.random_net_spec`).
+      ignore_turnarounds: chain lanes through SUMO's turnaround connectors (`sumo_networks.read_network_lanes`); the
         stores do not, so keep the default for a tokenizer whose targets must match theirs.
     """
     import tempfile
 
-    from gpd_jax.data import sumo
+    from gpd_jax.data.sources import sumo_networks
 
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, MANIFEST)
@@ -110,8 +112,8 @@ def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_ne
             name = f"gen_{seed}_{i:05d}"
             if name in records and os.path.isfile(os.path.join(out_dir, records[name]["file"])):
                 continue
-            spec = sumo.random_net_spec(s, None, lefthand_share, 0.0, curved_share)
-            net = sumo.generate_network(spec, os.path.join(tmp, "net.net.xml"))
+            spec = sumo_networks.random_net_spec(s, None, lefthand_share, 0.0, curved_share)
+            net = sumo_networks.generate_network(spec, os.path.join(tmp, "net.net.xml"))
             records[name] = _network_record(name, net, out_dir, "generated", spec.layout, settings["lane_spacing"],
                                             ignore_turnarounds)
             records[name]["bend"] = round(spec.bend, 4)
@@ -124,7 +126,7 @@ def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_ne
                 name = f"real_{base}" + ("_lh" if lh else "")
                 if name in records and os.path.isfile(os.path.join(out_dir, records[name]["file"])):
                     continue
-                net = sumo.make_lefthand(p, os.path.join(tmp, "lh.net.xml")) if lh else p
+                net = sumo_networks.make_lefthand(p, os.path.join(tmp, "lh.net.xml")) if lh else p
                 records[name] = _network_record(name, net, out_dir, "real", "real", settings["lane_spacing"],
                                                 ignore_turnarounds)
                 save()

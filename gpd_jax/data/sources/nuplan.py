@@ -1,4 +1,5 @@
-"""nuPlan reader: a log `.db` (SQLite) plus its city map `.gpkg` (GeoPackage) -> `RawLog`.
+"""The nuPlan importer: a log `.db` (SQLite) plus its city map `.gpkg` (GeoPackage) -> `RawLog` -> a store
+(`build_nuplan`, one shard per log, with the shared job runner `gpd_jax.data.jobs`).
 
 Only the standard library's sqlite3 and numpy are needed (pyproj is used for map projection when installed;
 otherwise a built-in exact transverse Mercator covers WGS84 lon/lat and UTM, which is what nuPlan uses).
@@ -41,6 +42,9 @@ What is read, and the conventions:
   `generic_drivable_areas` and `carpark_areas` ("other") — projected like the lanes and cropped to the same
   box (polygons whose bounds meet it, kept whole).
 * `RawLog.location` is the map name (e.g. "us-nv-las-vegas-strip"); `RawLog.name` is the file stem.
+* **Build** (`build_nuplan`): one job and one shard per log, split by map (`log.map_version` from the log headers,
+  read first) unless `split` is given; the logs are then streamed one at a time, a bad log is skipped, counted
+  (`logs_skipped_bad`) and named in the build's rejections.
 
 Every problem with an input file raises `gpd_jax.data.errors.DataError` naming the file and the reason.
 """
@@ -52,16 +56,21 @@ import json
 import logging
 import os
 import re
+import shutil
 import sqlite3
+import time
+from collections import Counter
 from pathlib import Path
 from typing import Hashable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from gpd_jax.data import gpkg
+from gpd_jax.data import preprocess, store
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.jobs import assign_splits, check_count, check_settings, existing_shard, finish, job_marker
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import Area
+from gpd_jax.data.sources import gpkg
 from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import TYPE_ID
 
@@ -773,7 +782,7 @@ def read_log(
       db_path: the log's `.db` file.
       maps_root: the nuPlan maps folder (the one holding nuplan-maps-v1.0.json; see `find_map`).
       map_margin: keep the lanes within this many metres of the log's boxes (None: the whole map).
-      projection: "auto", "pyproj" or "builtin" (see `gpd_jax.data.gpkg.make_transform`).
+      projection: "auto", "pyproj" or "builtin" (see `gpd_jax.data.sources.gpkg.make_transform`).
       max_step_error: largest tolerated deviation (s) of a kept-frame step from 0.1 s.
       merge_lanes: join lanes and lane connectors into unbranched chains as SLEDGE does (see
         `read_map_lanes`); False keeps one polyline per `baseline_paths` row.
@@ -831,3 +840,75 @@ def iter_logs(
                 errors.append(e)
             continue
         yield raw
+
+
+# ----------------------------------------------------------------------------------------------- build
+def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: str | None = None,
+                 max_per_log: int | None = None, sample_cfg: preprocess.SampleConfig | None = None) -> dict:
+    """Builds a dataset from nuPlan logs (`iter_logs`), one shard per log."""
+    t0 = time.time()
+    sample_cfg = sample_cfg or preprocess.SampleConfig()
+    check_count("max_per_log", max_per_log, allow_none=True)
+    # inputs first: a wrong --db or --maps must not leave settings behind that a corrected retry trips over
+    paths = find_logs(db)
+    if not os.path.isdir(maps_root):
+        raise DataError(maps_root, "maps root not found (the folder holding nuplan-maps-v1.0.json)")
+    os.makedirs(out_dir, exist_ok=True)
+    store.clean_temporaries(out_dir)
+    settings = {"source": "nuplan", "db": os.path.abspath(db), "maps": os.path.abspath(maps_root), "seed": seed,
+                "split": split, "max_per_log": max_per_log, "sample_config": dataclasses.asdict(sample_cfg)}
+    check_settings(out_dir, settings)
+    # Splits by map: read only the log headers first, then stream the logs one at a time (flat memory).
+    if split:
+        split_of = {p: split for p in paths}
+    else:
+        key = {}
+        for p in paths:
+            try:
+                key[p] = read_log_header(p).map_version.removesuffix(".gpkg")
+            except Exception:  # noqa: BLE001 - a bad file is reported (and skipped) when it is read
+                pass
+        by_loc = assign_splits(list(key.values()), seed)
+        split_of = {p: by_loc.get(key.get(p), "train") for p in paths}
+    results = []
+    errors: list = []
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(paths), desc="nuplan build", unit="log")
+    done = {}
+    for i, p in enumerate(paths):
+        m = job_marker(out_dir, i)
+        if os.path.isfile(m):
+            with open(m) as f:
+                done[i] = json.load(f)
+    todo = [p for i, p in enumerate(paths) if i not in done]
+    results = list(done.values())
+    bar.update(len(done))
+    index_of = {p: i for i, p in enumerate(paths)}
+    raws = iter_logs(todo[0] if len(todo) == 1 else db, maps_root, skip_bad=True, errors=errors) if todo else []
+    for raw in raws:
+        i = next((index_of[p] for p in todo if os.path.splitext(os.path.basename(p))[0] == raw.name), None)
+        if i is None or i in done:
+            continue
+        t1 = time.time()
+        stats: Counter = Counter()
+        pairs = list(preprocess.iter_samples(raw, sample_cfg, num=max_per_log, seed=seed, stats=stats))
+        sp = split_of[paths[i]]
+        if pairs:
+            arrays = store.stack_samples([q[1] for q in pairs], preprocess.sample_spec(sample_cfg))
+            existing = existing_shard(out_dir, i)
+            if existing:
+                shutil.rmtree(existing)
+            store.write_shard(out_dir, sp, i, arrays, [q[0] for q in pairs], [raw.location] * len(pairs),
+                              extra={"source": "nuplan", "log": raw.name})
+        r = {"index": i, "split": sp, "location": raw.location, "num_samples": len(pairs),
+             "requested": len(pairs), "wall_s": time.time() - t1, "stats": dict(stats), "rejections": []}
+        store.atomic_write_json(job_marker(out_dir, i), r)
+        results.append(r)
+        bar.update(1)
+    bar.close()
+    if errors:
+        log.warning("skipped %d bad nuPlan logs: %s", len(errors), "; ".join(map(str, errors[:5])))
+        results.append({"index": -1, "num_samples": 0, "requested": 0, "stats": {"logs_skipped_bad": len(errors)},
+                        "rejections": [str(e) for e in errors]})
+    return finish(out_dir, settings, results, time.time() - t0)

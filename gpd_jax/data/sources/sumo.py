@@ -1,9 +1,10 @@
-"""Dataset building: sources -> samples -> shards, with workers, progress, resume and splits by location.
+"""The SUMO importer: generated or given road networks -> SUMO runs -> samples -> shards (`build_sumo`).
 
-A build is a list of *jobs*; each job is one SUMO run (or one nuPlan log) and writes one shard. A job that
-finished leaves `DIR/_jobs/job_<j>.json`, so a stopped build started again with the same arguments skips
-it and resumes where it left off. Splits are made by location (road network / map): every job of a
-location goes to the same split, so no test scene shares a road with training.
+A SUMO build is a list of `SumoJob`s (`plan_sumo_jobs`): each one network + one demand seed + one SUMO run that
+writes one shard, run by the shared job runner (`gpd_jax.data.jobs`: workers, resume, splits by location, the
+manifest). Networks, their generation and reading are `gpd_jax.data.sources.sumo_networks`; demand, simulation and
+FCD -> `RawLog` are `gpd_jax.data.sources.sumo_traffic`; this module cuts the runs into samples (`sumo_windows`,
+`iter_sumo_samples`: which vehicle is the ego, `EgoChoice`) and writes the shards (`run_sumo_job`).
 
 SUMO builds first make every job's network (`prepare_networks`: generated into `DIR/_networks`, or the given
 files) with a fingerprint of its lane geometry, and check that no val/test network nearly matches a train
@@ -12,12 +13,12 @@ network (`check_near_duplicates`, `gpd_jax.data.netgeom`), before simulating any
 via `store.sample_layouts`), in the manifest's shard list and in `build.layouts`; generated locations are
 named `gen_<seed>_<jjjj>_<layout>`, and scenario ids start with the location. `build.overlap_gate` says
 how many candidate windows had two overlapping recorded boxes and whether the gate removed them.
-Settings are recorded in `DIR/_jobs/settings.json` only once the inputs are validated.
 
-SUMO builds simulate real traffic by default (`sumo.SimConfig` traffic options: parked and stopping vehicles,
-heterogeneous drivers; left-hand and fixed-cycle generated networks) and choose egos as a recording car would
-be (`EgoChoice`: 25 % stationary at the current frame); the options are recorded as `build.traffic` and in every
-shard's meta. `sumo.LEGACY_TRAFFIC` + `LEGACY_EGO` (CLI `--traffic legacy`) give the stores built before.
+SUMO builds simulate real traffic by default (`sumo_traffic.SimConfig` traffic options: parked and stopping
+vehicles, heterogeneous drivers; left-hand and fixed-cycle generated networks) and choose egos as a recording car
+would be (`EgoChoice`: 25 % stationary at the current frame); the options are recorded as `build.traffic` and in
+every shard's meta (`traffic_settings`). `sumo_traffic.LEGACY_TRAFFIC` + `LEGACY_EGO` (CLI `--traffic legacy`)
+give the stores built before.
 """
 
 from __future__ import annotations
@@ -35,34 +36,14 @@ from collections import Counter
 
 import numpy as np
 
-from gpd_jax.data import preprocess, store
+from gpd_jax.data import netgeom, preprocess, store
+from gpd_jax.data.boxes import sample_has_overlap
+from gpd_jax.data.errors import DataError
+from gpd_jax.data.jobs import (assign_splits, check_count, check_settings, existing_shard, finish, job_marker,
+                               run_jobs, worker_init)
+from gpd_jax.data.sources import sumo_networks, sumo_traffic
 
 log = logging.getLogger(__name__)
-
-DEFAULT_FRACTIONS = (("train", 0.8), ("val", 0.1), ("test", 0.1))
-
-
-def assign_splits(locations: list[str], seed: int, fractions=DEFAULT_FRACTIONS) -> dict[str, str]:
-    """Location -> split. Deterministic in `seed`; every split with a positive fraction gets at least one
-    location when there are enough (val and test need >= 3 locations; with 2: train and test; 1: train)."""
-    locs = sorted(set(locations))
-    n = len(locs)
-    perm = [locs[i] for i in np.random.default_rng([seed, 3]).permutation(n)]
-    names = [f[0] for f in fractions]
-    counts = [0] * len(fractions)
-    if n >= len(fractions):
-        counts = [max(1, int(round(fr * n))) for _, fr in fractions]
-        counts[0] = n - sum(counts[1:])
-    elif n == 2 and len(fractions) >= 2:
-        counts = [1] + [0] * (len(fractions) - 2) + [1]
-    else:
-        counts = [n] + [0] * (len(fractions) - 1)
-    out, k = {}, 0
-    for name, c in zip(names, counts):
-        for loc in perm[k:k + c]:
-            out[loc] = name
-        k += c
-    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,19 +55,17 @@ class SumoJob:
     split: str
     net_path: str | None = None  # None: generated from seed (into DIR/_networks/<location>.net.xml.gz)
     layout: str = ""  # "grid" | "spider" | "random" (generated), "real" (--real-networks) or "given" (--net)
-    lefthand_share: float = 0.0  # generated networks: probability of left-hand traffic (`sumo.random_net_spec`)
+    lefthand_share: float = 0.0  # generated networks: probability of left-hand traffic (`random_net_spec`)
     static_tls_share: float = 0.0  # generated networks: probability of fixed-cycle traffic lights
-    curved_share: float = 0.0  # generated networks: probability of curved streets (`sumo.NetSpec.bend`)
-    lefthand_net: bool = False  # given networks: simulate a left-hand copy (`sumo.make_lefthand`, in DIR/_networks)
+    curved_share: float = 0.0  # generated networks: probability of curved streets (`NetSpec.bend`)
+    lefthand_net: bool = False  # given networks: simulate a left-hand copy (`make_lefthand`, in DIR/_networks)
 
     def net_spec(self):
-        """The `sumo.NetSpec` of a generated network (None for given networks)."""
-        from gpd_jax.data import sumo
-
+        """The `sumo_networks.NetSpec` of a generated network (None for given networks)."""
         if self.net_path is not None:
             return None
-        return sumo.random_net_spec(self.seed, self.layout or None, self.lefthand_share, self.static_tls_share,
-                                    self.curved_share)
+        return sumo_networks.random_net_spec(self.seed, self.layout or None, self.lefthand_share,
+                                             self.static_tls_share, self.curved_share)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,8 +87,6 @@ class EgoChoice:
     min_path_m: float = 2.0  # a stationary ego still moves this far along its path within the window
 
     def __post_init__(self):
-        from gpd_jax.data.errors import DataError
-
         if self.rule not in EGO_RULES:
             raise DataError(None, f"ego rule must be one of {EGO_RULES}, got {self.rule!r}")
         if not 0.0 <= self.stationary_share <= 1.0:
@@ -119,16 +96,6 @@ class EgoChoice:
 EGO_RULES = ("mixed", "travel")
 LEGACY_EGO = EgoChoice("travel", 0.0)
 STATIONARY_MPS = 0.5
-
-
-def check_count(name: str, value, allow_none: bool = False) -> None:
-    """Raises DataError unless `value` is an integer >= 1 (counts of scenarios, workers, ...)."""
-    from gpd_jax.data.errors import DataError
-
-    if value is None and allow_none:
-        return
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise DataError(None, f"{name} must be an integer >= 1, got {value!r}")
 
 
 def _assign_by_layout(locs: list[str], layouts: list[str], seed: int) -> dict[str, str]:
@@ -157,10 +124,8 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
     `lefthand_share`: generated networks: probability of left-hand traffic (drawn from each network's seed);
     given networks: probability that a network is simulated as a left-hand copy (every job of it; its location
     gets the suffix "_lh"), drawn from `seed` and the network's name. `static_tls_share` / `curved_share`:
-    generated networks: probability of fixed-cycle lights / curved streets (`sumo.random_net_spec`).
+    generated networks: probability of fixed-cycle lights / curved streets (`sumo_networks.random_net_spec`).
     """
-    from gpd_jax.data.sumo import LAYOUTS
-
     check_count("num_scenarios", num_scenarios)
     check_count("per_job", per_job)
     n_jobs = max(1, math.ceil(num_scenarios / per_job))
@@ -183,7 +148,7 @@ def plan_sumo_jobs(num_scenarios: int, seed: int, nets: list[str] | None, per_jo
         layouts = [net_layout] * n_jobs
     else:
         turn = np.random.default_rng([seed, 5]).permutation(n_jobs)
-        layouts = [LAYOUTS[int(turn[i]) % len(LAYOUTS)] for i in range(n_jobs)]
+        layouts = [sumo_networks.LAYOUTS[int(turn[i]) % len(sumo_networks.LAYOUTS)] for i in range(n_jobs)]
         locs = [f"gen_{seed}_{i:04d}_{layouts[i]}" for i in range(n_jobs)]
     splits = {l: split for l in locs} if split else _assign_by_layout(locs, layouts, seed)
     ss = np.random.SeedSequence([seed, 1234])
@@ -203,31 +168,15 @@ def _net_location(path: str) -> str:
     return f"{parent}_{base}"
 
 
-def _job_marker(out_dir: str, index: int) -> str:
-    return os.path.join(out_dir, "_jobs", f"job_{index:05d}.json")
-
-
-def _existing_shard(out_dir: str, index: int) -> str | None:
-    for sp in store.list_splits(out_dir) if os.path.isdir(out_dir) else []:
-        p = store.shard_dir(out_dir, sp, index)
-        if os.path.isdir(p):
-            return p
-    return None
-
-
-# ------------------------------------------------------------------------------------------- networks
+# --------------------------------------------------------------------------------------------- networks
 def _generated_net_path(out_dir: str, location: str) -> str:
-    from gpd_jax.data.netgeom import networks_dir
-
-    return os.path.join(networks_dir(out_dir), f"{location}.net.xml.gz")
+    return os.path.join(netgeom.networks_dir(out_dir), f"{location}.net.xml.gz")
 
 
 def _prepare_network(args) -> tuple[str, dict]:
     """(location, index record) of one job's network: generates it (generated layouts) and writes its
     fingerprint, both beside the store in DIR/_networks; files already there are reused (resume)."""
     out_dir, job = args
-    from gpd_jax.data import netgeom, sumo
-
     d = netgeom.networks_dir(out_dir)
     os.makedirs(d, exist_ok=True)
     fp_path = os.path.join(d, f"{job.location}.fp.npz")
@@ -238,7 +187,7 @@ def _prepare_network(args) -> tuple[str, dict]:
         if not os.path.isfile(net):
             tmp = os.path.join(d, f".tmp-{job.location}-{os.getpid()}.net.xml.gz")
             try:
-                sumo.generate_network(spec, tmp)
+                sumo_networks.generate_network(spec, tmp)
                 os.replace(tmp, net)
             finally:
                 if os.path.exists(tmp):
@@ -256,17 +205,15 @@ def _prepare_network(args) -> tuple[str, dict]:
         fp = netgeom.fingerprint_network(net, job.location)
         netgeom.save_fingerprint(fp, fp_path)
     rec["lane_km"] = round(fp.length / 1000.0, 3)
-    rec["lefthand"] = sumo.is_lefthand(net)
+    rec["lefthand"] = sumo_networks.is_lefthand(net)
     return job.location, rec
 
 
 def _lefthand_net(out_dir: str, job: SumoJob) -> str:
     """The left-hand copy of a given network (made once, beside the store in DIR/_networks)."""
-    from gpd_jax.data import sumo
-
     net = _generated_net_path(out_dir, job.location)
     if not os.path.isfile(net):
-        sumo.make_lefthand(job.net_path, net)
+        sumo_networks.make_lefthand(job.net_path, net)
     return net
 
 
@@ -274,15 +221,13 @@ def prepare_networks(jobs: list[SumoJob], out_dir: str, workers: int = 1) -> dic
     """Generates (or reuses) every job's network and fingerprint before any simulation, and writes
     `DIR/_networks/index.json`: location -> {"layout", "split", "net", "spec", "fingerprint", "lane_km"}
     (see `gpd_jax.data.netgeom.read_network_index`). Returns that index."""
-    from gpd_jax.data import netgeom
-
     first = {}
     for j in jobs:
         first.setdefault(j.location, j)
     todo = [(out_dir, j) for j in first.values()]
     if workers > 1 and len(todo) > 4:
         ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx, initializer=_worker_init) as ex:
+        with cf.ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx, initializer=worker_init) as ex:
             recs = list(ex.map(_prepare_network, todo))
     else:
         recs = [_prepare_network(t) for t in todo]
@@ -300,8 +245,6 @@ def check_near_duplicates(out_dir: str, index: dict[str, dict], against: list[st
     Returns (pairs, summary): pairs `{"evaluated", "evaluated_split", "reference", "reference_split",
     "reference_store", "distance_m"}`; summary `{"pairs_compared", "wall_s", "tol_m"}`.
     """
-    from gpd_jax.data import netgeom
-
     tol = netgeom.DEFAULT_TOL if tol is None else tol
     t0 = time.time()
     d = netgeom.networks_dir(out_dir)
@@ -334,6 +277,7 @@ def check_near_duplicates(out_dir: str, index: dict[str, dict], against: list[st
                                                          "tol_m": tol}
 
 
+# ----------------------------------------------------------------------------------- windows -> samples
 def sumo_windows(log, cfg: preprocess.SampleConfig, num: int | None, rng: np.random.Generator,
                  ego: EgoChoice = EgoChoice(), stats: Counter | None = None) -> list[tuple[int, int]]:
     """(start frame, ego track) pairs of a SUMO log under the ego rule `ego` (see `EgoChoice`); the "travel"
@@ -397,8 +341,6 @@ def iter_sumo_samples(log, cfg: preprocess.SampleConfig, num: int | None, seed: 
                       ego: EgoChoice = EgoChoice()):
     """`preprocess.iter_samples` with the windows of `sumo_windows` (the same with the "travel" rule): yields
     (scenario id, sample); with the overlap gate, 3 x `num` candidate windows are drawn so that `num` come out."""
-    from gpd_jax.data.geometry import sample_has_overlap
-
     if ego.rule == "travel":
         yield from preprocess.iter_samples(log, cfg, num=num, seed=seed, stats=stats)
         return
@@ -431,16 +373,15 @@ def iter_sumo_samples(log, cfg: preprocess.SampleConfig, num: int | None, seed: 
         yield f"{log.name}/{start}/{log.agent_ids[e]}", s
 
 
+# ----------------------------------------------------------------------------------- runs and the build
 def traffic_settings(sim_cfg, ego: EgoChoice, lefthand_share: float, static_tls_share: float,
                      curved_share: float = 0.0) -> dict:
     """The real-traffic options of a SUMO build as recorded in its settings and shards (`curved_share` only
     where it is not 0, so that builds from before it resume)."""
-    from gpd_jax.data import sumo
-
     def plain(v):  # as JSON gives it back (tuples -> lists), so that recorded and fresh settings compare equal
         return list(v) if isinstance(v, tuple) else v
 
-    return {**{k: plain(getattr(sim_cfg, k)) for k in sumo.TRAFFIC_FIELDS}, "ego_rule": ego.rule,
+    return {**{k: plain(getattr(sim_cfg, k)) for k in sumo_traffic.TRAFFIC_FIELDS}, "ego_rule": ego.rule,
             "ego_stationary_share": ego.stationary_share, "lefthand_share": lefthand_share,
             "static_tls_share": static_tls_share, **({"curved_share": curved_share} if curved_share else {})}
 
@@ -453,10 +394,7 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
     less demand, up to `max_tries` runs. `traffic`: `SimConfig` traffic fields set over the simulation
     config (REAL_NETWORK_SIM for given networks, SimConfig() for generated ones, unless `sim_cfg`). `record`:
     the build's traffic settings, written into the shard's meta (default: this job's). Returns the job summary."""
-    from gpd_jax.data import sumo
-    from gpd_jax.data.geometry import sample_has_overlap
-
-    sim_cfg = sim_cfg or (sumo.REAL_NETWORK_SIM if job.net_path else sumo.SimConfig())
+    sim_cfg = sim_cfg or (sumo_traffic.REAL_NETWORK_SIM if job.net_path else sumo_traffic.SimConfig())
     if traffic:
         sim_cfg = dataclasses.replace(sim_cfg, **traffic)
     t0 = time.time()
@@ -471,23 +409,23 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
         net = _generated_net_path(out_dir, job.location)
         if not os.path.isfile(net):  # run without prepare_networks (e.g. a direct call)
             os.makedirs(os.path.dirname(net), exist_ok=True)
-            sumo.generate_network(spec, net)
+            sumo_networks.generate_network(spec, net)
         # unsignalized networks saturate earlier
         density = sim_cfg.insertion_density * (0.6 if spec.junction == "priority" else 1.0)
     else:
         spec, density = None, sim_cfg.insertion_density
         net = _lefthand_net(out_dir, job) if job.lefthand_net else job.net_path
     try:
-        lanes = sumo.read_network_lanes(net)
-        areas = sumo.read_network_areas(net)
+        lanes = sumo_networks.read_network_lanes(net)
+        areas = sumo_networks.read_network_areas(net)
         for attempt in range(max_tries):
             seed = job.seed + 7919 * attempt
             cfg = dataclasses.replace(sim_cfg, insertion_density=density)
             info: dict = {}
             try:
-                raw = sumo.simulate(net, f"{job.location}_s{seed}", job.location, seed, cfg, workdir=work,
-                                    lanes=lanes, areas=areas, info=info)
-            except sumo.SumoRunRejected as e:
+                raw = sumo_traffic.simulate(net, f"{job.location}_s{seed}", job.location, seed, cfg, workdir=work,
+                                            lanes=lanes, areas=areas, info=info)
+            except sumo_networks.SumoRunRejected as e:
                 rejections.append(str(e))
                 stats["sumo_runs_rejected"] += 1
                 density *= 0.7
@@ -508,13 +446,13 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
             rejections.append(f"{job.location}: no usable windows")
         if samples:
             arrays = store.stack_samples(samples, preprocess.sample_spec(sample_cfg))
-            existing = _existing_shard(out_dir, job.index)
+            existing = existing_shard(out_dir, job.index)
             if existing:
                 shutil.rmtree(existing)
             store.write_shard(out_dir, job.split, job.index, arrays, ids, [job.location] * len(ids),
                               extra={"source": "sumo", "job_seed": job.seed, "layout": job.layout,
                                      "net": job.net_path or dataclasses.asdict(spec),
-                                     "lefthand": sumo.is_lefthand(net),
+                                     "lefthand": sumo_networks.is_lefthand(net),
                                      "traffic": record or traffic_settings(sim_cfg, ego, job.lefthand_share,
                                                                            job.static_tls_share, job.curved_share)})
     finally:
@@ -522,46 +460,8 @@ def run_sumo_job(job: SumoJob, out_dir: str, sample_cfg: preprocess.SampleConfig
     summary = {"index": job.index, "split": job.split, "location": job.location, "layout": job.layout,
                "num_samples": len(samples), "requested": job.num_samples, "wall_s": time.time() - t0,
                "stats": dict(stats), "rejections": rejections}
-    store.atomic_write_json(_job_marker(out_dir, job.index), summary)
+    store.atomic_write_json(job_marker(out_dir, job.index), summary)
     return summary
-
-
-def _worker_init():
-    logging.basicConfig(level=logging.WARNING)
-
-
-def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str) -> list[dict]:
-    """Runs jobs not yet done (resume), `workers` processes, with a tqdm bar over samples."""
-    from tqdm import tqdm
-
-    done, todo = [], []
-    for j in jobs:
-        m = _job_marker(out_dir, j.index)
-        if os.path.isfile(m):
-            with open(m) as f:
-                done.append(json.load(f))
-        else:
-            todo.append(j)
-    total = sum(j.num_samples for j in jobs)
-    bar = tqdm(total=total, initial=sum(d["requested"] for d in done), desc=desc, unit="scn", smoothing=0.1)
-    if done:
-        log.warning("resuming: %d of %d jobs already done", len(done), len(jobs))
-    results = list(done)
-    if workers <= 1:
-        for j in todo:
-            r = fn(j)
-            results.append(r)
-            bar.update(r["requested"])
-    else:
-        ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init) as ex:
-            futs = {ex.submit(fn, j): j for j in todo}
-            for fut in cf.as_completed(futs):
-                r = fut.result()
-                results.append(r)
-                bar.update(r["requested"])
-    bar.close()
-    return sorted(results, key=lambda r: r["index"])
 
 
 class _Bound:
@@ -589,30 +489,29 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
     """Builds (or resumes) a SUMO dataset in `out_dir`. Returns the manifest.
 
     Args:
-      nets: networks to use instead of generating them (`sumo.real_networks()` for SUMO's real ones); each
-        is parsed before anything is written (a bad file raises DataError naming it).
-      net_layout: the layout recorded for the given networks ("real" for `sumo.real_networks()`).
+      nets: networks to use instead of generating them (`sumo_networks.real_networks()` for SUMO's real ones);
+        each is parsed before anything is written (a bad file raises DataError naming it).
+      net_layout: the layout recorded for the given networks ("real" for `sumo_networks.real_networks()`).
       keep_overlaps: turn off the gate that drops windows in which two recorded boxes overlap.
       refuse_near_duplicates: raise DataError, before any simulation, when a val/test network's lane
         geometry nearly matches a train network's (`check_near_duplicates`); otherwise only warn. Either
         way the pairs go into the manifest (`build.near_duplicates`).
       against: other stores whose networks are checked against this build's (see `check_near_duplicates`).
-      traffic: `sumo.SimConfig` traffic fields (`sumo.TRAFFIC_FIELDS`: parking, short stops, drivers) set over
-        the simulation config; None keeps those of `sim_cfg` (default: `SimConfig`'s, parked vehicles, stops
-        and heterogeneous drivers on); `sumo.LEGACY_TRAFFIC` = the behaviour of stores built before them.
+      traffic: `sumo_traffic.SimConfig` traffic fields (`sumo_traffic.TRAFFIC_FIELDS`: parking, short stops,
+        drivers) set over the simulation config; None keeps those of `sim_cfg` (default: `SimConfig`'s, parked
+        vehicles, stops and heterogeneous drivers on); `sumo_traffic.LEGACY_TRAFFIC` = the behaviour of stores
+        built before them.
       ego: how egos are chosen (`EgoChoice`; `LEGACY_EGO` = the 30 m travel rule of stores built before).
       lefthand_share: probability of left-hand traffic (`netconvert --lefthand`) per network: generated ones
         are built so, given ones simulated as a left-hand copy (`plan_sumo_jobs`). None: 0.25 for generated
         networks, 0 for given ones (a test store of given networks stays as it was unless asked).
       static_tls_share: generated networks: probability of fixed-cycle traffic lights (queues), drawn per
         network from its seed.
-      curved_share: generated networks: probability of curved streets (bulges and S-bends, `sumo.NetSpec.bend`),
-        drawn per network from its seed; 0 (default) = straight streets as in every store built before it.
+      curved_share: generated networks: probability of curved streets (bulges and S-bends,
+        `sumo_networks.NetSpec.bend`), drawn per network from its seed; 0 (default) = straight streets as in
+        every store built before it.
     All of them are recorded in the settings (`build.traffic` in the manifest) and in every shard's meta.
     """
-    from gpd_jax.data import netgeom, sumo
-    from gpd_jax.data.errors import DataError
-
     t0 = time.time()
     check_count("num_scenarios", num_scenarios)
     check_count("per_job", per_job)
@@ -628,11 +527,12 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
         raise DataError(None, f"curved_share={curved_share} bends generated networks only; given networks (--net, "
                               "--real-networks) keep their own shapes")
     if traffic:
-        unknown = sorted(set(traffic) - set(sumo.TRAFFIC_FIELDS))
+        unknown = sorted(set(traffic) - set(sumo_traffic.TRAFFIC_FIELDS))
         if unknown:
-            raise DataError(None, f"unknown traffic option(s) {unknown}; expected some of {sumo.TRAFFIC_FIELDS}")
-    eff_sim = dataclasses.replace(sim_cfg or sumo.SimConfig(), **(traffic or {}))
-    sumo.check_sim_config(eff_sim)
+            raise DataError(None, f"unknown traffic option(s) {unknown}; expected some of "
+                                  f"{sumo_traffic.TRAFFIC_FIELDS}")
+    eff_sim = dataclasses.replace(sim_cfg or sumo_traffic.SimConfig(), **(traffic or {}))
+    sumo_traffic.check_sim_config(eff_sim)
     if ego.rule == "mixed":  # the mixed rule has no travel minimum: say so in the recorded sample config
         sample_cfg = dataclasses.replace(sample_cfg, min_ego_travel=0.0)
     if keep_overlaps:
@@ -640,7 +540,7 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
     for n in nets or []:  # parse every given network now, not after SUMO fails on it
         if not os.path.isfile(n):
             raise DataError(n, "network file not found")
-        sumo.read_network_lanes(n, merge_chains=False)
+        sumo_networks.read_network_lanes(n, merge_chains=False)
     for other in against:
         netgeom.read_network_index(other)
     os.makedirs(out_dir, exist_ok=True)
@@ -654,9 +554,9 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                 "traffic": traffic_settings(eff_sim, ego, lefthand_share, 0.0 if nets else static_tls_share,
                                             curved_share)}
     if _built_before_traffic_options(out_dir) and settings["traffic"] == traffic_settings(
-            dataclasses.replace(eff_sim, **sumo.LEGACY_TRAFFIC), LEGACY_EGO, 0.0, 0.0):
+            dataclasses.replace(eff_sim, **sumo_traffic.LEGACY_TRAFFIC), LEGACY_EGO, 0.0, 0.0):
         settings.pop("traffic")  # resuming a build from before the traffic options, with --traffic legacy
-    if _check_settings(out_dir, settings):  # an abandoned start with other settings: its networks go too
+    if check_settings(out_dir, settings):  # an abandoned start with other settings: its networks go too
         shutil.rmtree(netgeom.networks_dir(out_dir), ignore_errors=True)
     jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout, lefthand_share,
                           0.0 if nets else static_tls_share, curved_share)
@@ -676,7 +576,7 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
     extra = {"near_duplicates": dups, "near_duplicate_check": dup_summary,
              "networks": {loc: {k: r.get(k) for k in ("layout", "split", "lane_km", "lefthand")}
                           for loc, r in index.items()}}
-    return _finish(out_dir, settings, results, time.time() - t0, extra)
+    return finish(out_dir, settings, results, time.time() - t0, extra)
 
 
 def default_sumo_sample_config() -> preprocess.SampleConfig:
@@ -692,365 +592,3 @@ def _built_before_traffic_options(out_dir: str) -> bool:
     except (OSError, ValueError):
         return False
     return old.get("source") == "sumo" and "traffic" not in old
-
-
-def _check_settings(out_dir: str, settings: dict) -> bool:
-    """Records a build's settings in DIR/_jobs/settings.json, or checks them against those recorded there.
-
-    Call it only once the inputs are validated. Settings of a build that finished no job are replaced;
-    otherwise other settings raise DataError saying how to go on. Returns True when settings were replaced."""
-    from gpd_jax.data.errors import DataError
-
-    p = os.path.join(out_dir, "_jobs", "settings.json")
-    if os.path.isfile(p):
-        try:
-            with open(p) as f:
-                old = json.load(f)
-        except ValueError:
-            old = None
-        finished = any(n.startswith("job_") and n.endswith(".json") for n in os.listdir(os.path.dirname(p)))
-        if old != json.loads(json.dumps(settings)) and finished:
-            diff = sorted(k for k in set(old or {}) | set(settings) if (old or {}).get(k) != settings.get(k))
-            hint = (" It was built before the SUMO traffic options: resume it with --traffic legacy."
-                    if "traffic" in diff and old and "traffic" not in old else "")
-            raise DataError(out_dir, f"holds a build with other settings (differing: {', '.join(diff)}; see {p}). "
-                                     f"Run the same command as before to resume it, use another --out, or delete "
-                                     f"{out_dir} to start again.{hint}")
-        if old == json.loads(json.dumps(settings)):
-            return False
-        store.atomic_write_json(p, settings)
-        return True
-    store.atomic_write_json(p, settings)
-    return False
-
-
-def overlap_gate_summary(stats: dict, reject_overlaps: bool) -> dict:
-    """How many candidate windows had two overlapping recorded boxes, and whether the gate removed them."""
-    checked = int(stats.get("overlap_gate_checked", 0))
-    removed = int(stats.get("skip_overlapping_boxes", 0))
-    overlapping = removed if reject_overlaps else int(stats.get("overlapping_windows_kept", 0))
-    return {"enabled": bool(reject_overlaps), "windows_checked": checked, "windows_with_overlaps": overlapping,
-            "windows_removed": removed, "share_with_overlaps": round(overlapping / checked, 4) if checked else None}
-
-
-def _finish(out_dir: str, settings: dict, results: list[dict], wall: float, extra_build: dict | None = None) -> dict:
-    tp = os.path.join(out_dir, "_jobs", "build_time.json")
-    prev = 0.0
-    if os.path.isfile(tp):
-        with open(tp) as f:
-            prev = json.load(f).get("total_s", 0.0)
-    store.atomic_write_json(tp, {"total_s": prev + wall})
-    stats: Counter = Counter()
-    for r in results:
-        stats.update(r.get("stats", {}))
-    reject = settings["sample_config"].get("reject_overlaps", False)
-    layouts: dict = {}
-    for r in results:
-        if r.get("layout"):
-            e = layouts.setdefault(r["layout"], {"locations": set(), "samples": Counter()})
-            e["locations"].add(r["location"])
-            e["samples"][r["split"]] += r["num_samples"]
-    layouts = {k: {"locations": len(v["locations"]), "samples": dict(v["samples"])} for k, v in sorted(layouts.items())}
-    extra = {"build": {**settings, "build_wall_s": wall, "build_wall_s_all_invocations": prev + wall,
-                       "jobs": len(results), "jobs_without_samples": sum(r["num_samples"] == 0 for r in results),
-                       "stats": dict(stats), "overlap_gate": overlap_gate_summary(stats, reject),
-                       **({"layouts": layouts} if layouts else {}), **(extra_build or {}),
-                       "rejections": [x for r in results for x in r.get("rejections", [])][:200]}}
-    manifest = store.write_manifest(out_dir, extra, preprocess.sample_spec(
-        preprocess.SampleConfig(**{k: v for k, v in settings["sample_config"].items()})))
-    skipped = {k: v for k, v in stats.items() if k.startswith(("skip", "agent_frames", "lane_"))}
-    gate = manifest["build"]["overlap_gate"]
-    log.warning("built %d samples in %.1f s (%s); skips/clamps: %s; windows with overlapping boxes: %s of %s (%s)",
-                manifest["num_samples"], wall, {k: v["num_samples"] for k, v in manifest["splits"].items()}, skipped,
-                gate["windows_with_overlaps"], gate["windows_checked"], "removed" if reject else "kept")
-    return manifest
-
-
-# ---------------------------------------------------------------------------------------------- nuPlan
-@dataclasses.dataclass(frozen=True)
-class LogJob:
-    index: int
-    path: str
-    num_samples: int  # 0 = all windows
-    split: str | None
-
-
-def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: str | None = None,
-                 max_per_log: int | None = None, sample_cfg: preprocess.SampleConfig | None = None) -> dict:
-    """Builds a dataset from nuPlan logs (`gpd_jax.data.nuplan.iter_logs`), one shard per log."""
-    from gpd_jax.data import nuplan  # written separately; imported lazily
-
-    from gpd_jax.data.errors import DataError
-
-    t0 = time.time()
-    sample_cfg = sample_cfg or preprocess.SampleConfig()
-    check_count("max_per_log", max_per_log, allow_none=True)
-    # inputs first: a wrong --db or --maps must not leave settings behind that a corrected retry trips over
-    paths = nuplan.find_logs(db)
-    if not os.path.isdir(maps_root):
-        raise DataError(maps_root, "maps root not found (the folder holding nuplan-maps-v1.0.json)")
-    os.makedirs(out_dir, exist_ok=True)
-    store.clean_temporaries(out_dir)
-    settings = {"source": "nuplan", "db": os.path.abspath(db), "maps": os.path.abspath(maps_root), "seed": seed,
-                "split": split, "max_per_log": max_per_log, "sample_config": dataclasses.asdict(sample_cfg)}
-    _check_settings(out_dir, settings)
-    # Splits by map: read only the log headers first, then stream the logs one at a time (flat memory).
-    if split:
-        split_of = {p: split for p in paths}
-    else:
-        key = {}
-        for p in paths:
-            try:
-                key[p] = nuplan.read_log_header(p).map_version.removesuffix(".gpkg")
-            except Exception:  # noqa: BLE001 - a bad file is reported (and skipped) when it is read
-                pass
-        by_loc = assign_splits(list(key.values()), seed)
-        split_of = {p: by_loc.get(key.get(p), "train") for p in paths}
-    results = []
-    errors: list = []
-    from tqdm import tqdm
-
-    bar = tqdm(total=len(paths), desc="nuplan build", unit="log")
-    done = {}
-    for i, p in enumerate(paths):
-        m = _job_marker(out_dir, i)
-        if os.path.isfile(m):
-            with open(m) as f:
-                done[i] = json.load(f)
-    todo = [p for i, p in enumerate(paths) if i not in done]
-    results = list(done.values())
-    bar.update(len(done))
-    index_of = {p: i for i, p in enumerate(paths)}
-    raws = nuplan.iter_logs(todo[0] if len(todo) == 1 else db, maps_root, skip_bad=True, errors=errors) if todo else []
-    for raw in raws:
-        i = next((index_of[p] for p in todo if os.path.splitext(os.path.basename(p))[0] == raw.name), None)
-        if i is None or i in done:
-            continue
-        t1 = time.time()
-        stats: Counter = Counter()
-        pairs = list(preprocess.iter_samples(raw, sample_cfg, num=max_per_log, seed=seed, stats=stats))
-        sp = split_of[paths[i]]
-        if pairs:
-            arrays = store.stack_samples([q[1] for q in pairs], preprocess.sample_spec(sample_cfg))
-            existing = _existing_shard(out_dir, i)
-            if existing:
-                shutil.rmtree(existing)
-            store.write_shard(out_dir, sp, i, arrays, [q[0] for q in pairs], [raw.location] * len(pairs),
-                              extra={"source": "nuplan", "log": raw.name})
-        r = {"index": i, "split": sp, "location": raw.location, "num_samples": len(pairs),
-             "requested": len(pairs), "wall_s": time.time() - t1, "stats": dict(stats), "rejections": []}
-        store.atomic_write_json(_job_marker(out_dir, i), r)
-        results.append(r)
-        bar.update(1)
-    bar.close()
-    if errors:
-        log.warning("skipped %d bad nuPlan logs: %s", len(errors), "; ".join(map(str, errors[:5])))
-        results.append({"index": -1, "num_samples": 0, "requested": 0, "stats": {"logs_skipped_bad": len(errors)},
-                        "rejections": [str(e) for e in errors]})
-    return _finish(out_dir, settings, results, time.time() - t0)
-
-
-# ------------------------------------------------------------------------------------------ ScenarioNet
-@dataclasses.dataclass(frozen=True)
-class ScenarioNetJob:
-    """Scenario files of one split and one dataset ("waymo", "nuscenes", ...) that make one shard.
-
-    `paths` and `locations` (the split key of each file) are parallel tuples; `num_samples` is the number of
-    scenarios (what `run_jobs` counts on its progress bar)."""
-
-    index: int
-    split: str
-    dataset: str
-    paths: tuple[str, ...]
-    locations: tuple[str, ...]
-
-    @property
-    def num_samples(self) -> int:
-        return len(self.paths)
-
-
-def _scenarionet_index(out_dir: str, files, fingerprint: str) -> list[tuple[str, str]]:
-    """(location, dataset) of every scenario file: from `dataset_summary.pkl` where there is one, otherwise by
-    reading each file once (cached in `_jobs/scenario_index.json`, so a resumed build does not read them again)."""
-    from tqdm import tqdm
-
-    from gpd_jax.data import safe_pickle, scenarionet
-
-    if all(f.metadata is not None for f in files):
-        return [(scenarionet.scenario_location(f.metadata, scenarionet.file_stem(f.path)),
-                 scenarionet.scenario_dataset(f.metadata)) for f in files]
-    p = os.path.join(out_dir, "_jobs", "scenario_index.json")
-    if os.path.isfile(p):
-        with open(p) as fh:
-            cached = json.load(fh)
-        if cached.get("fingerprint") == fingerprint and len(cached.get("index", [])) == len(files):
-            return [tuple(x) for x in cached["index"]]
-    out = []
-    for f in tqdm(files, desc="scenarionet index", unit="scn"):
-        md = f.metadata
-        if md is None:
-            sc = safe_pickle.load(f.path)
-            md = sc.get("metadata") if isinstance(sc, dict) else None
-        out.append((scenarionet.scenario_location(md, scenarionet.file_stem(f.path)), scenarionet.scenario_dataset(md)))
-    store.atomic_write_json(p, {"fingerprint": fingerprint, "index": out})
-    return out
-
-
-def _plan_scenarionet_jobs(paths: list[str], index: list[tuple[str, str]], seed: int, split: str | None,
-                           per_job: int) -> list[ScenarioNetJob]:
-    """Splits by location (`assign_splits`), then chunks of `per_job` files of one split and one dataset, in
-    order of (split, dataset, location, path)."""
-    locs = [loc for loc, _ in index]
-    split_of = {loc: split for loc in locs} if split else assign_splits(locs, seed)
-    rows = sorted(((split_of[loc], ds, loc, p) for p, (loc, ds) in zip(paths, index)))
-    jobs: list[ScenarioNetJob] = []
-    a = 0
-    while a < len(rows):
-        sp, ds = rows[a][0], rows[a][1]
-        b = a
-        while b < len(rows) and b - a < per_job and rows[b][:2] == (sp, ds):
-            b += 1
-        chunk = rows[a:b]
-        jobs.append(ScenarioNetJob(len(jobs), sp, ds, tuple(r[3] for r in chunk), tuple(r[2] for r in chunk)))
-        a = b
-    return jobs
-
-
-def _scenario_samples(raw, sample_cfg, max_per_log, seed, stats) -> list:
-    """(scenario id, sample) pairs of a scenario (`raw.ego_index` set): the windows every `window_stride` frames
-    in which the ego is present throughout, then at most `max_per_log` of them drawn at random (seeded) before
-    any sample is made. (`preprocess.iter_samples(num=...)` draws among all starts before it knows which have
-    the ego, which can leave none from a scenario whose ego is absent in some windows, and making every window
-    first would cost `max_per_log`-fold.)"""
-    from gpd_jax.data.geometry import sample_has_overlap
-
-    preprocess.check_rawlog(raw)
-    T, F, ego = sample_cfg.num_frames, raw.num_frames, int(raw.ego_index)
-    if F < T:
-        stats["skip_log_too_short"] += 1
-        return []
-    cv = np.concatenate([[0], np.cumsum(raw.agent_valid[:, ego])])
-    starts = np.arange(0, F - T + 1, sample_cfg.window_stride)
-    present = (cv[starts + T] - cv[starts]) == T
-    stats["skip_ego_not_present"] += int((~present).sum())
-    starts = starts[present]
-    if max_per_log is not None and len(starts) > max_per_log:
-        stats["windows_over_max_per_log"] += len(starts) - max_per_log
-        starts = np.sort(np.random.default_rng([seed, len(starts)]).choice(starts, max_per_log, replace=False))
-    lp = preprocess.lane_points(raw.lanes, sample_cfg.lane_spacing)
-    road = preprocess.road_index(raw, sample_cfg)
-    out = []
-    for s in starts.tolist():
-        smp = preprocess.make_sample(raw, s, ego, sample_cfg, lp, stats, road)
-        if smp is None:
-            continue
-        if sample_cfg.reject_overlaps and sample_has_overlap(smp["xy"], smp["heading"], smp["valid"], smp["size"]):
-            stats["skip_overlapping_boxes"] += 1
-            stats["samples"] -= 1
-            continue
-        out.append((f"{raw.name}/{s}/{raw.agent_ids[ego]}", smp))
-    return out
-
-
-def run_scenarionet_job(job: ScenarioNetJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
-                        max_per_log: int | None = None, seed: int = 0, skip_bad: bool = False) -> dict:
-    """Reads the job's scenario files (`gpd_jax.data.scenarionet.read_scenario`), cuts their windows and writes
-    one shard. Returns the job summary; a bad file (`DataError`) is skipped and counted with `skip_bad`,
-    otherwise the summary carries `error` = [path, reason] and no job marker is written (the job reruns)."""
-    from gpd_jax.data import scenarionet
-    from gpd_jax.data.errors import DataError
-
-    t0 = time.time()
-    stats: Counter = Counter()
-    ids, samples, locs, rejections = [], [], [], []
-    for path, loc in zip(job.paths, job.locations):
-        try:
-            raw = scenarionet.read_scenario(path, loc, stats)
-            pairs = _scenario_samples(raw, sample_cfg, max_per_log, seed, stats)
-        except DataError as e:
-            if not skip_bad:
-                return {"index": job.index, "split": job.split, "num_samples": 0, "requested": len(job.paths),
-                        "stats": {}, "rejections": [], "error": [e.path, e.reason]}
-            stats["scenarios_skipped_bad"] += 1
-            rejections.append(str(e))
-            continue
-        stats["scenarios_read"] += 1
-        stats["scenarios_without_samples"] += not pairs
-        for sid, s in pairs:
-            ids.append(sid)
-            samples.append(s)
-            locs.append(raw.location)
-    if samples:
-        arrays = store.stack_samples(samples, preprocess.sample_spec(sample_cfg))
-        for sp in store.list_splits(out_dir):  # a shard of an interrupted earlier attempt
-            shutil.rmtree(store.shard_dir(out_dir, sp, job.index), ignore_errors=True)
-        store.write_shard(out_dir, job.split, job.index, arrays, ids, locs,
-                          extra={"source": "scenarionet", "dataset": job.dataset})
-    summary = {"index": job.index, "split": job.split, "dataset": job.dataset, "num_samples": len(samples),
-               "requested": len(job.paths), "wall_s": time.time() - t0, "stats": dict(stats),
-               "rejections": rejections}
-    store.atomic_write_json(_job_marker(out_dir, job.index), summary)
-    return summary
-
-
-class _ScenarioNetBound:
-    """Picklable ScenarioNet job runner bound to its settings."""
-
-    def __init__(self, out_dir, sample_cfg, max_per_log, seed, skip_bad):
-        self.args = (out_dir, sample_cfg, max_per_log, seed, skip_bad)
-
-    def __call__(self, job):
-        return run_scenarionet_job(job, *self.args)
-
-
-def build_scenarionet(out_dir: str, db: str, seed: int = 0, split: str | None = None,
-                      max_per_log: int | None = None, workers: int = 1, per_job: int = 50,
-                      skip_bad: bool = False, sample_cfg: preprocess.SampleConfig | None = None) -> dict:
-    """Builds (or resumes) a dataset from ScenarioNet scenarios (`gpd_jax.data.scenarionet`).
-
-    Args:
-      out_dir: the store to write.
-      db: a ScenarioNet dataset directory, a plain folder of scenario `.pkl` files, or one file.
-      seed: split assignment and window choice seed.
-      split: put everything into this split (default: splits by location, see `scenario_location`).
-      max_per_log: at most this many windows per scenario (default: every `window_stride` frames).
-      workers: processes; per_job: scenario files per job (one shard each, of one split and one dataset).
-      skip_bad: skip (and count) files that raise `DataError` instead of stopping with that error.
-    Raises `DataError` (naming the file) for a bad input file unless `skip_bad`, and `ValueError` when `out_dir`
-    holds a build with other settings or of another set of files.
-    """
-    import hashlib
-
-    from gpd_jax.data import scenarionet
-    from gpd_jax.data.errors import DataError
-
-    t0 = time.time()
-    sample_cfg = sample_cfg or preprocess.SampleConfig()
-    files = scenarionet.find_scenarios(db)
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f"{f.key}\0{os.path.getsize(f.path)}\n".encode())
-    os.makedirs(out_dir, exist_ok=True)
-    store.clean_temporaries(out_dir)
-    settings = {"source": "scenarionet", "db": os.path.abspath(db), "seed": seed, "split": split,
-                "max_per_log": max_per_log, "per_job": per_job, "skip_bad": skip_bad,
-                "num_files": len(files), "files_sha256": h.hexdigest(),
-                "sample_config": dataclasses.asdict(sample_cfg)}
-    _check_settings(out_dir, settings)
-    index = _scenarionet_index(out_dir, files, h.hexdigest())
-    jobs = _plan_scenarionet_jobs([f.path for f in files], index, seed, split, per_job)
-    bound = _ScenarioNetBound(out_dir, sample_cfg, max_per_log, seed, skip_bad)
-    results = run_jobs(jobs, bound, out_dir, workers, "scenarionet build")
-    failed = [r for r in results if r.get("error")]
-    if failed:
-        raise DataError(*failed[0]["error"])
-    stats: Counter = Counter()
-    for r in results:
-        stats.update(r.get("stats", {}))
-    short = stats.get("skip_log_too_short", 0)
-    if short:
-        log.warning("%d of %d scenarios are shorter than the %d frames (%.1f s at 10 Hz) a sample needs and gave "
-                    "no sample (Waymo's scenarios are 91 frames)", short, len(files), sample_cfg.num_frames,
-                    sample_cfg.num_frames / 10)
-    man = _finish(out_dir, settings, results, time.time() - t0)
-    return man

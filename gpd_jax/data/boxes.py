@@ -1,4 +1,5 @@
-"""Oriented-box geometry shared by the preprocessing quality gate and the dataset statistics."""
+"""Oriented-box overlap shared by the preprocessing quality gate, the importers' overlap gates
+(`gpd_jax.data.sources`) and the dataset statistics."""
 
 from __future__ import annotations
 

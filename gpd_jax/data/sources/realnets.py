@@ -1,8 +1,9 @@
 """Real road networks for training and development, prepared offline from what the package registries ship.
 
-SUMO's wheel ships six real (OSM-derived) networks (`sumo.REAL_NETWORKS`). Four stay TEST-ONLY (`TEST_ONLY`:
-A10KW, fkk_in, fokr_bs_demo, highway, the real-road test store). The training and development networks here are
-*tiles*: parts of a bigger real network cut out with netconvert, so that train and dev tiles are different roads:
+SUMO's wheel ships six real (OSM-derived) networks (`sumo_networks.REAL_NETWORKS`). Four stay TEST-ONLY
+(`TEST_ONLY`: A10KW, fkk_in, fokr_bs_demo, highway, the real-road test store). The training and development
+networks here are *tiles*: parts of a bigger real network cut out with netconvert, so that train and dev tiles are
+different roads:
 
 * SUMO's `DRT` (a Berlin district, 2.6 x 3.3 km) in four tiles. SUMO's `bs3d` (Braunschweig centre) is not
   used: the test network `fokr_bs_demo` (the DLR research intersection) lies inside it (x 405-846, y 412-824 of
@@ -25,6 +26,9 @@ builds what is missing (atomic writes; a rerun reuses the cache) and returns {"t
 `manifest.json` in the cache records each tile's source, licence and attribution, box, lane length and the
 SHA-256 of its source file. All the map data are (c) OpenStreetMap contributors, under the Open Database Licence
 1.0 (ODbL): works made from them must credit "OpenStreetMap contributors" and share the database under the ODbL.
+
+Command line: `python -m gpd_jax.data realnets --cache DIR [--splits train dev] [--tiles NAME ...]` prepares the
+tiles and prints {split: [paths]} as JSON (exit 2 with the reason on bad input or a failed conversion).
 """
 
 from __future__ import annotations
@@ -42,8 +46,8 @@ import zipfile
 
 import numpy as np
 
-from gpd_jax.data import sumo
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.sources import sumo_networks
 from gpd_jax.fsutil import atomic_path, atomic_write_json, atomic_write_text
 
 OSM_LICENCE = "ODbL-1.0"
@@ -150,7 +154,7 @@ def _sha256(path: str) -> str:
 
 
 def _env() -> dict:
-    env = dict(os.environ, SUMO_HOME=sumo.sumo_home())
+    env = dict(os.environ, SUMO_HOME=sumo_networks.sumo_home())
     try:  # netconvert's PROJ finds its proj.db in pyproj's copy (else it warns "Cannot find proj.db")
         import pyproj
         env.setdefault("PROJ_DATA", pyproj.datadir.get_data_dir())
@@ -163,7 +167,7 @@ def _netconvert(args: list[str], out: str, what: str) -> None:
     """Runs netconvert writing `out` atomically."""
     suffix = ".net.xml.gz" if out.endswith(".gz") else ".net.xml"
     with atomic_path(out, suffix=suffix) as tmp:
-        p = subprocess.run([os.path.join(sumo.sumo_home(), "bin", "netconvert"), *args, "-o", tmp,
+        p = subprocess.run([os.path.join(sumo_networks.sumo_home(), "bin", "netconvert"), *args, "-o", tmp,
                             "--no-warnings"], capture_output=True, text=True, env=_env(), timeout=900)
         if p.returncode != 0:
             raise DataError(out, f"netconvert ({what}) failed: {p.stderr[-1500:]}")
@@ -190,7 +194,7 @@ def geo_footprint(path: str) -> tuple[float, float, float, float]:
     import pyproj
 
     (ox, oy), proj = _location(path)
-    pts = np.concatenate(sumo.read_network_lanes(path, merge_chains=False))
+    pts = np.concatenate(sumo_networks.read_network_lanes(path, merge_chains=False))
     lon, lat = pyproj.Proj(proj)(pts[:, 0] - ox, pts[:, 1] - oy, inverse=True)
     return float(lon.min()), float(lat.min()), float(lon.max()), float(lat.max())
 
@@ -224,7 +228,7 @@ def edges_inside(net_path: str, box: tuple[float, float, float, float]) -> list[
             if el.tag != "edge":
                 continue
             if el.get("function", "normal") == "normal":
-                lanes = [sumo._parse_shape(ln.get("shape")) for ln in el.findall("lane") if ln.get("shape")]
+                lanes = [sumo_networks.parse_shape(ln.get("shape")) for ln in el.findall("lane") if ln.get("shape")]
                 if lanes and all(np.all((s[:, 0] >= x0) & (s[:, 0] <= x1) & (s[:, 1] >= y0) & (s[:, 1] <= y1))
                                  for s in lanes):
                     out.append(el.get("id"))
@@ -285,7 +289,7 @@ def pbf_to_osm_xml(pbf: str, out: str) -> str:
 def source_network(src: Source, cache_dir: str) -> tuple[str, str]:
     """(path of the full SUMO network of a source, SHA-256 of the file it comes from), converting if needed."""
     if src.kind == "sumo":
-        p = os.path.join(sumo.sumo_home(), "tools", "game", src.ref)
+        p = os.path.join(sumo_networks.sumo_home(), "tools", "game", src.ref)
         if not os.path.isfile(p):
             raise DataError(p, f"source {src.name}: not in this SUMO install")
         return p, _sha256(p)
@@ -305,7 +309,7 @@ def source_network(src: Source, cache_dir: str) -> tuple[str, str]:
 
 
 def _lane_km(path: str) -> float:
-    lanes = sumo.read_network_lanes(path, merge_chains=False)
+    lanes = sumo_networks.read_network_lanes(path, merge_chains=False)
     return float(sum(np.linalg.norm(np.diff(ln, axis=0), axis=-1).sum() for ln in lanes) / 1000.0)
 
 
@@ -337,7 +341,7 @@ def prepare_tile(tile: Tile, cache_dir: str) -> tuple[str, dict]:
 
 def test_networks() -> list[str]:
     """Paths of the TEST_ONLY networks in this SUMO install."""
-    home = os.path.join(sumo.sumo_home(), "tools", "game")
+    home = os.path.join(sumo_networks.sumo_home(), "tools", "game")
     return [p for p in (os.path.join(home, r) for r in TEST_ONLY) if os.path.isfile(p)]
 
 
@@ -388,35 +392,12 @@ def _turnaround_count(net_path: str) -> int:
 
 
 def chain_statistics(net_path: str, ignore_turnarounds: bool = False) -> dict:
-    """How the lanes of a SUMO network chain into GT polylines (`sumo.read_network_lanes`, optionally with
-    turnaround connectors ignored): {"chains", "chain_km",
+    """How the lanes of a SUMO network chain into GT polylines (`sumo_networks.read_network_lanes`, optionally
+    with turnaround connectors ignored): {"chains", "chain_km",
     "chain_length_m": {p10, p50, p90}, "chains_per_km", "turnaround_connections"}."""
-    chains = sumo.read_network_lanes(net_path, merge_chains=True, ignore_turnarounds=ignore_turnarounds)
+    chains = sumo_networks.read_network_lanes(net_path, merge_chains=True, ignore_turnarounds=ignore_turnarounds)
     arr = np.asarray([float(np.linalg.norm(np.diff(c, axis=0), axis=-1).sum()) for c in chains])
     km = float(arr.sum() / 1000.0)
     return {"chains": len(arr), "chain_km": round(km, 3),
             "chain_length_m": {q: round(float(np.percentile(arr, int(q[1:]))), 1) for q in ("p10", "p50", "p90")},
             "chains_per_km": round(len(arr) / max(km, 1e-9), 2), "turnaround_connections": _turnaround_count(net_path)}
-
-
-def main(argv=None) -> int:
-    """python -m gpd_jax.data.realnets --cache DIR [--splits train dev] [--tiles NAME ...]: prepares the tiles
-    and prints {split: [paths]} as JSON (exit 2 with the reason on bad input or a failed conversion)."""
-    import argparse
-
-    p = argparse.ArgumentParser(prog="python -m gpd_jax.data.realnets", description=main.__doc__)
-    p.add_argument("--cache", required=True, help="directory for sources, tiles and manifest.json")
-    p.add_argument("--splits", nargs="+", default=list(SPLITS))
-    p.add_argument("--tiles", nargs="+", default=None, help="only these tiles (names in TILES)")
-    args = p.parse_args(argv)
-    try:
-        out = prepare_real_networks(args.cache, splits=tuple(args.splits), names=args.tiles)
-    except DataError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps(out, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,5 +1,5 @@
-"""ScenarioNet reader: scenario `.pkl` files (Waymo, nuScenes, nuPlan, Argoverse 2, ... converted by ScenarioNet)
--> `RawLog`.
+"""The ScenarioNet importer: scenario `.pkl` files (Waymo, nuScenes, nuPlan, Argoverse 2, ... converted by
+ScenarioNet) -> `RawLog` -> a store (`build_scenarionet`, with the shared job runner `gpd_jax.data.jobs`).
 
 Input (`find_scenarios`): a ScenarioNet dataset directory (`dataset_summary.pkl`, whose keys are the scenario
 file names and whose values are their metadata, plus the optional `dataset_mapping.pkl`, file name -> folder
@@ -31,8 +31,8 @@ What is read, and the conventions:
   scenario whose ego heading disagrees with its direction of motion by more than 90 degrees in the median over
   frames where it moves faster than 2 m/s is refused (`DataError`).
 * **Ego.** The track named by `metadata["sdc_id"]` (`RawLog.ego_index`), whatever its type. No `sdc_id`, or
-  one that names no track, is a `DataError`. The build (`gpd_jax.data.build.build_scenarionet`) cuts windows
-  every `SampleConfig.window_stride` frames in which the ego is valid throughout (others are counted as
+  one that names no track, is a `DataError`. The build (`build_scenarionet`) cuts windows every
+  `SampleConfig.window_stride` frames in which the ego is valid throughout (others are counted as
   `skip_ego_not_present`), keeps at most `--max-per-log` of them, and makes the samples with
   `gpd_jax.data.preprocess.make_sample`.
 * **Agents.** Tracks of type `VEHICLE` are kept. `gpd_jax.scene.AGENT_TYPES` has vehicle classes only (GPD-1
@@ -43,8 +43,8 @@ What is read, and the conventions:
 * **Sizes and vehicle classes.** (length, width) per track is the median of `state["length"]` and
   `state["width"]` over its valid frames (arrays of T or (T, 1)). A track without them, or with non-positive
   values, gets `DEFAULT_SIZE` and is counted (`agent_size_defaulted`). ScenarioNet has one `VEHICLE` type, so
-  the class comes from the length as for nuPlan (`gpd_jax.data.nuplan.vehicle_type`: car < 6.5 m <= truck
-  < 10 m <= bus).
+  the class comes from the length as for nuPlan (`gpd_jax.data.sources.nuplan.vehicle_type`: car < 6.5 m <=
+  truck < 10 m <= bus).
 * **Lanes.** The centrelines are the `polyline`s of the map features whose type is a vehicle lane:
   `LANE_SURFACE_STREET`, `LANE_FREEWAY`, `LANE_SURFACE_UNSTRUCTURE`, `LANE_UNKNOWN` (`VEHICLE_LANE_TYPES`).
   `LANE_BIKE_LANE` is not a vehicle lane and is left out (counted). Road lines (`ROAD_LINE_*`), road edges
@@ -72,19 +72,28 @@ named), array lengths that disagree with `ts`, a missing sdc, an unsupported fra
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import logging
 import os
+import shutil
+import time
 import warnings
 from collections import Counter
 from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from gpd_jax.data import safe_pickle
+from gpd_jax.data import preprocess, safe_pickle, store
+from gpd_jax.data.boxes import sample_has_overlap
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.jobs import assign_splits, check_settings, finish, job_marker, run_jobs
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import Area, lane_area
 from gpd_jax.geometry import AREA_KIND_ID
 from gpd_jax.scene import TYPE_ID
+
+log = logging.getLogger(__name__)
 
 SUMMARY_FILE = "dataset_summary.pkl"
 MAPPING_FILE = "dataset_mapping.pkl"
@@ -384,7 +393,7 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
         area = _lane_area(feat, pl, fw, path, stats)
         if area is not None:
             areas.append(area)
-    from gpd_jax.data.nuplan import vehicle_type
+    from gpd_jax.data.sources.nuplan import vehicle_type
 
     atype = vehicle_type(size_arr[:, 0]).astype(np.int32)
     atype[0] = TYPE_ID["ego"]
@@ -489,3 +498,196 @@ def iter_scenarios(db: str | os.PathLike | Iterable[ScenarioFile], skip_bad: boo
                 raise
             if errors is not None:
                 errors.append(e)
+
+
+# ----------------------------------------------------------------------------------------------- build
+@dataclasses.dataclass(frozen=True)
+class ScenarioNetJob:
+    """Scenario files of one split and one dataset ("waymo", "nuscenes", ...) that make one shard.
+
+    `paths` and `locations` (the split key of each file) are parallel tuples; `num_samples` is the number of
+    scenarios (what `run_jobs` counts on its progress bar)."""
+
+    index: int
+    split: str
+    dataset: str
+    paths: tuple[str, ...]
+    locations: tuple[str, ...]
+
+    @property
+    def num_samples(self) -> int:
+        return len(self.paths)
+
+
+def _scenarionet_index(out_dir: str, files, fingerprint: str) -> list[tuple[str, str]]:
+    """(location, dataset) of every scenario file: from `dataset_summary.pkl` where there is one, otherwise by
+    reading each file once (cached in `_jobs/scenario_index.json`, so a resumed build does not read them again)."""
+    from tqdm import tqdm
+
+    if all(f.metadata is not None for f in files):
+        return [(scenario_location(f.metadata, file_stem(f.path)), scenario_dataset(f.metadata)) for f in files]
+    p = os.path.join(out_dir, "_jobs", "scenario_index.json")
+    if os.path.isfile(p):
+        with open(p) as fh:
+            cached = json.load(fh)
+        if cached.get("fingerprint") == fingerprint and len(cached.get("index", [])) == len(files):
+            return [tuple(x) for x in cached["index"]]
+    out = []
+    for f in tqdm(files, desc="scenarionet index", unit="scn"):
+        md = f.metadata
+        if md is None:
+            sc = safe_pickle.load(f.path)
+            md = sc.get("metadata") if isinstance(sc, dict) else None
+        out.append((scenario_location(md, file_stem(f.path)), scenario_dataset(md)))
+    store.atomic_write_json(p, {"fingerprint": fingerprint, "index": out})
+    return out
+
+
+def _plan_scenarionet_jobs(paths: list[str], index: list[tuple[str, str]], seed: int, split: str | None,
+                           per_job: int) -> list[ScenarioNetJob]:
+    """Splits by location (`assign_splits`), then chunks of `per_job` files of one split and one dataset, in
+    order of (split, dataset, location, path)."""
+    locs = [loc for loc, _ in index]
+    split_of = {loc: split for loc in locs} if split else assign_splits(locs, seed)
+    rows = sorted(((split_of[loc], ds, loc, p) for p, (loc, ds) in zip(paths, index)))
+    jobs: list[ScenarioNetJob] = []
+    a = 0
+    while a < len(rows):
+        sp, ds = rows[a][0], rows[a][1]
+        b = a
+        while b < len(rows) and b - a < per_job and rows[b][:2] == (sp, ds):
+            b += 1
+        chunk = rows[a:b]
+        jobs.append(ScenarioNetJob(len(jobs), sp, ds, tuple(r[3] for r in chunk), tuple(r[2] for r in chunk)))
+        a = b
+    return jobs
+
+
+def _scenario_samples(raw, sample_cfg, max_per_log, seed, stats) -> list:
+    """(scenario id, sample) pairs of a scenario (`raw.ego_index` set): the windows every `window_stride` frames
+    in which the ego is present throughout, then at most `max_per_log` of them drawn at random (seeded) before
+    any sample is made. (`preprocess.iter_samples(num=...)` draws among all starts before it knows which have
+    the ego, which can leave none from a scenario whose ego is absent in some windows, and making every window
+    first would cost `max_per_log`-fold.)"""
+    preprocess.check_rawlog(raw)
+    T, F, ego = sample_cfg.num_frames, raw.num_frames, int(raw.ego_index)
+    if F < T:
+        stats["skip_log_too_short"] += 1
+        return []
+    cv = np.concatenate([[0], np.cumsum(raw.agent_valid[:, ego])])
+    starts = np.arange(0, F - T + 1, sample_cfg.window_stride)
+    present = (cv[starts + T] - cv[starts]) == T
+    stats["skip_ego_not_present"] += int((~present).sum())
+    starts = starts[present]
+    if max_per_log is not None and len(starts) > max_per_log:
+        stats["windows_over_max_per_log"] += len(starts) - max_per_log
+        starts = np.sort(np.random.default_rng([seed, len(starts)]).choice(starts, max_per_log, replace=False))
+    lp = preprocess.lane_points(raw.lanes, sample_cfg.lane_spacing)
+    road = preprocess.road_index(raw, sample_cfg)
+    out = []
+    for s in starts.tolist():
+        smp = preprocess.make_sample(raw, s, ego, sample_cfg, lp, stats, road)
+        if smp is None:
+            continue
+        if sample_cfg.reject_overlaps and sample_has_overlap(smp["xy"], smp["heading"], smp["valid"], smp["size"]):
+            stats["skip_overlapping_boxes"] += 1
+            stats["samples"] -= 1
+            continue
+        out.append((f"{raw.name}/{s}/{raw.agent_ids[ego]}", smp))
+    return out
+
+
+def run_scenarionet_job(job: ScenarioNetJob, out_dir: str, sample_cfg: preprocess.SampleConfig,
+                        max_per_log: int | None = None, seed: int = 0, skip_bad: bool = False) -> dict:
+    """Reads the job's scenario files (`read_scenario`), cuts their windows and writes one shard. Returns the job
+    summary; a bad file (`DataError`) is skipped and counted with `skip_bad`, otherwise the summary carries
+    `error` = [path, reason] and no job marker is written (the job reruns)."""
+    t0 = time.time()
+    stats: Counter = Counter()
+    ids, samples, locs, rejections = [], [], [], []
+    for path, loc in zip(job.paths, job.locations):
+        try:
+            raw = read_scenario(path, loc, stats)
+            pairs = _scenario_samples(raw, sample_cfg, max_per_log, seed, stats)
+        except DataError as e:
+            if not skip_bad:
+                return {"index": job.index, "split": job.split, "num_samples": 0, "requested": len(job.paths),
+                        "stats": {}, "rejections": [], "error": [e.path, e.reason]}
+            stats["scenarios_skipped_bad"] += 1
+            rejections.append(str(e))
+            continue
+        stats["scenarios_read"] += 1
+        stats["scenarios_without_samples"] += not pairs
+        for sid, s in pairs:
+            ids.append(sid)
+            samples.append(s)
+            locs.append(raw.location)
+    if samples:
+        arrays = store.stack_samples(samples, preprocess.sample_spec(sample_cfg))
+        for sp in store.list_splits(out_dir):  # a shard of an interrupted earlier attempt
+            shutil.rmtree(store.shard_dir(out_dir, sp, job.index), ignore_errors=True)
+        store.write_shard(out_dir, job.split, job.index, arrays, ids, locs,
+                          extra={"source": "scenarionet", "dataset": job.dataset})
+    summary = {"index": job.index, "split": job.split, "dataset": job.dataset, "num_samples": len(samples),
+               "requested": len(job.paths), "wall_s": time.time() - t0, "stats": dict(stats),
+               "rejections": rejections}
+    store.atomic_write_json(job_marker(out_dir, job.index), summary)
+    return summary
+
+
+class _ScenarioNetBound:
+    """Picklable ScenarioNet job runner bound to its settings."""
+
+    def __init__(self, out_dir, sample_cfg, max_per_log, seed, skip_bad):
+        self.args = (out_dir, sample_cfg, max_per_log, seed, skip_bad)
+
+    def __call__(self, job):
+        return run_scenarionet_job(job, *self.args)
+
+
+def build_scenarionet(out_dir: str, db: str, seed: int = 0, split: str | None = None,
+                      max_per_log: int | None = None, workers: int = 1, per_job: int = 50,
+                      skip_bad: bool = False, sample_cfg: preprocess.SampleConfig | None = None) -> dict:
+    """Builds (or resumes) a dataset from ScenarioNet scenarios (`find_scenarios`, `read_scenario`).
+
+    Args:
+      out_dir: the store to write.
+      db: a ScenarioNet dataset directory, a plain folder of scenario `.pkl` files, or one file.
+      seed: split assignment and window choice seed.
+      split: put everything into this split (default: splits by location, see `scenario_location`).
+      max_per_log: at most this many windows per scenario (default: every `window_stride` frames).
+      workers: processes; per_job: scenario files per job (one shard each, of one split and one dataset).
+      skip_bad: skip (and count) files that raise `DataError` instead of stopping with that error.
+    Raises `DataError` (naming the file) for a bad input file unless `skip_bad`, and `ValueError` when `out_dir`
+    holds a build with other settings or of another set of files.
+    """
+    t0 = time.time()
+    sample_cfg = sample_cfg or preprocess.SampleConfig()
+    files = find_scenarios(db)
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f"{f.key}\0{os.path.getsize(f.path)}\n".encode())
+    os.makedirs(out_dir, exist_ok=True)
+    store.clean_temporaries(out_dir)
+    settings = {"source": "scenarionet", "db": os.path.abspath(db), "seed": seed, "split": split,
+                "max_per_log": max_per_log, "per_job": per_job, "skip_bad": skip_bad,
+                "num_files": len(files), "files_sha256": h.hexdigest(),
+                "sample_config": dataclasses.asdict(sample_cfg)}
+    check_settings(out_dir, settings)
+    index = _scenarionet_index(out_dir, files, h.hexdigest())
+    jobs = _plan_scenarionet_jobs([f.path for f in files], index, seed, split, per_job)
+    bound = _ScenarioNetBound(out_dir, sample_cfg, max_per_log, seed, skip_bad)
+    results = run_jobs(jobs, bound, out_dir, workers, "scenarionet build")
+    failed = [r for r in results if r.get("error")]
+    if failed:
+        raise DataError(*failed[0]["error"])
+    stats: Counter = Counter()
+    for r in results:
+        stats.update(r.get("stats", {}))
+    short = stats.get("skip_log_too_short", 0)
+    if short:
+        log.warning("%d of %d scenarios are shorter than the %d frames (%.1f s at 10 Hz) a sample needs and gave "
+                    "no sample (Waymo's scenarios are 91 frames)", short, len(files), sample_cfg.num_frames,
+                    sample_cfg.num_frames / 10)
+    man = finish(out_dir, settings, results, time.time() - t0)
+    return man
