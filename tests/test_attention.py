@@ -193,28 +193,28 @@ def _close(got, want, rtol=1e-5):
 @pytest.fixture
 def fresh_auto(monkeypatch, tmp_path):
     """An empty choice cache (on disk and in this process) and a counter of measurements."""
-    from gpd_jax.model import attention
+    from gpd_jax.model import autotune
 
     monkeypatch.setenv("GPD_JAX_CACHE", str(tmp_path))
-    monkeypatch.delenv(attention.FORCE_ENV, raising=False)
-    monkeypatch.setattr(attention, "_choices", {})
-    monkeypatch.setattr(attention, "_choice_log", [])
+    monkeypatch.delenv(autotune.FORCE_ENV, raising=False)
+    monkeypatch.setattr(autotune, "_choices", {})
+    monkeypatch.setattr(autotune, "_choice_log", [])
     calls = []
-    real = attention._measure
+    real = autotune._measure
 
     def counted(*args, **kwargs):
         calls.append(args)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(attention, "_measure", counted)
-    return attention, calls, tmp_path
+    monkeypatch.setattr(autotune, "_measure", counted)
+    return autotune, calls, tmp_path
 
 
 def test_auto_measures_once_caches_on_disk_and_matches_xla(fresh_auto, monkeypatch):
     """"auto" times both paths once per shape and batch bucket at trace time (inside jit and vmap), writes
     the choice beside the kernel, reads it back in a new process (simulated by clearing the memo) without
     measuring, and gives the XLA path's results whichever it picked."""
-    attention, calls, cache = fresh_auto
+    autotune, calls, cache = fresh_auto
     _kernel("native")
     q, k, v, qf, chunks, n, c = _decode_case()
     att = lambda kernel: jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, kernel)))(
@@ -222,7 +222,7 @@ def test_auto_measures_once_caches_on_disk_and_matches_xla(fresh_auto, monkeypat
     got = att("auto")
     _close(got, att("xla"))
     assert len(calls) == 1
-    (rec,) = attention.auto_choices()
+    (rec,) = autotune.auto_choices()
     # whichever candidate measured fastest wins, the batched XLA path included
     assert rec["source"] == "measured" and rec["choice"] in ("native", "xla", "xla_batched")
     assert set(rec["times_ms"]) == {"native", "xla", "xla_batched"} == set(rec["key"]["candidates"])
@@ -235,10 +235,10 @@ def test_auto_measures_once_caches_on_disk_and_matches_xla(fresh_auto, monkeypat
     jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q, k, v, chunks)
     assert len(calls) == 1
     # a "new process": the choice comes from disk
-    monkeypatch.setattr(attention, "_choices", {})
-    monkeypatch.setattr(attention, "_choice_log", [])
+    monkeypatch.setattr(autotune, "_choices", {})
+    monkeypatch.setattr(autotune, "_choice_log", [])
     att("auto")
-    assert len(calls) == 1 and attention.auto_choices()[0]["source"] == "cached"
+    assert len(calls) == 1 and autotune.auto_choices()[0]["source"] == "cached"
     # another batch bucket is measured on its own
     q4, k4, v4, _, chunks4, _, _ = _decode_case(b=4)
     jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q4, k4, v4, chunks4)
@@ -247,20 +247,20 @@ def test_auto_measures_once_caches_on_disk_and_matches_xla(fresh_auto, monkeypat
 
 @pytest.mark.parametrize("forced", ["xla", "xla_batched", "native"])
 def test_auto_forced_by_environment(fresh_auto, monkeypatch, forced):
-    attention, calls, _ = fresh_auto
+    autotune, calls, _ = fresh_auto
     if forced == "native":
         _kernel("native")
-    monkeypatch.setenv(attention.FORCE_ENV, forced)
+    monkeypatch.setenv(autotune.FORCE_ENV, forced)
     q, k, v, qf, chunks, n, c = _decode_case()
     got = jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q, k, v, chunks)
     ref = jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "xla")))(q, k, v, chunks)
     _close(got, ref)
     assert not calls
-    assert attention.auto_choices()[-1]["choice"] == forced and attention.auto_choices()[-1]["source"] == "forced"
-    assert attention.use_native("auto") == (forced == "native")
-    monkeypatch.setenv(attention.FORCE_ENV, "fastest")
+    assert autotune.auto_choices()[-1]["choice"] == forced and autotune.auto_choices()[-1]["source"] == "forced"
+    assert use_native("auto") == (forced == "native")
+    monkeypatch.setenv(autotune.FORCE_ENV, "fastest")
     with pytest.raises(ValueError, match="expected native, xla, xla_batched or auto"):
-        attention.use_native("auto")
+        use_native("auto")
 
 
 def test_auto_without_compiler_uses_xla(tmp_path):
@@ -273,12 +273,12 @@ def test_auto_without_compiler_uses_xla(tmp_path):
     code = """
 import warnings, json
 import jax, jax.numpy as jnp
-from gpd_jax.model import attention
+from gpd_jax.model import attention, autotune
 q = jnp.ones((1, 2, 4, 16)); k = jnp.ones((1, 2, 8, 16))
 with warnings.catch_warnings(record=True) as w:
     warnings.simplefilter("always")
     out = jax.vmap(lambda q, k: attention.attend_dynamic(q, k, k, jnp.zeros(4, jnp.int32), 1, 4, 8, "auto"))(q, k)
-print(json.dumps({"choices": attention.auto_choices(), "warned": any("unavailable" in str(x.message) for x in w),
+print(json.dumps({"choices": autotune.auto_choices(), "warned": any("unavailable" in str(x.message) for x in w),
                   "ok": bool(jnp.allclose(out, 1.0))}))
 """
     env = dict(os.environ, CXX=str(tmp_path / "no-such-compiler"), GPD_JAX_CACHE=str(tmp_path / "cache"))
@@ -344,7 +344,7 @@ def test_build_target_is_part_of_the_cache_key_and_unrunnable_targets_are_refuse
 def test_auto_inside_a_vmapped_scan_chooses_at_the_real_batch(fresh_auto):
     """The rollout's decode step runs in a `lax.scan` under `vmap`: its body is traced unbatched, so the
     choice at the real batch is made by the batching rule (a batch-1 choice is made for the unbatched trace)."""
-    attention, calls, _ = fresh_auto
+    autotune, calls, _ = fresh_auto
     _kernel("native")
     q, k, v, qf, chunks, n, c = _decode_case(b=3)
 
@@ -357,23 +357,23 @@ def test_auto_inside_a_vmapped_scan_chooses_at_the_real_batch(fresh_auto):
     ref = jax.jit(jax.vmap(lambda q, k, v, m: 2 * attend_dynamic(q, k, v, qf, m, n, c, "xla")))(q, k, v, chunks)
     _close(got, ref)
     assert 3 in [args[0] for args in calls]
-    assert any(r["key"]["batch_bucket"] == 4 for r in attention.auto_choices())
+    assert any(r["key"]["batch_bucket"] == 4 for r in autotune.auto_choices())
 
 
 def test_auto_without_the_native_kernel_measures_the_two_xla_batching_rules(fresh_auto, monkeypatch):
     """Where the native kernel is no candidate (a GPU, GPD_JAX_NATIVE=0, no compiler), "auto" still measures at
     a batch above 1: the scenario-by-scenario rule ("xla") against the all-scenarios one ("xla_batched"), which
     a GPU needs (one scenario at a time leaves it idle). At batch 1 the two are the same path: no measurement."""
-    attention, calls, _ = fresh_auto
+    autotune, calls, _ = fresh_auto
     monkeypatch.setattr(native, "available", lambda *a, **k: False)
     q, k, v, qf, chunks, n, c = _decode_case(b=3)
     got = jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "auto")))(q, k, v, chunks)
     _close(got, jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, "xla")))(q, k, v, chunks))
-    (rec,) = attention.auto_choices()
+    (rec,) = autotune.auto_choices()
     assert rec["source"] == "measured" and set(rec["times_ms"]) == {"xla", "xla_batched"}
     assert rec["choice"] == min(rec["times_ms"], key=rec["times_ms"].get) and len(calls) == 1
     assert calls[0][-1] == ("xla", "xla_batched")
     one = attend_dynamic(q[0], k[0], v[0], qf, chunks[0], n, c, "auto")
     _close(one, got[0])
-    assert attention.auto_choices()[-1]["source"] == "only candidate" and len(calls) == 1
-    assert attention.candidates(1) == ["xla"] and attention.candidates(2) == ["xla", "xla_batched"]
+    assert autotune.auto_choices()[-1]["source"] == "only candidate" and len(calls) == 1
+    assert autotune.candidates(1) == ["xla"] and autotune.candidates(2) == ["xla", "xla_batched"]

@@ -12,7 +12,7 @@ def test_bench_records_machine_build_and_auto_choice(tmp_path):
     out = tmp_path / "bench.json"
     env = dict(os.environ, GPD_JAX_CACHE=str(tmp_path / "cache"))
     env.pop("GPD_JAX_DECODE_ATTENTION", None)
-    cmd = [sys.executable, "-m", "gpd_jax.bench", "rollout", "--config", "configs/gpd_tiny.py", "--batch", "1", "2",
+    cmd = [sys.executable, "-m", "gpd_jax.bench", "rollout", "--config", "configs/gpd_tiny.py:test", "--batch", "1", "2",
            "--future-frames", "2", "--recompute-points", "2", "--repeats", "1", "--matmul-size", "256",
            "--decode-attention", "auto", "xla", "--json", str(out)]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600,

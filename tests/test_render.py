@@ -83,3 +83,111 @@ def test_strip_with_few_panels(tmp_path, panels):
                             frame_period_s=0.1, size_px=48, panels=panels)
     with Image.open(png) as im:
         assert im.size == (panels * 48 + (panels - 1) * 3, 48)
+
+
+def _legend_texts(fig) -> list[str]:
+    return [t.get_text() for leg in fig.fig.legends for t in leg.get_texts()]
+
+
+def _below_scene(fig) -> bool:
+    """The legend's box lies under the scene's axes (it covers nothing drawn)."""
+    renderer = fig.fig.canvas.get_renderer()
+    leg = fig.legend.get_window_extent(renderer)
+    return leg.y1 <= fig.ax.get_window_extent(renderer).y0 + 1
+
+
+def _rollout_fig(**kw):
+    from gpd_jax.evaluation.render import rollout_figure
+
+    xy, heading, valid, lanes, ok = _scene()
+    args = dict(pred_xy=xy + np.array([0.0, 0.5]), pred_heading=heading, pred_valid=valid, log_xy=xy,
+                log_heading=heading, log_valid=valid, size=np.array([[4.5, 1.9]] * 3), num_history=3,
+                frame_period_s=0.5, title="test", lanes=lanes, lanes_valid=ok, size_px=320)
+    return rollout_figure(**{**args, **kw})
+
+
+def test_rollout_figure_has_a_legend_a_scale_bar_and_the_frame_time():
+    """A reader learns from the picture itself which boxes and lanes are the model's and which the log's, how
+    long 20 m is and the time of each frame; the legend sits under the scene, not on it."""
+    _, _, _, lanes, ok = _scene()
+    fig = _rollout_fig(generated=("ego", "agent", "map"), log_lanes=lanes, log_lanes_valid=ok)
+    assert fig.legend is not None and fig.legend in fig.fig.legends
+    texts = _legend_texts(fig)
+    assert texts == list(fig.labels)
+    for label in ("ego (model)", "agents (model)", "logged boxes", "model's paths", "logged paths",
+                  "model's lanes", "log's lanes"):
+        assert label in texts, (label, texts)
+    assert fig.scale_bar in fig.ax.get_children() and fig.scale_bar.txt_label.get_text() == "20 m"
+    img = fig.draw(5)
+    assert img.shape == (320, 320, 3)
+    assert _below_scene(fig)
+    title = [t.get_text() for t in fig.fig.texts if "t=" in t.get_text()]
+    assert title and "t=+1.5 s" in title[0]  # (5 - 2) frames of 0.5 s after the current one
+
+
+def test_rollout_legend_names_what_each_task_and_prompt_takes_from_elsewhere():
+    fig = _rollout_fig(generated=("agent",))  # closed loop: the ego and the map are the log's
+    texts = _legend_texts(fig)
+    assert "ego (log)" in texts and "agents (model)" in texts and "log's lanes" in texts
+    assert "ego (model)" not in texts and "model's lanes" not in texts
+    fig = _rollout_fig(generated=("ego",), lanes=None, lanes_valid=None)  # motion planning, no lanes drawn
+    texts = _legend_texts(fig)
+    assert "agents (log)" in texts and not any("lanes" in t for t in texts)
+    given = np.zeros((7, 3), bool)
+    given[:, 1] = True
+    gl = np.zeros((1, 5, 2))
+    gl[0, :, 0] = np.arange(5.0)
+    fig = _rollout_fig(given=given, given_lanes=gl, given_lanes_valid=np.ones((1, 5), bool))
+    texts = _legend_texts(fig)
+    assert {"ego (model)", "agents (model)", "given by the prompt", "model's lanes", "prompt's lanes"} <= set(texts)
+    # small thumbnails keep the scale bar but have no room for a legend
+    fig = _rollout_fig(size_px=96)
+    assert fig.legend is None and fig.scale_bar.txt_label.get_text() == "20 m"
+
+
+def test_scale_bar_length_fits_the_view():
+    from gpd_jax.plotting import scale_bar_m
+
+    assert [scale_bar_m(v) for v in (5.0, 10.0, 40.0, 45.0, 50.0, 100.0, 300.0)] == [2, 5, 20, 20, 20, 50, 100]
+    for v in (3.0, 17.0, 45.0, 640.0):
+        assert scale_bar_m(v) <= 0.5 * v
+
+
+def _sim_run(t=30, a=3):
+    from types import SimpleNamespace
+
+    tt = np.arange(t, dtype=np.float64)[:, None] * 0.1
+    xy = np.stack([8.0 * tt + np.array([0.0, 12.0, -10.0]), np.broadcast_to([-1.75, 1.75, -1.75], (t, a))], -1)
+    ring = np.array([[[-50.0, -3.5], [100.0, -3.5], [100.0, 3.5], [-50.0, 3.5]]])
+    edges = np.array([[[-50.0, -3.5], [100.0, -3.5]], [[-50.0, 3.5], [100.0, 3.5]]])
+    road = SimpleNamespace(polygons=ring, polygon_valid=np.ones((1, 4), bool), edges=edges,
+                           edge_valid=np.ones((2, 2), bool))
+    plan = np.stack([np.linspace(1.0, 30.0, 8), np.full(8, -1.75), np.zeros(8)], -1)
+    return dict(fine_xy=xy, fine_heading=np.zeros((t, a)), fine_valid=np.ones((t, a), bool),
+                size=np.full((a, 2), 3.0), road=road, polylines=edges * 0.5, polyline_valid=np.ones((2, 2), bool),
+                plan=plan, start=9)
+
+
+def test_closed_loop_figure_has_a_legend_and_a_scale_bar():
+    from gpd_jax.sim.render import run_figure
+
+    fig = run_figure(**_sim_run(), title="constant_velocity / idm agents #0")
+    texts = _legend_texts(fig)
+    assert texts == list(fig.labels)
+    for label in ("ego (planner)", "agents (IDM)", "ego's driven path", "ego's plan", "drivable area", "road edges",
+                  "log's lanes"):
+        assert label in texts, (label, texts)
+    assert fig.scale_bar in fig.ax.get_children() and fig.scale_bar.txt_label.get_text() == "20 m"
+    assert fig.draw(19).shape == (360, 360, 3) and _below_scene(fig)
+    assert "t=1.0 s" in fig.fig._suptitle.get_text()
+    for mode, label in (("log", "agents (log replay)"), ("gpd", "agents (model)")):
+        assert label in _legend_texts(run_figure(**_sim_run(), title=f"p / {mode} agents #1"))
+    assert "agents (model)" in _legend_texts(run_figure(**_sim_run(), title="a run", agents="gpd"))
+
+
+def test_render_run_writes_a_gif(tmp_path):
+    from gpd_jax.sim.render import render_run
+
+    path = render_run(str(tmp_path / "run.gif"), **_sim_run(), every=5, title="p / log agents #0", size_px=200)
+    with Image.open(path) as im:
+        assert im.size == (200, 200) and im.n_frames == 5  # stored frames 9, 14, ..., 29

@@ -9,7 +9,9 @@ ego. Drawn per frame:
   Where the map is generated, the lanes of the logged tokens are drawn faint underneath;
 * the rolled-out ego (red) and agents (blue) as oriented boxes with a heading tick (slots the task takes from
   the log in pale colours), their rolled-out paths from the current frame on as solid lines;
-* the log: every logged path as a faint line and the logged boxes of the frame as dashed ghosts.
+* the log: every logged path as a faint line and the logged boxes of the frame as dashed ghosts;
+* a legend under the scene (from 240 px on) naming each of these as the model's, the log's or the prompt's, a
+  scale bar in metres (lower right) and the time of the frame (title: seconds from the current frame).
 
 Only matplotlib (Agg canvas, no pyplot state) and Pillow. One figure per scenario x task is drawn once and its
 artists are updated frame by frame, which keeps a 21-frame scenario x task near a second.
@@ -18,11 +20,12 @@ artists are updated frame by frame, which keeps a 21-frame scenario x task near 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from gpd_jax.evaluation.maps import decode_map_tokens
+from gpd_jax.plotting import add_scale_bar, legend_band
 from gpd_jax.tasks import generated
 
 EGO, AGENT = "#d62728", "#1f77b4"
@@ -61,33 +64,35 @@ def _runs(xy: np.ndarray, valid: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_heading, log_valid, size,
-                   num_history: int, frame_period_s: float, title: str = "",
-                   generated: Sequence[str] = ("ego", "agent", "map"), lanes=None, lanes_valid=None,
-                   lane_poses=None, log_lanes=None, log_lanes_valid=None, size_px: int = 320, panels: int = 4,
-                   view_m: float = 40.0, given=None, given_lanes=None, given_lanes_valid=None) -> tuple[str, str]:
-    """Writes `stem.gif` (every frame) and `stem.png` (a strip of `panels` frames from the current one on).
+class RolloutFigure(NamedTuple):
+    """One rollout's figure, drawn once and updated frame by frame: `draw(t)` -> uint8[size_px, size_px, 3].
+    `legend` (a matplotlib Legend, None under 240 px) and `scale_bar` (an AnchoredSizeBar) are what a reader
+    needs to read it; `labels` are the legend's entries."""
+    fig: Any
+    ax: Any
+    legend: Any
+    scale_bar: Any
+    labels: tuple[str, ...]
+    draw: Callable[[int], np.ndarray]
 
-    Args:
-      pred_*: the rolled-out scene f32[T, A, 2], f32[T, A], bool[T, A] (history frames are the log's).
-      log_*: the logged scene, same shapes; size: f32[A, 2] (length, width).
-      num_history: H; frame H - 1 is the current frame. frame_period_s: seconds between frames.
-      generated: what the task generates ("ego", "agent", "map"): given slots are drawn pale.
-      lanes, lanes_valid: optional f32[T, L, P, 2] lines in each frame's ego frame and bool[T, L]; lane_poses:
-        f32[T, 3] the pose of each frame's ego frame in the scene frame (default: the rolled-out ego).
-      log_lanes, log_lanes_valid: optional faint reference lines (same layout, placed with the log's ego pose).
-      size_px: side of one frame in pixels; view_m: half side of the view in metres.
-      given: optional bool[T, A] a prompt's per-frame given slots (drawn pale with a green edge, overriding
-        `generated` for agents); given_lanes, given_lanes_valid: optional f32[L, P, 2] / bool[L, P] a prompt's
-        own lanes in the scene frame (wide pale green underneath).
 
-    Returns:
-      (gif path, png path).
+def rollout_figure(*, pred_xy, pred_heading, pred_valid, log_xy, log_heading, log_valid, size, num_history: int,
+                   frame_period_s: float, title: str = "", generated: Sequence[str] = ("ego", "agent", "map"),
+                   lanes=None, lanes_valid=None, lane_poses=None, log_lanes=None, log_lanes_valid=None,
+                   size_px: int = 320, view_m: float = 40.0, given=None, given_lanes=None,
+                   given_lanes_valid=None) -> RolloutFigure:
+    """The figure of `render_rollout` (same arguments, less the output's stem and panels), not yet drawn.
+
+    The legend (at `size_px` >= 240, in a band under the scene) names what is drawn: the ego's and the agents'
+    boxes as the model's or the log's (by `generated`, or `given` where a prompt gives slots), the logged boxes and
+    paths, the model's paths, and the lanes: the model's (decoded from its generated map tokens), the log's, the
+    prompt's own. A scale bar in metres sits in the lower right corner; the title carries each frame's time.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import LineCollection, PolyCollection
     from matplotlib.figure import Figure
-    from PIL import Image
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     pxy, phd, pv = (np.asarray(a, np.float64) if i < 2 else np.asarray(a, bool)
                     for i, a in enumerate((pred_xy, pred_heading, pred_valid)))
@@ -111,8 +116,9 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
     dpi = 100
     fig = Figure(figsize=(size_px / dpi, size_px / dpi), dpi=dpi, facecolor="white")
     canvas = FigureCanvasAgg(fig)
-    legend = size_px >= 240
-    ax = fig.add_axes((0.0, 0.06, 1.0, 0.84) if legend else (0.0, 0.0, 1.0, 0.9))
+    with_legend = size_px >= 240
+    top = 0.9
+    ax = fig.add_axes((0.0, 0.0, 1.0, top))
     ax.set_aspect("equal")
     ax.set_axis_off()
     if given_lanes is not None:
@@ -136,9 +142,32 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
     tick_lc = ax.add_collection(LineCollection([], colors="black", linewidths=0.8, zorder=7))
     fs = max(5, size_px // 45)
     head = fig.text(0.02, 0.95, "", fontsize=fs, va="center", ha="left")
-    if legend:
-        fig.text(0.02, 0.03, "boxes: model (pale: from the log)   dashed: logged   faint lines: logged paths",
-                 fontsize=max(5, fs - 1), color="#555555", va="center", ha="left")
+
+    # the legend: what each colour and line style means, only for what this picture draws
+    box = lambda color, edge="black": Patch(facecolor=color, edgecolor=edge, linewidth=0.6)
+    entries = []
+    if given_mask is not None:
+        entries.append((box(EGO), "ego (model)"))
+        if a > 1:
+            entries.append((box(AGENT), "agents (model)"))
+        if given_mask.any():
+            entries.append((box(AGENT_GIVEN, GIVEN_LANE), "given by the prompt"))
+    else:
+        entries.append((box(slot_colors[0]), "ego (model)" if "ego" in generated else "ego (log)"))
+        if a > 1:
+            entries.append((box(slot_colors[1]), "agents (model)" if "agent" in generated else "agents (log)"))
+    entries.append((Patch(facecolor="none", edgecolor="#333333", linestyle="--", linewidth=0.7), "logged boxes"))
+    entries.append((Line2D([], [], color=AGENT, lw=1.3), "model's paths"))
+    entries.append((Line2D([], [], color=AGENT, lw=1.0, alpha=0.25), "logged paths"))
+    if lanes is not None:
+        entries.append((Line2D([], [], color=LANE, lw=0.8), "model's lanes" if "map" in generated else "log's lanes"))
+    if log_lanes is not None:
+        entries.append((Line2D([], [], color=LANE_LOG, lw=0.8), "log's lanes"))
+    if given_lanes is not None:
+        entries.append((Line2D([], [], color=GIVEN_LANE, lw=5.0, alpha=0.25), "prompt's lanes"))
+    handles, labels = [e[0] for e in entries], tuple(e[1] for e in entries)
+    legend = legend_band(fig, ax, handles, list(labels), max(5, fs - 1), top) if with_legend else None
+    scale_bar = add_scale_bar(ax, view_m, max(4, fs - 1))
 
     def draw(t: int) -> np.ndarray:
         if lane_sc is not None:
@@ -173,11 +202,48 @@ def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_
         ax.set_xlim(c[0] - view_m, c[0] + view_m)
         ax.set_ylim(c[1] - view_m, c[1] + view_m)
         secs = (t - cur) * frame_period_s
-        head.set_text(f"{title}  t={secs:+.1f}s" + ("  (history)" if t <= cur else ""))
+        head.set_text(f"{title}  t={secs:+.1f} s" + ("  (history)" if t <= cur else ""))
         canvas.draw()
         return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
-    frames = [draw(t) for t in range(t_total)]
+    return RolloutFigure(fig, ax, legend, scale_bar, labels, draw)
+
+
+def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_heading, log_valid, size,
+                   num_history: int, frame_period_s: float, title: str = "",
+                   generated: Sequence[str] = ("ego", "agent", "map"), lanes=None, lanes_valid=None,
+                   lane_poses=None, log_lanes=None, log_lanes_valid=None, size_px: int = 320, panels: int = 4,
+                   view_m: float = 40.0, given=None, given_lanes=None, given_lanes_valid=None) -> tuple[str, str]:
+    """Writes `stem.gif` (every frame) and `stem.png` (a strip of `panels` frames from the current one on).
+
+    Args:
+      pred_*: the rolled-out scene f32[T, A, 2], f32[T, A], bool[T, A] (history frames are the log's).
+      log_*: the logged scene, same shapes; size: f32[A, 2] (length, width).
+      num_history: H; frame H - 1 is the current frame. frame_period_s: seconds between frames.
+      generated: what the task generates ("ego", "agent", "map"): given slots are drawn pale.
+      lanes, lanes_valid: optional f32[T, L, P, 2] lines in each frame's ego frame and bool[T, L]; lane_poses:
+        f32[T, 3] the pose of each frame's ego frame in the scene frame (default: the rolled-out ego).
+      log_lanes, log_lanes_valid: optional faint reference lines (same layout, placed with the log's ego pose).
+      size_px: side of one frame in pixels (a legend under the scene from 240 px on); view_m: half side of the
+        view in metres (a scale bar of 1, 2 or 5 x 10^k m fitting a quarter of it).
+      given: optional bool[T, A] a prompt's per-frame given slots (drawn pale with a green edge, overriding
+        `generated` for agents); given_lanes, given_lanes_valid: optional f32[L, P, 2] / bool[L, P] a prompt's
+        own lanes in the scene frame (wide pale green underneath).
+
+    Returns:
+      (gif path, png path).
+    """
+    from PIL import Image
+
+    t_total = np.shape(pred_valid)[0]
+    cur = num_history - 1
+    fig = rollout_figure(pred_xy=pred_xy, pred_heading=pred_heading, pred_valid=pred_valid, log_xy=log_xy,
+                         log_heading=log_heading, log_valid=log_valid, size=size, num_history=num_history,
+                         frame_period_s=frame_period_s, title=title, generated=generated, lanes=lanes,
+                         lanes_valid=lanes_valid, lane_poses=lane_poses, log_lanes=log_lanes,
+                         log_lanes_valid=log_lanes_valid, size_px=size_px, view_m=view_m, given=given,
+                         given_lanes=given_lanes, given_lanes_valid=given_lanes_valid)
+    frames = [fig.draw(t) for t in range(t_total)]
     os.makedirs(os.path.dirname(os.path.abspath(stem)), exist_ok=True)
     gif, png = stem + ".gif", stem + ".png"
     imgs = [Image.fromarray(f).convert("P", palette=Image.Palette.ADAPTIVE, colors=64) for f in frames]
@@ -203,7 +269,7 @@ def render_items(items, task_names: Sequence[str], out_dir: str, *, num_history:
         lanes = lanes_ok = None
         if tokenizer is not None:
             toks = np.concatenate([it.pred["map_tokens"], it.log["map_tokens"][None]], 0)  # [K + 1, T, M]
-            pts, logits = decode_map_tokens(tokenizer, tokenizer.params, toks)
+            pts, logits = tokenizer.decode_tokens(toks)
             lanes, lanes_ok = np.asarray(pts), np.asarray(logits) > 0
         for k, name in enumerate(task_names):
             gen = generated(name)
