@@ -101,7 +101,8 @@ def gpd_runs(model, scenes, sim_scenes):
     chex.clear_trace_counter()
     brake = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(0), agents="gpd", policy_params=BRAKE)
     log = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(1), agents="gpd", policy_params=LOG)
-    ref = gpd_jax.rollout(model, scenes, ["closed_loop", "motion_planning"], jax.random.key(0), log_map="lanes")
+    ref = gpd_jax.rollout(model, scenes, ["closed_loop", "motion_planning"], jax.random.key(0),
+                          gpd_jax.RolloutOptions(log_map="lanes"))
     return brake, log, jax.tree.map(np.asarray, ref)
 
 
@@ -122,8 +123,7 @@ def test_braking_ego_gpd_follower_slows_log_follower_hits_not_at_fault(model, si
     # agent model is another compiled run: a new trace is expected)
     chex.clear_trace_counter()
     out_nr = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(0), agents="log", policy_params=BRAKE)
-    sc = jax.vmap(lambda s, x, h, v: _score(model.spec, s, x, h, v))(sim_scenes, out_nr.fine_xy, out_nr.fine_heading,
-                                                                     out_nr.fine_valid)
+    sc = sim.score(model, sim_scenes, out_nr)
     assert np.all(np.asarray(sc["num_collisions"]) >= 1)
     assert np.all(np.asarray(sc["num_at_fault_collisions"]) == 0)
     assert np.all(np.asarray(sc["no_ego_at_fault_collisions"]) == 1.0)
@@ -134,11 +134,6 @@ def test_braking_ego_gpd_follower_slows_log_follower_hits_not_at_fault(model, si
     np.testing.assert_allclose(f[:, 20:, 1], -1.6, atol=1e-4)
     gap = e[:, -1, 0] - f[:, -1, 0] - 4.6
     assert np.all(gap > 0.5) and np.all(gap < 6.0), gap                  # IDM's minimum gap is 1 m
-
-
-def _score(spec, s, x, h, v):
-    from gpd_jax.sim.evaluate import score_one
-    return score_one(spec, s, x, h, v)
 
 
 def _same(out, ref, name):
@@ -169,6 +164,10 @@ def test_host_loop_matches_the_scan_and_bad_policies_are_named(model, sim_scenes
     host = sim.run_host(model, sim_scenes, cv, agents="idm", with_model=False)
     scan = sim.run(model, sim_scenes, sim.make_policy("cv", model), jax.random.key(0), agents="idm")
     np.testing.assert_allclose(np.asarray(host.fine_xy), np.asarray(scan.fine_xy), atol=1e-4)
+    # both score alike; only the scan's policy has an open-loop plan (OLS)
+    hs, ss = sim.score(model, sim_scenes, host), sim.score(model, sim_scenes, scan)
+    assert "OLS" not in hs and ss["OLS"].shape == (2,)
+    np.testing.assert_allclose(hs["CLS"], ss["CLS"], atol=1e-5)
     # the pure pieces under run: reset, observe, step
     one = jax.tree.map(lambda x: x[0], sim_scenes)
     state = jax.jit(lambda sc: sim.reset(model, sc, jax.random.key(0), agents="idm", with_model=False))(one)
@@ -186,6 +185,62 @@ def test_host_loop_matches_the_scan_and_bad_policies_are_named(model, sim_scenes
         sim.run(model, sim_scenes, wrong, jax.random.key(0), agents="log")
     with pytest.raises(sim.SimError, match="unknown agent model"):
         sim.run(model, sim_scenes, nan, jax.random.key(0), agents="reactive")
+
+
+def test_host_planner_of_a_wrong_shape_is_told_what_was_expected(model, sim_scenes):
+    def per_scenario(obs):                       # forgot the batch axis: one pose for the whole batch
+        return np.concatenate([obs.ego_pose[0, :2] + 10.0, obs.ego_pose[0, 2:]])
+
+    with pytest.raises(sim.SimError, match=r"planner 'per_scenario' returned an array of shape \(3,\); expected one "
+                                           r"ego per scenario of the batch of 2: \[2, 3\] \(pose\), \[2, 5\] "
+                                           r"\(pose, velocity\), \[2, 2\] \(acceleration, steering\), "
+                                           r"\[2, 10, 3\] \(stored-rate poses\)"):
+        sim.run_host(model, sim_scenes, per_scenario, agents="idm", with_model=False)
+
+
+# A user's own policy: 80 % of the current velocity (pose and velocity at the next model frame), with an open-loop
+# plan. `assert_max_traces` proves `evaluate_planners` reuses the compiled run of `sim.run`.
+def _cautious(params, obs, state, key):
+    v = 0.8 * obs.ego_velocity
+    return jnp.concatenate([obs.ego_pose[:2] + v * 1.0, obs.ego_pose[2:], v]), state
+
+
+def _cautious_plan(params, obs, key):
+    k = jnp.arange(1, 9, dtype=jnp.float32)[:, None]
+    xy = obs.ego_pose[:2] + k * 0.8 * obs.ego_velocity
+    return jnp.concatenate([xy, jnp.broadcast_to(obs.ego_pose[2], (8, 1))], -1)
+
+
+CAUTIOUS = sim.Policy(name="cautious", select=chex.assert_max_traces(_cautious, n=1), plan=_cautious_plan)
+
+
+def test_a_user_policy_scores_like_the_shipped_planners(model, scenes, sim_scenes):
+    chex.clear_trace_counter()
+    out = sim.run(model, sim_scenes, CAUTIOUS, jax.random.key(0), agents="idm")
+    s = sim.score(model, sim_scenes, out)
+    for k in ("CLS", "OLS", "ego_progress_along_expert_route", "no_ego_at_fault_collisions", "ego_is_comfortable"):
+        assert s[k].shape == (2,) and np.all((s[k] >= 0) & (s[k] <= 1)), k
+    res = sim.evaluate_planners(model, scenes, {"cv": "cv", "mine": CAUTIOUS}, agents=("idm",), batch_size=2,
+                                per_scenario=True)
+    assert res["scenarios"] == 2 and list(res["planners"]) == ["cv", "mine"]
+    mine = res["planners"]["mine"]
+    assert set(mine) == {"OLS", "R-CLS-idm", "subscores"} and set(mine["subscores"]) == {"OLS", "R-CLS-idm"}
+    assert mine["R-CLS-idm"] == pytest.approx(100 * s["CLS"].mean(), abs=1e-4)
+    assert mine["OLS"] == pytest.approx(100 * s["OLS"].mean(), abs=1e-4)
+    assert mine["subscores"]["R-CLS-idm"]["ego_is_comfortable"] == pytest.approx(s["ego_is_comfortable"].mean())
+    np.testing.assert_allclose(res["per_scenario"]["mine"]["R-CLS-idm"]["CLS"], s["CLS"], atol=1e-6)
+    assert set(res["run_seconds"]) == {"cv/idm", "mine/idm"}
+    assert "mine" in sim.planning_table(res) and "Constant velocity" in sim.planning_table(res)
+    with pytest.raises(sim.SimError, match="unknown planner 'teleport'"):
+        sim.evaluate_planners(model, scenes, ["log", "teleport"])
+    with pytest.raises(sim.SimError, match=r"make_policy\('gpd_head', head_model\)"):
+        sim.evaluate_planners(model, scenes, ["gpd_head"])
+    with pytest.raises(sim.SimError, match="unknown agent model 'reactive'"):
+        sim.evaluate_planners(model, scenes, ["log"], agents=("reactive",))
+    with pytest.raises(sim.SimError, match="score needs the SimScene"):
+        sim.score(model, scenes, out)
+    with pytest.raises(sim.SimError, match="not a SimScene"):
+        sim.evaluate_planners(model, sim_scenes, ["log"])
 
 
 # ------------------------------------------------------------------------------------------------ scores
@@ -319,6 +374,116 @@ def test_plan_command_errors_exit_2(tmp_path, capsys):
     assert main(["evaluate", "--data", str(tmp_path), "--planners", "gpd_head", "--head-model", str(tmp_path / "none"),
                  "--out", str(tmp_path)]) == 2
     assert "no planning-head model" in capsys.readouterr().err
-    from gpd_jax.sim.evaluate import check_road
+    from gpd_jax.sim.scoring import check_road
     with pytest.raises(sim.SimError, match="no road geometry"):
         check_road(straight_scenes(1).replace(road=None), "store X")
+
+
+# ------------------------------------------------------------------------------------------------ the plan command
+POLICY_FILE = '''
+import jax.numpy as jnp
+from gpd_jax import sim
+
+
+def factory(model):                                  # a factory (model) -> Policy
+    return sim.make_policy("cv", model)
+
+
+def select(params, obs, state, key):                 # a select function
+    return jnp.array([-2.0, 0.0]), state
+
+
+BRAKE = sim.Policy(name="brake", select=select)      # a Policy
+NOT_A_POLICY = 3
+'''
+
+
+def _write_store(path, scenes: Scene) -> None:
+    """The scenes as a one-shard store of their own sizes (so loading them back gives the same shapes: the plan
+    command then reuses the compiled runs of the tests above)."""
+    from gpd_jax.data import store
+
+    r = scenes.road
+    arrays = {"xy": scenes.xy, "heading": scenes.heading, "valid": scenes.valid, "size": scenes.size,
+              "agent_type": scenes.agent_type.astype(np.int8), "ego_pose": scenes.ego_pose,
+              "polylines": scenes.polylines, "polyline_valid": scenes.polyline_valid, "road_polygons": r.polygons,
+              "road_polygon_valid": r.polygon_valid, "road_polygon_kind": r.polygon_kind.astype(np.int8),
+              "road_edges": r.edges, "road_edge_valid": r.edge_valid}
+    n = scenes.xy.shape[0]
+    store.write_shard(path, "test", 0, arrays, [f"straight/{i}" for i in range(n)], ["straight"] * n)
+    store.write_manifest(path)
+
+
+@pytest.fixture()
+def policy_file(tmp_path):
+    f = tmp_path / "my_policies.py"
+    f.write_text(POLICY_FILE)
+    return str(f)
+
+
+def _one_line_error(capsys, *needles):
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("python -m gpd_jax.plan: error: ") and "Traceback" not in err, err
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]
+
+
+def test_plan_command_scores_a_policy_file(tmp_path, policy_file, model, scenes, monkeypatch, capsys):
+    import json
+
+    from gpd_jax.plan.__main__ import main
+
+    data = str(tmp_path / "store")
+    _write_store(data, scenes)
+    chex.assert_trees_all_equal_shapes_and_dtypes(gpd_jax.load_scenes(data), scenes)
+    monkeypatch.setattr(gpd_jax, "load_model", lambda path=None, *a, **k: model)   # the module's model: no recompile
+    out = str(tmp_path / "out")
+    assert main(["evaluate", "--data", data, "--planners", f"cv,{policy_file}:factory", "--agents", "idm",
+                 "--batch-size", "2", "--out", out, "--quiet"]) == 0
+    res = json.load(open(f"{out}/planning.json"))
+    assert list(res["planners"]) == ["cv", "factory"] and res["scenarios"] == 2
+    assert res["planners"]["factory"] == res["planners"]["cv"]        # the same policy, scored the same way
+    assert "factory" in capsys.readouterr().out
+
+
+def test_plan_command_policy_file_kinds_and_errors(tmp_path, policy_file, capsys):
+    from gpd_jax.plan.__main__ import _user_policy, main
+
+    assert _user_policy(f"{policy_file}:BRAKE")[0] == "policy"
+    assert _user_policy(f"{policy_file}:select")[0] == "select"
+    assert _user_policy(f"{policy_file}:factory")[0] == "factory"
+    base = ["evaluate", "--data", str(tmp_path), "--out", str(tmp_path / "out"), "--planners"]
+    assert main(base + [f"log,{policy_file}:nope"]) == 2
+    _one_line_error(capsys, policy_file, "has no attribute 'nope'")
+    assert main(base + [f"{policy_file}:NOT_A_POLICY"]) == 2
+    _one_line_error(capsys, f"{policy_file}:NOT_A_POLICY", "is a int, not a gpd_jax.sim.Policy")
+    assert main(base + [f"{tmp_path}/missing.py:mine"]) == 2
+    _one_line_error(capsys, f"no policy file {tmp_path}/missing.py")
+    assert main(base + ["no_such_module_xyz:mine"]) == 2
+    _one_line_error(capsys, "no module 'no_such_module_xyz'")
+    (tmp_path / "broken.py").write_text("import jax\ndef (:\n")
+    assert main(base + [f"{tmp_path}/broken.py:mine"]) == 2
+    _one_line_error(capsys, f"{tmp_path}/broken.py failed to import: SyntaxError")
+    assert main(base + ["mine"]) == 2
+    _one_line_error(capsys, "unknown planner 'mine'", "FILE.py:NAME")
+    assert main(base + [f"cv,{policy_file}:BRAKE,{policy_file}:BRAKE"]) == 2
+    _one_line_error(capsys, "planner name 'BRAKE' given twice")
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["evaluate", "--batch-size", "0"], "--batch-size"),
+    (["evaluate", "--batch-size", "two"], "--batch-size"),
+    (["evaluate", "--num-scenarios", "0"], "--num-scenarios"),
+    (["evaluate", "--num-scenarios", "-3"], "--num-scenarios"),
+    (["evaluate", "--render", "-1"], "--render"),
+    (["bench", "--batch", "0"], "--batch"),
+    (["bench", "--repeats", "0"], "--repeats"),
+])
+def test_plan_command_bad_counts_exit_2_in_one_line(tmp_path, capsys, argv, flag):
+    from gpd_jax.plan.__main__ import main
+
+    extra = ["--out", str(tmp_path)] if argv[0] == "evaluate" else []
+    assert main(argv + ["--data", str(tmp_path)] + extra) == 2
+    _one_line_error(capsys, f"argument {flag}:")

@@ -4,54 +4,194 @@
         --agents log,idm,gpd --out DIR [--render K] [--checkpoint MODEL] [--head-model M] [--scratch-head-model M]
     python -m gpd_jax.plan bench --data DIR [--batch 8] [--planners ...] [--agents ...]
 
+`--planners` is a comma list of shipped planners (`gpd_jax.sim.PLANNERS`) and your own policies, each given as
+`FILE.py:NAME` (a Python file) or `MODULE:NAME` (an importable module), NAME being a `gpd_jax.sim.Policy`, a
+callable `(params, obs, state, key) -> (ego, state)` (the policy's `select`), or a factory `(model) -> Policy`
+called with the world model; its table row is NAME. Your policies are scored exactly as the shipped ones
+(`gpd_jax.sim.evaluate_planners`).
+
 `evaluate` prints a table shaped like GPD-1's Table 2 (one row per planner: OLS, NR-CLS, R-CLS with IDM agents,
 R-CLS with GPD agents) and writes OUT/planning.json ({"scenarios": n, "planners": {NAME: {"OLS", "NR-CLS",
-"R-CLS-idm", "R-CLS-gpd", "subscores"}}}), OUT/planning_table.txt and with --render K GIFs of the first K
-scenarios' runs under OUT/render/. `bench` times batched closed-loop runs per planner x agent model on this
-machine and compares them with nuPlan's ~1 minute per 15 s scenario. Bad input exits with status 2.
+"R-CLS-idm", "R-CLS-gpd", "subscores"}}, "run_seconds", ...}), OUT/planning_table.txt and with --render K GIFs of
+the first K scenarios' runs under OUT/render/. `bench` times batched closed-loop runs per planner x agent model on
+this machine and compares them with nuPlan's ~1 minute per 15 s scenario. Bad input (a bad flag value, an unknown
+planner, policy file or attribute, a store without road geometry, a missing head model) prints one line and exits
+with status 2.
 """
 
 from __future__ import annotations
 
-import argparse
+import hashlib
+import importlib
+import importlib.util
+import inspect
 import os
 import sys
 import time
 
 import numpy as np
 
-DEFAULT_HEAD = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                            "checkpoints", "gpd_sumo_plan_head")
+from gpd_jax.cliargs import ArgumentParser as Parser
+from gpd_jax.cliargs import UsageError, count, count0, run_command
+
+PROG = "python -m gpd_jax.plan"
 NUPLAN_S_PER_SCENARIO = 60.0      # nuPlan devkit: about a minute of wall time per closed-loop scenario
 NUPLAN_SCENARIO_S = 15.0          # of 15 s simulated
+HEAD_CONFIGS = {"gpd_head": "gpd_planner.py:frozen", "gpd_head_scratch": "gpd_planner.py:frozen_scratch"}
 
 
-def _names(text: str, known, what: str) -> list[str]:
+def _default_head(planner: str = "gpd_head") -> str:
+    """The planning-head model a head planner (`gpd_head`, `gpd_head_scratch`) loads when no --head-model /
+    --scratch-head-model is given: a shipped model's name (`gpd_planner`; no scratch head is shipped, so the
+    name `gpd_planner_scratch` resolves only in a models folder that holds one)."""
+    return "gpd_planner_scratch" if planner == "gpd_head_scratch" else "gpd_planner"
+
+
+# ------------------------------------------------------------------------------------------------ planners
+def _import_file(path: str, shown: str):
+    """Imports a Python file as a module of its own (its directory on sys.path while it runs, as `python FILE`)."""
+    tag = hashlib.sha1(path.encode()).hexdigest()[:12]
+    spec = importlib.util.spec_from_file_location(f"_gpd_plan_policy_{tag}", path)
+    if spec is None or spec.loader is None:
+        raise UsageError(f"--planners: {shown} is not a Python file that can be imported")
+    module = importlib.util.module_from_spec(spec)
+    folder = os.path.dirname(path)
+    sys.path.insert(0, folder)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as e:  # the user's own file: say what failed, in one line
+        raise UsageError(f"--planners: policy file {shown} failed to import: {type(e).__name__}: {e}") from None
+    finally:
+        if folder in sys.path:
+            sys.path.remove(folder)
+    return module
+
+
+def _import_module(name: str):
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        if e.name and (name == e.name or name.startswith(e.name + ".")):
+            raise UsageError(f"--planners: no module {name!r} (a policy file must end in .py)") from None
+        raise UsageError(f"--planners: module {name} failed to import: {type(e).__name__}: {e}") from None
+    except Exception as e:
+        raise UsageError(f"--planners: module {name} failed to import: {type(e).__name__}: {e}") from None
+
+
+def _user_policy(entry: str):
+    """`FILE.py:NAME` or `MODULE:NAME` -> ("policy", Policy) | ("select", callable) | ("factory", callable)."""
+    from gpd_jax.sim import Policy
+
+    where, _, attr = entry.rpartition(":")
+    if not where or not attr:
+        raise UsageError(f"--planners: {entry!r} is neither a shipped planner nor FILE.py:NAME / MODULE:NAME")
+    if where.endswith(".py") or os.sep in where or "/" in where:
+        path = os.path.abspath(os.path.expanduser(where))
+        if not os.path.isfile(path):
+            raise UsageError(f"--planners: no policy file {where}")
+        module = _import_file(path, where)
+    else:
+        module = _import_module(where)
+    if not hasattr(module, attr):
+        raise UsageError(f"--planners: {where} has no attribute {attr!r}")
+    obj = getattr(module, attr)
+    if isinstance(obj, Policy):
+        return "policy", obj
+    if callable(obj):
+        try:
+            sig = inspect.signature(obj)
+        except (TypeError, ValueError):  # no signature to read (a builtin): take it as a select function
+            return "select", obj
+        for kind, args in (("select", (0, 0, 0, 0)), ("factory", (0,))):
+            try:
+                sig.bind(*args)
+                return kind, obj
+            except TypeError:
+                pass
+    raise UsageError(f"--planners: {where}:{attr} is a {type(obj).__name__}, not a gpd_jax.sim.Policy, a callable "
+                     f"(params, obs, state, key) -> (ego, state) or a factory (model) -> Policy")
+
+
+def _parse_planners(text: str) -> list[tuple[str, object]]:
+    """The --planners list -> [(row name, shipped planner name | (kind, object))]; user files are imported here,
+    before any model loads, so a typo costs no wait."""
+    from gpd_jax.sim import PLANNERS
+
+    entries = [n.strip() for n in text.split(",") if n.strip()]
+    if not entries:
+        raise UsageError(f"--planners: none given; known planners: {', '.join(PLANNERS)} (or FILE.py:NAME, "
+                         f"MODULE:NAME)")
+    out, seen = [], set()
+    for e in entries:
+        if e in PLANNERS:
+            item = (e, e)
+        elif ":" in e:
+            item = (e.rpartition(":")[2], _user_policy(e))
+        else:
+            raise UsageError(f"unknown planner {e!r}; known: {', '.join(PLANNERS)}, or your own policy as "
+                             f"FILE.py:NAME or MODULE:NAME")
+        if item[0] in seen:
+            raise UsageError(f"--planners: planner name {item[0]!r} given twice")
+        seen.add(item[0])
+        out.append(item)
+    return out
+
+
+def _policies(parsed, model, heads) -> dict:
+    """{row name: Policy} for `gpd_jax.sim.evaluate_planners` (factories called with the world model)."""
+    from gpd_jax.sim import Policy, as_policy, make_policy
+
+    out = {}
+    for name, spec in parsed:
+        if isinstance(spec, str):
+            out[name] = make_policy(spec, heads.get(spec, model))
+            continue
+        kind, obj = spec
+        if kind == "factory":
+            pol = obj(model)
+            if not isinstance(pol, Policy):
+                raise UsageError(f"--planners: the factory {name} returned a {type(pol).__name__}, not a "
+                                 f"gpd_jax.sim.Policy")
+            out[name] = pol
+        else:
+            out[name] = as_policy(obj)
+    return out
+
+
+def _agents(text: str) -> list[str]:
+    from gpd_jax.sim import AGENT_MODELS
+
     names = [n.strip() for n in text.split(",") if n.strip()]
-    bad = [n for n in names if n not in known]
+    bad = [n for n in names if n not in AGENT_MODELS]
     if bad or not names:
-        raise ValueError(f"unknown {what} {', '.join(map(repr, bad)) or '(none given)'}; known: {', '.join(known)}")
+        raise UsageError(f"--agents: unknown agent model {', '.join(map(repr, bad)) or '(none given)'}; "
+                         f"known: {', '.join(AGENT_MODELS)}")
     return names
 
 
-def _load(args, planners):
+# ------------------------------------------------------------------------------------------------ loading
+def _load(args, parsed):
     import gpd_jax
     from gpd_jax.sim import SimError
 
     if not os.path.isdir(os.path.join(args.data, args.split)):
         raise SimError(f"split {args.split!r} not found in {args.data}")
     heads = {}
-    for name, path, cfg in (("gpd_head", args.head_model or DEFAULT_HEAD, "gpd_sumo_plan_head.py"),
-                            ("gpd_head_scratch", args.scratch_head_model or DEFAULT_HEAD + "_scratch",
-                             "gpd_sumo_plan_head_scratch.py")):
-        if name not in planners:
+    given = {"gpd_head": args.head_model, "gpd_head_scratch": args.scratch_head_model}
+    for name, spec in parsed:
+        if not isinstance(spec, str) or spec not in HEAD_CONFIGS:
             continue
-        if not os.path.exists(os.path.join(path, "config.json")):
-            raise SimError(f"planner {name}: no planning-head model at {path} (train one with configs/{cfg} and "
-                           f"pass --{'scratch-' if 'scratch' in name else ''}head-model)")
-        heads[name] = gpd_jax.load_model(path)
-        if not heads[name].config.get("plan_head"):
-            raise SimError(f"planner {name}: {path} has no plan_head section (not a planning-head model)")
+        path = given[spec] or _default_head(spec)
+        flag = "--scratch-head-model" if spec == "gpd_head_scratch" else "--head-model"
+        try:
+            heads[spec] = gpd_jax.load_model(path)
+        except FileNotFoundError as e:
+            raise SimError(f"planner {spec}: no planning-head model at {path} ({e}); train one with "
+                           f"configs/{HEAD_CONFIGS[spec]} and pass {flag}") from None
+        except (ValueError, LookupError) as e:
+            raise SimError(f"planner {spec}: {path} is not a usable planning-head model ({e}); pass {flag}") from None
+        if "plan_head" not in heads[spec].config:
+            raise SimError(f"planner {spec}: {path} has no plan_head section (not a planning-head model)")
     model = gpd_jax.load_model(args.checkpoint)
     from gpd_jax.data.loader import SplitSource
     n_all = len(SplitSource(args.data, args.split, with_polylines=True))
@@ -62,21 +202,22 @@ def _load(args, planners):
 
 def cmd_evaluate(args) -> int:
     from gpd_jax.fsutil import atomic_write_json, atomic_write_text
-    from gpd_jax.sim import AGENT_MODELS, PLANNERS
-    from gpd_jax.sim.evaluate import check_road, evaluate_planners, format_table
+    from gpd_jax.sim import evaluate_planners, planning_table
+    from gpd_jax.sim.scoring import check_road
 
-    planners = _names(args.planners, PLANNERS, "planner")
-    agents = _names(args.agents, AGENT_MODELS, "agent model")
-    model, heads, scenes = _load(args, planners)
+    parsed = _parse_planners(args.planners)
+    agents = _agents(args.agents)
+    model, heads, scenes = _load(args, parsed)
     check_road(scenes, f"{args.data}/{args.split}")
+    policies = _policies(parsed, model, heads)
     t0 = time.perf_counter()
-    results, extra = evaluate_planners(model, scenes, planners, agents, head_models=heads, batch_size=args.batch_size,
-                                       seed=args.seed, progress=not args.quiet, keep_runs=args.render)
+    results = evaluate_planners(model, scenes, policies, agents, batch_size=args.batch_size, seed=args.seed,
+                                progress=not args.quiet, keep_runs=args.render)
+    runs = results.pop("runs", {})
     results["seconds"] = round(time.perf_counter() - t0, 1)
     results["data"] = os.path.abspath(args.data)
     results["split"] = args.split
-    results["run_seconds"] = {f"{p}/{a}": round(s, 2) for (p, a), s in extra["seconds"].items()}
-    table = format_table(results)
+    table = planning_table(results)
     print(table)
     os.makedirs(args.out, exist_ok=True)
     atomic_write_json(os.path.join(args.out, "planning.json"), results)
@@ -85,7 +226,7 @@ def cmd_evaluate(args) -> int:
         from gpd_jax.sim.render import render_run
         import jax
         k = min(args.render, results["scenarios"])
-        for (p, a), out in extra["runs"].items():
+        for (p, a), out in runs.items():
             for i in range(k):
                 road = jax.tree.map(lambda x: np.asarray(x)[i], scenes.road)
                 plan = None if out.plan is None else out.plan[i]
@@ -94,19 +235,20 @@ def cmd_evaluate(args) -> int:
                            size=np.asarray(scenes.size)[i, : out.fine_xy.shape[2]], road=road,
                            polylines=np.asarray(scenes.polylines)[i], polyline_valid=np.asarray(scenes.polyline_valid)[i],
                            plan=plan, start=model.spec.full_history - 1, title=f"{p} / {a} agents #{i}")
-        print(f"rendered {k} scenario(s) x {len(extra['runs'])} runs under {os.path.join(args.out, 'render')}")
+        print(f"rendered {k} scenario(s) x {len(runs)} runs under {os.path.join(args.out, 'render')}")
     print(f"wrote {os.path.join(args.out, 'planning.json')}")
     return 0
 
 
 def cmd_bench(args) -> int:
     import jax
-    from gpd_jax.sim import AGENT_MODELS, PLANNERS, make_policy, make_sim_scenes, run
+    from gpd_jax.sim import make_sim_scenes, run
 
-    planners = _names(args.planners, PLANNERS, "planner")
-    agents = _names(args.agents, AGENT_MODELS, "agent model")
+    parsed = _parse_planners(args.planners)
+    agents = _agents(args.agents)
     args.num_scenarios = args.batch
-    model, heads, scenes = _load(args, planners)
+    model, heads, scenes = _load(args, parsed)
+    policies = _policies(parsed, model, heads)
     sim = make_sim_scenes(model, scenes)
     b = int(np.shape(sim.log_xy)[0])
     sim_s = model.spec.num_future * model.spec.frame_period_s
@@ -115,16 +257,15 @@ def cmd_bench(args) -> int:
     print(f"closed-loop throughput, batch {b}, {sim_s:g} s simulated per scenario, {os.cpu_count()} CPU cores "
           f"(nuPlan: ~{NUPLAN_S_PER_SCENARIO:g} s per {NUPLAN_SCENARIO_S:g} s scenario = {nuplan:.2f} simulated s/s)")
     print(f"{'planner':<10}{'agents':<8}{'compile s':>10}{'run s':>9}{'scen/s':>9}{'sim s/s':>9}{'x nuPlan':>10}")
-    for p in planners:
-        pol = make_policy(p, heads.get(p, model))
+    for p, pol in policies.items():
         for a in agents:
             t0 = time.perf_counter()
-            jax.block_until_ready(run(model, sim, pol, jax.random.key(0), agents=a).fine_xy)
+            jax.block_until_ready(run(model, sim, pol, jax.random.key(args.seed), agents=a).fine_xy)
             compile_s = time.perf_counter() - t0
             best = np.inf
             for r in range(args.repeats):
                 t0 = time.perf_counter()
-                jax.block_until_ready(run(model, sim, pol, jax.random.key(r + 1), agents=a).fine_xy)
+                jax.block_until_ready(run(model, sim, pol, jax.random.key(args.seed + r + 1), agents=a).fine_xy)
                 best = min(best, time.perf_counter() - t0)
             sps = b / best
             rows.append({"planner": p, "agents": a, "batch": b, "compile_s": compile_s, "run_s": best,
@@ -140,40 +281,48 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gpd_jax.plan", description=__doc__.split("\n\n")[0])
+def build_parser() -> Parser:
+    p = Parser(prog=PROG, description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
+    planners_help = ("comma list of shipped planners (log, cv, idm, gpd, gpd_head, gpd_head_scratch) and your own "
+                     "policies as FILE.py:NAME or MODULE:NAME (a gpd_jax.sim.Policy, a callable (params, obs, state, "
+                     "key) -> (ego, state), or a factory (model) -> Policy)")
     for name in ("evaluate", "bench"):
         s = sub.add_parser(name)
         s.add_argument("--data", required=True, help="a data store (python -m gpd_jax.data build ...)")
         s.add_argument("--split", default="test")
-        s.add_argument("--planners", default="log,cv,idm,gpd" if name == "evaluate" else "log,cv,idm,gpd")
-        s.add_argument("--agents", default="log,idm,gpd")
+        s.add_argument("--planners", default="log,cv,idm,gpd", help=planners_help)
+        s.add_argument("--agents", default="log,idm,gpd", help="comma list of agent models: log, idm, gpd")
         s.add_argument("--checkpoint", default=None, help="the GPD world model (default: the shipped one)")
-        s.add_argument("--head-model", default=None, help=f"the planning-head model for gpd_head (default {DEFAULT_HEAD})")
+        s.add_argument("--head-model", default=None,
+                       help=f"the planning-head model for gpd_head (default {_default_head('gpd_head')})")
         s.add_argument("--scratch-head-model", default=None,
-                       help=f"the head trained without pre-training, for gpd_head_scratch (default {DEFAULT_HEAD}_scratch)")
+                       help="the head trained without pre-training, for gpd_head_scratch "
+                            f"(default {_default_head('gpd_head_scratch')})")
         s.add_argument("--seed", type=int, default=0)
     e = sub.choices["evaluate"]
     e.add_argument("--out", required=True)
-    e.add_argument("--render", type=int, default=0, metavar="K", help="GIFs of the first K scenarios' runs")
-    e.add_argument("--num-scenarios", type=int, default=None)
-    e.add_argument("--batch-size", type=int, default=8)
+    e.add_argument("--render", type=count0, default=0, metavar="K", help="GIFs of the first K scenarios' runs")
+    e.add_argument("--num-scenarios", type=count, default=None, metavar="N",
+                   help="the first N scenarios (default all)")
+    e.add_argument("--batch-size", type=count, default=8, metavar="B", help="scenarios per compiled batch")
     e.add_argument("--quiet", action="store_true")
     bn = sub.choices["bench"]
-    bn.add_argument("--batch", type=int, default=8)
-    bn.add_argument("--repeats", type=int, default=2)
+    bn.add_argument("--batch", type=count, default=8, metavar="B", help="scenarios in the timed batch")
+    bn.add_argument("--repeats", type=count, default=2, metavar="R", help="timed runs after the compiling one")
     bn.add_argument("--out", default=None, help="write the figures as JSON here")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> int:
     from gpd_jax.data.errors import DataError
-    from gpd_jax.sim import SimError
-    try:
-        if getattr(args, "num_scenarios", 1) is not None and getattr(args, "num_scenarios", 1) < 1:
-            raise ValueError("--num-scenarios must be >= 1")
+    from gpd_jax.spec import EvalError
+
+    def work():
+        args = build_parser().parse_args(argv)
         return cmd_evaluate(args) if args.cmd == "evaluate" else cmd_bench(args)
-    except (SimError, DataError, FileNotFoundError, ValueError, KeyError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+
+    return run_command(PROG, work, (EvalError, DataError, FileNotFoundError, ValueError, KeyError))
 
 
 if __name__ == "__main__":

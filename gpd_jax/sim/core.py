@@ -1,5 +1,6 @@
 """The closed-loop simulator: pure `reset` / `step` over the KV-cached GPD, `run` (one `lax.scan` of a policy,
-vmapped over scenarios, compiled once per batch shape) and `run_host` (a plain-Python planner in the loop).
+vmapped over scenarios, compiled once per batch shape) and `run_host` (a plain-Python planner in the loop, called
+with the batch's numpy observations [B, ...] each model frame).
 
     sim = make_sim_scenes(model, gpd_jax.load_scenes(store, indices=range(8)))   # SimScene [8, ...] (host)
     out = run(model, sim, constant_velocity_policy(model.spec), jax.random.key(0), agents="gpd")
@@ -108,7 +109,8 @@ class SimState:
 
 @flax.struct.dataclass
 class Observation:
-    """What a policy sees at model frame t (one scenario; numpy leaves in `run_host`).
+    """What a policy sees at model frame t: one scenario's jax arrays (the shapes below) in `run` / `step`; in
+    `run_host` numpy arrays with a leading batch axis B on every field (ego_pose f32[B, 3], ...).
 
     t: i32[] current model frame. ego_pose f32[3] (x, y, heading), ego_velocity f32[2]: the ego now (scene frame).
     xy f32[T, A, 2], heading f32[T, A], valid bool[T, A], velocity f32[T, A, 2]: the simulated frames so far
@@ -194,34 +196,23 @@ def make_sim_scenes(model: Model, scenes: Scene, road: Any = None) -> SimScene:
                        "the ego from them")
     if model.tokenizer is None:
         raise SimError("the model has no map tokenizer: the simulator encodes the log's lanes around the ego with it")
-    view = spec.view(scenes)
-    if view.velocity is None:
+    if np.shape(scenes.xy)[-3] < spec.stored_frames_needed:
+        raise SimError(f"the scenes have {np.shape(scenes.xy)[-3]} stored frames; the model needs "
+                       f"{spec.stored_frames_needed}")
+    view = model.prepare(scenes)
+    if view.velocity is None:  # the simulator tracks velocities whatever the model reads
         view = view.replace(velocity=np.asarray(scenes.with_velocity(spec.stored_period_s).velocity)[
             ..., spec.model_frames(), : spec.num_agents, :])
-    missing = ~np.asarray(view.map_valid).all(axis=-1)
-    tokens = np.asarray(view.map_tokens).astype(np.int32)
-    if missing.any():
-        enc = np.asarray(_encode_frames(model.tokenizer, model.tokenizer.params, jnp.asarray(scenes.polylines),
-                                        jnp.asarray(scenes.polyline_valid), jnp.asarray(view.ego_pose)))
-        tokens = np.where(missing[..., None, None], enc, tokens).astype(np.int32)
-    view = view.replace(map_tokens=tokens, map_valid=np.ones_like(np.asarray(view.map_valid)), polylines=None,
+    view = view.replace(map_tokens=np.asarray(view.map_tokens).astype(np.int32), polylines=None,
                         polyline_valid=None, lanes=None, lanes_valid=None)
     ts, a = spec.stored_frames_needed, spec.num_agents
     full_vel = np.asarray(scenes.with_velocity(spec.stored_period_s).velocity)
     sl = lambda x, tail=0: np.asarray(x)[(Ellipsis, slice(0, ts), slice(0, a)) + (slice(None),) * tail]
-    if np.shape(scenes.xy)[-3] < ts:
-        raise SimError(f"the scenes have {np.shape(scenes.xy)[-3]} stored frames; the model needs {ts}")
     road = getattr(scenes, "road", None) if road is None else road
     return jax.tree.map(jnp.asarray, SimScene(
         view=view, log_xy=sl(scenes.xy, 1), log_heading=sl(scenes.heading), log_valid=sl(scenes.valid),
         log_velocity=full_vel[..., :ts, :a, :], polylines=np.asarray(scenes.polylines, np.float32),
         polyline_valid=np.asarray(scenes.polyline_valid), road=road))
-
-
-@functools.partial(jax.jit, static_argnames=("tok",))
-def _encode_frames(tok, params, polylines, valid, poses):
-    enc = tok.pose_encoder(params)
-    return jax.vmap(lambda p, v, q: jax.vmap(lambda x: enc(p, v, x))(q))(polylines, valid, poses)
 
 
 # ------------------------------------------------------------------------------------------------ internals
@@ -264,7 +255,7 @@ def _reset(parts: _Parts, scene: SimScene, agents: str) -> SimState:
     if agents not in AGENT_MODELS:
         raise SimError(f"unknown agent model {agents!r}; known: {', '.join(AGENT_MODELS)}")
     spec = parts.spec
-    h, t_total, s = spec.num_history, spec.num_frames, spec.frame_stride
+    h, t_total = spec.num_history, spec.num_frames
     c = spec.full_history - 1
     view = scene.view
     hist = (jnp.arange(t_total) < h)
@@ -546,15 +537,47 @@ def _step_obs_jit(params, rest, tok_params, state, ego, static):
 
 def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], Any], *, agents: str = "gpd",
              with_model: bool = True, limits: BicycleLimits = BicycleLimits(), progress: bool = False) -> SimResult:
-    """Closed-loop runs with a plain-Python planner: `planner(obs)` receives the batch's Observation as numpy
-    arrays (leading dim B) each model frame and returns the egos as an array [B, ...] (shapes as `Policy`). The
-    model's reset and step are each jitted once (per batch shape); the planner runs on the host in between."""
+    """Closed-loop runs of a batch of scenarios (SimScene [B, ...]) with a plain-Python planner in the loop.
+
+    The planner is called once per model frame (`model.spec.num_future` calls) with the whole batch:
+    `planner(obs)` receives one `Observation` whose fields are numpy arrays with a leading batch axis B (the
+    unbatched shapes of `Observation` with B in front): t i32[B] (the same frame in every scenario), ego_pose
+    f32[B, 3], ego_velocity f32[B, 2], xy f32[B, T, A, 2], heading f32[B, T, A], valid bool[B, T, A], velocity
+    f32[B, T, A, 2], cur_xy f32[B, A, 2], cur_heading f32[B, A], cur_valid bool[B, A], cur_velocity f32[B, A, 2],
+    size f32[B, A, 2], map_tokens i32[B, T, M], cur_map_tokens i32[B, M], polylines f32[B, L, P, 2],
+    polyline_valid bool[B, L, P], route_xy f32[B, R, 2], route_heading f32[B, R], route_s f32[B, R], pred_pose
+    f32[B, 3], pred_velocity f32[B, 2], hidden f32[B, N, d] or None, log_ego f32[B, Ts, 3], log_ego_valid
+    bool[B, Ts]. It returns the B egos as one float array, one of (S = `model.spec.frame_stride`):
+
+    * f32[B, 3]: each scenario's next model-frame pose (x, y, heading; scene frame);
+    * f32[B, 5]: pose and velocity (vx, vy) there;
+    * f32[B, 2]: an action (acceleration m/s^2, steering angle rad) for the bicycle model (`limits`);
+    * f32[B, S, 3]: the S stored-rate poses up to the next model frame.
+
+    Batched, so the model's reset and step are each jitted once (per batch shape) and serve the whole batch; the
+    planner runs on the host in between. A planner for one scenario at a time loops over B itself. Example, a
+    constant-velocity planner::
+
+        def cv(obs):                                       # obs.ego_pose: numpy f32[B, 3]
+            period = model.spec.frame_period_s             # seconds between model frames
+            nxt = obs.ego_pose[:, :2] + obs.ego_velocity * period
+            return np.concatenate([nxt, obs.ego_pose[:, 2:], obs.ego_velocity], -1)      # f32[B, 5]
+
+        out = sim.run_host(model, sims, cv, agents="idm", with_model=False)
+        scores = sim.score(model, sims, out)               # {"CLS": f32[B], ...}
+
+    `with_model=False` skips the model for log or IDM agents when the planner does not read `pred_pose`,
+    `pred_velocity` or `hidden` (GPD agents always run it). Raises SimError naming the planner when it returns
+    another shape or a non-finite ego. The result has no open-loop plan (`plan` None).
+    """
     if agents not in AGENT_MODELS:
         raise SimError(f"unknown agent model {agents!r}; known: {', '.join(AGENT_MODELS)}")
     with_model = with_model or agents == "gpd"
     sm = _static_model_cached(model.graphdef, model.tokenizer, model.spec)
     tok_params = model.tokenizer.params if model.tokenizer is not None else None
     b = np.shape(scenes.log_xy)[0]
+    s = model.spec.frame_stride
+    shapes = {(3,): "pose", (5,): "pose, velocity", (2,): "acceleration, steering", (s, 3): "stored-rate poses"}
     state, obs = _reset_obs_jit(model.params, model.rest, tok_params, scenes, (sm, agents, with_model))
     nonfinite = np.zeros((b, model.spec.num_frames), bool)
     frames = range(model.spec.num_future)
@@ -563,18 +586,21 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
         frames = tqdm(frames, desc="closed loop (host planner)")
     name = getattr(planner, "__name__", "planner")
     for _ in frames:
-        ego = np.asarray(planner(jax.device_get(obs)), np.float32)
-        if ego.ndim < 2 or ego.shape[0] != b:
-            raise SimError(f"planner {name!r} returned shape {ego.shape}; expected [{b}, ...] (one ego per scenario)")
+        raw = planner(jax.device_get(obs))
+        try:
+            ego = np.asarray(raw, np.float32)
+        except (TypeError, ValueError) as e:
+            raise SimError(f"planner {name!r} returned {type(raw).__name__}, not an array of floats: {e}") from None
+        if ego.shape[:1] != (b,) or tuple(ego.shape[1:]) not in shapes:
+            expected = ", ".join(f"[{b}, {', '.join(map(str, k))}] ({v})" for k, v in shapes.items())
+            raise SimError(f"planner {name!r} returned an array of shape {tuple(ego.shape)}; expected one ego per "
+                           f"scenario of the batch of {b}: {expected}")
         t1 = int(np.asarray(obs.t)[0]) + 1
         nonfinite[:, t1] = ~np.isfinite(ego.reshape(b, -1)).all(-1)
         if nonfinite[:, t1].any():
             break
-        try:
-            state, obs = _step_obs_jit(model.params, model.rest, tok_params, state, jnp.asarray(ego),
-                                       (sm, with_model, limits))
-        except SimError as e:
-            raise SimError(str(e).replace("policy 'policy'", f"planner {name!r}")) from None
+        state, obs = _step_obs_jit(model.params, model.rest, tok_params, state, jnp.asarray(ego),
+                                   (sm, with_model, limits))
     out = SimResult(fine_xy=state.fine_xy, fine_heading=state.fine_heading, fine_valid=state.fine_valid,
                     xy=state.xy, heading=state.heading, valid=state.valid, map_tokens=state.map_tokens, plan=None,
                     nonfinite=jnp.asarray(nonfinite))

@@ -117,7 +117,7 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
     it runs beside any world model and agent model (its backbone may be fine-tuned away from the world model's)."""
     from gpd_jax.model import plan_trajectory
 
-    if not head_model.config.get("plan_head"):
+    if "plan_head" not in head_model.config:
         raise SimError(f"gpd_head needs a model with the fine-tuned planning head (a config with a plan_head "
                        f"section); {head_model.path or 'the given model'} has none")
     graphdef, rest, spec = head_model.graphdef, head_model.rest, head_model.spec
