@@ -32,7 +32,6 @@ Measures, in one run (so ratios are meaningful on a noisy shared machine):
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
 import os
@@ -46,7 +45,8 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax import parallel
-from gpd_jax.model import attention, native
+from gpd_jax.cliargs import ArgumentParser, UsageError, run_command
+from gpd_jax.model import autotune, native
 from gpd_jax.model.attention import KERNELS
 from gpd_jax.fsutil import atomic_write_json
 from gpd_jax.config import load_config, split_config_args
@@ -116,7 +116,7 @@ def bench_rollout(args, overrides) -> dict:
     future = args.future_frames if args.future_frames is not None else m.num_frames - h
     t_total = h + future
     if t_total > m.num_frames:
-        raise SystemExit(f"--future-frames {future}: history {h} + future exceeds num_frames {m.num_frames}")
+        raise UsageError(f"--future-frames {future}: history {h} + future exceeds num_frames {m.num_frames}")
     _log(f"devices: {jax.devices()}")
     machine = native.machine_info()
     _log("machine: " + ", ".join(f"{k} {v}" for k, v in machine.items()))
@@ -127,7 +127,7 @@ def bench_rollout(args, overrides) -> dict:
     config_name = os.path.splitext(os.path.basename(args.config))[0]
 
     def cached(graphdef, state, scenes, tasks, keys):
-        return rollout_batch(nnx.merge(graphdef, state), scenes, tasks, keys, h, cfg.rollout.temperature)
+        return rollout_batch(nnx.merge(graphdef, state), scenes, tasks, keys, h)  # greedy, the paper's
 
     runs = []
     flops = rollout_flops(m, t_total, h)
@@ -149,11 +149,11 @@ def bench_rollout(args, overrides) -> dict:
         scenes, tasks, keys = parallel.shard_batch((scenes, tasks, keys), mesh)
         state_b = parallel.replicate(state, mesh)
         cached_jit = jax.jit(parallel.data_parallel(functools.partial(cached, graphdef), mesh))
-        logged = len(attention._choice_log)
+        logged = len(autotune._choice_log)
         t0 = time.perf_counter()
         compiled = cached_jit.lower(state_b, scenes, tasks, keys).compile()
         compile_s = time.perf_counter() - t0
-        choices = attention._choice_log[logged:]
+        choices = autotune._choice_log[logged:]
         label = _label(kernel, choices)
         build = native.build_info() if "native" in label else None
         _log(f"batch {batch}, {label} attention: compiled in {compile_s:.1f} s ({ndev} device(s))")
@@ -230,7 +230,7 @@ def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, s
         for kind in RECOMPUTE_ATTENTION:
             graphdef, state = _with_attention(model, kind)
             f = jax.jit(lambda s, sc, tk, g=graphdef: rollout_recompute(nnx.merge(g, s), sc, tk, jax.random.key(0),
-                                                                        h, cfg.rollout.temperature))
+                                                                        h))
             jax.block_until_ready(f(state, scene, task))
             row[f"{kind}_s"] = _time(lambda: jax.block_until_ready(f(state, scene, task)), 1)
             _log(f"recompute ({kind} attention): whole rollout {row[f'{kind}_s']:.2f} s")
@@ -297,10 +297,10 @@ def _print_table(out: dict) -> None:
         print(f"recompute: {out['recompute_method']}")
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     overrides, rest = split_config_args(argv)
-    p = argparse.ArgumentParser(prog="python -m gpd_jax.bench", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m gpd_jax.bench", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="what", required=True)
     r = sub.add_parser("rollout", help="cached vs recompute rollout speed")
     r.add_argument("--config", default="configs/gpd_paper.py")
@@ -319,14 +319,17 @@ def main(argv=None) -> None:
                    help="build target(s) of the native kernel (gcc -march), each measured with native and auto "
                         "(default: $GPD_JAX_NATIVE_MARCH or native); e.g. native x86-64-v3")
     r.add_argument("--json", default=None, help="write the results here")
-    args = p.parse_args(rest)
-    parallel.use_host_cores()
-    out = bench_rollout(args, overrides)
-    _print_table(out)
-    if args.json:
-        atomic_write_json(args.json, out, indent=2)
-        print(f"wrote {args.json}")
+    def work():
+        args = p.parse_args(rest)
+        parallel.use_host_cores()
+        out = bench_rollout(args, overrides)
+        _print_table(out)
+        if args.json:
+            atomic_write_json(args.json, out, indent=2)
+            print(f"wrote {args.json}")
+
+    return run_command("python -m gpd_jax.bench", work, (FileNotFoundError, ValueError, KeyError))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

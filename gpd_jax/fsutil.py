@@ -143,15 +143,47 @@ def unflatten_params(template, flat: dict[str, np.ndarray], where: str = "params
     out = jax.tree_util.tree_map_with_path(fill, template)
     extra = sorted(set(flat) - {_path_key(p) for p, _ in jax.tree_util.tree_leaves_with_path(template)})
     if missing or bad or extra:
-        raise ValueError(f"{where} does not match the model of its config: missing {missing[:5]}, "
-                         f"wrong shapes {bad[:5]}, unexpected {extra[:5]}")
+        parts = [f"{name} {len(keys)} ({', '.join(keys[:5])}{', ...' if len(keys) > 5 else ''})"
+                 for name, keys in (("missing", missing), ("wrong shapes", bad), ("unexpected", extra)) if keys]
+        raise ValueError(f"{where} does not match the model of its config: {'; '.join(parts)}")
     return out
 
 
+def read_params_npz(path: str) -> dict[str, np.ndarray]:
+    """{key: array} of a `params.npz`, read without executing anything in it (no pickles).
+
+    Raises FileNotFoundError when `path` does not exist and ValueError naming `path` and the reason when it is not
+    a readable archive of numeric arrays (an empty or truncated download, a `.npy` file, object arrays, ...)."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: file not found")
+
+    def unreadable(reason: str) -> ValueError:
+        return ValueError(f"{path}: not a readable parameter archive ({reason}); re-export or re-download it")
+
+    if os.path.isfile(path) and os.path.getsize(path) == 0:
+        raise unreadable("the file is empty")
+    try:
+        z = np.load(path, allow_pickle=False)
+    except Exception as e:  # noqa: BLE001 - whatever numpy/zipfile/zlib/the OS raise on a damaged file
+        raise unreadable(str(e) or type(e).__name__) from e
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise unreadable("a single array, not an .npz archive of named arrays")
+    try:
+        with z:
+            flat = {k: z[k] for k in z.files}
+    except Exception as e:  # noqa: BLE001
+        raise unreadable(str(e) or type(e).__name__) from e
+    odd = sorted(k for k, v in flat.items() if v.dtype.kind not in "biuf")
+    if odd:
+        raise unreadable(f"{len(odd)} arrays are not numeric, e.g. {odd[0]} of dtype {flat[odd[0]].dtype}")
+    return flat
+
+
 def load_params_npz(path: str, template):
-    """The params of an exported `params.npz` in `template`'s structure and dtypes (see `unflatten_params`)."""
-    with np.load(path) as z:
-        return unflatten_params(template, dict(z), where=path)
+    """The params of an exported `params.npz` in `template`'s structure and dtypes (see `unflatten_params`).
+    Raises FileNotFoundError / ValueError naming `path` (see `read_params_npz`)."""
+    return unflatten_params(template, read_params_npz(path), where=os.fspath(path))
 
 
 def save_params_npz(path: str, params, cast=lambda key, a: a, compressed: bool = False) -> None:

@@ -18,14 +18,18 @@ import argparse
 import os
 import sys
 
+from gpd_jax.cliargs import ArgumentParser, run_command
 from gpd_jax.evaluation.bootstrap import compare_runs, format_comparison, load_scene_sums
 from gpd_jax.evaluation.report import to_json_compatible
 from gpd_jax.fsutil import atomic_write_json
 from gpd_jax.spec import EvalError
 
 
+PROG = "python -m gpd_jax.evaluation"
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m gpd_jax.evaluation", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("compare", help="scene-bootstrap intervals of runs' ratios, paired differences to the first")
     c.add_argument("runs", nargs="+", help="rollout.py output directories (or their scene_sums.npz)")
@@ -44,17 +48,16 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    return run_command(PROG, lambda: _compare(_parser().parse_args(argv)), (EvalError,))
+
+
+def _compare(args) -> int:
     names = args.names.split(",") if args.names else [os.path.basename(os.path.normpath(r)) for r in args.runs]
-    try:
-        if len(names) != len(args.runs):
-            raise EvalError(f"--names has {len(names)} names for {len(args.runs)} runs")
-        runs = [load_scene_sums(r) for r in args.runs]
-        res = compare_runs(runs, task=args.task, baseline=args.baseline, metric=args.metric, variant=args.variant,
-                           resamples=args.resamples, level=args.level, seed=args.seed, unit=args.unit)
-    except EvalError as e:
-        print(f"python -m gpd_jax.evaluation compare: error: {e}", file=sys.stderr)
-        return 2
+    if len(names) != len(args.runs):
+        raise EvalError(f"--names has {len(names)} names for {len(args.runs)} runs")
+    runs = [load_scene_sums(r) for r in args.runs]
+    res = compare_runs(runs, task=args.task, baseline=args.baseline, metric=args.metric, variant=args.variant,
+                       resamples=args.resamples, level=args.level, seed=args.seed, unit=args.unit)
     res["names"], res["sources"] = names, [os.path.abspath(r) for r in args.runs]
     print(format_comparison(res, names))
     if args.json:

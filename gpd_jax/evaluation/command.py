@@ -10,37 +10,66 @@ import argparse
 import os
 import time
 
+from gpd_jax import zoo
 from gpd_jax.checkpoint import CONFIG_FILE, load_model, resolve_tokenizer_path
-from gpd_jax.config import apply_overrides, config_from_json, split_config_args
+from gpd_jax.cliargs import ArgumentParser as Parser
+from gpd_jax.cliargs import UsageError, run_command
+from gpd_jax.config import config_from_json
 from gpd_jax.evaluation.bootstrap import SCENE_SUMS_FILE, save_scene_sums
-from gpd_jax.evaluation.driver import evaluate
+from gpd_jax.evaluation.driver import run_evaluation
 from gpd_jax.evaluation.outputs import write_evaluation
 from gpd_jax.evaluation.preflight import preflight
 from gpd_jax.evaluation.report import format_tables, to_json_compatible
+from gpd_jax.options import GEN_MAPS, LOG_MAPS, RolloutOptions
 from gpd_jax.spec import EvalError
 from gpd_jax.tasks import resolve_task_names
 
-
-class UsageError(Exception):
-    """Bad command-line input; the message names the argument or file."""
+PROG = "rollout.py"
 
 
-class Parser(argparse.ArgumentParser):
-    """An ArgumentParser that raises `UsageError` instead of exiting (so the caller picks the exit status)."""
+def parser(prog: str = PROG) -> Parser:
+    """The evaluation command line's arguments (`rollout.py`, `gpd-jax eval`)."""
+    p = Parser(prog=prog, description="Multi-task evaluation of a GPD model: rollouts of every task on a split, "
+                                      "metrics at 3 / 5 / 8 s next to the baselines, tables, pictures.")
+    p.add_argument("--checkpoint", default=None,
+                   help=f"a shipped model's name (gpd-jax models) or an exported model / train.py workdir "
+                        f"(default: {zoo.DEFAULT_MODEL})")
+    p.add_argument("--data", required=True, help="data store directory (python -m gpd_jax.data build)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--tasks", default="all", help="'all' or a comma list of task keys")
+    p.add_argument("--out", required=True, help="output directory (metrics.json, tables.txt, render/)")
+    p.add_argument("--scenarios", type=int, default=None, help="first N scenarios of the split (default: all)")
+    p.add_argument("--batch", type=int, default=8, help="scenarios per compiled rollout call (every task each)")
+    p.add_argument("--render", type=int, default=0, metavar="K", help="GIF + PNG of every task for the first K")
+    p.add_argument("--render-size", type=int, default=320, help="pixels per rendered frame")
+    p.add_argument("--seed", type=int, default=0, help="rollout PRNG seed (used at temperature > 0)")
+    p.add_argument("--variant", default="paper", choices=("paper", "corrected"),
+                   help="metric variant of the main keys; the other is written with its name as a suffix")
+    p.add_argument("--horizons", default="3,5,8", help="horizons in seconds (comma list)")
+    p.add_argument("--temperature", type=float, default=0.0,
+                   help="map-token sampling temperature (0: the most likely token, the paper's)")
+    p.add_argument("--log-map", default="tokens", choices=LOG_MAPS,
+                   help="tasks that take the map from the log but generate the ego get the logged map tokens "
+                        "(the paper's choice) or the log's lanes re-encoded around the generated ego every frame")
+    p.add_argument("--gen-map", default="model", choices=GEN_MAPS,
+                   help="where the map is generated: every token the model's (the paper's choice) or the last "
+                        "given map moved with the ego, the model's tokens only in cells newly in view")
+    p.add_argument("--prompt", default=None, metavar="FILE[,FILE]",
+                   help="JSON prompt file(s) (examples/prompt_*.json): roll out every scenario under each prompt "
+                        "and score how the conditions are respected (OUT/conditions.json) instead of the tasks")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
 
-    def error(self, message):
-        self.print_usage()
-        raise UsageError(message)
+
+def main(argv: list[str], prog: str = PROG) -> int:
+    """Runs the evaluation command line: exit 0, or 2 with one line naming the problem."""
+    return run_command(prog, lambda: run(check_arguments(parser(prog), argv)))
 
 
-def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
-    """Parses `argv` and checks everything that needs only the arguments, the config and the data. Returns
-    (args with `task_names`, `horizons`, `config` (overrides applied) and `tokenizer_path` added, overrides)."""
-    overrides, rest = split_config_args(argv)
-    args = parser.parse_args(rest)
-    for o in overrides:
-        if not o.startswith("--config.rollout."):
-            raise UsageError(f"{o}: only --config.rollout.* fields can be overridden here")
+def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """Parses `argv` and checks everything that needs only the arguments, the config and the data. Returns the
+    args with `task_names`, `horizons`, `options`, `config` and `tokenizer_path` added."""
+    args = parser.parse_args(argv)
     try:
         args.horizons = tuple(float(x) for x in args.horizons.split(",") if x.strip())
     except ValueError:
@@ -58,26 +87,27 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> tuple[a
         raise UsageError(f"--tasks: {e.args[0]}") from None
     if not args.task_names:
         raise UsageError("--tasks: no task given")
-    ckpt = args.checkpoint = os.path.abspath(args.checkpoint)
-    if not os.path.isdir(ckpt):
-        raise UsageError(f"checkpoint directory not found: {ckpt}")
-    if not os.path.isfile(os.path.join(ckpt, CONFIG_FILE)):
-        raise UsageError(f"{ckpt} is not a GPD checkpoint (no {CONFIG_FILE})")
+    try:
+        args.options = RolloutOptions(temperature=args.temperature, log_map=args.log_map, gen_map=args.gen_map)
+    except ValueError as e:
+        raise UsageError(f"--temperature: {e}") from None
+    try:
+        ckpt = args.checkpoint = zoo.resolve(args.checkpoint)
+    except FileNotFoundError as e:
+        raise UsageError(f"--checkpoint: {e}") from None
     args.data, args.out = os.path.abspath(args.data), os.path.abspath(args.out)
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise UsageError(f"--out {args.out} exists and is not a directory")
     try:
         config = config_from_json(os.path.join(ckpt, CONFIG_FILE))
-        if config.get("stage") != "gpd" or "model" not in config:
-            raise UsageError(f"{ckpt}/{CONFIG_FILE}: stage is {config.get('stage')!r}, not a GPD model")
-        apply_overrides(config, overrides, source=os.path.join(ckpt, CONFIG_FILE))
+        if config.stage != "gpd":
+            raise UsageError(f"{ckpt}/{CONFIG_FILE}: stage is {config.stage!r}, not a GPD model")
         args.tokenizer_path = resolve_tokenizer_path(config.model.map_tokenizer, ckpt)
-        if args.log_map == "lanes" and not args.tokenizer_path:
-            raise UsageError(f"--log-map lanes re-encodes the log's lanes with the model's map tokenizer, and {ckpt} "
-                             "has none (config.model.map_tokenizer is empty)")
-        if args.gen_map == "warp" and not args.tokenizer_path:
-            raise UsageError(f"--gen-map warp moves generated maps through the model's map tokenizer, and {ckpt} "
-                             "has none (config.model.map_tokenizer is empty)")
+        if args.options.needs_tokenizer and not args.tokenizer_path:
+            flag = "--log-map lanes re-encodes the log's lanes" if args.log_map == "lanes" else \
+                "--gen-map warp moves generated maps"
+            raise UsageError(f"{flag} with the model's map tokenizer, and {ckpt} has none "
+                             "(config.model.map_tokenizer is empty)")
         preflight(config, args.data, args.split, task_names=args.task_names, num_scenarios=args.scenarios,
                   variant=args.variant, horizons_s=args.horizons, has_tokenizer=bool(args.tokenizer_path))
     except FileNotFoundError as e:
@@ -86,7 +116,7 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> tuple[a
         raise UsageError(str(e.args[0]) if e.args else str(e)) from None
     args.config = config
     args.prompts = _read_prompts(getattr(args, "prompt", None), bool(args.tokenizer_path), config)
-    return args, overrides
+    return args
 
 
 def _read_prompts(spec: str | None, has_tokenizer: bool, config) -> dict:
@@ -132,6 +162,13 @@ def _read_prompts(spec: str | None, has_tokenizer: bool, config) -> dict:
     return out
 
 
+def _load(checkpoint: str):
+    try:
+        return load_model(checkpoint)
+    except (FileNotFoundError, ValueError, KeyError) as e:
+        raise UsageError(f"cannot load the model from {checkpoint}: {e}") from None
+
+
 def run_prompts(args: argparse.Namespace) -> int:
     """`rollout.py --prompt FILE[,FILE...]`: every scenario under every prompt (and the unconditioned traffic
     simulation), condition-respect scores to OUT/conditions.json, pictures with --render K."""
@@ -139,12 +176,12 @@ def run_prompts(args: argparse.Namespace) -> int:
     from gpd_jax.fsutil import atomic_write_json
     from gpd_jax.prompts import PromptError
 
-    model = load_model(args.checkpoint).replace(config=args.config)
+    model = _load(args.checkpoint)
     render_dir = os.path.join(args.out, "render") if args.render else None
     try:
         res = evaluate_prompts(model, args.data, args.split, args.prompts, num_scenarios=args.scenarios,
                                batch_size=args.batch, seed=args.seed, render_count=args.render,
-                               render_dir=render_dir, size_px=args.render_size)
+                               render_dir=render_dir, size_px=args.render_size, options=args.options)
     except (PromptError, EvalError) as e:
         raise UsageError(str(e)) from None
     os.makedirs(args.out, exist_ok=True)
@@ -162,26 +199,21 @@ def run_prompts(args: argparse.Namespace) -> int:
     return 0
 
 
-def run(args: argparse.Namespace, overrides: list[str]) -> int:
+def run(args: argparse.Namespace) -> int:
     """Loads the model, evaluates, prints the tables and writes the outputs (see `rollout.py`)."""
     if getattr(args, "prompts", None):
         return run_prompts(args)
     t0 = time.perf_counter()
-    try:
-        model = load_model(args.checkpoint)
-    except (FileNotFoundError, ValueError, KeyError) as e:
-        raise UsageError(f"cannot load the model from {args.checkpoint}: {e}") from None
-    model = model.replace(config=args.config)  # with the --config.rollout.* overrides
+    model = _load(args.checkpoint)
     m = model.config.model
     print(f"model {args.checkpoint} loaded in {time.perf_counter() - t0:.1f} s ({m.num_frames} frames, "
           f"{m.num_history} history, {m.num_agents} slots, map tokenizer: {args.tokenizer_path or 'none'})",
           flush=True)
     try:
-        results, items = evaluate(model, args.data, args.split, task_names=args.task_names,
-                                  num_scenarios=args.scenarios, batch_size=args.batch, seed=args.seed,
-                                  variant=args.variant, horizons_s=args.horizons, render_count=args.render,
-                                  log_map=args.log_map, gen_map=args.gen_map, progress=not args.no_progress,
-                                  scene_sums=True)
+        results, items = run_evaluation(model, args.data, args.split, task_names=args.task_names,
+                                        num_scenarios=args.scenarios, batch_size=args.batch, seed=args.seed,
+                                        variant=args.variant, horizons_s=args.horizons, render_count=args.render,
+                                        options=args.options, progress=not args.no_progress, scene_sums=True)
     except EvalError as e:
         raise UsageError(str(e)) from None
     if args.render > len(items):

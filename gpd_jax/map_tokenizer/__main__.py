@@ -1,9 +1,9 @@
 """Command line of the map tokenizer.
 
-  python -m gpd_jax.map_tokenizer evaluate [--checkpoint DIR] --data DIR [--split test] [--json PATH]
+  python -m gpd_jax.map_tokenizer evaluate [--checkpoint NAME_OR_DIR] --data DIR [--split test] [--json PATH]
   python -m gpd_jax.map_tokenizer diagnose --data DIR [--split test] [--json PATH]
-  python -m gpd_jax.map_tokenizer encode [--checkpoint DIR] --data DIR [--splits train val test] [--force]
-  python -m gpd_jax.map_tokenizer export --workdir WORKDIR [--out checkpoints/map_tokenizer]
+  python -m gpd_jax.map_tokenizer encode [--checkpoint NAME_OR_DIR] --data DIR [--splits train val test] [--force]
+  python -m gpd_jax.map_tokenizer export --workdir WORKDIR --out DIR
   python -m gpd_jax.map_tokenizer bench [--batch 64]
   python -m gpd_jax.map_tokenizer netframes --out DIR [--generated N] [--seed S] [--real NET ...] [--real-lefthand]
   python -m gpd_jax.map_tokenizer pack-netframes DIR [DIR ...] --out OUTDIR [--networks N]
@@ -25,7 +25,8 @@ records the tokenizer's fingerprint with them; shards this tokenizer already enc
 more) are skipped, so an interrupted run resumes (`--force` re-encodes). `--frame-stride S` encodes only
 frames 0, S, 2S, ... (S times faster): enough for a model that reads every S-th frame
 (`config.data.frame_stride` a multiple of S); the other frames are stored as not encoded.
-The checkpoint defaults to the shipped one, `checkpoints/map_tokenizer/`. `netframes` builds map-only
+The checkpoint is a shipped tokenizer's name (`gpd_jax.list_models("map_tokenizer")`; default `map_tokenizer`) or
+a folder (an export or a training workdir). `netframes` builds map-only
 training frames (`gpd_jax.map_tokenizer.netframes`: many networks, poses drawn on their lanes, no traffic) that
 stand in a training mixture beside stores; it resumes where it stopped. `pack-netframes` writes each as
 OUTDIR/<name>.tar.xz (centimetre-rounded, ~13x smaller) to carry to another machine: `tar xf` gives the directory
@@ -40,27 +41,35 @@ import os
 import sys
 import time
 
+from gpd_jax.cliargs import ArgumentParser, UsageError, run_command
+from gpd_jax.data.errors import DataError
 from gpd_jax.data.lanes import RECUT_MODES
 
-DEFAULT_CHECKPOINT = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                                  "checkpoints", "map_tokenizer")
+PROG = "python -m gpd_jax.map_tokenizer"
+DEFAULT_CHECKPOINT = "map_tokenizer"
+
+
+def _tokenizer(ref: str):
+    """The tokenizer a --checkpoint names (a shipped name or a folder)."""
+    from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
+
+    return load_tokenizer(ref)
 
 
 def cmd_evaluate(args) -> dict:
     import jax
 
     from gpd_jax.map_tokenizer.store import frame_batches
-    from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
-    from gpd_jax.map_tokenizer.evaluation import evaluate, is_quantized, make_eval_step
+    from gpd_jax.map_tokenizer.evaluation import make_eval_step, tokenizer_metrics
 
-    tok = load_tokenizer(args.checkpoint)
+    tok = _tokenizer(args.checkpoint)
     batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
                             frame_stride=args.frame_stride, max_batches=args.max_batches, gt_recut=args.gt_recut)
     t0 = time.perf_counter()
-    m = evaluate(tok.graphdef, tok.params, tok.config, batches, jax.jit(make_eval_step(tok.graphdef, tok.config)))
-    m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=os.path.abspath(args.checkpoint),
+    m = tokenizer_metrics(tok.graphdef, tok.params, tok.config, batches,
+                          jax.jit(make_eval_step(tok.graphdef, tok.config)))
+    m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=args.checkpoint,
              frame_stride=args.frame_stride, f1_threshold_m=1.5, gt_recut=args.gt_recut,
-             quantized=is_quantized(tok.config),
              wall_s=round(time.perf_counter() - t0, 1))
     print(json.dumps(m, indent=2))
     if args.json:
@@ -87,29 +96,19 @@ def cmd_diagnose(args) -> dict:
 
 
 def cmd_encode(args) -> None:
-    import jax
     import numpy as np
 
     from gpd_jax.data.store import (MISSING_MAP_TOKEN, NUM_MAP_TOKENS, Shard, list_splits, map_tokens_record,
                                     save_map_tokens, shard_dir, shard_indices)
-    from gpd_jax.map_tokenizer.tokenizer import load_tokenizer
 
-    from gpd_jax.map_tokenizer.evaluation import is_quantized
-
-    tok = load_tokenizer(args.checkpoint)
-    if not is_quantized(tok.config):
-        raise SystemExit(f"{args.checkpoint}: trained with train.quantize=False (a continuous autoencoder probe); its "
-                         "codes are not what its decoder reads, so it cannot make map tokens")
+    tok = _tokenizer(args.checkpoint)
     fingerprint = tok.fingerprint()
-
     stride = int(args.frame_stride)
     if stride < 1:
-        raise SystemExit(f"--frame-stride must be >= 1, got {stride}")
+        raise UsageError(f"--frame-stride must be >= 1, got {stride}")
     if int(tok.codebook.shape[0]) > MISSING_MAP_TOKEN:
-        raise SystemExit(f"{args.checkpoint}: {tok.codebook.shape[0]} codes do not fit the store's uint8 map "
+        raise UsageError(f"{args.checkpoint}: {tok.codebook.shape[0]} codes do not fit the store's uint8 map "
                          f"tokens (at most {MISSING_MAP_TOKEN})")
-
-    encode_sample = jax.jit(tok.encode_lanes)  # one sample: frames [F, 3] -> i32[F, 64]
 
     splits = args.splits or list_splits(args.data)
     for split in splits:
@@ -124,9 +123,10 @@ def cmd_encode(args) -> None:
             a = shard.arrays
             n, t = a["ego_pose"].shape[:2]
             tokens = np.full((n, t, NUM_MAP_TOKENS), MISSING_MAP_TOKEN, np.uint8)
-            for i in range(n):
-                tokens[i, ::stride] = np.asarray(encode_sample(tok.params, a["polylines"][i],
-                                                               a["polyline_valid"][i], a["ego_pose"][i, ::stride]))
+            for i in range(n):  # one sample at a time: the same program as the on-the-fly encoding (Model.prepare)
+                tokens[i, ::stride] = np.asarray(tok.encode_frames(a["polylines"][i:i + 1],
+                                                                   a["polyline_valid"][i:i + 1],
+                                                                   a["ego_pose"][i:i + 1, ::stride]))[0]
             path = save_map_tokens(args.data, split, j, tokens, tokenizer=fingerprint, frame_stride=stride)
             print(f"{split} shard {j}: {n} samples x {len(range(0, t, stride))} of {t} frames -> {path}")
 
@@ -146,33 +146,31 @@ def cmd_bench(args) -> None:
 
 
 def cmd_netframes(args) -> None:
-    from gpd_jax.data.errors import DataError
     from gpd_jax.map_tokenizer.netframes import build_netframes
 
     try:
         man = build_netframes(args.out, args.generated, args.seed, args.real, args.real_lefthand,
                               args.lefthand_share, args.curved_share, args.ignore_turnarounds)
     except DataError as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UsageError(str(e)) from None
     gen = [r for r in man["networks"] if r["source"] == "generated"]
     print(f"{man['num_networks']} networks ({len(gen)} generated, {man['num_networks'] - len(gen)} real), "
           f"{sum(r['lane_km'] for r in man['networks']):.0f} lane km -> {args.out}")
 
 
 def cmd_pack_netframes(args) -> None:
-    from gpd_jax.data.errors import DataError
     from gpd_jax.map_tokenizer.netframes import pack_netframes
 
     for d in args.dirs:
         try:
             path = pack_netframes(d, args.out, args.networks)
         except DataError as e:
-            raise SystemExit(f"error: {e}") from None
+            raise UsageError(str(e)) from None
         print(f"{d} -> {path} ({os.path.getsize(path) / 1e6:.1f} MB)")
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gpd_jax.map_tokenizer", description=__doc__,
+    p = ArgumentParser(prog=PROG, description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
 
@@ -204,12 +202,12 @@ def main(argv=None) -> int:
                         "interrupted encode resumes)")
     x = sub.add_parser("export", help="write a training workdir's latest params as a compact checkpoint")
     x.add_argument("--workdir", required=True)
-    x.add_argument("--out", default=DEFAULT_CHECKPOINT)
+    x.add_argument("--out", required=True, help="the export's folder")
     b = sub.add_parser("bench", help="rasterizer and matching throughput")
     b.add_argument("--batch", type=int, default=64)
     n = sub.add_parser("netframes", help="map-only training frames: many networks, poses on their lanes")
     n.add_argument("--out", required=True)
-    n.add_argument("--generated", type=int, default=0, help="generated networks (sumo.random_net_spec)")
+    n.add_argument("--generated", type=int, default=0, help="generated networks (sumo_networks.random_net_spec)")
     n.add_argument("--seed", type=int, default=0)
     n.add_argument("--real", nargs="*", default=[], help="SUMO network files used as they are")
     n.add_argument("--real-lefthand", action="store_true", help="also a left-hand copy of each --real network")
@@ -220,11 +218,14 @@ def main(argv=None) -> int:
     k.add_argument("dirs", nargs="+", metavar="DIR")
     k.add_argument("--out", required=True, help="folder of the archives (DIR's name + .tar.xz)")
     k.add_argument("--networks", type=int, default=None, help="only the first N networks of each")
-    args = p.parse_args(argv)
-    {"evaluate": cmd_evaluate, "diagnose": cmd_diagnose, "encode": cmd_encode, "export": cmd_export,
-     "bench": cmd_bench, "netframes": cmd_netframes,
-     "pack-netframes": cmd_pack_netframes}[args.cmd](args)
-    return 0
+    commands = {"evaluate": cmd_evaluate, "diagnose": cmd_diagnose, "encode": cmd_encode, "export": cmd_export,
+                "bench": cmd_bench, "netframes": cmd_netframes, "pack-netframes": cmd_pack_netframes}
+
+    def work():
+        args = p.parse_args(argv)
+        commands[args.cmd](args)
+
+    return run_command(PROG, work, (DataError, FileNotFoundError, ValueError))
 
 
 if __name__ == "__main__":
