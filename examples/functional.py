@@ -5,26 +5,29 @@
 2. Gradient: the mean final-position error of a traffic-simulation rollout with respect to every parameter,
    through the differentiable (recompute) rollout, and the layers whose parameters move it most.
 
-    python examples/functional.py [--data data/heldout] [--shifts -2,-1,1,2]
+    python examples/functional.py [--data data/test] [--shifts -2,-1,1,2]
 """
 
 import argparse
+import os
+import sys
 
 import jax
 import jax.numpy as jnp
 
 import gpd_jax
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _store_cli import example_scenes  # noqa: E402
+
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-p.add_argument("--data", default=None, help="a data store; default: simulate 2 SUMO scenes")
+p.add_argument("--data", default=None, help="a data store (default: the README's data/test, else 4 simulated scenes)")
 p.add_argument("--split", default="test")
 p.add_argument("--shifts", default="-2,-1,-0.5,0.5,1,2", help="lateral history shifts in metres")
 args = p.parse_args()
 
 model = gpd_jax.load_model()
-stored = (gpd_jax.load_scenes(args.data, args.split, indices=[0]) if args.data
-          else gpd_jax.build_scenes("data/quickstart", num_scenarios=2, seed=7))
-scenes = gpd_jax.prepare(model, jax.tree.map(lambda x: x[:1], stored))  # model view, map tokens filled
+scenes = model.prepare(example_scenes(args.data, args.split, 1))  # the model's view, map tokens filled
 tasks = gpd_jax.make_tasks(model, "traffic_simulation")
 h = model.spec.num_history
 key = jax.random.key(0)
@@ -47,7 +50,7 @@ for d, m in zip(shifts, moved):
     print(f"history shifted {float(d):+.1f} m -> agents' 8 s positions move {float(jnp.mean(m[valid])):.2f} m")
 
 # 2. Gradient of a rollout metric with respect to the parameters (the recompute rollout is differentiable).
-grad_fn = gpd_jax.make_rollout_fn(model, method="recompute")
+grad_fn = gpd_jax.make_rollout_fn(model, gpd_jax.RolloutOptions(method="recompute"))
 
 
 def final_error(params):

@@ -7,10 +7,10 @@
 
 If agent ADE / constant velocity barely changes between them, the model's agents do not read the map.
 
-    python examples/map_use.py --checkpoint checkpoints/gpd_sumo_real --data data/mix_real_dev --split val \
+    python examples/map_use.py --checkpoint gpd_traffic --data data/mix_real_dev --split val \
         --scenarios 150 --json OUT.json
 
-(The figures of checkpoints/gpd_sumo_real/README.md, "Does the model use the map?", come from this script.)
+(The "does the model use the map?" figures of docs/results.md come from this script.)
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@
    inside the rollout; F1 of the decoded tokens against the drawn road, how far generated agents stray from
    it, and the same with the road given in the history only and the map generated afterwards.
 
-    python examples/prompt_demo.py --out /work/notes/prompts_demo     # prints the numbers, writes PNG/GIF + JSON
-    python examples/prompt_demo.py --checkpoint checkpoints/gpd_sumo_real --out OUT   # another model
+    python examples/prompt_demo.py --out runs/prompt_demo     # prints the numbers, writes PNG/GIF + JSON
+    python examples/prompt_demo.py --checkpoint gpd_maps --out OUT   # another model
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ import numpy as np
 
 import gpd_jax
 from gpd_jax.evaluation import conditions as cond
-from gpd_jax.evaluation.maps import decode_map_tokens
 from gpd_jax.evaluation.render import render_rollout
 from gpd_jax.fsutil import atomic_write_json
 from gpd_jax.scene import TYPE_ID, Scene
@@ -46,7 +45,7 @@ def straight_scene(num_stored=101, current=20, dt=0.1, slots=33):
         valid[:, s] = True
     road = np.stack([np.linspace(-200, 300, 501), np.zeros(501)], -1)
     poly = np.zeros((1, 501, 2), np.float32); poly[0] = road
-    # map tokens are encoded from the polyline by the model's tokenizer (gpd_jax.prepare)
+    # map tokens are encoded from the polyline by the model's tokenizer (Model.prepare)
     return stored_scene(xy, np.zeros((num_stored, slots)), valid, poly, np.ones((1, 501), bool), slots,
                         have_tokens=False)
 
@@ -84,8 +83,8 @@ def curved_scene(road, num_stored=101, current=20, dt=0.1, slots=33, v=8.0):
 
 def main(argv=None):
     ap = argparse.ArgumentParser()
-    ap.add_argument("--out", default="/work/notes/prompts_demo")
-    ap.add_argument("--checkpoint", default=None, help="an exported GPD (default: the shipped checkpoints/gpd_sumo)")
+    ap.add_argument("--out", default="runs/prompt_demo")
+    ap.add_argument("--checkpoint", default=None, help="a shipped model's name or an exported GPD (default: the default model)")
     args = ap.parse_args(argv)
     model = gpd_jax.load_model(args.checkpoint)
     spec, tok = model.spec, model.tokenizer
@@ -108,7 +107,7 @@ def main(argv=None):
     # two scenes x two prompts each, one compiled rollout: Prompt [2, 2, ...]
     prompts = gpd_jax.stack_prompts([plain, brake, road_given, road_history])
     prompts = jax.tree.map(lambda x: x.reshape((2, 2) + x.shape[1:]), prompts)
-    one = lambda sc: jax.tree.map(lambda x: x[0], gpd_jax.prepare(model, jax.tree.map(
+    one = lambda sc: jax.tree.map(lambda x: x[0], model.prepare(jax.tree.map(
         lambda x: np.asarray(x)[None], sc)).replace(polylines=None, polyline_valid=None))
     # the straight scene's map tokens are encoded from its polyline by the tokenizer; the curved scene has none
     # (zeros, marked known): the prompt's lanes replace every frame's tokens
@@ -136,7 +135,7 @@ def main(argv=None):
                      **cond.lane_offroad(r, pr, h, ln, lv),
                      "valid_agents_per_future_frame": r.valid[h:].sum(-1).tolist()}
         given = cond.given_mask(pr, h)
-        pts, logits = decode_map_tokens(tok, tok.params, r.map_tokens)
+        pts, logits = tok.decode_tokens(r.map_tokens)
         os.makedirs(args.out, exist_ok=True)
         render_rollout(os.path.join(args.out, f"curved_{name}"), pred_xy=r.xy, pred_heading=r.heading,
                        pred_valid=r.valid, log_xy=np.asarray(view.xy[1]), log_heading=np.asarray(view.heading[1]),

@@ -1,27 +1,29 @@
 """Quickstart: load the shipped model, make (or load) a few scenes, roll out three tasks, print metrics, draw.
 
-    python examples/quickstart.py                                  # simulates 4 SUMO scenes first (~20 s)
-    python examples/quickstart.py --data data/heldout --scenes 8   # scenes of a store you built
+    python examples/quickstart.py                               # data/test of the README's set-up, else 4 new scenes
+    python examples/quickstart.py --data data/test --scenes 8   # scenes of a store you built
 """
 
 import argparse
+import os
+import sys
 
 import jax
 
 import gpd_jax
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _store_cli import example_scenes  # noqa: E402
+
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-p.add_argument("--data", default=None, help="a data store (python -m gpd_jax.data build); default: simulate")
+p.add_argument("--data", default=None, help="a data store (default: the README's data/test, else 4 simulated scenes)")
 p.add_argument("--split", default="test")
 p.add_argument("--scenes", type=int, default=4)
 p.add_argument("--out", default="runs/quickstart", help="pictures go here")
 args = p.parse_args()
 
-model = gpd_jax.load_model()  # checkpoints/gpd_sumo and its map tokenizer
-if args.data:
-    scenes = gpd_jax.load_scenes(args.data, args.split, indices=range(args.scenes))
-else:
-    scenes = gpd_jax.build_scenes("data/quickstart", num_scenarios=args.scenes, seed=7)
+model = gpd_jax.load_model()  # the default model (gpd_jax.list_models()) and its map tokenizer
+scenes = example_scenes(args.data, args.split, args.scenes)
 tasks = ["traffic_simulation", "scene_generation", "motion_planning"]
 
 out = gpd_jax.rollout(model, scenes, tasks, jax.random.key(0))  # xy [scenes, tasks, frames, agents, 2]

@@ -6,10 +6,10 @@ In SUMO and in real logs most stopped vehicles stay where they are for seconds (
 median displacement is zero. A model whose median creeps forward pays for it at every horizon, and that creep is
 what the stationary rows of the motion split charge it with (`python rollout.py`'s "motion_split").
 
-    python examples/stationary_drift.py --checkpoint checkpoints/gpd_sumo_real_curved --data data/mix_real_dev \
+    python examples/stationary_drift.py --checkpoint gpd_traffic --data data/mix_real_dev \
         --split val --scenarios 150 --json OUT.json
 
-(The drift figures of checkpoints/gpd_sumo_real_euclid/README.md come from this script.)
+(The stationary-drift figures of docs/results.md come from this script.)
 """
 
 from __future__ import annotations

@@ -2,20 +2,20 @@
 draw, and the pure rollout function under it all.
 
     import gpd_jax, jax
-    model = gpd_jax.load_model()                                      # the shipped model
-    scenes = gpd_jax.load_scenes("data/heldout", indices=range(4))    # Scene [4, 101, 33, ...] at 10 Hz
+    model = gpd_jax.load_model()                                      # the default model (gpd_jax.list_models())
+    scenes = gpd_jax.load_scenes("data/test", indices=range(4))       # Scene [4, 101, 33, ...] at 10 Hz
     out = gpd_jax.rollout(model, scenes, ["traffic_simulation", "scene_generation"], jax.random.key(0))
     out.xy.shape                                                      # [4, 2, T, A, 2] at the model's rate
-    metrics = gpd_jax.evaluate(model, scenes, tasks="traffic_simulation")
+    results = gpd_jax.evaluate(model, scenes, tasks="traffic_simulation")
 
-    fn = gpd_jax.make_rollout_fn(model)                               # fn(params, scenes, tasks, key): pure
-    model_scenes = gpd_jax.prepare(model, scenes)                     # the model's view, map tokens filled
-    out = jax.jit(fn)(model.params, model_scenes, gpd_jax.make_tasks(model, "closed_loop"), key)
+    fn = gpd_jax.make_rollout_fn(model)                               # fn(params, view, tasks, key): pure
+    view = model.prepare(scenes)                                      # the model's view, map tokens filled
+    out = jax.jit(fn)(model.params, view, gpd_jax.make_tasks(model, "closed_loop"), key)
 
 Scenes come in at the stored rate (`load_scenes`); `rollout` and `evaluate` take the model's view inside
-(`model.spec.view`: its frame stride, history and future, agent slots) and encode map tokens on the fly where the
-store has none. `make_rollout_fn` works on scenes already in the model's view (`prepare`), so that nothing but
-array code stands between the parameters and the output.
+(`Model.prepare`: its frame stride, history and future, agent slots, map tokens encoded where the store has none).
+How a rollout runs is a `RolloutOptions` (temperature, the log's map as tokens or re-encoded lanes, generated-map
+mode, cached or recompute), checked once and handed to the one compiled rollout (`gpd_jax.decoding.rollout_model`).
 """
 
 from __future__ import annotations
@@ -29,23 +29,22 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax.checkpoint import Model, load_model
-from gpd_jax.data.build import build_sumo
+from gpd_jax.checkpoint import Model
 from gpd_jax.data.loader import SplitSource, to_scene
-from gpd_jax.decoding import LogLanes, RolloutOutput, drop_unread_lanes, rollout_jit, rollout_recompute, rollout_tasks
-from gpd_jax.evaluation.driver import RenderItem
-from gpd_jax.evaluation.driver import evaluate as _evaluate
-from gpd_jax.evaluation.maps import encode_map_frames
+from gpd_jax.data.sources.sumo import build_sumo
+from gpd_jax.decoding import RolloutOutput, check_options, rollout_model, rollout_prepared
+from gpd_jax.evaluation.driver import RenderItem, run_evaluation
 from gpd_jax.evaluation.render import render_items
-from gpd_jax.prompts import Prompt, as_prompt, prompt_from_task, stack_prompts
+from gpd_jax.options import RolloutOptions
+from gpd_jax.prompts import Prompt, prompt_from_task, stack_prompts
 from gpd_jax.prompts import make_prompt as _make_prompt
 from gpd_jax.scene import Scene
-from gpd_jax.spec import EvalError
+from gpd_jax.spec import HORIZONS_S, EvalError
 from gpd_jax.tasks import Task, resolve_task_names
 from gpd_jax.tasks import make_tasks as _make_tasks
 
-__all__ = ["Model", "Prompt", "build_scenes", "evaluate", "load_model", "load_scenes", "make_prompt",
-           "make_rollout_fn", "make_tasks", "prepare", "render", "rollout", "stack_prompts", "task_prompt"]
+__all__ = ["build_scenes", "evaluate", "load_scenes", "make_prompt", "make_rollout_fn", "make_tasks", "render",
+           "rollout", "stack_prompts", "task_prompt"]
 
 
 def load_scenes(data_dir: str, split: str = "test", indices: Sequence[int] | None = None) -> Scene:
@@ -57,6 +56,9 @@ def load_scenes(data_dir: str, split: str = "test", indices: Sequence[int] | Non
     idx = range(len(src)) if indices is None else [int(i) for i in indices]
     if not len(idx):
         raise EvalError("no scenes asked for (indices is empty)")
+    bad = [i for i in idx if not 0 <= i < len(src)]
+    if bad:
+        raise EvalError(f"scene index {bad[0]} is out of range: {data_dir}/{split} holds {len(src)} scenes")
     recs = [src[i] for i in idx]
     return to_scene({k: np.stack([r[k] for r in recs]) for k in recs[0]})
 
@@ -64,7 +66,8 @@ def load_scenes(data_dir: str, split: str = "test", indices: Sequence[int] | Non
 def build_scenes(out_dir: str, num_scenarios: int = 8, seed: int = 7, split: str = "test", *,
                  workers: int = 1) -> Scene:
     """Simulates `num_scenarios` SUMO scenes on networks generated from `seed` into a store at `out_dir`
-    (resumed if it is already there) and returns them (`load_scenes`). About a second per scene on a CPU core."""
+    (resumed if it is already there with these settings) and returns them (`load_scenes`). About a second per
+    scene on a CPU core."""
     build_sumo(out_dir, num_scenarios=num_scenarios, seed=seed, workers=workers, split=split,
                per_job=min(50, num_scenarios))
     return load_scenes(out_dir, split)
@@ -93,92 +96,28 @@ def make_prompt(model: Model, scene: Scene, **choices) -> Prompt:
         raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
     view = scene
     if (scene.num_frames, scene.num_agents) != (model.spec.num_frames, model.spec.num_agents):
-        view = jax.tree.map(lambda x: x[0], prepare(model, jax.tree.map(lambda x: np.asarray(x)[None], scene)))
+        view = jax.tree.map(lambda x: x[0], model.prepare(jax.tree.map(lambda x: np.asarray(x)[None], scene)))
     choices.setdefault("frame_period_s", model.spec.frame_period_s)
     return _make_prompt(jax.tree.map(np.asarray, view), model.spec.num_history, **choices)
 
 
-def prepare(model: Model, scenes: Scene) -> Scene:
-    """The model's view of stored-rate scenes (`model.spec.view`: frames, slots, velocities), with map tokens
-    encoded on the fly by its tokenizer where the scenes have none: Scene [..., T, A, ...] at the model's rate.
-    The lane polylines are kept (for `log_map="lanes"`)."""
-    view = model.spec.view(scenes)
-    missing = ~np.asarray(view.map_valid).all(axis=-1)
-    if missing.any():
-        if model.tokenizer is None or view.polylines is None:
-            raise EvalError("the scenes have no map tokens at the model's frames, and "
-                            + ("the model has no map tokenizer" if model.tokenizer is None
-                               else "no lane polylines to encode them from"))
-        lead = view.map_tokens.shape[:-2]
-        flat = lambda x: np.reshape(np.asarray(x), (-1,) + np.shape(x)[len(lead):])
-        enc = np.asarray(encode_map_frames(model.tokenizer, model.tokenizer.params, flat(view.polylines),
-                                           flat(view.polyline_valid), flat(view.ego_pose))).reshape(view.map_tokens.shape)
-        tokens = np.where(missing[..., None, None], enc, np.asarray(view.map_tokens)).astype(np.int32)
-        view = view.replace(map_tokens=tokens, map_valid=np.ones_like(np.asarray(view.map_valid)))
-    return view
+def make_rollout_fn(model: Model, options: RolloutOptions | None = None) -> Callable[..., RolloutOutput]:
+    """The rollout as a pure function of the parameters: `fn(params, view, tasks, key) -> RolloutOutput`.
 
-
-def _check_gen_map(model: Model, gen_map: str) -> bool:
-    """Whether `gen_map` asks for the warp ("warp"; needs the model's tokenizer) or not ("model")."""
-    if gen_map not in ("model", "warp"):
-        raise ValueError(f"gen_map must be 'model' or 'warp', got {gen_map!r}")
-    if gen_map == "warp" and model.tokenizer is None:
-        raise EvalError("gen_map='warp' moves generated maps through the model's map tokenizer, and the model has none")
-    return gen_map == "warp"
-
-
-def make_rollout_fn(model: Model, *, temperature: float | None = None, method: str = "cached",
-                    log_map: str = "tokens", gen_map: str = "model") -> Callable[..., RolloutOutput]:
-    """The rollout as a pure function of the parameters: `fn(params, scenes, tasks, key) -> RolloutOutput`.
-
-    scenes: Scene [S, T, A, ...] in the model's view (`prepare`); tasks: Task [K, ...] (`make_tasks`) or Prompt
-    [K, ...] / [S, K, ...] (`make_prompt`, `stack_prompts`); key: a
-    PRNG key (used at temperature > 0); params: a pytree shaped like `model.params` (swap or perturb it freely).
-    Returns RolloutOutput [S, K, T, ...]. Nothing is compiled until you `jax.jit` it; it also `vmap`s.
-
-    method: "cached" (the KV-cached rollout: fast; its attention loops over a traced number of cache chunks, so
-    it is not reverse-differentiable) or "recompute" (the full-prefix forward at every frame, the official
-    method: slower, and `jax.grad` goes through it). log_map "lanes": tasks that take the map from the log but
-    generate the ego get the log's lanes (`scenes.polylines`) encoded around the generated ego each frame.
-    gen_map "warp": where the map is generated, the last given map moves with the ego and the model's tokens
-    fill only the cells it did not see (`gpd_jax.decoding`).
+    view: Scene [S, T, A, ...] prepared for the model (`model.prepare`); tasks: Task [K, ...] (`make_tasks`) or
+    Prompt [K, ...] / [S, K, ...] (`make_prompt`, `stack_prompts`); key: a PRNG key (used at temperature > 0);
+    params: a pytree shaped like `model.params` (swap or perturb it freely). Returns RolloutOutput [S, K, T, ...].
+    Nothing is compiled until you `jax.jit` it; it also `vmap`s. `options` (`RolloutOptions`) as in `rollout`;
+    `RolloutOptions(method="recompute")` is the official full-prefix rollout, which `jax.grad` goes through.
     """
-    if method not in ("cached", "recompute"):
-        raise ValueError(f"method must be 'cached' or 'recompute', got {method!r}")
-    if log_map not in ("tokens", "lanes"):
-        raise ValueError(f"log_map must be 'tokens' or 'lanes', got {log_map!r}")
-    if log_map == "lanes" and model.tokenizer is None:
-        raise EvalError("log_map='lanes' needs the model's map tokenizer, and the model has none")
-    warp_on = _check_gen_map(model, gen_map)
-    graphdef, rest, h = model.graphdef, model.rest, model.spec.num_history
-    temp = float(model.config.rollout.temperature if temperature is None else temperature)
-    tok = model.tokenizer
+    options = RolloutOptions() if options is None else options
+    check_options(model, options)
+    graphdef, rest, h, tok = model.graphdef, model.rest, model.spec.num_history, model.tokenizer
 
-    def fn(params, scenes: Scene, tasks: Task, key) -> RolloutOutput:
-        module = nnx.merge(graphdef, params, rest)
-        lanes = encoder = None
-        if log_map == "lanes":
-            if scenes.polylines is None:
-                raise EvalError("log_map='lanes' needs the scenes' lane polylines (Scene.polylines)")
-            lanes, encoder = LogLanes(scenes.polylines, scenes.polyline_valid), tok.pose_encoder(tok.params)
-        scenes = drop_unread_lanes(model.config.model, scenes)
-        if isinstance(tasks, Prompt) and tasks.lanes is not None:  # a prompt's own vector map
-            if tok is None:
-                raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
-            encoder = tok.pose_encoder(tok.params)
-        warp = tok.warper(tok.params) if warp_on else None
-        if method == "cached":
-            return rollout_tasks(module, scenes, tasks, key, h, temp, lanes, encoder, warp)
-        tasks = as_prompt(tasks, scenes.xy.shape[-3])
-        per_scene = tasks.from_log.ndim == 4
-        s, k = scenes.xy.shape[0], tasks.from_log.shape[1 if per_scene else 0]
-        rep = lambda x: jnp.repeat(x, k, axis=0)
-        flat_s, flat_l = jax.tree.map(rep, (scenes, lanes))
-        flat_t = (jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks) if per_scene else
-                  jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks))
-        one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder, warp)
-        out = jax.vmap(one)(flat_s, flat_t, jax.random.split(key, s * k), flat_l)
-        return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
+    def fn(params, view: Scene, tasks: Task | Prompt, key) -> RolloutOutput:
+        use = check_options(model, options, tasks) or options.needs_tokenizer
+        return rollout_prepared(nnx.merge(graphdef, params, rest), view, tasks, key, h, options,
+                                tok if use else None, tok.params if use else None)
 
     return fn
 
@@ -200,42 +139,26 @@ def _as_tasks(model: Model, tasks) -> tuple[Task | Prompt, bool]:
 
 
 def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Prompt | Sequence[Prompt] = "all",
-            key: jax.Array | None = None, *, temperature: float | None = None, log_map: str = "tokens",
-            gen_map: str = "model") -> RolloutOutput:
+            key: jax.Array | None = None, options: RolloutOptions | None = None) -> RolloutOutput:
     """Rolls out stored-rate scenes under tasks or prompts with the KV-cached rollout, compiled once per shape.
 
     scenes: one Scene [T, A, ...] or a batch [B, T, A, ...] at the stored rate (`load_scenes`); the model's view
-    is taken inside, map tokens encoded on the fly where missing. tasks: a task name, names, "all", Task arrays,
-    a Prompt (`make_prompt`, `task_prompt`), a list of prompts (stacked: K prompts, every scene under each), or
-    a Prompt [B, K, ...] (scene b under prompts[b, k]). key: PRNG key for sampling (temperature > 0; default 0).
-    log_map / gen_map: as `make_rollout_fn`.
+    is taken inside (`model.prepare`). tasks: a task name, names, "all", Task arrays, a Prompt (`make_prompt`,
+    `task_prompt`), a list of prompts (stacked: K prompts, every scene under each), or a Prompt [B, K, ...]
+    (scene b under prompts[b, k]). key: PRNG key for sampling (temperature > 0; default key 0). options: a
+    `RolloutOptions` (default: the paper's rollout).
     Returns RolloutOutput at the model's rate: [B, K, T, A, ...], without the B axis for one scene and without
     the K axis for one task (a single name or an unstacked Task).
     """
+    options = RolloutOptions() if options is None else options
     single_scene = np.ndim(scenes.xy) == 3
     if single_scene:
         scenes = jax.tree.map(lambda x: x[None], scenes)
-    view = prepare(model, scenes)
+    view = model.prepare(scenes, options)
     task_arrays, single_task = _as_tasks(model, tasks)
-    key = jax.random.key(0) if key is None else key
-    temp = float(model.config.rollout.temperature if temperature is None else temperature)
-    extra: dict[str, Any] = {}
-    if isinstance(task_arrays, Prompt) and task_arrays.lanes is not None:
-        if model.tokenizer is None:
-            raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
-        extra = dict(tok=model.tokenizer, tok_params=model.tokenizer.params)
-    if log_map == "lanes":
-        if model.tokenizer is None or view.polylines is None:
-            raise EvalError("log_map='lanes' needs the model's map tokenizer and the scenes' lane polylines")
-        extra = dict(extra, tok=model.tokenizer, tok_params=model.tokenizer.params,
-                     lanes=LogLanes(jnp.asarray(view.polylines), jnp.asarray(view.polyline_valid)))
-    elif log_map != "tokens":
-        raise ValueError(f"log_map must be 'tokens' or 'lanes', got {log_map!r}")
-    if _check_gen_map(model, gen_map):
-        extra = dict(extra, tok=model.tokenizer, tok_params=model.tokenizer.params, map_warp=True)
-    view = jax.tree.map(jnp.asarray, drop_unread_lanes(model.config.model, view))
-    out = rollout_jit(model.graphdef, model.params, model.rest, view, task_arrays, key, model.spec.num_history,
-                      temp, **extra)
+    if options.log_map == "lanes" and view.polylines is None:
+        raise EvalError("log_map='lanes' needs the scenes' lane polylines (load them with gpd_jax.load_scenes)")
+    out = rollout_model(model, view, task_arrays, jax.random.key(0) if key is None else key, options)
     if single_task:
         out = jax.tree.map(lambda x: x[:, 0], out)
     if single_scene:
@@ -243,26 +166,30 @@ def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Pro
     return out
 
 
-def evaluate(model: Model, scenes_or_dir: Scene | str, tasks: str | Sequence[str] = "all", *, split: str = "test",
-             num_scenarios: int | None = None, **kwargs) -> dict[str, Any]:
-    """Scores every task (and the constant-velocity, log-replay and map baselines) at 3 / 5 / 8 s on stored-rate
-    scenes Scene [n, ...] or the split of a store directory: the content of `rollout.py`'s metrics.json
-    (`results["tasks"][task]["3s"]["agent_ade"]`, ...). Other keyword arguments as `gpd_jax.evaluation.evaluate`
-    (batch_size, seed, variant, horizons_s, log_map, gen_map, temperature, progress, log; scene_sums=True adds
-    `results["scene_sums"]`, each scenario's sums, for `gpd_jax.evaluation.bootstrap.compare_runs`)."""
-    kwargs.setdefault("progress", False)
-    kwargs.setdefault("log", lambda _msg: None)
-    results, _ = _evaluate(model, scenes_or_dir, split, task_names=tasks, num_scenarios=num_scenarios, **kwargs)
+def evaluate(model: Model, scenes_or_dir: Scene | str, tasks: str | Sequence[str] = "all", *,
+             options: RolloutOptions | None = None, split: str = "test", num_scenarios: int | None = None,
+             batch_size: int = 8, seed: int = 0, variant: str = "paper", horizons_s: Sequence[float] = HORIZONS_S,
+             layouts: Sequence[str] | None = None, scene_sums: bool = False) -> dict[str, Any]:
+    """Scores every task (and the constant-velocity, log-replay and map baselines, on the same agents) at 3 / 5 /
+    8 s on stored-rate scenes Scene [n, ...] or the split of a store directory: the content of `rollout.py`'s
+    metrics.json (`results["tasks"][task]["3s"]["agent_ade"]`, `results["ratios"]`, ...; the layout is in
+    `gpd_jax.evaluation`). options: how the rollouts run (`RolloutOptions`). variant: which metric variant fills
+    the main keys ("paper" or "corrected"). layouts: a label per scene for figures per group. scene_sums=True adds
+    `results["scene_sums"]` (each scenario's sums, for `gpd_jax.evaluation.bootstrap.compare_runs`)."""
+    results, _ = run_evaluation(model, scenes_or_dir, split, task_names=tasks, num_scenarios=num_scenarios,
+                                batch_size=batch_size, seed=seed, variant=variant, horizons_s=horizons_s,
+                                options=RolloutOptions() if options is None else options, progress=False,
+                                log=lambda _msg: None, layouts=layouts, scene_sums=scene_sums)
     return results
 
 
 def render(model: Model, scenes: Scene, out: RolloutOutput, tasks: str | Sequence[str], out_dir: str, *,
            size_px: int = 320) -> list[str]:
     """Draws rollouts (`rollout` of the same stored-rate scenes and named tasks) as `<i>_<task>.gif` / `.png`
-    under `out_dir`: agents as boxes (given ones pale), map lanes decoded by the model's tokenizer. Returns the
-    paths."""
+    under `out_dir`: agents as boxes (the ego, the model's agents and the log's), map lanes decoded by the model's
+    tokenizer, a legend and a scale. Returns the paths."""
     names = resolve_task_names(tasks)
-    view = prepare(model, scenes if np.ndim(scenes.xy) == 4 else jax.tree.map(lambda x: x[None], scenes))
+    view = model.prepare(scenes if np.ndim(scenes.xy) == 4 else jax.tree.map(lambda x: x[None], scenes))
     pred = jax.tree.map(np.asarray, out)
     if np.ndim(pred.xy) == 3:  # one scene, one task
         pred = jax.tree.map(lambda x: x[None, None], pred)
@@ -279,4 +206,3 @@ def render(model: Model, scenes: Scene, out: RolloutOutput, tasks: str | Sequenc
     os.makedirs(out_dir, exist_ok=True)
     return render_items(items, names, out_dir, num_history=model.spec.num_history,
                         frame_period_s=model.spec.frame_period_s, tokenizer=model.tokenizer, size_px=size_px)
-

@@ -1,23 +1,21 @@
-"""GPD models on disk and in memory: build from a config, load (exported or a training workdir), export.
+"""GPD models on disk and in memory: build from a config, load (by name, an export or a training workdir), export.
 
-    model = load_model()                                  # the shipped model (checkpoints/gpd_sumo)
+    model = load_model()                                  # the default model (gpd_jax.zoo.DEFAULT_MODEL)
+    model = load_model("gpd_planner")                     # a shipped model by name (gpd_jax.list_models())
     model = load_model("runs/gpd")                        # a train.py workdir: latest orbax step
-    model = load_model("checkpoints/gpd_sumo_plan_head")  # a GPD with the fine-tuned planning head
+    view = model.prepare(scenes)                          # stored-rate scenes -> what its rollout reads
     model.module                                          # the NNX `GPD` (nnx.merge of the parts below)
-    model.module.plan_head                                # its planning head, if the config has `plan_head`
     model.graphdef, model.params, model.rest              # structure, trainable params, frozen state
     model.spec                                            # its view of a stored scene (gpd_jax.spec)
     model.tokenizer                                       # its map tokenizer (or None)
 
-    soup = average_models(["checkpoints/gpd_sumo_real_lane_residual",     # a weight-space average of two
-                           "checkpoints/gpd_sumo_real_lane_residual_mix"], # fine-tunes of one ancestor, with
-                          [0.5, 0.5], config_from=1)                       # the second one's config
+    soup = average_models(["runs/a/export", "runs/b/export"], [0.5, 0.5], config_from=1)  # weight-space average
 
 An exported model is a directory with `config.json` (the full training config) and `params.npz` (the model's
-`nnx.Param` leaves keyed by their path, float32 or float16). The map tokenizer whose frozen codebook embeds
-map tokens is named by `config.model.map_tokenizer`; a relative path is looked up next to the checkpoint
-first, then in the repository, then in the working directory (`resolve_tokenizer_path`), so an exported
-model and its tokenizer can travel together (`export_model(..., tokenizer_dir=...)` copies it in).
+`nnx.Param` leaves keyed by their path, float32 or float16). The map tokenizer whose frozen codebook embeds map
+tokens is named by `config.model.map_tokenizer`: a folder of that name inside the model's own folder (what
+`export_model(..., tokenizer_dir=...)` writes), else a shipped model of that name (`gpd_jax.zoo`), else a path
+(absolute, relative to the model's folder, or relative to the working directory): `resolve_tokenizer_path`.
 """
 
 from __future__ import annotations
@@ -31,16 +29,17 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
+from gpd_jax import zoo
 from gpd_jax.config import config_from_json
 from gpd_jax.fsutil import (atomic_directory, atomic_write_json, flatten_params, load_params_npz, restore_params,
                             unflatten_params)
 from gpd_jax.map_tokenizer import MapTokenizer, load_tokenizer
 from gpd_jax.model import GPD, PlanningHead
+from gpd_jax.options import RolloutOptions
+from gpd_jax.scene import Scene
 from gpd_jax.spec import EvalError, ModelSpec, model_frame_period_s, spec_from_config
 
-REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-DEFAULT_CHECKPOINT = os.path.join(REPO_ROOT, "checkpoints", "gpd_sumo")
-CONFIG_FILE = "config.json"
+CONFIG_FILE = zoo.CONFIG_FILE
 PARAMS_FILE = "params.npz"
 
 
@@ -70,6 +69,34 @@ class Model:
     def replace(self, **changes) -> "Model":
         return dataclasses.replace(self, **changes)
 
+    def prepare(self, scenes: Scene, options: RolloutOptions | None = None, reencode=None) -> Scene:
+        """What this model's rollout reads, from stored-rate scenes [..., T_stored, A_stored, ...]
+        (`gpd_jax.load_scenes`): its view (`spec.view`: its frames and slots, velocities for a velocity-input
+        model) with every missing map token encoded by its map tokenizer from the scenes' lane polylines. The one
+        preparation of scenes for a rollout: the API, evaluation, prompts, the simulator, training's validation and
+        planning all go through it (the rollout itself drops lanes it does not read: `gpd_jax.decoding.rollout_model`).
+
+        options: checked against the model (a tokenizer where they need one). reencode: bool[...] scenes whose
+        stored map tokens another tokenizer made (encoded again). Raises EvalError naming what is missing."""
+        if options is not None and options.needs_tokenizer and self.tokenizer is None:
+            raise EvalError(f"rollout options {options} need the model's map tokenizer, and the model has none")
+        view = self.spec.view(scenes)
+        missing = ~np.asarray(view.map_valid).all(axis=-1)
+        if reencode is not None:
+            missing = missing | np.asarray(reencode, bool)
+        if not missing.any():
+            return view
+        if self.tokenizer is None or view.polylines is None:
+            raise EvalError("the scenes have no map tokens at the model's frames, and "
+                            + ("the model has no map tokenizer" if self.tokenizer is None
+                               else "no lane polylines to encode them from"))
+        lead = np.shape(view.map_tokens)[:-2]
+        flat = lambda x: np.reshape(np.asarray(x), (-1,) + np.shape(x)[len(lead):])
+        enc = np.asarray(self.tokenizer.encode_frames(flat(view.polylines), flat(view.polyline_valid),
+                                                      flat(view.ego_pose))).reshape(np.shape(view.map_tokens))
+        tokens = np.where(missing[..., None, None], enc, np.asarray(view.map_tokens)).astype(np.int32)
+        return view.replace(map_tokens=tokens, map_valid=np.ones_like(np.asarray(view.map_valid)))
+
     @classmethod
     def from_module(cls, module: GPD, config, tokenizer: MapTokenizer | None = None, path: str | None = None
                     ) -> "Model":
@@ -88,17 +115,28 @@ def model_spec(config) -> ModelSpec:
         return spec
 
 
-def resolve_tokenizer_path(path: str, checkpoint_dir: str | None = None) -> str:
-    """An absolute path to the map tokenizer `path` names (see the module docstring for the search order)."""
-    if not path or os.path.isabs(path):
-        return path
-    bases = ([checkpoint_dir] if checkpoint_dir else []) + [REPO_ROOT, os.getcwd()]
-    for base in bases:
-        p = os.path.normpath(os.path.join(base, path))
-        if os.path.exists(os.path.join(p, CONFIG_FILE)):
+def resolve_tokenizer_path(ref: str, checkpoint_dir: str | None = None) -> str:
+    """The folder of the map tokenizer `ref` names ("" -> ""): a folder `ref` inside `checkpoint_dir`, a shipped
+    model of that name (`gpd_jax.zoo.find`), an absolute path, or a path relative to `checkpoint_dir` or the working
+    directory, in that order. Raises FileNotFoundError saying where it looked."""
+    if not ref:
+        return ref
+    tried = []
+    if checkpoint_dir and not os.path.isabs(ref):
+        p = os.path.normpath(os.path.join(checkpoint_dir, ref))
+        if os.path.isfile(os.path.join(p, CONFIG_FILE)):
             return p
-    raise FileNotFoundError(f"map tokenizer {path!r} not found next to {checkpoint_dir}, in {REPO_ROOT} "
-                            f"or in {os.getcwd()}")
+        tried.append(p)
+    named = zoo.find(ref)
+    if named:
+        return named
+    p = os.path.abspath(ref)
+    if os.path.isfile(os.path.join(p, CONFIG_FILE)):
+        return p
+    if p not in tried:
+        tried.append(p)
+    raise FileNotFoundError(f"map tokenizer {ref!r} not found: no tokenizer at {' or '.join(tried)}, and no model "
+                            f"of that name in {zoo.where_searched()}")
 
 
 def build_model(config, seed: int | None = None, codebook: np.ndarray | None = None,
@@ -107,35 +145,31 @@ def build_model(config, seed: int | None = None, codebook: np.ndarray | None = N
     the codebook of the map tokenizer `config.model.map_tokenizer` names (resolved relative to
     `checkpoint_dir` first), else a learned one. The frame period is `data.frame_stride * data.frame_period_s`.
     A config with a `plan_head` section also gets the planning head (`module.plan_head`, a
-    `gpd_jax.model.PlanningHead`; `python train.py --config configs/gpd_sumo_plan_head.py` trains it)."""
+    `gpd_jax.model.PlanningHead`; `python train.py --config configs/gpd_planner.py` trains it)."""
     m = config.model
     if codebook is None and m.map_tokenizer:
         tok = load_tokenizer(resolve_tokenizer_path(m.map_tokenizer, checkpoint_dir))
-        check_map_extent(config, tok)
         codebook = np.asarray(tok.codebook)
     seed = config.seed if seed is None else seed
     module = GPD(m, nnx.Rngs(seed), codebook=codebook, frame_period_s=model_frame_period_s(config))
-    if config.get("plan_head"):
+    if "plan_head" in config:
         # The fine-tuned planner (gpd_jax.model.planning_head): its parameters live under "plan_head".
         module.plan_head = PlanningHead.from_config(config.plan_head, m, nnx.Rngs(seed + 1))
     return module
 
 
-def check_map_extent(config, tokenizer) -> None:
-    """An `agent_map_context` model places agents on the map-token grid with `model.map_extent_m`: it must be the
-    window the tokenizer's rasters cover (raises ValueError naming both)."""
-    if not config.model.get("agent_map_context", False):
-        return
-    r = tokenizer.config.raster
-    window = float(r.size) * float(r.pixel_size)
-    extent = float(config.model.get("map_extent_m", 64.0))
-    if abs(window - extent) > 1e-6:
-        raise ValueError(f"model.map_extent_m is {extent} m but the map tokenizer's rasters cover {window} m "
-                         f"({r.size} px x {r.pixel_size} m): set model.map_extent_m={window}")
-
-
 def is_exported(path: str) -> bool:
     return os.path.exists(os.path.join(path, PARAMS_FILE))
+
+
+def tokenizer_reference(ref: str) -> str:
+    """What a training run writes as `model.map_tokenizer`: a shipped model's name stays a name (it resolves
+    wherever the run's exports go), a path becomes absolute (raises FileNotFoundError if it does not resolve)."""
+    if not ref:
+        return ref
+    if zoo.find(ref):
+        return ref
+    return resolve_tokenizer_path(ref)
 
 
 def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float32,
@@ -143,15 +177,17 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
     """Writes `config.json` + `params.npz` to `out_dir` atomically (a temporary directory renamed into place;
     other files already in `out_dir`, such as a README or evaluation files, are kept).
 
-    With `tokenizer_dir`, the map tokenizer is copied to `out_dir/map_tokenizer` and the config points there.
+    With `tokenizer_dir`, the map tokenizer is copied into `out_dir` under its folder's name and the config names
+    it, so the export loads wherever it is copied.
     """
     out_dir = os.path.abspath(out_dir)
     with atomic_directory(out_dir) as tmp:
         config = ml_collections.ConfigDict(config.to_dict())
         if tokenizer_dir:
-            shutil.copytree(tokenizer_dir, os.path.join(tmp, "map_tokenizer"),
-                            ignore=shutil.ignore_patterns("checkpoints", "*.jsonl"))
-            config.model.map_tokenizer = "map_tokenizer"
+            name = os.path.basename(os.path.normpath(tokenizer_dir))
+            shutil.copytree(tokenizer_dir, os.path.join(tmp, name),
+                            ignore=shutil.ignore_patterns("checkpoints", "*.jsonl", "eval", "README.md"))
+            config.model.map_tokenizer = name
         flat = {k: v.astype(dtype) if np.issubdtype(v.dtype, np.floating) else v
                 for k, v in flatten_params(params).items()}
         np.savez(os.path.join(tmp, PARAMS_FILE), **flat)
@@ -160,20 +196,17 @@ def export_model(params, config: ml_collections.ConfigDict, out_dir: str, dtype=
     return out_dir
 
 
-def load_model(path: str | None = None, step: int | None = None) -> Model:
-    """The GPD of an exported model directory or a train.py workdir (latest step, or `step`); the shipped
-    model (`checkpoints/gpd_sumo`) when `path` is None. Raises FileNotFoundError / ValueError naming the file."""
-    path = os.path.abspath(DEFAULT_CHECKPOINT if path is None else path)
+def load_model(name_or_path: str | None = None, step: int | None = None) -> Model:
+    """A GPD by name (`gpd_jax.list_models()`; None: the default, `gpd_jax.zoo.DEFAULT_MODEL`) or by path (an
+    exported model directory, or a train.py workdir: its latest step, or `step`). Raises FileNotFoundError /
+    ValueError naming the file."""
+    path = zoo.resolve(name_or_path)
     cfg_path = os.path.join(path, CONFIG_FILE)
-    if not os.path.exists(cfg_path):
-        raise FileNotFoundError(f"{path}: no {CONFIG_FILE}; expected an exported GPD model or a train.py workdir")
     config = config_from_json(cfg_path)
-    if config.get("stage") != "gpd" or "model" not in config:
-        raise ValueError(f"{cfg_path}: stage is {config.get('stage')!r}, not a GPD model")
+    if config.stage != "gpd":
+        raise ValueError(f"{cfg_path}: stage is {config.stage!r}, not a GPD model")
     tok_path = resolve_tokenizer_path(config.model.map_tokenizer, path)
     tokenizer = load_tokenizer(tok_path) if tok_path else None
-    if tokenizer is not None:
-        check_map_extent(config, tokenizer)
     codebook = None if tokenizer is None else np.asarray(tokenizer.codebook)
     graphdef, params, rest = nnx.split(build_model(config, codebook=codebook), nnx.Param, ...)
     if is_exported(path):
@@ -241,18 +274,17 @@ def main(argv=None) -> int:
     """`python -m gpd_jax.checkpoint export WORKDIR OUT [--step N] [--tokenizer-ref PATH] [--float16]`;
     `python -m gpd_jax.checkpoint average MODEL MODEL [...] --out OUT [--weights W W ...] [--config-from I]
     [--tokenizer-ref PATH]` (a weight-space average, `average_models`; OUT/soup.json records the sources)."""
-    import argparse
-    import sys
+    from gpd_jax.cliargs import ArgumentParser, run_command
 
-    p = argparse.ArgumentParser(prog="python -m gpd_jax.checkpoint", description="export a trained GPD model")
+    p = ArgumentParser(prog="python -m gpd_jax.checkpoint", description="export a trained GPD model")
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("export", help="a train.py workdir's checkpoint -> config.json + params.npz")
     e.add_argument("workdir")
     e.add_argument("out")
     e.add_argument("--step", type=int, default=None, help="default: the latest checkpoint")
     e.add_argument("--tokenizer-ref", default=None,
-                   help="write this map-tokenizer path into the exported config instead of copying the tokenizer "
-                        "(relative paths are resolved next to the export first, e.g. ../map_tokenizer)")
+                   help="name the map tokenizer in the exported config (a shipped tokenizer's name, or a path "
+                        "resolved next to the export first) instead of copying the tokenizer into it")
     e.add_argument("--float16", action="store_true", help="store parameters as float16 (half the size)")
     a = sub.add_parser("average", help="a weight-space average of models fine-tuned from a common ancestor")
     a.add_argument("models", nargs="+")
@@ -264,19 +296,16 @@ def main(argv=None) -> int:
                         "with its parent); the average reads the --config-from model's tokens")
     a.add_argument("--tokenizer-ref", default=None,
                    help="write this map-tokenizer path into the config instead of copying the tokenizer")
-    args = p.parse_args(argv)
-    if args.cmd == "average":
-        return _average_cli(args)
-    try:
+    def work():
+        args = p.parse_args(argv)
+        if args.cmd == "average":
+            return _average_cli(args)
         model = load_model(args.workdir, args.step)
-    except (FileNotFoundError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    config = model.config
-    dtype = np.float16 if args.float16 else np.float32
-    out = _export_cli(model.params, config, args.out, args.tokenizer_ref, args.workdir, dtype)
-    print(f"exported {args.workdir} -> {out}")
-    return 0
+        dtype = np.float16 if args.float16 else np.float32
+        out = _export_cli(model.params, model.config, args.out, args.tokenizer_ref, args.workdir, dtype)
+        print(f"exported {args.workdir} -> {out}")
+
+    return run_command("python -m gpd_jax.checkpoint", work, (FileNotFoundError, ValueError))
 
 
 def _export_cli(params, config, out: str, tokenizer_ref: str | None, source: str, dtype=np.float32) -> str:
@@ -294,14 +323,8 @@ def _export_cli(params, config, out: str, tokenizer_ref: str | None, source: str
 
 def _average_cli(args) -> int:
     import hashlib
-    import json
-    import sys
 
-    try:
-        model = average_models(args.models, args.weights, args.config_from, args.mixed_tokenizers)
-    except (FileNotFoundError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    model = average_models(args.models, args.weights, args.config_from, args.mixed_tokenizers)
     config = model.config
     src = args.models[args.config_from]
     out = _export_cli(model.params, config, args.out, args.tokenizer_ref, src)

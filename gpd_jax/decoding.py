@@ -32,10 +32,15 @@ agent cap removes slots like hidden agents, and its own vector map (`Prompt.lane
 `map_encoder` around the ego of every frame, history included. A task is converted with `as_prompt` and rolls
 out to the same arrays.
 
-Lane context (`model.agent_lane_context` and `model.agent_lane_residual`, `lane_context`): such a model's agents read
-vector lanes in the history frames and every frame whose map is given: the prompt's own lanes where it has them,
-else the scene's polylines (`Scene.polylines`; a rollout handed a scene without them runs as if no frame had lanes).
-A lane-context model embeds them; a lane-residual model predicts over a step along them.
+Lanes (`model.agent_lane_residual`, `lane_context`): such a model's agents read vector lanes in the history frames
+and every frame whose map is given: the prompt's own lanes where it has them, else the scene's polylines
+(`Scene.polylines`; a rollout handed a scene without them runs as if no frame had lanes), and predict over a step
+along them.
+
+Entry points: `rollout_model(model, view, tasks, key, options)` for a loaded model and scenes it prepared
+(`Model.prepare`): the one way every caller rolls out; `rollout_jit` the compiled program under it;
+`rollout_prepared` its body (what `gpd_jax.make_rollout_fn` wraps); `prefill` / `advance` the halves the simulator
+steps through.
 """
 
 from __future__ import annotations
@@ -49,8 +54,10 @@ import jax.numpy as jnp
 from flax import nnx
 
 from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forward_cached, reads_lanes
+from gpd_jax.options import RolloutOptions
 from gpd_jax.prompts import Prompt, as_prompt
 from gpd_jax.scene import Scene
+from gpd_jax.spec import EvalError
 from gpd_jax.tasks import Task
 
 
@@ -111,7 +118,7 @@ class Given:
     """What a rollout of one scenario is given: the log's frames as model inputs (`Frame` with a leading T:
     hidden agents removed, velocities zero for a model without velocity inputs; a prompt's given agent states and
     map tokens in place), the prompt (`task`: a `Prompt`, a task converted by `as_prompt`), optionally the
-    log's lanes to re-encode the map around a generated ego, and for an `agent_lane_context` model the lanes its
+    log's lanes to re-encode the map around a generated ego, and for a model that reads lanes the lanes its
     agents read (`context`, with `on` bool[T]: `lane_context`)."""
 
     log: Frame
@@ -166,15 +173,6 @@ def lane_context(model: GPD, scene: Scene, prompt: Prompt, num_history: int) -> 
         (pa, va), (pb, vb) = pad(polys, valid), pad(scene.polylines, scene.polyline_valid & ~use)
         polys, valid = jnp.concatenate([pa, pb.astype(pa.dtype)], 0), jnp.concatenate([va, vb], 0)
     return LaneContext(polylines=polys, valid=valid, on=on)
-
-
-def drop_unread_lanes(model_config, scene: Scene) -> Scene:
-    """`scene` without its lane polylines (smaller jit arguments) unless the model's agents read them
-    (`gpd_jax.model.reads_lanes`, `lane_context`): what evaluation, the API and the condition scores hand a
-    rollout."""
-    if reads_lanes(model_config):
-        return scene
-    return scene.replace(polylines=None, polyline_valid=None)
 
 
 def _context_at(ctx: LaneContext | None, frames) -> LaneContext | None:
@@ -317,7 +315,7 @@ def prefill(model: GPD, log: Frame, num_history: int, num_frames: int,
     `lanes`: what a model that reads lanes uses (`on` over all T frames or the history's)."""
     h = num_history
     tokens = model.embed(log.xy[:h], log.heading[:h], log.valid[:h], log.map_tokens[:h], jnp.arange(h),
-                         log.velocity[:h], _context_at(lanes, jnp.arange(h)))
+                         log.velocity[:h])
     hidden, cache = forward_cached(model, tokens, model.init_cache(num_frames), 0)
     pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
                          *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h], _context_at(lanes, h - 1))
@@ -331,7 +329,7 @@ def advance(model: GPD, state: DecodeState, frame: Frame, t, lanes: LaneContext 
     `lanes`: what a model that reads lanes uses at frame t (`on` of that one frame)."""
     f = frame
     tok = model.embed(f.xy[None], f.heading[None], f.valid[None], f.map_tokens[None], jnp.asarray(t)[None],
-                      f.velocity[None], lanes)
+                      f.velocity[None])
     hid, cache = forward_cached(model, tok, state.cache, t)
     pred = model.predict(hid, f.xy[None], f.heading[None], f.valid[None], state.last_xy[None],
                          state.last_valid[None], f.velocity[None], lanes)
@@ -386,8 +384,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
     given = given_inputs(model, scene, task, lanes, map_encoder, h)
 
     def step(buf: Frame, t):
-        tokens = model.embed(buf.xy, buf.heading, buf.valid, buf.map_tokens, jnp.arange(t_total), buf.velocity,
-                             given.context)
+        tokens = model.embed(buf.xy, buf.heading, buf.valid, buf.map_tokens, jnp.arange(t_total), buf.velocity)
         hid = forward(model, tokens)
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
@@ -444,24 +441,72 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Arra
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "temperature", "tok", "map_warp"))
-def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key, num_history: int,
-                temperature: float = 0.0, tok=None, tok_params=None, lanes: LogLanes | None = None,
-                map_warp: bool = False) -> RolloutOutput:
-    """`rollout_tasks` of the model `nnx.merge(graphdef, params, rest)`, jitted: the one compiled rollout entry
-    of evaluation, training's validation, the benchmark and `gpd_jax.rollout` (one compile per shape and static
-    setting).
-
-    scenes [S, ...] at the model's rate, tasks or prompts [K, ...] (prompts also [S, K, ...]) -> outputs
-    [S, K, ...]. With a map tokenizer `tok` (its `tok_params`) and the scenes' `lanes` [S, ...], logged map tokens
-    of tasks that generate the ego are re-encoded around the generated ego; prompts with their own lanes are
-    encoded with `tok` (needed then). `map_warp` (needs `tok`): generated maps move with the ego
-    (`MapTokenizer.warper`; the module docstring).
-    """
+def rollout_prepared(module: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Array, num_history: int,
+                     options: RolloutOptions, tok=None, tok_params=None) -> RolloutOutput:
+    """Every scenario of prepared scenes [S, ...] (`Model.prepare`) under every task or prompt [K, ...] (prompts
+    also [S, K, ...]) -> outputs [S, K, ...], as `options` say: the body of every rollout entry (`rollout_jit`,
+    `gpd_jax.make_rollout_fn`). `tok` (the model's map tokenizer) and its `tok_params` are needed where the options
+    or a prompt's own lanes run it."""
     own = isinstance(tasks, Prompt) and tasks.lanes is not None
-    encoder = None if tok is None or (lanes is None and not own) else tok.pose_encoder(tok_params)
-    if map_warp and tok is None:
-        raise ValueError("map_warp moves generated maps with the ego through a map tokenizer: pass tok")
-    warp = tok.warper(tok_params) if map_warp else None
-    return rollout_tasks(nnx.merge(graphdef, params, rest), scenes, tasks, key, num_history, temperature, lanes,
-                         encoder, warp)
+    if (options.needs_tokenizer or own) and tok is None:
+        raise ValueError("this rollout runs the model's map tokenizer (log_map='lanes', gen_map='warp' or a prompt "
+                         "with its own lanes): pass tok")
+    lanes = None
+    if options.log_map == "lanes":
+        if scenes.polylines is None:
+            raise ValueError("log_map='lanes' needs the scenes' lane polylines (Scene.polylines)")
+        lanes = LogLanes(scenes.polylines, scenes.polyline_valid)
+    encoder = tok.pose_encoder(tok_params) if lanes is not None or own else None
+    warp = tok.warper(tok_params) if options.gen_map == "warp" else None
+    h, temp = num_history, options.temperature
+    if options.method == "cached":
+        return rollout_tasks(module, scenes, tasks, key, h, temp, lanes, encoder, warp)
+    tasks = as_prompt(tasks, scenes.xy.shape[-3])
+    per_scene = tasks.from_log.ndim == 4
+    s, k = scenes.xy.shape[0], tasks.from_log.shape[1 if per_scene else 0]
+    rep = lambda x: jnp.repeat(x, k, axis=0)
+    flat_s, flat_l = jax.tree.map(rep, (scenes, lanes))
+    flat_t = (jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks) if per_scene else
+              jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks))
+    one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder, warp)
+    out = jax.vmap(one)(flat_s, flat_t, jax.random.split(key, s * k), flat_l)
+    return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "num_history", "options", "tok"))
+def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key, num_history: int,
+                options: RolloutOptions = RolloutOptions(), tok=None, tok_params=None) -> RolloutOutput:
+    """`rollout_prepared` of the model `nnx.merge(graphdef, params, rest)`, jitted: the one compiled rollout (one
+    compile per shape, options and model structure). `rollout_model` calls it for a loaded model."""
+    return rollout_prepared(nnx.merge(graphdef, params, rest), scenes, tasks, key, num_history, options, tok,
+                            tok_params)
+
+
+def rollout_model(model, scenes: Scene, tasks: Task | Prompt, key: jax.Array,
+                  options: RolloutOptions = RolloutOptions(), params=None) -> RolloutOutput:
+    """The one way a loaded model (`gpd_jax.checkpoint.Model`) rolls out prepared scenes [S, ...] (`model.prepare`)
+    under tasks or prompts [K, ...] ([S, K, ...]): lane polylines the rollout does not read are dropped (smaller jit
+    arguments), the tokenizer goes in only where the options or a prompt's own lanes need it, and `rollout_jit`
+    runs. `params`: other parameters of the same structure (default: the model's). Outputs [S, K, ...]."""
+    own = check_options(model, options, tasks)
+    if not (reads_lanes(model.config.model) or options.log_map == "lanes"):
+        scenes = scenes.replace(polylines=None, polyline_valid=None)
+    scenes = jax.tree.map(jnp.asarray, scenes)
+    use_tok = options.needs_tokenizer or own
+    tok = model.tokenizer if use_tok else None
+    return rollout_jit(model.graphdef, model.params if params is None else params, model.rest, scenes, tasks, key,
+                       model.spec.num_history, options, tok, None if tok is None else tok.params)
+
+
+def check_options(model, options: RolloutOptions, tasks=None) -> bool:
+    """Raises EvalError when `options` or the prompts `tasks` need what `model` lacks (its map tokenizer); returns
+    whether `tasks` are prompts with their own lanes."""
+    own = isinstance(tasks, Prompt) and tasks.lanes is not None
+    if own and model.tokenizer is None:
+        raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
+    if options.needs_tokenizer and model.tokenizer is None:
+        what = "log_map='lanes' re-encodes the log's lanes" if options.log_map == "lanes" else \
+            "gen_map='warp' moves generated maps"
+        raise EvalError(f"{what} with the model's map tokenizer, and the model has none "
+                        "(config.model.map_tokenizer is empty)")
+    return own

@@ -258,7 +258,7 @@ def make_prompt(scene: Scene, num_history: int, *, base: str = "traffic_simulati
                 hidden: Sequence[int] = (), lanes: Sequence[Any] | None = None,
                 lanes_pose: Sequence[float] | None = None, map_tokens: Any | None = None,
                 map_frames: Sequence[int] | None = None, frame_period_s: float | None = None) -> Prompt:
-    """A prompt for one scene in the model's view (`gpd_jax.prepare`: T frames, A slots, M map tokens).
+    """A prompt for one scene in the model's view (`Model.prepare`: T frames, A slots, M map tokens).
 
     Args:
       scene: one unbatched Scene [T, A, ...]; its log is the given data unless overridden.

@@ -11,7 +11,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def tiny_config():
     from gpd_jax.config import load_config
 
-    return load_config(os.path.join(ROOT, "configs", "gpd_tiny.py"))
+    return load_config(os.path.join(ROOT, "configs", "gpd_tiny.py:test"))
 
 
 @pytest.fixture(scope="session")

@@ -2,7 +2,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpd_jax.evaluation.baselines import LANE_SNAP_M, Trajectories, constant_velocity, follow_lanes, log_replay
+from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow_lanes, log_replay
+from gpd_jax.geometry import LANE_SNAP_M
 from gpd_jax.metrics import agent_metrics
 from gpd_jax.scene import empty_scene
 

@@ -14,7 +14,7 @@ from conftest import ROOT
 
 
 def _export(tmp_path, name, seed, **model):
-    cfg = load_config(f"{ROOT}/configs/gpd_tiny.py")
+    cfg = load_config(f"{ROOT}/configs/gpd_tiny.py:test")
     for k, v in model.items():
         cfg.model[k] = v
     return export_model(nnx.state(build_model(cfg, seed=seed), nnx.Param), cfg, str(tmp_path / name))

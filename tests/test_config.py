@@ -8,7 +8,7 @@ from conftest import ROOT
 
 
 def test_overrides_typed():
-    c = load_config(f"{ROOT}/configs/gpd_tiny.py",
+    c = load_config(f"{ROOT}/configs/gpd_tiny.py:test",
                     ["--config.model.num_layers=3", "--config.model.predict_delta=true",
                      "--config.train.learning_rate=1e-2", "--config.model.xy_levels=(2.0, 0.5)"])
     assert c.model.num_layers == 3 and c.model.predict_delta is True
@@ -26,7 +26,7 @@ def test_paper_values():
                                       ("--config.model.num_layers=1.5", ValueError)])
 def test_bad_overrides(bad, err):
     with pytest.raises(err):
-        load_config(f"{ROOT}/configs/gpd_tiny.py", [bad])
+        load_config(f"{ROOT}/configs/gpd_tiny.py:test", [bad])
 
 
 def test_split_args():
@@ -34,172 +34,85 @@ def test_split_args():
     assert o == ["--config.a=1"] and r == ["rollout", "--batch", "1"]
 
 
-def _train(cfg) -> dict:
-    """A config's train section as the shipped models recorded it: keys added since they shipped (holding their
-    defaults) left out."""
-    t = cfg.train.to_dict()
-    assert t.pop("best_metric") == ""
-    assert t.pop("eval_at_start") is False
-    return t
+# each shipped model and the recipe that made it (configs/*.py[:variant])
+SHIPPED = (("gpd_traffic", "gpd_traffic.py"), ("gpd_maps", "gpd_maps.py"), ("gpd_planner", "gpd_planner.py"),
+           ("map_tokenizer", "map_tokenizer.py"), ("map_tokenizer_directional", "map_tokenizer.py:directional"))
 
 
-def test_shipped_model_is_the_sumo_configs():
+@pytest.mark.parametrize("name, recipe", SHIPPED)
+def test_shipped_model_is_its_recipe(name, recipe):
+    """Every shipped model's config.json is exactly its recipe's last stage (configs/), and names its tokenizer by
+    a shipped model's name (no machine path)."""
     import json
 
-    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo/config.json"))
-    for name in ("gpd_sumo", "gpd_sumo_finetune", "gpd_sumo_map_feedback"):
-        m = json.loads(load_config(f"{ROOT}/configs/{name}.py").model.to_json())
-        assert {k: v for k, v in m.items() if k != "map_tokenizer"} == {
-            k: v for k, v in ship["model"].items() if k != "map_tokenizer"}, name
-    ft = load_config(f"{ROOT}/configs/gpd_sumo_finetune.py").train
-    assert ft.rollout_passes == 8 and ft.init_from
-    # the shipped model's last stage was trained with configs/gpd_sumo_map_feedback.py's schedule
-    last = _train(load_config(f"{ROOT}/configs/gpd_sumo_map_feedback.py"))
-    for k, v in last.items():
-        if k not in ("init_from",):
-            assert ship["train"][k] == v, k
-    assert last["init_from"] == "runs/gpd_sumo_ft/export" and last["map_feedback"] == 1.0
+    from gpd_jax import zoo
+    from gpd_jax.config import config_from_json
+
+    ship = config_from_json(f"{ROOT}/checkpoints/{name}/config.json")
+    cfg = load_config(f"{ROOT}/configs/{recipe}")
+    assert json.loads(ship.to_json()) == json.loads(cfg.to_json())
+    card = zoo.card(name)
+    if card.kind == "gpd":
+        assert ship.model.map_tokenizer == card.tokenizer and zoo.find(card.tokenizer)
 
 
-def test_shipped_real_traffic_model_is_its_config():
-    """checkpoints/gpd_sumo_real: the shipped model's architecture, fine-tuned with configs/gpd_sumo_real.py's
-    schedule (its data paths given on the command line)."""
+def test_recipe_stages_change_only_what_they_say():
+    """The default model's recipe: each stage starts from the previous one's export; the lane residual, the
+    Euclidean loss and the mixtures arrive where the recipe says, and an unknown stage is refused."""
+    first = load_config(f"{ROOT}/configs/gpd_traffic.py:sumo")
+    real = load_config(f"{ROOT}/configs/gpd_traffic.py:real")
+    last = load_config(f"{ROOT}/configs/gpd_traffic.py")
+    assert first.train.init_from == "" and first.model.agent_lane_residual is False
+    assert real.train.init_from == "runs/sumo_map_feedback/export" and real.train.rollout_passes == 2
+    assert real.model.to_dict() == first.model.to_dict()
+    assert last.model.agent_lane_residual is True and last.loss.agent_norm == "euclidean"
+    assert last.loss.agent_norm_delta == 0.01 and last.train.lane_context_drop == 0.25
+    with pytest.raises(ValueError, match="stage 'nope'"):
+        load_config(f"{ROOT}/configs/gpd_traffic.py:nope")
+
+
+def test_configs_are_few_and_self_contained():
+    """At most eight config files, each importing nothing but gpd_jax.config (no chains through sys.path)."""
+    import ast
+
+    files = sorted(f for f in os.listdir(os.path.join(ROOT, "configs")) if f.endswith(".py"))
+    assert 0 < len(files) <= 8
+    for f in files:
+        tree = ast.parse(open(os.path.join(ROOT, "configs", f)).read())
+        imports = [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
+        assert [getattr(n, "module", None) for n in imports] == ["gpd_jax.config"], f
+
+
+def test_config_json_is_read_onto_the_schema(tmp_path):
+    """A config.json missing fields gets the schema's defaults; an unknown field or stage is refused naming the
+    file and the field; a config file whose result lacks or adds fields is refused."""
     import json
 
-    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real/config.json"))
-    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo/config.json"))
-    assert {k: v for k, v in ship["model"].items() if k != "map_tokenizer"} == {
-        k: v for k, v in base["model"].items() if k != "map_tokenizer"}
-    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real.py")
-    assert ship["train"] == _train(cfg)
-    assert cfg.train.init_from == "checkpoints/gpd_sumo" and cfg.train.rollout_passes == 2
-    assert [os.path.basename(d.rsplit(":", 1)[0]) for d in ship["data"]["dir"].split(",")] == [
-        os.path.basename(d.rsplit(":", 1)[0]) for d in cfg.data.dir.split(",")]
+    from gpd_jax.config import config_from_json
 
-
-def test_shipped_curved_road_model_is_its_config():
-    """checkpoints/gpd_sumo_real_curved: checkpoints/gpd_sumo_real's architecture, fine-tuned from it with
-    configs/gpd_sumo_real_curved.py (8 rollout passes over a mixture with curved generated streets)."""
-    import json
-
-    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_curved/config.json"))
-    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real/config.json"))
-    assert ship["model"] == base["model"]
-    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real_curved.py")
-    assert ship["train"] == _train(cfg) and ship["data"] == cfg.data.to_dict()
-    assert cfg.train.init_from == "checkpoints/gpd_sumo_real" and cfg.train.rollout_passes == 8
-
-
-def test_shipped_euclidean_loss_model_is_its_configs():
-    """checkpoints/gpd_sumo_real_euclid: gpd_sumo_real_curved's architecture, fine-tuned from it in two stages with
-    the Euclidean agent loss (configs/gpd_sumo_real_euclid.py, then configs/gpd_sumo_real_euclid_narrow.py)."""
-    import json
-
-    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_euclid/config.json"))
-    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_curved/config.json"))
-    assert ship["model"] == base["model"]
-    first = load_config(f"{ROOT}/configs/gpd_sumo_real_euclid.py")
-    assert first.train.init_from == "checkpoints/gpd_sumo_real_curved" and first.loss.agent_norm == "euclidean"
-    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real_euclid_narrow.py")
-    assert ship["train"] == _train(cfg) and ship["data"] == cfg.data.to_dict()
-    # keys added to the loss since it shipped hold their defaults (an absent key reads as the default)
-    loss = cfg.loss.to_dict()
-    assert set(loss) - set(ship["loss"]) == {"moving_weight"} and loss.pop("moving_weight") == 1.0
-    assert ship["loss"] == loss and cfg.loss.agent_norm_delta == 0.01
-    # the two stages differ from each other only in where they start and the loss's width
-    assert {k: v for k, v in first.train.to_dict().items() if k != "init_from"} == {
-        k: v for k, v in cfg.train.to_dict().items() if k != "init_from"}
-
-
-def test_shipped_lane_residual_model_is_its_config():
-    """checkpoints/gpd_sumo_real_lane_residual: gpd_sumo_real_euclid's architecture with `agent_lane_residual` (no
-    parameters of its own), fine-tuned from it with configs/gpd_sumo_real_lane_residual.py, whose recipe is the
-    narrow Euclidean stage's plus the lanes."""
-    import json
-
-    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_lane_residual/config.json"))
-    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_euclid/config.json"))
-    model = dict(ship["model"])
-    assert model.pop("agent_lane_residual") is True and model.pop("lane_context_stride") == 4
-    assert model == base["model"]
-    cfg = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual.py")
-    assert ship["train"] == _train(cfg) and ship["data"] == cfg.data.to_dict()
-    assert ship["loss"] == cfg.loss.to_dict()
-    assert cfg.train.init_from == "checkpoints/gpd_sumo_real_euclid" and cfg.train.lane_context_drop == 0.25
-    narrow = load_config(f"{ROOT}/configs/gpd_sumo_real_euclid_narrow.py")
-    assert {k: v for k, v in cfg.train.to_dict().items() if k not in ("init_from", "lane_context_drop")} == {
-        k: v for k, v in narrow.train.to_dict().items() if k != "init_from"}
-
-
-def test_shipped_lane_residual_mix_model_is_its_configs():
-    """checkpoints/gpd_sumo_real_lane_residual_mix: gpd_sumo_real_lane_residual's architecture, fine-tuned in two
-    stages whose recipe is the lane-residual one with legacy-traffic scenes in the mixture; the export is the second
-    stage's config (its start, a workdir of this session, aside)."""
-    import json
-
-    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_lane_residual_mix/config.json"))
-    base = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_real_lane_residual/config.json"))
-    assert ship["model"] == base["model"] and ship["loss"] == base["loss"]
-    first = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual_mix.py")
-    second = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual_mix_legacy.py")
-    assert first.train.init_from == "checkpoints/gpd_sumo_real_lane_residual"
-    assert second.train.init_from == "runs/lane_residual_mix/export"
-    assert ship["data"] == second.data.to_dict() and ship["loss"] == second.loss.to_dict()
-    assert "legacy_train" in first.data.dir and "legacy_train:0.4" in second.data.dir
-    lane = load_config(f"{ROOT}/configs/gpd_sumo_real_lane_residual.py")
-    for cfg in (first, second):  # the lane-residual recipe, only the start and the mixture changed
-        assert {k: v for k, v in cfg.train.to_dict().items() if k != "init_from"} == {
-            k: v for k, v in lane.train.to_dict().items() if k != "init_from"}
-    assert {k: v for k, v in ship["train"].items() if k != "init_from"} == {
-        k: v for k, v in _train(second).items() if k != "init_from"}
-
-
-def test_shipped_tokenizer_is_the_decoder_config():
-    """checkpoints/map_tokenizer is configs/map_tokenizer_tiny.py's model with the decoder deepened by
-    configs/map_tokenizer_tiny_decoder.py (decoder-only, so its tokens are the first stage's), and its last
-    decoder stage is configs/map_tokenizer_decoder_netframes.py."""
-    import json
-
-    ship = json.load(open(f"{ROOT}/checkpoints/map_tokenizer/config.json"))
-    dec = load_config(f"{ROOT}/configs/map_tokenizer_tiny_decoder.py")
-    assert json.loads(dec.model.to_json()) == ship["model"]
-    assert dec.train.decoder_only and dec.train.init_from and ship["train"]["decoder_only"]
-    first = json.loads(load_config(f"{ROOT}/configs/map_tokenizer_tiny.py").model.to_json())
-    first["decoder"]["num_layers"] = dec.model.decoder.num_layers
-    assert first == ship["model"]
-    last = json.loads(load_config(f"{ROOT}/configs/map_tokenizer_decoder_netframes.py").to_json())
-    # fields added after the export, at values that reproduce it (loader processes, the probe, a fresh decoder)
-    for section, key, neutral in (("data", "processes", 0), ("train", "quantize", True),
-                                  ("train", "init_decoder", True)):
-        if key not in ship[section]:
-            assert last[section].pop(key) == neutral
-    assert {k: last[k] for k in ("data", "train", "model", "raster", "loss")} == {
-        k: ship[k] for k in ("data", "train", "model", "raster", "loss")}
-
-
-def test_refit_gpd_config_tokens():
-    """configs/gpd_sumo_refit.py: the shipped refit recipe by default; `:directional` the same recipe moved onto the
-    directional tokenizer's tokens (stores and tokenizer named alike), from the refit GPD."""
-    r = load_config(os.path.join(ROOT, "configs/gpd_sumo_refit.py"))
-    d = load_config(os.path.join(ROOT, "configs/gpd_sumo_refit.py:directional"))
-    assert r.model.map_tokenizer == "checkpoints/map_tokenizer_refit"
-    assert r.train.init_from == "checkpoints/gpd_sumo_real_lane_residual_soup_legacy2"
-    assert r.data.dir == "data/refit/gen_curved_train:0.2,data/refit/legacy_train:0.4,data/refit/mix_real_train:0.4"
-    assert d.model.map_tokenizer == "checkpoints/map_tokenizer_directional"
-    assert d.train.init_from == "checkpoints/gpd_sumo_refit" and d.data.dir == r.data.dir.replace("refit", "directional")
-    with pytest.raises(ValueError, match="tokens 'x'"):
-        load_config(os.path.join(ROOT, "configs/gpd_sumo_refit.py:x"))
-
-
-def test_shipped_directional_gpd_is_its_config():
-    """checkpoints/gpd_sumo_directional: configs/gpd_sumo_refit.py:directional_cpu as run (the CPU settings on the
-    directional stores, from the refit GPD), reading the directional tokenizer next to it."""
-    import json
-
-    ship = json.load(open(f"{ROOT}/checkpoints/gpd_sumo_directional/config.json"))
-    cfg = json.loads(load_config(f"{ROOT}/configs/gpd_sumo_refit.py:directional_cpu").to_json())
-    assert ship["model"].pop("map_tokenizer") == "../map_tokenizer_directional"
-    assert cfg["model"].pop("map_tokenizer") == "checkpoints/map_tokenizer_directional"
-    for section in ("data", "loss", "model", "rollout", "train"):
-        assert ship[section] == cfg[section], section
-    assert (cfg["train"]["batch_size"], cfg["train"]["rollout_passes"]) == (8, 2)
+    d = json.loads(load_config(f"{ROOT}/configs/gpd_tiny.py:test").to_json())
+    del d["train"]["best_metric"]
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps(d))
+    assert config_from_json(str(p)).train.best_metric == ""
+    d["model"]["lane_attention"] = True
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="config.json: unknown config field 'model.lane_attention'"):
+        config_from_json(str(p))
+    # fields of removed options: an earlier export that left them off loads; one that used them is refused
+    del d["model"]["lane_attention"]
+    d["model"]["agent_map_context"], d["model"]["map_extent_m"], d["rollout"] = False, 64.0, {"temperature": 0.0}
+    p.write_text(json.dumps(d))
+    assert "rollout" not in config_from_json(str(p)) and "agent_map_context" not in config_from_json(str(p)).model
+    d["model"]["agent_map_context"] = True
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="model.agent_map_context = True: that option was removed"):
+        config_from_json(str(p))
+    p.write_text(json.dumps({"stage": "nope"}))
+    with pytest.raises(ValueError, match="stage is 'nope'"):
+        config_from_json(str(p))
+    bad = tmp_path / "bad.py"
+    bad.write_text("from gpd_jax.config import gpd_config\n\ndef get_config():\n    c = gpd_config()\n"
+                   "    c.model.extra = 1\n    return c\n")
+    with pytest.raises(ValueError, match="unknown config field 'model.extra'"):
+        load_config(str(bad))

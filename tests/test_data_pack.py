@@ -92,7 +92,7 @@ def test_models_that_would_read_cleared_frames_or_slots_are_refused(stores):
     from gpd_jax.spec import EvalError
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    c = load_config(os.path.join(root, "configs", "gpd_tiny.py"))
+    c = load_config(os.path.join(root, "configs", "gpd_tiny.py:test"))
     c.model.num_frames, c.model.num_history, c.model.num_agents = 11, 3, 17
     c.data.frame_stride = 5
     with pytest.raises(EvalError, match="packed store"):

@@ -18,16 +18,9 @@ from gpd_jax.map_tokenizer.tokenizer import export_tokenizer, load_tokenizer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-SMALL = ["--config.data.dir=synthetic", "--config.model.encoder.width=8", "--config.model.encoder.head_channels=32",
-         "--config.model.encoder.code_dim=16", "--config.model.num_codes=16", "--config.model.decoder.d_model=32",
-         "--config.model.decoder.num_layers=1", "--config.model.decoder.ffn_dim=64",
-         "--config.model.decoder.num_heads=2", "--config.train.batch_size=4", "--config.train.kmeans_rasters=4",
-         "--config.train.kmeans_at_step=0", "--config.train.warmup_steps=1", "--config.train.log_every=1",
-         "--config.train.eval_batches=1", "--config.train.lr=0.003"]
-
 
 def small_config(*extra):
-    return load_config(os.path.join(ROOT, "configs/map_tokenizer_tiny.py"), SMALL + list(extra))
+    return load_config(os.path.join(ROOT, "configs/map_tokenizer.py:test"), list(extra))
 
 
 def test_quantize_straight_through():
@@ -48,7 +41,7 @@ def test_gradient_reaches_encoder():
     cfg = small_config()
     graphdef, params = build_model(cfg)
     batch = synthetic_lanes(0, 2)
-    grads = jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch)[0])(params)
+    grads = jax.jit(jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch)[0]))(params)  # one compile, not op by op
     enc = jax.tree.leaves(grads["encoder"])
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in enc)
     # the first conv sits before the quantizer: only the straight-through path can give it a gradient
@@ -91,39 +84,6 @@ def test_line_loss_zero_for_perfect_prediction():
     assert float(aux2["l1"]) < 1e-5
 
 
-def test_every_layer_loss_sums_each_layers_matched_loss():
-    from gpd_jax.training.map_tokenizer import build_model
-    from flax import nnx
-    b = synthetic_lanes(4, 2)
-    gt, valid = jnp.asarray(b["lanes"]), jnp.asarray(b["lanes_valid"])
-    rng = np.random.default_rng(1)
-    pts = jnp.asarray(rng.normal(0, 10, (3, 2, 50, 20, 2)), jnp.float32)
-    perm = rng.permutation(50)
-    logits = jnp.asarray(rng.normal(0, 2, (3, 2, 50)), jnp.float32)
-    # layer 1 is perfect up to query order
-    pts, logits = pts.at[1].set(gt[:, perm]), logits.at[1].set(jnp.where(valid, 20.0, -20.0)[:, perm])
-    loss, aux = core.deep_line_loss(pts, logits, gt, valid)
-    per_layer = [core.line_loss(pts[i], logits[i], gt, valid) for i in range(3)]
-    np.testing.assert_allclose(float(loss), sum(float(p[0]) for p in per_layer), rtol=1e-5)
-    np.testing.assert_allclose(float(aux["l1"]), float(per_layer[-1][1]["l1"]), rtol=1e-5)
-    np.testing.assert_array_equal(aux["match"], per_layer[-1][1]["match"])
-    assert float(per_layer[1][1]["l1"]) < 1e-5  # each layer is matched on its own
-    # the decoder's every-layer output ends with its ordinary output
-    cfg = small_config("--config.model.decoder.num_layers=2")
-    graphdef, params = build_model(cfg)
-    z = jax.random.normal(jax.random.key(0), (2, 64, cfg.model.encoder.code_dim))
-    dec = nnx.merge(graphdef, params).decoder
-    p_all, l_all = dec(z, every_layer=True)
-    p_out, l_out = dec(z)
-    chex.assert_shape(p_all, (2, 2, 50, 20, 2))
-    # the two paths may fuse differently: float rounding relative to each array's magnitude (points reach
-    # +-32 m, so an absolute 1e-5 fails on some CPUs)
-    for got, want in ((p_all[-1], p_out), (l_all[-1], l_out)):
-        scale = max(1.0, float(jnp.abs(want).max()))
-        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * scale)
-    assert float(jnp.abs(p_all[0] - p_all[1]).max()) > 0
-
-
 def test_continuous_warmup_bypasses_the_quantizer():
     from flax import nnx
     from gpd_jax.training.map_tokenizer import build_model, loss_fn
@@ -139,7 +99,7 @@ def test_continuous_warmup_bypasses_the_quantizer():
     assert float(jnp.abs(cont["points"] - quant["points"]).max()) > 1e-4
     assert float(cont["vq_loss"]) == 0.0 and float(quant["vq_loss"]) > 0.0
     batch = synthetic_lanes(0, 2)
-    g = jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch, jnp.bool_(False))[0])(params)
+    g = jax.jit(jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch, jnp.bool_(False))[0]))(params)
     assert float(jnp.abs(g["codebook"]["embedding"]).max()) == 0.0  # the codebook is untouched while bypassed
 
 
@@ -172,9 +132,10 @@ def test_training_steps_lower_the_loss():
 def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     from gpd_jax.training.map_tokenizer import train_and_evaluate
     wd = str(tmp_path / "wd")
-    cfg = small_config("--config.train.num_steps=2", "--config.train.checkpoint_every=2",
+    # one config for the stopped run and its resumption: one compiled train step serves both
+    cfg = small_config("--config.train.num_steps=3", "--config.train.checkpoint_every=1",
                        "--config.train.eval_every=2", "--config.train.restart_every=1")
-    metrics = train_and_evaluate(cfg, wd)
+    metrics = train_and_evaluate(cfg, wd, stop_after=2)
     for key in ("f1", "lateral", "chamfer", "chamfer_corrected", "codebook_usage", "perplexity"):
         assert key in metrics
     # the recall by GT line ends inside the window: every GT line in exactly one group
@@ -182,9 +143,7 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     assert list(metrics["recall_by_gt_ends"]) == list(END_LABELS)
     assert sum(metrics["gt_lines_by_ends"].values()) == sum(metrics["gt_lines_by_length"].values()) > 0
     tok = load_tokenizer(wd)
-    cfg3 = small_config("--config.train.num_steps=3", "--config.train.checkpoint_every=1",
-                        "--config.train.eval_every=100")
-    train_and_evaluate(cfg3, wd)  # resumes at step 2, runs one step
+    train_and_evaluate(cfg, wd)  # resumes at step 2, runs one step
     lines = open(os.path.join(wd, "metrics.jsonl")).read().splitlines()
     assert any('"step": 3' in ln for ln in lines)
     tok3 = load_tokenizer(wd)
@@ -316,7 +275,7 @@ def test_decoder_only_adds_identity_layers(tmp_path):
     p1, l1 = tok.decode(grown, tokens)
     np.testing.assert_allclose(p1, p0, atol=1e-5)
     np.testing.assert_allclose(l1, l0, atol=1e-5)
-    grads = jax.grad(lambda p: loss_fn(graphdef, deeper, p, synthetic_lanes(0, 2))[0])(grown)
+    grads = jax.jit(jax.grad(lambda p: loss_fn(graphdef, deeper, p, synthetic_lanes(0, 2))[0]))(grown)
     assert float(jnp.abs(grads["decoder"]["layers"][2]["ff2"]["kernel"]).sum()) > 0
     with pytest.raises(ValueError, match="only train.decoder_only may add layers"):
         initial_params(small_config("--config.model.decoder.num_layers=3"), out)
@@ -346,7 +305,7 @@ def test_direction_channels_start_from_a_binary_tokenizer(tmp_path):
     t_src = src.encode_lanes(src.params, batch["polylines"], batch["polyline_valid"], poses)
     t_dir = tok.encode_lanes(grown, batch["polylines"], batch["polyline_valid"], poses)
     np.testing.assert_array_equal(t_dir, t_src)
-    grads = jax.grad(lambda p: loss_fn(graphdef, directed, p, batch)[0])(grown)
+    grads = jax.jit(jax.grad(lambda p: loss_fn(graphdef, directed, p, batch)[0]))(grown)
     stem = grads["encoder"]["stem"]["conv"]["kernel"].reshape(3, 3, -1, 3, grads["encoder"]["stem"]["conv"][
         "kernel"].shape[-1])
     assert float(jnp.abs(stem[:, :, :, 1:]).sum()) > 0
@@ -415,94 +374,37 @@ def test_loader_processes_give_a_deterministic_stream(tmp_path):
         next(frame_batches(bad, "train", 4, seed=0))
 
 
-def test_continuous_probe_trains_evaluates_and_cannot_encode(tmp_path):
-    """`train.quantize = False` (the autoencoder probe): its decoder always reads the encoder's continuous
-    outputs, in training and in evaluation, and its export refuses to make map tokens."""
-    from gpd_jax.map_tokenizer.__main__ import main as tok_main
-    from gpd_jax.map_tokenizer.evaluation import is_quantized, make_eval_step, rasterize_batch
-    from gpd_jax.training.map_tokenizer import TrainState, build_model, make_optimizer, make_train_step
-
-    probe = small_config("--config.train.quantize=False")
-    assert not is_quantized(probe) and is_quantized(small_config()) and is_quantized(None)
-    graphdef, params = build_model(probe)
-    batch = synthetic_lanes(0, 2)
-    raster = rasterize_batch(probe, batch)
-    sums_p, _ = make_eval_step(graphdef, probe)(params, raster, batch["lanes"], batch["lanes_valid"])
-    sums_c, _ = make_eval_step(graphdef, small_config(), quantized=False)(params, raster, batch["lanes"],
-                                                                         batch["lanes_valid"])
-    sums_q, _ = make_eval_step(graphdef, small_config())(params, raster, batch["lanes"], batch["lanes_valid"])
-    assert sums_p.keys() == sums_q.keys()
-    for k in sums_p:
-        np.testing.assert_allclose(sums_p[k], sums_c[k], rtol=1e-5, atol=1e-6)
-    assert any(not np.allclose(sums_p[k], sums_q[k]) for k in sums_p)
-    tx = make_optimizer(probe.train, params)
-    state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params), jnp.full((16,), 1 / 16),
-                       jnp.ones((), bool))  # even after k-means, the probe stays continuous
-    new, metrics, _ = jax.jit(make_train_step(graphdef, probe, tx))(state, batch)
-    assert float(metrics["vq"]) == 0.0
-    assert float(jnp.abs(new.params["codebook"]["embedding"] - params["codebook"]["embedding"]).max()) == 0.0
-    out = str(tmp_path / "probe")
-    export_tokenizer(params, probe, out, dtype=np.float32)
-    with pytest.raises(SystemExit, match="continuous autoencoder probe"):
-        tok_main(["encode", "--checkpoint", out, "--data", str(tmp_path)])
-
-
-def test_fresh_decoder_on_a_tokenizers_tokens(tmp_path):
-    """`train.init_decoder = False`: the source's encoder and codebook (its tokens, its fingerprint) with a new
-    decoder of another size; the encoder must still match."""
-    from gpd_jax.map_tokenizer.tokenizer import MapTokenizer
-    from gpd_jax.training.map_tokenizer import build_model, initial_params
-    cfg = small_config()
-    _, params = build_model(cfg)
-    out = str(tmp_path / "src")
-    export_tokenizer(params, cfg, out, dtype=np.float32)
-    src = load_tokenizer(out)
-    wide = small_config("--config.model.decoder.d_model=48", "--config.model.decoder.ffn_dim=96",
-                        "--config.model.decoder.num_layers=2", f"--config.train.init_from={out}",
-                        "--config.train.decoder_only=True", "--config.train.init_decoder=False")
-    p = initial_params(wide, out)
-    graphdef, fresh = build_model(wide)
-    assert jax.tree.structure(p) == jax.tree.structure(fresh)
-    tok = MapTokenizer(wide, graphdef, p)
-    assert tok.fingerprint() == src.fingerprint()
-    batch = synthetic_lanes(0, 3)
-    poses = jnp.asarray(batch["pose"])
-    np.testing.assert_array_equal(tok.encode_lanes(p, batch["polylines"], batch["polyline_valid"], poses),
-                                  src.encode_lanes(src.params, batch["polylines"], batch["polyline_valid"], poses))
-    assert p["decoder"]["points_head"]["kernel"].shape[0] == 48
-    with pytest.raises(ValueError, match="model config differs in num_codes"):
-        initial_params(small_config("--config.model.num_codes=8", f"--config.train.init_from={out}",
-                                    "--config.train.init_decoder=False"), out)
-
-
 def test_config_file_variants():
-    """`FILE.py:ARG` calls get_config(ARG); the accelerator config's variants differ where they say."""
-    d = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:decoder512"))
-    f = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:full"))
-    p = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:probe"))
-    assert d.model.decoder.d_model == 512 and d.train.decoder_only and not d.train.init_decoder
-    assert not f.train.decoder_only and f.train.quantize and not p.train.quantize
-    assert f.data.dir == d.data.dir == p.data.dir and f.train.num_steps == p.train.num_steps
-    r = load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:directional"))
-    assert r.raster.direction and not f.raster.direction and r.train.quantize and not r.train.decoder_only
-    assert r.train.init_from == "checkpoints/map_tokenizer_refit" and r.data.dir == f.data.dir
-    with pytest.raises(ValueError, match="variant 'nope'"):
-        load_config(os.path.join(ROOT, "configs/map_tokenizer_gpu.py:nope"))
+    """`FILE.py:ARG` calls get_config(ARG); the tokenizers' recipe stages differ where they say."""
+    tiny = load_config(os.path.join(ROOT, "configs/map_tokenizer.py:tiny"))
+    dec = load_config(os.path.join(ROOT, "configs/map_tokenizer.py:decoder"))
+    f = load_config(os.path.join(ROOT, "configs/map_tokenizer.py:refit"))
+    r = load_config(os.path.join(ROOT, "configs/map_tokenizer.py:directional"))
+    assert tiny.model.decoder.num_layers == 3 and dec.model.decoder.num_layers == 6 and dec.train.decoder_only
+    assert tiny.model.encoder.to_dict() == dec.model.encoder.to_dict() == f.model.encoder.to_dict()
+    assert not f.train.decoder_only and f.train.init_from == "map_tokenizer"
+    assert r.raster.direction and not f.raster.direction and not r.train.decoder_only
+    assert r.train.init_from == "runs/tok_refit/export" and r.data.dir == f.data.dir
+    assert load_config(os.path.join(ROOT, "configs/map_tokenizer.py:paper")).model.decoder.d_model == 512
+    with pytest.raises(ValueError, match="stage 'nope'"):
+        load_config(os.path.join(ROOT, "configs/map_tokenizer.py:nope"))
     with pytest.raises(FileNotFoundError, match="config file not found"):
         load_config(os.path.join(ROOT, "configs/missing.py:x"))
 
 
 def test_shipped_directional_tokenizer_sees_which_way_lanes_run():
-    """checkpoints/map_tokenizer_directional reads SLEDGE's heading channels: the same road with every lane turned
-    the other way gets other tokens; the binary refit tokenizer it started from cannot tell them apart."""
+    """The shipped map_tokenizer_directional reads SLEDGE's heading channels: the same road with every lane turned
+    the other way gets other tokens; the binary map_tokenizer cannot tell them apart."""
+    from gpd_jax import zoo
+
     x = np.linspace(-60.0, 60.0, 128, dtype=np.float32)
     road = np.stack([np.stack([x, np.full_like(x, 0.0)], -1), np.stack([x[::-1], np.full_like(x, 3.5)], -1)])
     valid, pose = np.ones(road.shape[:2], bool), np.zeros(3, np.float32)
     diff = {}
-    for name in ("map_tokenizer_directional", "map_tokenizer_refit"):
-        tok = load_tokenizer(os.path.join(ROOT, "checkpoints", name))
+    for name in ("map_tokenizer_directional", "map_tokenizer"):
+        tok = load_tokenizer(zoo.resolve(name))
         a, b = (np.asarray(tok.encode_lanes(tok.params, jnp.asarray(r), valid, pose)) for r in (road, road[:, ::-1]))
         diff[name] = int((a != b).sum())
-    assert diff["map_tokenizer_refit"] == 0 and diff["map_tokenizer_directional"] > 0
-    directional = load_tokenizer(os.path.join(ROOT, "checkpoints", "map_tokenizer_directional"))
+    assert diff["map_tokenizer"] == 0 and diff["map_tokenizer_directional"] > 0
+    directional = load_tokenizer(zoo.resolve("map_tokenizer_directional"))
     assert directional.config.raster.direction and directional.fingerprint() == "ab468f23bfb2789e"

@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpd_jax.map_tokenizer.raster import from_ego_frame
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -17,17 +17,16 @@ from conftest import ROOT
 
 
 def _with_head(config):
-    from gpd_jax.config import load_config
+    """The tiny test model with the planning head's section and training fields at their defaults
+    (`gpd_jax.config.gpd_config(plan_head=True)`), a smaller head."""
+    from gpd_jax.config import gpd_config
 
-    c = ml_collections.ConfigDict(config.to_dict())
-    ref = load_config(os.path.join(ROOT, "configs", "gpd_sumo_plan_head.py"))
-    c.plan_head = ml_collections.ConfigDict(ref.plan_head.to_dict())
+    c = gpd_config(plan_head=True)
+    c.update(config.to_dict())
     c.plan_head.num_future = 4
     c.plan_head.ffn_dim = 32
     c.data.val_dir = ""
     c.model.train_attention = "dense"  # faster than the chunked kernel at these sizes; the head does not care
-    for k in ("backbone_lr_scale", "gpd_loss_weight"):
-        c.train[k] = ref.train[k]
     return c
 
 
@@ -164,6 +163,8 @@ def test_loop_resume_export_and_pretrained_init(store_dir, tmp_path):
     # A "pre-trained" GPD (no head) of the same model config, exported.
     plain = ml_collections.ConfigDict(cfg.to_dict())
     del plain["plan_head"]
+    for k in ("backbone_lr_scale", "gpd_loss_weight", "cache_features"):  # the head's training fields
+        del plain.train[k]
     src_module = build_model(plain, seed=7)
     assert not hasattr(src_module, "plan_head")
     src = export_model(nnx.split(src_module, nnx.Param, ...)[1], plain, str(tmp_path / "pretrained"))
@@ -196,11 +197,11 @@ def test_scratch_config_does_not_load_pretrained(store_dir, tmp_path):
     from gpd_jax.config import config_differences, config_from_json, load_config
     from gpd_jax.training.planning import train_and_evaluate
 
-    ft = load_config(os.path.join(ROOT, "configs", "gpd_sumo_plan_head.py"))
-    scratch = load_config(os.path.join(ROOT, "configs", "gpd_sumo_plan_head_scratch.py"))
-    shipped = config_from_json(os.path.join(ROOT, "checkpoints", "gpd_sumo", "config.json"))
-    assert ft.train.init_from == "checkpoints/gpd_sumo" and ft.train.backbone_lr_scale > 0
-    assert config_differences(ft.model, shipped.model, ignore=("map_tokenizer",)) == ""
+    ft = load_config(os.path.join(ROOT, "configs", "gpd_planner.py:finetune"))
+    scratch = load_config(os.path.join(ROOT, "configs", "gpd_planner.py:scratch"))
+    shipped = config_from_json(os.path.join(ROOT, "checkpoints", "gpd_planner", "config.json"))
+    assert ft.train.init_from == "runs/gpd_sumo" and ft.train.backbone_lr_scale > 0
+    assert config_differences(ft.model, shipped.model) == ""
     assert scratch.train.init_from == "" and scratch.train.gpd_loss_weight == 0
     # Same head, data and budget; only the backbone's start (and its learning rate) differ.
     same = lambda a, b: json.loads(a.to_json()) == json.loads(b.to_json())

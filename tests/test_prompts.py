@@ -205,7 +205,7 @@ def _straight_road_scene(num_slots: int = 33):
 def test_shipped_model_cars_behind_a_given_braking_path_slow_down():
     """The shipped model: slot 3 is given a 3 m/s^2 braking path; it follows it to float precision, and the
     ego and slot 1 behind it travel clearly less than in the unconditioned rollout (measured: ~20 and ~25 m less
-    over 8 s; slot 2, directly behind slot 3, slows only ~3 m: see /work/notes/prompts-readme.md)."""
+    over 8 s; slot 2, directly behind slot 3, slows only ~3 m)."""
     import gpd_jax
 
     model = gpd_jax.load_model()
@@ -254,10 +254,9 @@ def test_rollout_cli_rejects_a_bad_prompt_file_before_loading(tmp_path, capsys, 
 
 @pytest.mark.slow
 def test_lane_residual_model_follows_a_hand_drawn_bend():
-    """checkpoints/gpd_sumo_real_lane_residual on examples/prompt_demo.py's hand-drawn 90-degree bend (no map
+    """The default model (a lane-residual GPD) on examples/prompt_demo.py's hand-drawn 90-degree bend (no map
     tokens, no log lanes: the road exists only in the prompt): given the road in every frame, its cars stay near the
-    drawn lane (measured 1.3 m on average; the Euclidean model without lane residuals 4.4 m); given it in the
-    history only, the later frames read no lanes and the cars leave the road (measured 5.3 m)."""
+    drawn lane; given it in the history only, the later frames read no lanes and the cars leave the road."""
     import os
     import sys
 
@@ -268,7 +267,8 @@ def test_lane_residual_model_follows_a_hand_drawn_bend():
     sys.path.insert(0, os.path.join(ROOT, "examples"))
     from prompt_demo import curved_road, curved_scene
 
-    model = gpd_jax.load_model(os.path.join(ROOT, "checkpoints", "gpd_sumo_real_lane_residual"))
+    model = gpd_jax.load_model()
+    assert model.config.model.agent_lane_residual
     h = model.spec.num_history
     road = curved_road()
     scene = curved_scene(road)

@@ -21,25 +21,11 @@ AGENT_KEYS = {f"{g}_{n}{s}" for g in ("ego", "agent") for n in AGENT_METRICS for
 
 
 def tiny_config():
-    """gpd_tiny with the shipped map tokenizer (64 tokens, 128 codes) at 1 Hz: 3 history + 8 future frames, and
-    velocity inputs with the velocity residual, like the shipped model."""
+    """configs/gpd_tiny.py: the shipped models' view (1 Hz, 3 history + 8 future frames, 17 slots, the shipped map
+    tokenizer's 64 tokens) with velocity inputs and the velocity residual, at a tiny size."""
     from gpd_jax.config import load_config
 
-    c = load_config(os.path.join(ROOT, "configs", "gpd_tiny.py"))
-    c.model.num_map_tokens = 64
-    c.model.codebook_size = 128
-    c.model.map_tokenizer = "checkpoints/map_tokenizer"
-    c.model.num_frames = 11
-    c.model.num_history = 3
-    c.model.predict_delta = True
-    c.model.velocity_residual = True
-    c.model.velocity_inputs = True
-    if "data" not in c:
-        import ml_collections
-        c.data = ml_collections.ConfigDict({"dir": "", "frame_period_s": 0.1, "frame_stride": 1})
-    c.data.frame_stride = 10
-    c.data.frame_period_s = 0.1
-    return c
+    return load_config(os.path.join(ROOT, "configs", "gpd_tiny.py"))
 
 
 @pytest.fixture(scope="module")
@@ -48,18 +34,17 @@ def setup(tmp_path_factory):
 
     from gpd_jax.checkpoint import build_model, export_model
     from gpd_jax.data import store
-    from gpd_jax.evaluation.maps import encode_map_frames
     from gpd_jax.map_tokenizer import load_tokenizer
 
     d = tmp_path_factory.mktemp("cli")
     data = str(d / "store")
     write_small_store(data, n_shards=2, per_shard=2, split="test")
     # shard 0 gets map tokens (what `python -m gpd_jax.map_tokenizer encode` writes); shard 1 has none
-    tok = load_tokenizer(os.path.join(ROOT, "checkpoints", "map_tokenizer"))
+    tok = load_tokenizer("map_tokenizer")
     sh = store.Shard(store.shard_dir(data, "test", 0))
     a = sh.arrays
-    tokens = np.asarray(encode_map_frames(tok, tok.params, np.asarray(a["polylines"]),
-                                          np.asarray(a["polyline_valid"]), np.asarray(a["ego_pose"])))
+    tokens = np.asarray(tok.encode_frames(np.asarray(a["polylines"]), np.asarray(a["polyline_valid"]),
+                                          np.asarray(a["ego_pose"])))
     store.save_map_tokens(data, "test", 0, tokens)
     config = tiny_config()
     _, params, _ = nnx.split(build_model(config), nnx.Param, ...)
@@ -209,13 +194,14 @@ def _shape_mismatch(cfg):
 
 
 @pytest.mark.parametrize("case, args, message", [
-    ("missing checkpoint", ["--checkpoint", "{d}/nope"], "checkpoint directory not found"),
+    ("missing checkpoint", ["--checkpoint", "{d}/nope"], "nope' not found: not a folder"),
     ("missing data", ["--data", "{d}/nodata"], "data directory not found"),
     ("missing split", ["--split", "val"], "split 'val' not found"),
     ("unknown task", ["--tasks", "traffic_simulation,flying"], "unknown task 'flying'"),
     ("too many scenarios", ["--scenarios", "5"], "5 scenarios asked for, but"),
     ("shape mismatch", ["--checkpoint", "{bad}"], "model and data do not match"),
-    ("bad override", ["--config.model.d_model=8"], "only --config.rollout"),
+    ("bad temperature", ["--temperature", "-1"], "--temperature: RolloutOptions.temperature must be"),
+    ("unknown flag", ["--config.model.d_model=8"], "unrecognized arguments: --config.model.d_model=8"),
     ("bad variant", ["--variant", "best"], "invalid choice"),
     ("log map without tokenizer", ["--checkpoint", "{notok}", "--log-map", "lanes"], "has none"),
     ("gen map without tokenizer", ["--checkpoint", "{notok}", "--gen-map", "warp"], "has none"),

@@ -33,7 +33,7 @@ def _store(path):
 def _config(data_dir, **train):
     from gpd_jax.config import load_config
 
-    c = load_config(os.path.join(ROOT, "configs", "gpd_tiny.py"))
+    c = load_config(os.path.join(ROOT, "configs", "gpd_tiny.py:test"))
     c.data.dir = data_dir
     c.data.frame_stride = 10
     c.model.num_frames = 6

@@ -1,17 +1,17 @@
 """Multi-task evaluation of a GPD model on a data split: rollouts, metrics at 3 / 5 / 8 s, baselines, tables.
 
-Modules, by job: `driver` (the batched loop: `evaluate`), `preflight` (every check before a model loads),
+Modules, by job: `driver` (the batched loop: `run_evaluation`, under `gpd_jax.evaluate`), `preflight` (every check before a model loads),
 `scoring` (metric sums of a batch, jitted), `reduce` (sums -> metrics), `report` (tables, strict JSON), `maps`
-(lane ground truth, map encode / decode), `baselines` (constant velocity, log replay), `render` (pictures),
+(the lanes generated maps are scored against), `baselines` (constant velocity, log replay), `render` (pictures),
 `keys` (the names of what is reported), `bootstrap` (each scenario's sums: scene-bootstrap intervals and paired
 comparisons of runs on the same scenes; `python -m gpd_jax.evaluation compare`).
 
-What `evaluate` does (the command line is `rollout.py` at the repository root):
+What `run_evaluation` does (the command line is `rollout.py` at the repository root):
 
 1. Reads the first N scenarios of a split in store order (10 Hz, 101 frames, 33 slots) and gives the model
    `ModelSpec.view(scene)` (`gpd_jax.spec`) (`scene.subsample(frame_stride, num_frames, num_agents)`, plus stored-rate velocities
    for a `velocity_inputs` model): the model's frame period is
-   `frame_stride * frame_period_s` (1 s for configs/gpd_sumo.py, 0.1 s for the paper), and the horizons
+   `frame_stride * frame_period_s` (1 s for the shipped models, 0.1 s for the paper), and the horizons
    3, 5 and 8 s become that many model frames (6 / 10 / 16 at 2 Hz, 30 / 50 / 80 at 10 Hz), labelled "3s" ...
 2. Map tokens come from the store where it has them (`map_valid`); otherwise the model's map tokenizer encodes
    the needed frames on the fly (rasterized polylines at each frame's `ego_pose`, as
@@ -108,7 +108,7 @@ metres (corrected).
 
 from gpd_jax.evaluation.baselines import constant_velocity, log_replay
 from gpd_jax.evaluation.bootstrap import SceneSums, compare_runs, load_scene_sums
-from gpd_jax.evaluation.driver import RenderItem, evaluate
+from gpd_jax.evaluation.driver import RenderItem, run_evaluation
 from gpd_jax.evaluation.preflight import SceneRecords, check_compatible, preflight
 from gpd_jax.evaluation.reduce import reduce_results
 from gpd_jax.evaluation.render import render_items, render_rollout
@@ -117,6 +117,6 @@ from gpd_jax.evaluation.scoring import add_sums, baseline_predictions, score_bat
 from gpd_jax.spec import EvalError
 
 __all__ = ["EvalError", "RenderItem", "SceneRecords", "SceneSums", "add_sums", "baseline_predictions",
-           "check_compatible", "compare_runs", "constant_velocity", "evaluate", "format_tables", "load_scene_sums",
-           "log_replay", "preflight", "reduce_results", "render_items", "render_rollout", "score_batch",
-           "to_json_compatible"]
+           "check_compatible", "compare_runs", "constant_velocity", "format_tables", "load_scene_sums",
+           "log_replay", "preflight", "reduce_results", "render_items", "render_rollout", "run_evaluation",
+           "score_batch", "to_json_compatible"]

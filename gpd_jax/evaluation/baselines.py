@@ -20,7 +20,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from gpd_jax.geometry import LANE_SNAP_M, lane_follow
+from gpd_jax.geometry import lane_follow
 from gpd_jax.scene import Scene
 
 

@@ -36,7 +36,6 @@ import numpy as np
 
 from gpd_jax.data.lanes import vector_lanes_frames
 from gpd_jax.data.roadgeom import RoadIndex, clip_road, lane_area
-from gpd_jax.evaluation.maps import decode_map_tokens
 from gpd_jax.geometry import RoadGeometry, on_road, road_from_arrays
 from gpd_jax.metrics.agents import box_corners
 from gpd_jax.metrics.map import map_metric_sums, reduce_map_metrics
@@ -229,7 +228,7 @@ def lane_map_sums(tokenizer, out_map_tokens: np.ndarray, ego_poses: np.ndarray, 
     """Map-metric sums (`gpd_jax.metrics.map.map_metric_sums`, frames pooled) of tokens i32[F, M] decoded with
     `tokenizer` against the given lanes (scene frame) seen from the poses f32[F, 3] the tokens were made around.
     Reduce with `reduce_map_metrics` (after adding the sums of several scenarios)."""
-    pts, logits = decode_map_tokens(tokenizer, tokenizer.params, np.asarray(out_map_tokens))
+    pts, logits = tokenizer.decode_tokens(np.asarray(out_map_tokens))
     gt, gt_ok = vector_lanes_frames(np.asarray(lanes), np.asarray(lanes_valid, bool), np.asarray(ego_poses))
     sums = map_metric_sums(pts, logits, gt, gt_ok)
     return {k: np.asarray(v) for k, v in sums.items()}
@@ -263,18 +262,20 @@ def _aggregate(values, fn) -> float:
 
 def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict], *, num_scenarios: int | None,
                      batch_size: int = 8, seed: int = 0, render_count: int = 0, render_dir: str | None = None,
-                     size_px: int = 320, log=print) -> dict[str, Any]:
+                     size_px: int = 320, log=print, options=None) -> dict[str, Any]:
     """Rolls out every scenario of a split under every prompt (JSON content by name) plus the unconditioned
     `traffic_simulation` for reference, in one compiled rollout per batch (per-scenario prompts [B, K]), and
-    scores each prompt's conditions (module docstring). Returns {"prompts": {name: scores}, ...}."""
+    scores each prompt's conditions (module docstring). `options`: a `gpd_jax.RolloutOptions` (default: the
+    paper's rollout). Returns {"prompts": {name: scores}, ...}."""
     from gpd_jax.data.loader import SplitSource, to_scene
-    from gpd_jax.decoding import drop_unread_lanes, rollout_jit
-    from gpd_jax.evaluation.maps import encode_map_frames
+    from gpd_jax.decoding import rollout_model
+    from gpd_jax.options import RolloutOptions
     from gpd_jax.evaluation.render import render_rollout
     from gpd_jax.prompts import prompt_from_json, prompt_from_task, stack_prompts
     from gpd_jax.spec import EvalError
 
     spec, tok = model.spec, model.tokenizer
+    options = RolloutOptions() if options is None else options
     h = spec.num_history
     src = SplitSource(data, split, with_polylines=True)
     n = len(src) if num_scenarios is None else min(int(num_scenarios), len(src))
@@ -296,13 +297,7 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
         idx += [idx[-1]] * (bs - real)
         recs = [src[i] for i in idx]
         full = to_scene({k: np.stack([r[k] for r in recs]) for k in recs[0]})
-        view = spec.view(full)
-        if not np.asarray(view.map_valid).all():
-            if tok is None:
-                raise EvalError(f"{data}/{split} has no map tokens and the model has no map tokenizer")
-            enc = np.asarray(encode_map_frames(tok, tok.params, full.polylines, full.polyline_valid, view.ego_pose))
-            view = view.replace(map_tokens=np.where(np.asarray(view.map_valid)[..., None], view.map_tokens, enc
-                                                    ).astype(np.int32), map_valid=np.ones_like(view.map_valid))
+        view = model.prepare(full)
         singles = []
         for j in range(bs):
             sc = jax.tree.map(lambda x: np.asarray(x)[j], view)
@@ -315,12 +310,8 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
         prompts = stack_prompts(singles)
         k = len(names)
         prompts = jax.tree.map(lambda x: jnp.asarray(x.reshape((bs, k) + x.shape[1:])), prompts)
-        extra = {} if prompts.lanes is None else dict(tok=tok, tok_params=tok.params)
-        out = rollout_jit(model.graphdef, model.params, model.rest,
-                          jax.tree.map(jnp.asarray, drop_unread_lanes(model.config.model, view.replace(road=None))),
-                          prompts,
-                          jax.random.fold_in(jax.random.key(seed), b), h, float(model.config.rollout.temperature),
-                          **extra)
+        out = rollout_model(model, view.replace(road=None), prompts, jax.random.fold_in(jax.random.key(seed), b),
+                            options)
         out = jax.tree.map(np.asarray, out)
         for j in range(real):
             sc = jax.tree.map(lambda x: np.asarray(x)[j], view)
@@ -352,10 +343,10 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
                 for k_, v in row.items():
                     acc[name].setdefault(k_, []).append(v)
                 if render_dir and idx[j] < render_count:
-                    pts = lv_ = None
+                    pts = None
                     kw = {}
                     if tok is not None:
-                        pts, logits = decode_map_tokens(tok, tok.params, o.map_tokens)
+                        pts, logits = tok.decode_tokens(o.map_tokens)
                         kw = dict(lanes=np.asarray(pts), lanes_valid=np.asarray(logits) > 0)
                     if own:
                         kw.update(given_lanes=p.lanes, given_lanes_valid=p.lanes_valid)

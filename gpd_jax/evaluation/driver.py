@@ -18,11 +18,11 @@ from gpd_jax.checkpoint import Model
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import to_scene
 from gpd_jax.data.store import foreign_map_token_shards, sample_layouts
-from gpd_jax.decoding import LogLanes, RolloutOutput, drop_unread_lanes, rollout_jit
+from gpd_jax.decoding import RolloutOutput, check_options, rollout_model
 from gpd_jax.evaluation.bootstrap import scene_sums_from_batches
-from gpd_jax.evaluation.keys import GEN_MAP_SOURCES, LOG_MAP_SOURCES, RATIO_TARGETS, SCORED_AGENTS
-from gpd_jax.evaluation.maps import (decode_map_tokens, encode_map_frames, gt_future_lanes,
-                                     persistence_future_lanes)
+from gpd_jax.evaluation.keys import RATIO_TARGETS, SCORED_AGENTS
+from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
+from gpd_jax.options import RolloutOptions
 from gpd_jax.evaluation.preflight import preflight
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
@@ -41,12 +41,12 @@ class RenderItem:
     log: dict[str, np.ndarray]  # xy [T, A, 2], heading, valid, size [A, 2], agent_type, map_tokens [T, M], ego_pose
 
 
-def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names: Sequence[str] | str = ("all",),
-             num_scenarios: int | None = None, batch_size: int = 8, seed: int = 0, variant: str = "paper",
-             horizons_s: Sequence[float] = HORIZONS_S, render_count: int = 0, log_map: str = "tokens",
-             temperature: float | None = None, progress: bool = True, log: Callable[[str], None] = print,
-             layouts: Sequence[str] | None = None, gen_map: str = "model", scene_sums: bool = False
-             ) -> tuple[dict[str, Any], list[RenderItem]]:
+def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
+                   task_names: Sequence[str] | str = ("all",), num_scenarios: int | None = None, batch_size: int = 8,
+                   seed: int = 0, variant: str = "paper", horizons_s: Sequence[float] = HORIZONS_S,
+                   render_count: int = 0, options: RolloutOptions = RolloutOptions(), progress: bool = True,
+                   log: Callable[[str], None] = print, layouts: Sequence[str] | None = None,
+                   scene_sums: bool = False) -> tuple[dict[str, Any], list[RenderItem]]:
     """Rolls out every task on the first `num_scenarios` scenarios of a split (or of given scenes) and scores
     them.
 
@@ -61,12 +61,8 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
       variant: which metric variant fills the main keys ("paper" or "corrected").
       horizons_s: horizons in seconds (those longer than the model's future are skipped with a note).
       render_count: keep the arrays of the first this-many scenarios for `gpd_jax.render` (returned).
-      log_map: "tokens" (the logged map tokens) or "lanes" (the log's lanes encoded around a generated ego;
-        needs the tokenizer) for tasks that take the map from the log.
-      gen_map: "model" (every generated map token the model's: the paper's) or "warp" (the last given map moved
-        with the ego, the model's tokens only in cells it did not see; needs the tokenizer) where the map is
-        generated.
-      temperature: map-token sampling temperature (default: the model config's `rollout.temperature`).
+      options: how the rollouts run (`gpd_jax.RolloutOptions`: temperature, the log's map as tokens or lanes,
+        generated-map mode).
       layouts: the road-network layout of every scenario (grid, spider, random, real, ...), for figures per
         layout beside the overall ones (`results["by_layout"]`, when there are two or more). Default: read from
         the store (`gpd_jax.data.store.sample_layouts`; SUMO builds record it), none for in-memory scenes.
@@ -78,16 +74,9 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
       (results dict as written to metrics.json, render items). Raises EvalError on bad input.
     """
     config, tokenizer = model.config, model.tokenizer
-    if log_map not in LOG_MAP_SOURCES:
-        raise EvalError(f"log_map must be one of {LOG_MAP_SOURCES}, got {log_map!r}")
-    if log_map == "lanes" and tokenizer is None:
-        raise EvalError("log_map='lanes' re-encodes the log's lanes with the model's map tokenizer, and the model "
-                        "has none (config.model.map_tokenizer is empty)")
-    if gen_map not in GEN_MAP_SOURCES:
-        raise EvalError(f"gen_map must be one of {GEN_MAP_SOURCES}, got {gen_map!r}")
-    if gen_map == "warp" and tokenizer is None:
-        raise EvalError("gen_map='warp' moves generated maps through the model's map tokenizer, and the model has "
-                        "none (config.model.map_tokenizer is empty)")
+    if options.method != "cached":
+        raise EvalError(f"evaluation runs the cached rollout; options.method is {options.method!r}")
+    check_options(model, options)
     prep = preflight(config, data, split, task_names=task_names, num_scenarios=num_scenarios, variant=variant,
                      horizons_s=horizons_s, has_tokenizer=tokenizer is not None, tokenizer=tokenizer)
     spec, names, src, n = prep.spec, prep.task_names, prep.source, prep.num_scenarios
@@ -101,10 +90,8 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
         foreign[foreign_map_token_shards(data, split, tokenizer.fingerprint())] = True
     bs = max(1, min(int(batch_size), n))
     num_batches = -(-n // bs)
-    temperature = float(config.rollout.temperature if temperature is None else temperature)
     tasks = jax.tree.map(jnp.asarray, make_tasks(names, spec.num_map_tokens, spec.num_agents))
     key = jax.random.key(seed)
-    tok_args = {} if tokenizer is None else dict(tok=tokenizer, tok_params=tokenizer.params)
 
     if layouts is None and isinstance(data, str):
         layouts = sample_layouts(data, split)
@@ -134,31 +121,22 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
                 raise EvalError(f"cannot read split {split!r}: {e}") from None
             full = to_scene({k: np.stack([r[k] for r in recs]) for k in recs[0]})
             polylines, poly_valid = full.polylines, full.polyline_valid
-            scene = drop_unread_lanes(model.config.model, spec.view(full))
-            has = scene.map_valid.all(axis=-1) & ~foreign[np.searchsorted(src.offsets, idx, side="right") - 1]
-            if not has[:real].all():
-                if tokenizer is None:
-                    raise EvalError(f"{prep.where} has no map tokens for some scenarios and the model has no map "
-                                    "tokenizer to encode them")
-                enc = np.asarray(encode_map_frames(tokenizer, tokenizer.params, polylines, poly_valid,
-                                                   scene.ego_pose))
-                scene = scene.replace(map_tokens=np.where(has[:, None, None], scene.map_tokens, enc).astype(np.int32),
-                                      map_valid=np.ones_like(scene.map_valid))
-            n_store += int(has[:real].sum())
-            n_encoded += int((~has[:real]).sum())
+            reencode = foreign[np.searchsorted(src.offsets, idx, side="right") - 1]
+            stored = np.asarray(full.map_valid)[:, spec.model_frames()].all(axis=-1) & ~reencode
+            if not stored[:real].all() and tokenizer is None:
+                raise EvalError(f"{prep.where} has no map tokens for some scenarios and the model has no map "
+                                "tokenizer to encode them")
+            view = model.prepare(full, options, reencode=reencode)
+            n_store += int(stored[:real].sum())
+            n_encoded += int((~stored[:real]).sum())
             gt_lanes = kept_lanes = None
             if maps:
                 gt_lanes = gt_future_lanes(polylines, poly_valid, full.ego_pose, spec)
                 kept_lanes = persistence_future_lanes(polylines, poly_valid, full.ego_pose, spec)
             tb = time.perf_counter()
             t_data += tb - ta
-            relane = {} if log_map == "tokens" else dict(
-                **tok_args, lanes=LogLanes(jnp.asarray(polylines), jnp.asarray(poly_valid)))
-            if gen_map == "warp":
-                relane = dict(relane, **tok_args, map_warp=True)
-            out = rollout_jit(model.graphdef, model.params, model.rest, jax.tree.map(jnp.asarray, scene), tasks,
-                              jax.random.fold_in(key, b), spec.num_history, temperature, **relane)
-            out = jax.block_until_ready(out)
+            out = jax.block_until_ready(rollout_model(model, view, tasks, jax.random.fold_in(key, b), options))
+            scene = view.replace(polylines=None, polyline_valid=None)  # the ground truth the scores read
             tc = time.perf_counter()
             t_roll += tc - tb
             map_pred = None
@@ -167,7 +145,7 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
                 fut = slice(spec.num_history, spec.num_history + spec.max_horizon)
                 tokens = jnp.concatenate([out.map_tokens[:, mi, fut],
                                           jnp.asarray(scene.map_tokens)[:, None, fut]], axis=1)
-                map_pred = decode_map_tokens(tokenizer, tokenizer.params, tokens)
+                map_pred = tokenizer.decode_tokens(tokens)
             sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes, kept_lanes,
                                per_scenario=per_layout or scene_sums)
             if per_layout or scene_sums:  # each scenario's sums: the batch's total, each layout's part, each scene's
@@ -217,9 +195,9 @@ def evaluate(model: Model, data: str | Scene, split: str = "test", *, task_names
         "num_scored_agents": int(acc["counts"]["scored_agents"]),
         "task_generates": {t: list(generated(t)) for t in names},
         "map_tokens": {"from_store": n_store, "encoded": n_encoded},
-        "log_map": log_map,
-        "gen_map": gen_map,
-        "temperature": temperature,
+        "log_map": options.log_map,
+        "gen_map": options.gen_map,
+        "temperature": options.temperature,
         "seed": seed,
         **res,
         "ratio_targets": {k: RATIO_TARGETS for k in res["ratios"]},

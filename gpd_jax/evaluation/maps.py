@@ -1,27 +1,13 @@
-"""Map glue of an evaluation: ground-truth and persistence lanes of the scored frames (host numpy), and jitted
-encode / decode with the model's map tokenizer."""
+"""The lanes an evaluation scores generated maps against: ground-truth and persistence lanes of the scored frames
+(host numpy). Map tokens are encoded and decoded by the map tokenizer (`MapTokenizer.encode_frames`,
+`MapTokenizer.decode_tokens`)."""
 
 from __future__ import annotations
 
-import functools
-
-import jax
 import numpy as np
 
 from gpd_jax.data.lanes import vector_lanes_carried, vector_lanes_frames
 from gpd_jax.spec import ModelSpec
-
-
-@functools.partial(jax.jit, static_argnames=("tok",))
-def decode_map_tokens(tok, params, tokens):
-    """Vector lanes of map tokens i32[..., M] with the tokenizer `tok`: (f32[..., Q, P, 2], f32[..., Q])."""
-    return tok.decode(params, tokens)
-
-
-@functools.partial(jax.jit, static_argnames=("tok",))
-def encode_map_frames(tok, params, polylines, polyline_valid, poses):
-    """Map tokens of every pose: polylines f32[B, L, P, 2], bool[B, L, P], poses f32[B, T, 3] -> i32[B, T, M]."""
-    return jax.lax.map(lambda a: tok.encode_lanes(params, *a), (polylines, polyline_valid, poses))
 
 
 def gt_future_lanes(polylines: np.ndarray, polyline_valid: np.ndarray, ego_pose_full: np.ndarray, spec: ModelSpec

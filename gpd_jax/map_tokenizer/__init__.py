@@ -5,9 +5,9 @@ Public API:
   load_tokenizer(checkpoint_dir) -> MapTokenizer                  (tokenizer.py)
     .codebook f32[K, D], .encode(params, rasters) -> i32[..., 64],
     .decode(params, tokens) -> (f32[..., 50, 20, 2], f32[..., 50])
-  evaluate(graphdef, params, config, batches) -> metrics          (evaluation.py)
-Stage-1 training is `gpd_jax.training.map_tokenizer` (`python train.py --config configs/map_tokenizer_tiny.py`).
-CLI: python -m gpd_jax.map_tokenizer {evaluate,encode} ...        (__main__.py)
+  tokenizer_metrics(graphdef, params, config, batches) -> metrics (evaluation.py)
+Stage-1 training is `gpd_jax.training.map_tokenizer` (`python train.py --config configs/map_tokenizer.py:tiny`).
+CLI: gpd-jax tokenizer {evaluate,diagnose,encode,export,bench,netframes,pack-netframes}   (__main__.py)
 """
 
 from gpd_jax.map_tokenizer.raster import rasterize

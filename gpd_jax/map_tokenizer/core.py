@@ -26,10 +26,10 @@ def with_codebook(params, codebook: jax.Array):
     return {**params, "codebook": {**params["codebook"], "embedding": codebook}}
 
 
-def forward(graphdef, params, raster: jax.Array, every_layer: bool = False, quantized: bool | jax.Array = True):
+def forward(graphdef, params, raster: jax.Array, quantized: bool | jax.Array = True):
     """`MapVQVAE.__call__` as a pure function: raster f32[B, 256, 256] -> dict (see the model)."""
     model: MapVQVAE = nnx.merge(graphdef, params)
-    return model(raster, every_layer, quantized)
+    return model(raster, quantized)
 
 
 def encode_latents(graphdef, params, raster: jax.Array) -> jax.Array:
@@ -68,26 +68,6 @@ def line_loss(points, logits, gt_points, gt_valid, w_l1: float = 2.0, w_bce: flo
     l1, bce, match = _line_terms(points, logits, gt_points, gt_valid, w_l1, w_bce)
     l1, bce = jnp.mean(l1), jnp.mean(bce)
     return w_l1 * l1 + w_bce * bce, dict(l1=l1, bce=bce, match=match)
-
-
-def deep_line_loss(points, logits, gt_points, gt_valid, w_l1: float = 2.0, w_bce: float = 5.0):
-    """`line_loss` of every decoder layer's output, each matched on its own, summed over layers (DETR's
-    auxiliary decoding losses). All L x B matchings go to the host in one call.
-
-    Args:
-      points: f32[L, B, Q, P, 2]; logits: f32[L, B, Q]; gt_points: f32[B, G, P, 2]; gt_valid: bool[B, G].
-
-    Returns:
-      (loss, dict(l1, bce, match i32[B, G])): l1, bce and match are those of the last layer (the output), so
-      they compare with `line_loss` of a model trained without auxiliary losses.
-    """
-    n_layers, b = logits.shape[:2]
-    flat = lambda x: x.reshape((n_layers * b,) + x.shape[2:])
-    tile = lambda x: flat(jnp.broadcast_to(x[None], (n_layers,) + x.shape))
-    l1, bce, match = _line_terms(flat(points), flat(logits), tile(gt_points), tile(gt_valid), w_l1, w_bce)
-    l1, bce = jnp.mean(l1.reshape(n_layers, b), -1), jnp.mean(bce.reshape(n_layers, b), -1)  # [L]
-    loss = jnp.sum(w_l1 * l1 + w_bce * bce)
-    return loss, dict(l1=l1[-1], bce=bce[-1], match=match.reshape(n_layers, b, -1)[-1])
 
 
 def code_stats(idx: jax.Array, num_codes: int):

@@ -70,7 +70,7 @@ def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: b
       all_frames: every frame of every sample in order (token extraction) instead of one random frame per sample.
     """
     data_dir = config.data.dir if data_dir is None else data_dir
-    processes = int(config.data.get("processes", 0) or 0)
+    processes = int(config.data.processes)
     if processes > 0 and repeat and not all_frames and data_dir != "synthetic":
         return _process_batches(config, split, batch_size, seed, shuffle, max_batches, data_dir, processes)
     if data_dir == "synthetic":
@@ -78,7 +78,7 @@ def frame_batches(config, split: str, batch_size: int, seed: int = 0, shuffle: b
     from gpd_jax.map_tokenizer import store  # the data-store adapter (needs gpd_jax.data)
     return _prefetch(store.frame_batches(data_dir, split, batch_size, seed=seed, shuffle=shuffle,
                                          repeat=repeat, max_batches=max_batches, all_frames=all_frames,
-                                         gt_recut=config.data.get("gt_recut") or None),
+                                         gt_recut=config.data.gt_recut or None),
                      size=max(2, int(config.data.num_workers) + 1))
 
 
@@ -95,7 +95,7 @@ def _worker(config, split, batch_size, seed, shuffle, data_dir, out, stop, paren
     from gpd_jax.map_tokenizer import store
     try:
         it = store.frame_batches(data_dir, split, batch_size, seed=seed, shuffle=shuffle, repeat=True,
-                                 gt_recut=config.data.get("gt_recut") or None)
+                                 gt_recut=config.data.gt_recut or None)
         for batch in it:
             while not stop.is_set() and os.getppid() == parent:  # the consumer stopped, or was killed
                 try:

@@ -112,22 +112,13 @@ def reduce_pairs(t: dict) -> dict[str, float]:
             "pairs_pred_shorter_1.5x_share": f("pair_shorter")}
 
 
-def is_quantized(config) -> bool:
-    """False for the continuous autoencoder probe (`train.quantize = False`): its codes are not its input."""
-    return config is None or "train" not in config or bool(config.train.get("quantize", True))
-
-
-def make_eval_step(graphdef, config=None, quantized: bool | None = None):
+def make_eval_step(graphdef, config=None):
     """eval_step(params, raster, lanes, lanes_valid) -> (map metric sums, token indices); with `config` (the
     tokenizer's), the sums also hold the raster-level reconstruction (`raster_sums` of the decoded lines drawn
-    with `config.raster` against the input raster) and the matched-pair diagnostics (`pair_sums`).
-    `quantized` (default: the config's `train.quantize`, else True) False decodes the encoder's continuous outputs:
-    the autoencoder probe trained with `train.quantize = False`."""
-    if quantized is None:
-        quantized = is_quantized(config)
+    with `config.raster` against the input raster) and the matched-pair diagnostics (`pair_sums`)."""
 
     def eval_step(params, raster, lanes, lanes_valid):
-        out = core.forward(graphdef, params, raster, False, quantized)
+        out = core.forward(graphdef, params, raster)
         sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M,
                                window_half=HALF)
         if config is not None:
@@ -139,7 +130,7 @@ def make_eval_step(graphdef, config=None, quantized: bool | None = None):
     return eval_step
 
 
-def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, float]:
+def tokenizer_metrics(graphdef, params, config, batches, eval_step=None) -> dict[str, float]:
     """Map metrics (paper-faithful F1 @1.5 m, lateral, Chamfer; corrected Chamfer; the cut-invariant score) plus
     codebook usage and perplexity of the tokens, over an iterable of batch dicts; plus the raster-level
     reconstruction (raster_iou, raster_f1 at 1.5 m, ...) when `eval_step` makes it (the default one does)."""
@@ -180,7 +171,7 @@ def evaluate(graphdef, params, config, batches, eval_step=None) -> dict[str, flo
         "gt_lines_by_length": dict(zip(length_labels(), (int(round(x / lanes_points)) for x in
                                                          m["map_gt_points_by_length"]))),
         # ... and for GT lines by how many ends lie inside the window (junctions, lane ends) rather than on its
-        # border: where the paper's F1 loses its points (checkpoints/map_tokenizer/README.md)
+        # border: where the paper's F1 loses its points (docs/tokenizer.md)
         "recall_by_gt_ends": dict(zip(END_LABELS, m["map_recall_by_ends"])),
         "gt_lines_by_ends": dict(zip(END_LABELS, (int(round(x / lanes_points)) for x in m["map_gt_points_by_ends"]))),
     }

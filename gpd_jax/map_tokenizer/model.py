@@ -221,24 +221,15 @@ class VectorDecoder(nnx.Module):
         pts = pts.reshape(x.shape[:-1] + (self.num_points, 2))
         return pts, self.logit_head(x)[..., 0]
 
-    def __call__(self, latents: jax.Array, every_layer: bool = False):
-        """latents f32[B, h*w, D] -> (points f32[B, Q, P, 2], logits f32[B, Q]).
-
-        With `every_layer`, the shared final norm and heads are applied after every decoder layer (DETR's
-        auxiliary decoding) and the outputs gain a leading layer axis: f32[L, B, Q, P, 2] and f32[L, B, Q],
-        the last entry being the ordinary output.
-        """
+    def __call__(self, latents: jax.Array):
+        """latents f32[B, h*w, D] -> (points f32[B, Q, P, 2], logits f32[B, Q])."""
         b = latents.shape[0]
         memory = self.memory_in(latents)
         pos = sine_position_2d(self.grid, self.grid, memory.shape[-1])[None]
         x = jnp.broadcast_to(self.query_embed[...][None], (b,) + self.query_embed.shape)
         qpos = self.query_pos[...][None]
-        hidden = []
         for layer in self.layers:
             x = layer(x, qpos, memory, pos)
-            hidden.append(x)
-        if every_layer:
-            return self._heads(jnp.stack(hidden))
         return self._heads(x)
 
 
@@ -262,9 +253,8 @@ class MapVQVAE(nnx.Module):
                              "fix the strides")
         return z.reshape(z.shape[0], -1, z.shape[-1])
 
-    def __call__(self, raster: jax.Array, every_layer: bool = False, quantized: bool | jax.Array = True):
-        """Full pass. Returns dict(points, logits, idx i32[B, M], vq_loss, z f32[B, M, D]); with `every_layer`,
-        points and logits carry a leading decoder-layer axis (see `VectorDecoder`). `quantized` (a Python or
+    def __call__(self, raster: jax.Array, quantized: bool | jax.Array = True):
+        """Full pass. Returns dict(points, logits, idx i32[B, M], vq_loss, z f32[B, M, D]). `quantized` (a Python or
         traced bool) False feeds the continuous latents to the decoder and zeroes the VQ loss (training's
         continuous warm-up); `idx` are still the nearest codes."""
         z = self.encode_latents(raster)
@@ -272,5 +262,5 @@ class MapVQVAE(nnx.Module):
         if quantized is not True:  # False, or a traced flag
             z_q = jnp.where(quantized, z_q, z)
             vq_loss = jnp.where(quantized, vq_loss, 0.0)
-        points, logits = self.decoder(z_q, every_layer)
+        points, logits = self.decoder(z_q)
         return dict(points=points, logits=logits, idx=idx, vq_loss=vq_loss, z=z)

@@ -67,7 +67,7 @@ def from_ego_frame(points: jax.Array, pose: jax.Array) -> jax.Array:
 
 def raster_channels(raster_config) -> int:
     """Channels of a tokenizer's rasters: 3 with `raster.direction` (occupancy, cos, sin), else 1."""
-    return 3 if bool(raster_config.get("direction", False)) else 1
+    return 3 if bool(raster_config.direction) else 1
 
 
 def samples_per_segment(max_segment_length: float = 2.0, pixel_size: float = PIXEL_SIZE) -> int:

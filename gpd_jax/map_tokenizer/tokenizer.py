@@ -1,18 +1,19 @@
 """The trained map tokenizer as pure functions of a params pytree (what the GPD model and the metrics use).
 
-    tok = load_tokenizer("checkpoints/map_tokenizer")
+    tok = load_tokenizer("map_tokenizer")                          # a shipped tokenizer's name, or a folder
     tokens = jax.jit(tok.encode)(tok.params, rasters)          # f32[..., 256, 256] -> i32[..., 64]
     points, logits = jax.jit(tok.decode)(tok.params, tokens)   # -> f32[..., 50, 20, 2], f32[..., 50]
     tok.codebook                                               # f32[128, 128]
 
 A checkpoint directory is either an exported tokenizer (`config.json` + `params.npz`, what ships in
-`checkpoints/map_tokenizer/`) or a training workdir (`config.json` + orbax `checkpoints/`; the latest step is
+`map_tokenizer`, found by name) or a training workdir (`config.json` + orbax `checkpoints/`; the latest step is
 used). `export_tokenizer` writes the former (float16 by default, to keep the repository lean).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import os
 from typing import Any
@@ -23,8 +24,9 @@ import ml_collections
 import numpy as np
 from flax import nnx
 
+from gpd_jax import zoo
 from gpd_jax.config import config_from_json
-from gpd_jax.fsutil import atomic_directory, flatten_params, restore_params, unflatten_params
+from gpd_jax.fsutil import atomic_directory, flatten_params, load_params_npz, restore_params
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
 from gpd_jax.map_tokenizer.raster import from_ego_frame, raster_channels, rasterize, to_ego_frame
@@ -130,6 +132,27 @@ class MapTokenizer:
         """`decode(encode(rasters))`."""
         return self.decode(params, self.encode(params, rasters))
 
+    def encode_frames(self, polylines, polyline_valid, poses) -> jax.Array:
+        """Map tokens of every frame of a batch of scenes, compiled once per shape: the one way scenes get their
+        missing map tokens (`gpd_jax.checkpoint.Model.prepare`). polylines f32[B, L, P, 2], polyline_valid
+        bool[B, L, P] (scene frame), poses f32[B, T, 3] the ego of every frame -> i32[B, T, M]."""
+        return _encode_frames(self, self.params, polylines, polyline_valid, poses)
+
+    def decode_tokens(self, tokens) -> tuple[jax.Array, jax.Array]:
+        """`decode` with this tokenizer's parameters, compiled once per shape: tokens i32[..., M] ->
+        (points f32[..., Q, P, 2], existence logits f32[..., Q])."""
+        return _decode_tokens(self, self.params, tokens)
+
+
+@functools.partial(jax.jit, static_argnames=("tok",))
+def _encode_frames(tok: MapTokenizer, params, polylines, polyline_valid, poses):
+    return jax.lax.map(lambda a: tok.encode_lanes(params, *a), (polylines, polyline_valid, poses))
+
+
+@functools.partial(jax.jit, static_argnames=("tok",))
+def _decode_tokens(tok: MapTokenizer, params, tokens):
+    return tok.decode(params, tokens)
+
 
 def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float16,
                      exact: tuple[str, ...] = ("encoder", "codebook")) -> None:
@@ -147,8 +170,10 @@ def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dt
         np.savez_compressed(os.path.join(tmp, "params.npz"), **flat)
 
 
-def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
-    """Loads an exported tokenizer or the latest checkpoint of a training workdir (see the module docstring)."""
+def load_tokenizer(name_or_path: str) -> MapTokenizer:
+    """Loads a shipped tokenizer by name (`gpd_jax.list_models("map_tokenizer")`), an exported tokenizer or the
+    latest checkpoint of a training workdir (see the module docstring)."""
+    checkpoint_dir = zoo.resolve(name_or_path)
     cfg_path = os.path.join(checkpoint_dir, "config.json")
     if not os.path.isfile(cfg_path):
         raise FileNotFoundError(f"{checkpoint_dir} is not a map-tokenizer checkpoint (no config.json)")
@@ -158,8 +183,7 @@ def load_tokenizer(checkpoint_dir: str) -> MapTokenizer:
         # Only shapes are needed to read an export: skip the (slow) random initialisation.
         model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0), raster_channels(config.raster)))
         graphdef, state = nnx.split(model, nnx.Param)
-        with np.load(npz) as f:
-            params = unflatten_params(nnx.to_pure_dict(state), dict(f))
+        params = load_params_npz(npz, nnx.to_pure_dict(state))  # ValueError naming npz when it is damaged
     else:
         model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0), raster_channels(config.raster)))
         graphdef, state = nnx.split(model, nnx.Param)

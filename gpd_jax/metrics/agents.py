@@ -177,7 +177,8 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
     t_total = gt_xy.shape[-3]
     fut = t_total - num_history
     if max(horizons) > fut:
-        raise ValueError(f"horizon {max(horizons)} frames exceeds the {fut} future frames given")
+        raise ValueError(f"horizon {max(horizons)} frames exceeds the {fut} future frames given (frames at another "
+                         "rate? pass a model's frames with horizons and dt, or agent_metrics(..., spec=model.spec))")
     sl = lambda a, axis: jax.lax.slice_in_dim(a, num_history, t_total, axis=a.ndim + axis)
     pxy, ph, gxy, gv = sl(pred_xy, -3), sl(pred_heading, -2), sl(gt_xy, -3), sl(gt_valid, -2)
     pv = gv if pred_valid is None else sl(pred_valid, -2)
@@ -305,8 +306,20 @@ _STATIC = ("num_history", "horizons", "variant", "dt", "stationary_below")
 _agent_metric_sums_jit = jax.jit(agent_metric_sums, static_argnames=_STATIC)
 
 
-def agent_metrics(*args, **kwargs) -> dict[str, dict[str, float]]:
-    """`reduce_agent_metrics(agent_metric_sums(...))` for one batch (same arguments as `agent_metric_sums`), jitted."""
+def agent_metrics(*args, spec=None, **kwargs) -> dict[str, dict[str, float]]:
+    """`reduce_agent_metrics(agent_metric_sums(...))` for one batch (same arguments as `agent_metric_sums`), jitted.
+
+    spec: a model's `ModelSpec` (`model.spec`) to score a rollout of that model at its frame rate: it sets
+    `num_history`, `horizons` (3 / 5 / 8 s as the model's frames) and `dt` unless they are given.
+
+        out = gpd_jax.rollout(model, scenes, "traffic_simulation")
+        view = model.prepare(scenes)
+        gpd_jax.metrics.agent_metrics(out.xy, out.heading, view.xy, view.valid, view.size, spec=model.spec)
+    """
+    if spec is not None:
+        kwargs.setdefault("num_history", spec.num_history)
+        kwargs.setdefault("horizons", spec.horizons)
+        kwargs.setdefault("dt", spec.frame_period_s)
     if "horizons" in kwargs:
         kwargs["horizons"] = tuple(kwargs["horizons"])
     return reduce_agent_metrics(_agent_metric_sums_jit(*args, **kwargs))

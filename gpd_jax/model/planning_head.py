@@ -15,7 +15,7 @@ Waypoint k is the running sum of the displacements, so positions start at the eg
 Frames: the head's output is in the ego frame of the frame whose tokens it read (origin at the ego's box
 centre, x along its heading); `to_scene_frame` (or `plan_trajectory(..., ego_pose)`) turns it into the scene
 frame. Output k (k = 0 .. F-1) is the ego at model frame t + 1 + k when the tokens are frame t's, at the
-model's frame rate (1 s for configs/gpd_sumo.py, so 8 frames = 8 s).
+model's frame rate (1 s for the shipped models, so 8 frames = 8 s).
 """
 
 from __future__ import annotations

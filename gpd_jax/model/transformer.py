@@ -18,27 +18,11 @@ fifth head predicts the next frame's velocity, which is fed back like positions.
 position head then regresses the residual over xy + velocity * frame period, so a model at a low frame rate
 extrapolates from current motion (as constant velocity at the stored rate does) instead of last frame's.
 
-Option `agent_map_context` (not in the paper): each agent token also gets the map of its surroundings, read
-from its own frame's map tokens: the embeddings of the 3 x 3 map cells around the agent's position in the
-frame's ego frame (cells outside the grid are zeros), the agent's offset inside its cell and its heading relative
-to the ego, through a small MLP whose last layer starts at zero (`local_map_context`). The plain model reaches
-the map only through attention from learned slot and grid embeddings; with the other scene's map tokens its
-agents lose little (the README's "Does the model use the map?"), so this gives every agent the cells it stands
-on directly.
-
-Option `agent_lane_context` (not in the paper): each agent token also gets the road ahead of it from the vector
-lane centrelines of the scene (`LaneContext`: the log's `Scene.polylines` in tasks that take the map from the log,
-a prompt's own lanes), where a frame's map is given: `gpd_jax.geometry.lane_trace` walks the lane the agent is on
-`lane_context_steps` x `lane_context_step_m` metres ahead, and the walk (points, lane headings and distances, in
-the agent's own frame) goes through a small MLP whose last layer starts at zero (`lane_context_features`). The
-map tokens of real roads decode poorly (the map tokenizer's README), and on them the plain model's moving agents
-keep the path of constant velocity; the lanes give every agent the road's curve without the tokenizer. Frames whose
-map is generated get no lane context (the log's lanes would leak the answer), and training drops it from a share
-of the scenes' future frames (`train.lane_context_drop`) so the model works both ways.
-
-Option `agent_lane_residual` (not in the paper; needs `velocity_residual`, no parameters of its own): where a
-frame's agents read lanes (as `agent_lane_context`, which it does not need), the heads regress the residual over
-an agent that keeps its lane instead of its straight line: the base position is where the agent lands after
+Option `agent_lane_residual` (not in the paper; needs `velocity_residual`, no parameters of its own): in the frames
+where the model reads vector lanes (`LaneContext`: the log's `Scene.polylines` in the history and in frames whose
+map is given, or a prompt's own lanes; frames whose map is generated get none, and training drops them from a share
+of the scenes' future frames, `train.lane_context_drop`), the heads regress the residual over an agent that keeps
+its lane instead of its straight line: the base position is where the agent lands after
 covering constant velocity's step along the lane it is on, keeping its offset from the lane
 (`gpd_jax.geometry.lane_follow`), and the base heading and velocity turn with the lane (`lane_base`). Agents
 farther than `gpd_jax.geometry.LANE_SNAP_M` from a lane, and frames without lanes, keep the constant-velocity base.
@@ -55,27 +39,18 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax.geometry import lane_follow, lane_trace, rotate
+from gpd_jax.geometry import lane_follow, rotate
 from gpd_jax.model.attention import KERNELS, attend_dynamic, attend_static, dense_block_causal
 from gpd_jax.scene import wrap_angle
 from gpd_jax.model.agent_tokenizer import AgentTokenizer, sinusoid_table
 
 
-# the map cells each agent reads with `agent_map_context`: (row, column) offsets from its own cell
-CONTEXT_CELLS = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1))
-
-
-# lane-context features per walk point: x, y (agent frame, scaled), cos / sin of the lane heading relative to the
-# agent's, distance to the lane (scaled, clipped), lane found
-LANE_POINT_FEATURES = 6
-
-
 @flax.struct.dataclass
 class LaneContext:
-    """The vector lanes agents read with `agent_lane_context` (one scene; vmap for batches).
+    """The vector lanes an `agent_lane_residual` model's agents keep to (one scene; vmap for batches).
 
     polylines: f32[L, P, 2] directed lane centrelines in the scene frame; valid: bool[L, P];
-    on: bool[F] per frame of the block being embedded, whether its agents get the lane context (frames whose map
+    on: bool[F] per frame of the block being predicted from, whether its agents read the lanes (frames whose map
     is given), broadcast against the block's frames.
     """
 
@@ -188,7 +163,7 @@ class GPD(nnx.Module):
         if self.velocity_residual and not self.predict_delta:
             raise ValueError("model.velocity_residual needs model.predict_delta")
         self.velocity_inputs = bool(cfg.velocity_inputs)
-        self.lane_residual = bool(cfg.get("agent_lane_residual", False))
+        self.lane_residual = bool(cfg.agent_lane_residual)
         if self.lane_residual and not self.velocity_residual:
             raise ValueError("model.agent_lane_residual needs model.velocity_residual (the step it moves along lanes)")
         self.frame_period_s = float(frame_period_s)
@@ -223,35 +198,16 @@ class GPD(nnx.Module):
         self.map_head = MLP((d, hh, k_codes), rngs)
         self.velocity_head = MLP((d, hh, 2), rngs) if self.velocity_inputs else None
         self.grid = grid
-        self.map_context = bool(cfg.get("agent_map_context", False))
-        if self.map_context:
-            # the map window the tokens cover (the map tokenizer's raster: 256 px x 0.25 m)
-            self.map_extent_m = float(cfg.get("map_extent_m", 64.0))
-            self.context_in = nnx.Linear(len(CONTEXT_CELLS) * d + 4, d, rngs=rngs)
-            self.context_ln = nnx.LayerNorm(d, rngs=rngs)
-            self.context_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
-        self.lane_context = bool(cfg.get("agent_lane_context", False))
-        self.lane_stride = int(cfg.get("lane_context_stride", 4))  # every 4th stored 1 m point: 4 m segments
-        if self.lane_context:
-            self.lane_steps = int(cfg.get("lane_context_steps", 6))
-            self.lane_step_m = float(cfg.get("lane_context_step_m", 5.0))
-            gap = cfg.get("lane_context_max_gap_m", None)  # walks leave a lane's clipped end (None: they stall)
-            self.lane_max_gap = None if gap is None else float(gap)
-            n_in = (self.lane_steps + 1) * LANE_POINT_FEATURES
-            self.lane_in = nnx.Linear(n_in, d, rngs=rngs)
-            self.lane_ln = nnx.LayerNorm(d, rngs=rngs)
-            self.lane_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
+        self.lane_stride = int(cfg.lane_context_stride)
 
     # ------------------------------------------------------------------ embedding
-    def embed(self, xy, heading, valid, map_tokens, frames, velocity=None, lanes: LaneContext | None = None):
+    def embed(self, xy, heading, valid, map_tokens, frames, velocity=None):
         """Tokens of a block of frames.
 
         Args:
           xy: f32[F, A, 2], heading: f32[F, A], valid: bool[F, A], map_tokens: i32[F, M],
           frames: i32[F] absolute frame indices (for the frame embedding),
           velocity: f32[F, A, 2] (m/s), required by a `velocity_inputs` model and ignored otherwise.
-          lanes: the lanes an `agent_lane_context` model's agents read (ignored by other models); None: no frame
-            has them (as where the map is generated).
         Returns:
           f32[F, N, d] with N = M + A, map tokens first.
         """
@@ -261,75 +217,10 @@ class GPD(nnx.Module):
             maps = self.map_in(jnp.take(self.codebook[...], map_tokens, axis=0))
         else:
             maps = self.map_embed(map_tokens)
-        if self.map_context:
-            agents = agents + self.local_map_context(xy, heading, valid, maps)
-        if self.lane_context and lanes is not None:
-            agents = agents + self.lane_context_features(xy, heading, valid, lanes)
         agents = jnp.where(valid[..., None], agents, self.oob[...])
         maps = maps + self.grid_mlp(self.grid_code[...])
         tokens = jnp.concatenate([maps, agents], axis=-2)
         return tokens + self.slot_emb[...] + jnp.take(self.frame_emb[...], frames, axis=0)[:, None, :]
-
-    def local_map_context(self, xy, heading, valid, maps):
-        """f32[F, A, d] what each agent's surroundings add to its token (`agent_map_context`).
-
-        xy f32[F, A, 2], heading f32[F, A], valid bool[F, A] are the frame's inputs (slot 0 is the ego, whose pose
-        the frame's map tokens are expressed in: the raster convention of `gpd_jax.map_tokenizer.raster`, rows
-        from the front, columns from the left); maps f32[F, M, d] the map tokens' embeddings (before the grid
-        code). Zeros for invalid agents, agents of frames whose ego is invalid, and agents outside the window.
-        """
-        g, cell = self.grid, self.map_extent_m / self.grid
-        half = self.map_extent_m / 2
-        # invalid slots may hold anything (NaN too): zero them before any arithmetic, gradients included
-        xy = jnp.where(valid[..., None], xy, 0.0)
-        heading = jnp.where(valid, heading, 0.0)
-        c, s = jnp.cos(heading[:, :1]), jnp.sin(heading[:, :1])
-        d = xy - xy[:, :1]
-        x = c * d[..., 0] + s * d[..., 1]
-        y = -s * d[..., 0] + c * d[..., 1]
-        r, col = (half - x) / cell, (half - y) / cell  # f32[F, A] in cells
-        ri, ci = jnp.floor(r), jnp.floor(col)
-        offs = jnp.asarray(CONTEXT_CELLS, jnp.float32)  # [9, 2]
-        rows = ri[..., None] + offs[:, 0]
-        cols = ci[..., None] + offs[:, 1]
-        inside = (rows >= 0) & (rows < g) & (cols >= 0) & (cols < g)  # [F, A, 9]
-        idx = (jnp.clip(rows, 0, g - 1) * g + jnp.clip(cols, 0, g - 1)).astype(jnp.int32)
-        cells = jax.vmap(lambda m, i: jnp.take(m, i, axis=0))(maps, idx)  # [F, A, 9, d]
-        cells = jnp.where(inside[..., None], cells, 0.0)
-        rel = heading - heading[:, :1]
-        feats = jnp.concatenate([cells.reshape(*cells.shape[:2], -1),
-                                 jnp.stack([r - ri - 0.5, col - ci - 0.5, jnp.cos(rel), jnp.sin(rel)], -1)], -1)
-        out = self.context_out(jax.nn.relu(self.context_ln(self.context_in(feats))))
-        keep = valid & valid[:, :1] & jnp.any(inside, axis=-1)
-        return jnp.where(keep[..., None], out, 0.0)
-
-    def lane_walk_features(self, xy, heading, valid, lanes: LaneContext):
-        """f32[F, A, (steps + 1) * LANE_POINT_FEATURES] the lane walk of every agent (`agent_lane_context`) in
-        its own frame: per walk point x / 10 m, y / 5 m, cos and sin of the lane heading minus the agent's,
-        min(distance, 10 m) / 5 m and 1 where a lane was found; zeros for invalid agents and frames without lanes.
-        No gradient flows through the lanes or the query poses (they are inputs)."""
-        xy = jax.lax.stop_gradient(jnp.where(valid[..., None], xy, 0.0))
-        heading = jax.lax.stop_gradient(jnp.where(valid, heading, 0.0))
-        pts, lane_h, dist = lane_trace(lanes.polylines, lanes.valid, xy, heading, self.lane_step_m,
-                                       self.lane_steps, stride=self.lane_stride,
-                                       max_gap_m=self.lane_max_gap)
-        c, s = jnp.cos(heading)[..., None], jnp.sin(heading)[..., None]
-        rel = pts - xy[..., None, :]
-        x = c * rel[..., 0] + s * rel[..., 1]
-        y = -s * rel[..., 0] + c * rel[..., 1]
-        dh = lane_h - heading[..., None]
-        found = jnp.isfinite(dist)
-        feats = jnp.stack([x / 10.0, y / 5.0, jnp.cos(dh), jnp.sin(dh),
-                           jnp.minimum(jnp.where(found, dist, 10.0), 10.0) / 5.0, found.astype(jnp.float32)], -1)
-        feats = jnp.where(found[..., None], feats, 0.0).reshape(*xy.shape[:-1], -1)
-        keep = valid & jnp.broadcast_to(jnp.asarray(lanes.on, bool).reshape(-1, 1), valid.shape)
-        return jnp.where(keep[..., None], feats, 0.0), keep
-
-    def lane_context_features(self, xy, heading, valid, lanes: LaneContext):
-        """f32[F, A, d] what the lane walk adds to each agent's token (zeros where it has none)."""
-        feats, keep = self.lane_walk_features(xy, heading, valid, lanes)
-        out = self.lane_out(jax.nn.relu(self.lane_ln(self.lane_in(feats))))
-        return jnp.where(keep[..., None], out, 0.0)
 
     # ------------------------------------------------------------------ heads
     def input_velocity(self, velocity):
@@ -343,8 +234,8 @@ class GPD(nnx.Module):
 
     @property
     def reads_lanes(self) -> bool:
-        """Whether the model reads vector lanes (`agent_lane_context` or `agent_lane_residual`)."""
-        return self.lane_context or self.lane_residual
+        """Whether the model reads vector lanes (`agent_lane_residual`)."""
+        return self.lane_residual
 
     def predict(self, hidden, xy, heading, valid, prev_xy=None, prev_valid=None, velocity=None,
                 lanes: LaneContext | None = None) -> Prediction:
@@ -480,7 +371,7 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
 
 def reads_lanes(model_config) -> bool:
     """Whether a model of `model_config` reads vector lanes (`GPD.reads_lanes`, from the config alone)."""
-    return bool(model_config.get("agent_lane_context", False)) or bool(model_config.get("agent_lane_residual", False))
+    return bool(model_config.agent_lane_residual)
 
 
 def count_params(model: nnx.Module) -> int:

@@ -1,4 +1,4 @@
-"""Stage-2 training: GPD on a data store with map tokens (`python train.py --config configs/gpd_sumo.py ...`).
+"""Stage-2 training: GPD on a data store with map tokens (`python train.py --config configs/gpd_tiny.py ...`).
 
 * Data: `gpd_jax.data.loader.make_loader` (grain; seeded shuffle, a new permutation per epoch), every batch cut
   to the model's frames and agent slots with `Scene.subsample(config.data.frame_stride, ...)`. `data.dir` is one
@@ -38,15 +38,13 @@ import time
 from typing import Any, Callable, Sequence
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
-import orbax.checkpoint as ocp
 import tqdm
-from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from gpd_jax.checkpoint import build_model, export_model, load_model, model_spec, resolve_tokenizer_path
+from gpd_jax.checkpoint import (build_model, export_model, load_model, model_spec, resolve_tokenizer_path,
+                                tokenizer_reference)
 from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data import store
@@ -57,8 +55,7 @@ from gpd_jax.map_tokenizer import load_tokenizer
 from gpd_jax.model import count_params, reads_lanes
 from gpd_jax.parallel import data_mesh
 from gpd_jax.scene import Scene
-from gpd_jax.spec import ModelSpec, spec_from_config
-from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, graft_params, restore_state,
+from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, restore_state,
                                      save_state)
 from gpd_jax.training.step import TrainState, make_trainer, training_scene
 from gpd_jax.training.validation import Validators
@@ -84,7 +81,7 @@ def store_dirs(data_dir: str) -> list[str]:
 def validation_dirs(config: ml_collections.ConfigDict, data_dir: str) -> list[str]:
     """Where validation reads `data.val_split`: the stores of `data.val_dir` (one, or several separated by
     commas) if set, else the (first) training store."""
-    val = str(config.data.get("val_dir") or "")
+    val = str(config.data.val_dir)
     if not val:
         return [store_dirs(data_dir)[0]]
     return [resolve_data_dir(v.strip()) for v in val.split(",") if v.strip()]
@@ -134,50 +131,36 @@ def _check_token_source(data_dir: str, splits: Sequence[str], tokenizer_dir: str
                             f"{tokenizer_dir} --data {data_dir}")
 
 
-def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> None:
+def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> str:
     """`_check_token_source` for the training split of every store of `data_dir` (one or a mixture's) and, when
-    the run validates, for the validation split where validation reads it (`validation_dir`)."""
+    the run validates, for the validation split where validation reads it (`validation_dir`). Sets
+    `config.model.map_tokenizer` to what the run records (`tokenizer_reference`) and returns the tokenizer's
+    folder ("" for a model without one)."""
+    if not config.model.map_tokenizer:
+        return ""
+    config.model.map_tokenizer = tokenizer_reference(config.model.map_tokenizer)
+    tok_dir = resolve_tokenizer_path(config.model.map_tokenizer)
     for d in store_dirs(data_dir):
-        _check_token_source(d, (config.data.train_split,), config.model.map_tokenizer)
+        _check_token_source(d, (config.data.train_split,), tok_dir)
     if int(config.train.eval_every) > 0:
         for d in validation_dirs(config, data_dir):
-            _check_token_source(d, (config.data.val_split,), config.model.map_tokenizer)
+            _check_token_source(d, (config.data.val_split,), tok_dir)
+    return tok_dir
 
 
-# Model options a fine-tune may switch on over a model trained without them: their parameters start fresh, and
-# at their initialisation (a last layer at zero) the model computes exactly what the source model does (except
-# `agent_lane_residual`, which adds no parameters and moves the source heads' base along the lanes).
-# (switch, the settings that come with it, a substring of the names of the parameters it adds)
-ADDABLE_OPTIONS = (("agent_map_context", ("map_extent_m",), "context_"),
-                   ("agent_lane_context", ("lane_context_steps", "lane_context_step_m", "lane_context_stride",
-                                           "lane_context_max_gap_m"),
-                    "lane_"),
-                   ("agent_lane_residual", ("lane_context_stride",), None))  # no parameters: the heads' base moves
-
-
-def initial_params(path: str, config, template=None):
-    """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its
-    model config must equal `config.model` (the map tokenizer's path aside), except that options of
-    `ADDABLE_OPTIONS` may be on here and off there: then `template` (this config's freshly initialised params)
-    keeps the new parameters and takes every other leaf from the source."""
+def initial_params(path: str, config):
+    """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its model
+    config must equal `config.model`, except for the map tokenizer (a model moved onto re-fitted tokens of the
+    same shape) and `agent_lane_residual`, which adds no parameters (it moves the heads' base along the lanes) and
+    may be on here and off there."""
     src = load_model(path)
-    added = [opt for opt in ADDABLE_OPTIONS
-             if bool(config.model.get(opt[0], False)) and not src.config.model.get(opt[0], False)]
-    ignore = ("map_tokenizer",) + tuple(k for name, extra, _ in added for k in (name,) + extra)
+    ignore = ("map_tokenizer",)
+    if config.model.agent_lane_residual and not src.config.model.agent_lane_residual:
+        ignore += ("agent_lane_residual",)
     diff = config_differences(config.model, src.config.model, ignore=ignore)
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-    marks = tuple(mark for _, _, mark in added if mark)  # options with parameters of their own
-    if not marks:
-        return src.params
-    if template is None:
-        raise ValueError(f"initial_params: adding {[a[0] for a in added]} needs the new model's params as a "
-                         "template")
-    out, missing = graft_params(template, src.params,
-                                lambda p: any(m in jax.tree_util.keystr(p) for m in marks))
-    if missing:
-        raise ValueError(f"train.init_from {path}: no parameters for {missing[:5]}")
-    return out
+    return src.params
 
 
 # ----------------------------------------------------------------------------------------------- training
@@ -191,7 +174,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     """Trains the GPD of `config` in `workdir`, resuming from its latest checkpoint.
 
     Args:
-      config: a full config (configs/gpd_sumo.py); `config.data.dir` names the data store.
+      config: a full config (`gpd_jax.config.gpd_config()`, configs/*.py); `config.data.dir` names the data store.
       workdir: checkpoints, `config.json`, `metrics.jsonl`, `export/` go here.
       stop_after: stop (with a checkpoint) after this many steps of *this* invocation, as if interrupted; the
         schedule still follows `train.steps`, so a later call resumes the same run.
@@ -202,9 +185,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     """
     tc = config.train
     data_dir, n_train, mesh, pindex = prepare_run(config)
-    if config.model.map_tokenizer:
-        config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
-        check_token_sources(config, data_dir)
+    check_token_sources(config, data_dir)
 
     lead = pindex == 0
     os.makedirs(workdir, exist_ok=True)
@@ -225,7 +206,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if mgr.latest_step() is not None:
         state = TrainState(**restore_state(mgr, state._asdict()))
     elif tc.init_from:
-        state = trainer.init_state(initial_params(str(tc.init_from), config, nnx.state(model, nnx.Param)))
+        state = trainer.init_state(initial_params(str(tc.init_from), config))
     start = int(state.step)
     replicated = NamedSharding(mesh, PartitionSpec())
     state = jax.device_put(state, replicated)
@@ -317,6 +298,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     Returns {"step", "train": last logged train metrics, "eval": last evaluation, "export": dir or None}."""
     tc = config.train
     bs, pcount, pindex = int(tc.batch_size), jax.process_count(), jax.process_index()
+    tok_dir = resolve_tokenizer_path(config.model.map_tokenizer) if config.model.map_tokenizer else ""
     lanes = reads_lanes(config.model)  # its agents read the lane polylines
     it = None if next_batch is not None else data_loader.make_loader(
         data_dir, config.data.train_split, bs // pcount, seed=int(config.seed), process_index=pindex,
@@ -325,7 +307,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     end = total if stop_after is None else min(total, start + int(stop_after))
     last_train: dict[str, float] = {}
     last_eval: dict[str, float] = {}
-    best = BestTracker(workdir, str(tc.get("best_metric", "") or ""), enabled=lead and validate is not None)
+    best = BestTracker(workdir, str(tc.best_metric), enabled=lead and validate is not None)
     bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True, mininterval=2.0, disable=quiet or not lead,
                     desc=desc)
 
@@ -335,13 +317,12 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
         if lead:
             bar.write(f"step {step} val: " + summary(ev))
         if best.update(step, ev):
-            export_model(jax.device_get(params), config, best.export_dir,
-                         tokenizer_dir=config.model.map_tokenizer or None)
+            export_model(jax.device_get(params), config, best.export_dir, tokenizer_dir=tok_dir or None)
             best.commit()
             bar.write(f"step {step}: best {best.metric} so far ({best.value:.4g}) -> {best.export_dir}")
         return ev
 
-    if validate is not None and start == 0 and bool(tc.get("eval_at_start", False)):
+    if validate is not None and start == 0 and bool(tc.eval_at_start):
         last_eval = evaluate(0, state.params)  # a fine-tune's starting point: its best may be where it started
     step = start
     window_t, window_n = time.perf_counter(), 0
@@ -385,7 +366,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     exported = None
     if step == total and lead:
         exported = export_model(jax.device_get(state.params), config, os.path.join(workdir, "export"),
-                                tokenizer_dir=config.model.map_tokenizer or None)
+                                tokenizer_dir=tok_dir or None)
     if stop.requested and lead:
         print(f"stopped at step {step}; run the same command again to resume")
     return {"step": step, "train": last_train, "eval": last_eval, "export": exported}

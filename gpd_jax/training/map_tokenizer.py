@@ -1,11 +1,9 @@
 """Stage 1: training the map tokenizer (VQ-VAE + DETR lane decoder).
 
-`train_and_evaluate(config, workdir)` is what `python train.py --config configs/map_tokenizer_*.py --workdir DIR`
+`train_and_evaluate(config, workdir)` is what `python train.py --config configs/map_tokenizer.py:VARIANT --workdir DIR`
 runs. Per step: a batch of random (sample, frame) pairs is rasterized around the frame's ego pose inside the
 jitted step, encoded, quantized, decoded to 50 lines, Hungarian-matched to the SLEDGE vector lanes of that
-frame, and trained with 2 L1 + 5 BCE + VQ loss (with `loss.every_layer`, the line loss is summed over the
-outputs of every decoder layer through the shared heads, each matched on its own: DETR's auxiliary
-decoding). AdamW with the codebook at its own learning rate, linear warm-up then cosine decay, global-norm
+frame, and trained with 2 L1 + 5 BCE + VQ loss. AdamW with the codebook at its own learning rate, linear warm-up then cosine decay, global-norm
 clipping. The codebook is initialised by k-means on encoder outputs
 (at `train.kmeans_at_step`), and codes whose running usage falls below `restart_threshold / K` are re-seeded
 from recent encoder outputs every `restart_every` steps. With `train.continuous_warmup` the decoder reads the
@@ -35,10 +33,11 @@ from gpd_jax.data.loader import parse_mixture
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import core, load_tokenizer
 from gpd_jax.map_tokenizer.data import frame_batches
-from gpd_jax.map_tokenizer.evaluation import evaluate, is_quantized, make_eval_step, rasterize_batch
+from gpd_jax.map_tokenizer.evaluation import make_eval_step, rasterize_batch, tokenizer_metrics
 from gpd_jax.map_tokenizer.model import MapVQVAE
 from gpd_jax.map_tokenizer.raster import raster_channels
-from gpd_jax.training.common import MetricsLog, checkpoint_manager, restore_state, save_state
+from gpd_jax.training.common import (MetricsLog, checkpoint_manager, compiled_once, restore_state, save_state,
+                                     step_key)
 
 
 class TrainState(NamedTuple):
@@ -85,10 +84,9 @@ def loss_fn(graphdef, config, params, batch, quantized: bool | jax.Array = True)
     raster = rasterize_batch(config, batch)
     if config.train.decoder_only:  # no gradient work for the frozen encoder and codebook
         params = {k: jax.lax.stop_gradient(v) if k in FROZEN_WHEN_DECODER_ONLY else v for k, v in params.items()}
-    every_layer = bool(config.loss.every_layer)
-    out = core.forward(graphdef, params, raster, every_layer, quantized)
-    lines, aux = (core.deep_line_loss if every_layer else core.line_loss)(
-        out["points"], out["logits"], batch["lanes"], batch["lanes_valid"], config.loss.w_l1, config.loss.w_bce)
+    out = core.forward(graphdef, params, raster, quantized)
+    lines, aux = core.line_loss(out["points"], out["logits"], batch["lanes"], batch["lanes_valid"], config.loss.w_l1,
+                                config.loss.w_bce)
     total = lines + config.loss.vq_weight * out["vq_loss"]
     return total, dict(loss=total, l1=aux["l1"], bce=aux["bce"], vq=out["vq_loss"], idx=out["idx"], z=out["z"])
 
@@ -99,10 +97,9 @@ def make_train_step(graphdef, config, tx):
 
     # With continuous warm-up the decoder reads the encoder's continuous outputs until k-means has run.
     warmup = bool(config.train.continuous_warmup)
-    probe = not is_quantized(config)  # the continuous autoencoder probe (train.quantize=False)
 
     def train_step(state: TrainState, batch):
-        quantized = False if probe else (state.kmeans_done if warmup else True)
+        quantized = state.kmeans_done if warmup else True
         grad_fn = jax.value_and_grad(lambda p: loss_fn(graphdef, config, p, batch, quantized), has_aux=True)
         (_, aux), grads = grad_fn(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -115,6 +112,13 @@ def make_train_step(graphdef, config, tx):
         return state._replace(step=state.step + 1, params=params, opt_state=opt_state, usage=usage), metrics, z
 
     return train_step
+
+
+def compiled_steps(graphdef, config, tx):
+    """(train step, eval step), jitted once per model structure and step-relevant config (`compiled_once`)."""
+    return compiled_once(("map_tokenizer", graphdef, step_key(config)),
+                         lambda: (jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,)),
+                                  jax.jit(make_eval_step(graphdef))))
 
 
 def kmeans_init(graphdef, params, config, key, batches: Iterator[dict]):
@@ -158,9 +162,6 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     (its attention output and second FFN projections are zero, the rest freshly initialised), so training
     starts from the source's reconstructions, with its tokens, and only gains capacity. `fresh`: freshly
     initialised params of `config`'s model to take the added layers from (built here when not given).
-
-    `train.init_decoder = False` takes only the encoder and codebook from the source and keeps `fresh`'s decoder,
-    whatever its size (with `train.decoder_only`: the source's tokens and a new decoder trained on them).
     """
     src = load_tokenizer(path)
     mine, theirs = raster_channels(config.raster), raster_channels(src.config.raster)
@@ -171,14 +172,6 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), src.params)
     if mine > theirs:
         params = _with_direction_channels(params, mine)
-    if not config.train.get("init_decoder", True):
-        # only the encoder and codebook (the tokens) come from the source; the decoder, of any size, starts fresh
-        diff = config_differences(config.model, src.config.model, ignore=("decoder",))
-        if diff:
-            raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-        if fresh is None:
-            _, fresh = build_model(config)
-        return {**params, "decoder": fresh["decoder"]}
     extra = _added_decoder_layers(config, src.config, path)
     if not extra:
         return params
@@ -221,9 +214,11 @@ def _added_decoder_layers(config, src_config, path: str) -> int:
     return extra
 
 
-def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[str, float]:
-    """Trains the map tokenizer described by `config` in `workdir` (resuming from its latest checkpoint) and
-    returns the last evaluation's metrics."""
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_after: int | None = None
+                       ) -> dict[str, float]:
+    """Trains the map tokenizer described by `config` in `workdir` (resuming from its latest checkpoint; with
+    `stop_after`, stopping with a checkpoint after that many steps of this call) and returns the last evaluation's
+    metrics."""
     os.makedirs(workdir, exist_ok=True)
     atomic_write_text(os.path.join(workdir, "config.json"), config.to_json(indent=2))
     log = MetricsLog(workdir, tensorboard=False)
@@ -249,20 +244,19 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
                                shuffle=True, repeat=True)
 
     # validation reads data.eval_dir, else the (first) training store
-    eval_dir = config.data.get("eval_dir") or parse_mixture(config.data.dir)[0][0]
+    eval_dir = config.data.eval_dir or parse_mixture(config.data.dir)[0][0]
 
     def eval_batches():
         return frame_batches(config, config.data.eval_split, tcfg.batch_size, seed=12345, shuffle=True,
                              repeat=False, max_batches=tcfg.eval_batches, data_dir=eval_dir)
 
-    train_step = jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,))
-    eval_step = jax.jit(make_eval_step(graphdef, quantized=is_quantized(config)))
+    train_step, eval_step = compiled_steps(graphdef, config, tx)
     restart = jax.jit(core.restart_dead_codes, static_argnums=(4,))
 
     last_eval: dict[str, float] = {}
     window_t, window_n = time.perf_counter(), 0
-    bar = tqdm.tqdm(range(start, tcfg.num_steps), initial=start, total=tcfg.num_steps, dynamic_ncols=True,
-                    mininterval=5.0)
+    end = tcfg.num_steps if stop_after is None else min(tcfg.num_steps, start + int(stop_after))
+    bar = tqdm.tqdm(range(start, end), initial=start, total=tcfg.num_steps, dynamic_ncols=True, mininterval=5.0)
     for step in bar:
         if not bool(state.kmeans_done) and step >= tcfg.kmeans_at_step:
             p = kmeans_init(graphdef, state.params, config, jax.random.fold_in(key, 1), train_iter)
@@ -289,11 +283,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
             bar.set_postfix(loss=f"{m['loss']:.3f}", l1=f"{m['l1']:.2f}", sps=f"{m['samples_per_s']:.1f}")
             log.record(dict(step=s1, split="train", **m))
         if s1 % tcfg.eval_every == 0 or s1 == tcfg.num_steps:
-            last_eval = evaluate(graphdef, state.params, config, eval_batches(), eval_step)
+            last_eval = tokenizer_metrics(graphdef, state.params, config, eval_batches(), eval_step)
             log.record(dict(step=s1, split=config.data.eval_split, **last_eval))
             bar.write(f"step {s1} eval: " + ", ".join(f"{k}={v:.4g}" for k, v in last_eval.items()
                                                        if isinstance(v, (int, float))))
-        if s1 % tcfg.checkpoint_every == 0 or s1 == tcfg.num_steps:
+        if s1 % tcfg.checkpoint_every == 0 or s1 in (tcfg.num_steps, end):
             save_state(mgr, s1, _to_tree(state))
     mgr.wait_until_finished()
     return last_eval

@@ -1,7 +1,7 @@
 """Fine-tuning GPD for planning: the paper's single decoder layer on the ego token (`gpd_jax.model.planning_head`)
-trained on the logged ego's future (`python train.py --config configs/gpd_sumo_plan_head.py ...`).
+trained on the logged ego's future (`python train.py --config configs/gpd_planner.py ...`).
 
-A config with a `plan_head` section (configs/gpd_sumo_plan_head.py) builds the GPD with the head attached
+A config with a `plan_head` section (configs/gpd_planner.py) builds the GPD with the head attached
 (`gpd_jax.checkpoint.build_model`); `train.py` then runs `train_and_evaluate` here instead of the stage-2 loop.
 
 * Targets: for every frame t from `plan_head.first_frame` (default: the current frame, H - 1) to T - 2, the
@@ -17,10 +17,10 @@ A config with a `plan_head` section (configs/gpd_sumo_plan_head.py) builds the G
   always trains at `train.learning_rate` (AdamW, warm-up + cosine, clipping: `step.make_optimizer`). With a
   frozen backbone, `train.cache_features` runs it once per training and validation scene (`cache_features`:
   `PlanFeatures` in host memory) and the steps run the head alone on batches drawn by `feature_batches`
-  (configs/gpd_sumo_plan_head_frozen.py).
-* Initialisation: `train.init_from` (an exported GPD or a workdir: the shipped `checkpoints/gpd_sumo`) gives
+  (configs/gpd_planner.py:frozen).
+* Initialisation: `train.init_from` (an exported GPD or a workdir) gives
   the backbone's parameters and must have the same `model` config; empty trains everything from scratch (the
-  paper's "without pre-training" ablation, configs/gpd_sumo_plan_head_scratch.py).
+  paper's "without pre-training" ablation, configs/gpd_planner.py:scratch).
 * Checkpoints, resume, SIGTERM, metrics.jsonl and the export to WORKDIR/export work as in the stage-2 loop
   (`gpd_jax.training.loop`); validation every `train.eval_every` steps over `train.eval_batches` batches of
   `data.val_dir` (default: the first store of `data.dir`) / `data.val_split`: the loss and the ego ADE / FDE of
@@ -48,7 +48,7 @@ import tqdm
 from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
-from gpd_jax.checkpoint import Model, build_model, load_model, model_spec, resolve_tokenizer_path
+from gpd_jax.checkpoint import Model, build_model, load_model, model_spec
 from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data.errors import DataError
@@ -57,7 +57,8 @@ from gpd_jax.model import count_params, forward
 from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.spec import EvalError
-from gpd_jax.training.common import MetricsLog, checkpoint_manager, graft_params, restore_state
+from gpd_jax.training.common import (MetricsLog, checkpoint_manager, compiled_once, graft_params, restore_state,
+                                     step_key)
 from gpd_jax.training.loop import check_token_sources, prepare_run, run_steps, store_dirs, validation_dir
 from gpd_jax.training.step import TrainState, _smooth_l1, batch_loss, make_optimizer
 
@@ -190,7 +191,7 @@ def _features_jit(graphdef, params, rest, scenes: Scene):
 def cache_features(model, config, data_dir: str, split: str, batch_size: int = 32,
                    quiet: bool = False) -> PlanFeatures:
     """Teacher-forced backbone outputs and plan targets of every scene of `data_dir/split` (numpy, host memory:
-    S x K x N x d floats, 0.33 MB per scene for configs/gpd_sumo.py), for a frozen backbone."""
+    S x K x N x d floats, 0.33 MB per scene for the shipped models' size), for a frozen backbone."""
     first = first_frame(config)
     spec = model_spec(config)
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
@@ -255,28 +256,35 @@ class PlanTrainer:
         if features and not frozen:
             raise ValueError("train.cache_features needs a frozen backbone (train.backbone_lr_scale = 0): cached "
                              "backbone outputs go stale when the backbone moves")
-        graphdef, rest = self.graphdef, self.rest
-        batch_loss_fn = feature_batch_loss if features else plan_batch_loss
-
-        def loss_of(p, batch):
-            if frozen:  # no gradient into the backbone: XLA drops its backward pass
-                p = jax.tree_util.tree_map_with_path(lambda k, x: x if is_head_path(k) else
-                                                     jax.lax.stop_gradient(x), p)
-            return batch_loss_fn(nnx.merge(graphdef, p, rest), batch, config)
-
-        def train_step(state: TrainState, scenes: Scene):
-            (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)
-            updates, opt_state = self.tx.update(grads, state.opt_state, state.params)
-            parts["grad_norm"] = optax.tree.norm(grads)
-            return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates),
-                              opt_state=opt_state), parts
-
-        self.train_step = jax.jit(train_step, donate_argnums=(0,) if donate else ())
-        self.eval_step = jax.jit(lambda p, scenes: loss_of(p, scenes)[1])
+        steps = compiled_once(("plan_head", self.graphdef, step_key(config), donate, features),
+                              lambda: _plan_steps(self.graphdef, config, self.tx, frozen, features, donate))
+        self.train_step = lambda state, batch: steps[0](state, batch, self.rest)
+        self.eval_step = lambda params, batch: steps[1](params, batch, self.rest)
         self.initial_params = params
 
     def init_state(self, params) -> TrainState:
         return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=self.tx.init(params))
+
+
+def _plan_steps(graphdef, config, tx, frozen: bool, features: bool, donate: bool):
+    """The jitted (train step, eval step) of `PlanTrainer`: (state, batch, rest) -> (state, metrics) and
+    (params, batch, rest) -> metrics (the frozen state `rest` an argument, so runs share them: `compiled_once`)."""
+    batch_loss_fn = feature_batch_loss if features else plan_batch_loss
+
+    def loss_of(p, rest, batch):
+        if frozen:  # no gradient into the backbone: XLA drops its backward pass
+            p = jax.tree_util.tree_map_with_path(lambda k, x: x if is_head_path(k) else jax.lax.stop_gradient(x), p)
+        return batch_loss_fn(nnx.merge(graphdef, p, rest), batch, config)
+
+    def train_step(state: TrainState, batch, rest):
+        (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, rest, batch)
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        parts["grad_norm"] = optax.tree.norm(grads)
+        return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates),
+                          opt_state=opt_state), parts
+
+    return (jax.jit(train_step, donate_argnums=(0,) if donate else ()),
+            jax.jit(lambda p, batch, rest: loss_of(p, rest, batch)[1]))
 
 
 def pretrained_params(path: str, config, template):
@@ -350,14 +358,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     """Trains the planning head of `config` (and the backbone, unless frozen) in `workdir`, resuming from its
     latest checkpoint. Same arguments and return value as `gpd_jax.training.loop.train_and_evaluate`."""
     tc = config.train
-    if not config.get(HEAD):
-        raise ValueError("the config has no plan_head section (configs/gpd_sumo_plan_head.py)")
+    if HEAD not in config:
+        raise ValueError("the config has no plan_head section (configs/gpd_planner.py)")
     data_dir, n_train, mesh, pindex = prepare_run(config)
     val_dir = validation_dir(config, data_dir)
     first_frame(config)
-    if config.model.map_tokenizer:
-        config.model.map_tokenizer = resolve_tokenizer_path(config.model.map_tokenizer)
-        check_token_sources(config, data_dir)
+    check_token_sources(config, data_dir)
 
     lead = pindex == 0
     os.makedirs(workdir, exist_ok=True)
@@ -374,7 +380,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
 
     spec = model_spec(config)
     model = build_model(config)
-    use_features = bool(tc.get("cache_features", False))
+    use_features = bool(tc.cache_features)
     trainer = PlanTrainer(model, config, features=use_features)
     state = trainer.init_state(trainer.initial_params)
     mgr = checkpoint_manager(workdir, int(tc.keep_checkpoints))
@@ -444,10 +450,10 @@ def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Mod
     frame ("plan_head"), the zero-shot GPD's `motion_planning` rollout of `baseline` (map and agents from the
     log, the ego generated; "gpd_motion_planning") and constant velocity at the stored rate.
 
-    view: Scene [S, ...] in the model's view with map tokens (`gpd_jax.prepare`); full: the same scenes at the
+    view: Scene [S, ...] in the model's view with map tokens (`Model.prepare`); full: the same scenes at the
     stored rate. Raises EvalError if the baseline reads other frames. Returns {predictor: {horizon label: {ego_ade, ego_fde, ego_collision}}}.
     """
-    from gpd_jax.decoding import rollout_jit
+    from gpd_jax.decoding import rollout_model
     from gpd_jax.evaluation.scoring import baseline_predictions
     from gpd_jax.tasks import make_tasks
     from gpd_jax.metrics.agents import accumulate, agent_metric_sums, reduce_agent_metrics
@@ -480,9 +486,7 @@ def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Mod
                 raise EvalError("the baseline GPD reads other frames than the plan-head model")
             tasks = jax.tree.map(jnp.asarray, make_tasks(["motion_planning"], bspec.num_map_tokens,
                                                          bspec.num_agents))
-            bv = jax.tree.map(jnp.asarray, bspec.view(fb).replace(polylines=None, polyline_valid=None))
-            out = rollout_jit(baseline.graphdef, baseline.params, baseline.rest, bv, tasks,
-                              jax.random.fold_in(key, lo), h, float(baseline.config.rollout.temperature))
+            out = rollout_model(baseline, baseline.prepare(fb), tasks, jax.random.fold_in(key, lo))
             bxy, bh = np.array(v.xy), np.array(v.heading)  # the baseline may read fewer agent slots
             bxy[:, h:, 0], bh[:, h:, 0] = np.asarray(out.xy[:, 0, h:, 0]), np.asarray(out.heading[:, 0, h:, 0])
             score("gpd_motion_planning", bxy, bh, v)
@@ -493,18 +497,9 @@ def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Mod
             for name, s in sums.items()}
 
 
-def model_view(model: Model, full: Scene, where: str) -> Scene:
-    """`model.spec.view(full)`, refusing scenes without map tokens at the model's frames (encode them first)."""
-    view = model.spec.view(full)
-    if not np.all(view.map_valid):
-        raise DataError(where, "no map tokens at some of the model's frames; encode them: python -m "
-                        f"gpd_jax.map_tokenizer encode --data DIR --frame-stride {model.spec.frame_stride}")
-    return view
-
-
 def main(argv=None) -> int:
     """`python -m gpd_jax.training.planning evaluate --checkpoint DIR [DIR ...] --data STORE [--split val]
-    [--baseline checkpoints/gpd_sumo] [--num N] [--out JSON]`: open-loop ego ADE / FDE of plan-head models."""
+    [--baseline NAME_OR_DIR] [--num N] [--out JSON]`: open-loop ego ADE / FDE of plan-head models."""
     p = argparse.ArgumentParser(prog="python -m gpd_jax.training.planning", description=main.__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("evaluate", help="open-loop ego ADE / FDE of plan heads, zero-shot GPD, constant velocity")
@@ -525,8 +520,7 @@ def main(argv=None) -> int:
             raise FileNotFoundError(f"split {args.split!r} not found in {args.data}")
         n = len(data_loader.SplitSource(args.data, args.split))
         full = data_loader.load_split(args.data, args.split, indices=range(n if args.num is None else min(n, args.num)))
-        views = {c: model_view(m, full, f"{args.data}/{args.split}") for c, m in models.items()}
-        model_view(baseline, full, f"{args.data}/{args.split}")
+        views = {c: m.prepare(full) for c, m in models.items()}
     except (FileNotFoundError, ValueError, DataError) as err:  # EvalError is a ValueError
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -22,13 +22,7 @@ expected length is the geometric median of the futures, where smooth-L1 (quadrat
 towards their mean below a metre: for a car stopped at a light that mostly stays and sometimes goes, the mean
 creeps forward every frame and the median stays put.
 
-`loss.moving_weight` (not in the paper; default 1, unweighted) weighs the position, heading and velocity loss of
-agents that move at the input frame (logged speed >= `STATIONARY_MPS`, the evaluation's motion split) by that
-factor against stationary ones, as a weighted mean. With the Euclidean norm every error beyond its width pulls
-with the same force, so on real roads, where two thirds of the agents stand, most of the agent gradient comes
-from stopped cars; the weight hands it back to the moving ones. It needs the logged velocity (velocity inputs).
-
-A model that reads lanes (`agent_lane_context`, `agent_lane_residual`) reads the scenes' lane polylines
+A model that reads lanes (`agent_lane_residual`) reads the scenes' lane polylines
 (`lane_context_of`, the batches must carry `Scene.polylines`) in every input frame, its own rollout passes
 included; `train.lane_context_drop` = f drops them from the future frames of the last round(f * B) scenes of each
 batch, as in the tasks that generate the map.
@@ -45,9 +39,9 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
-from gpd_jax.metrics import STATIONARY_MPS
 from gpd_jax.model import GPD, LaneContext, Prediction, forward
 from gpd_jax.scene import Scene, wrap_angle
+from gpd_jax.training.common import compiled_once, step_key
 
 
 def _smooth_l1(x, beta: float = 1.0):
@@ -84,7 +78,7 @@ def teacher_forced(model: GPD, xy, heading, valid, map_tokens, velocity=None,
     xy f32[F, A, 2], heading f32[F, A], valid bool[F, A], map_tokens i32[F, M], velocity f32[F, A, 2] or None
     (frames [0, F) of a scene), lanes: what a model that reads lanes uses -> Prediction of frames
     [1, F + 1)."""
-    tokens = model.embed(xy, heading, valid, map_tokens, jnp.arange(xy.shape[0]), velocity, lanes)
+    tokens = model.embed(xy, heading, valid, map_tokens, jnp.arange(xy.shape[0]), velocity)
     hidden = forward(model, tokens)
     prev_xy, prev_valid = previous_frames(xy, valid)
     return model.predict(hidden, xy, heading, valid, prev_xy, prev_valid, velocity, lanes)
@@ -131,17 +125,6 @@ def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int,
     return jax.lax.fori_loop(0, passes, one_pass, logged)
 
 
-def moving_weights(scene: Scene, moving_weight: float) -> jax.Array:
-    """f32[T-1, A] weight of each input frame's agents: `moving_weight` where the logged speed at the input frame
-    is >= STATIONARY_MPS, 1 elsewhere (stationary, or not valid there)."""
-    if moving_weight == 1.0:
-        return jnp.ones(scene.valid[:-1].shape, jnp.float32)
-    if scene.velocity is None:
-        raise ValueError("loss.moving_weight needs the logged velocity (a velocity_inputs model's scenes)")
-    moving = (jnp.linalg.norm(scene.velocity[:-1], axis=-1) >= STATIONARY_MPS) & scene.valid[:-1]
-    return jnp.where(moving, jnp.float32(moving_weight), jnp.float32(1.0))
-
-
 def training_scene(batch) -> Scene:
     """A loader batch as the Scene a train or eval step takes: with polylines (`with_polylines` gives `(scene,
     polylines)`) the scene keeps them and drops the road geometry, which no loss reads."""
@@ -157,7 +140,7 @@ def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> L
     if not model.reads_lanes:
         return None
     if scene.polylines is None or scene.polyline_valid is None:
-        raise ValueError("a model that reads lanes (agent_lane_context, agent_lane_residual) trains on the scenes' "
+        raise ValueError("a model that reads lanes (agent_lane_residual) trains on the scenes' "
                          "lane polylines (Scene.polylines): load the batches with them")
     frames = jnp.arange(scene.num_frames - 1)
     on = (frames < num_history) | ~jnp.asarray(drop, bool)
@@ -166,11 +149,10 @@ def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> L
 
 def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0,
                feed_map=False, agent_norm: str = "smooth_l1", norm_delta: float = NORM_DELTA,
-               moving_weight: float = 1.0, drop_lanes=False) -> dict[str, jax.Array]:
+               drop_lanes=False) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide).
 
-    `agent_norm` / `norm_delta`: the position and velocity loss (`vector_loss`); `moving_weight`: the weight of
-    agents moving at the input frame (`moving_weights`; the agent counts are weighted the same way).
+    `agent_norm` / `norm_delta`: the position and velocity loss (`vector_loss`).
     With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
     predictions (`free_running_inputs`; with `feed_map` the map tokens too) while the targets stay the log's:
     the model learns to recover from its own errors, as it must in a rollout. A model that reads lanes
@@ -179,7 +161,6 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
     xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map, lanes)
     pred = teacher_forced(model, xy, heading, scene.valid[:-1], maps, vel, lanes)
     tv = scene.valid[1:].astype(jnp.float32)
-    w = moving_weights(scene, moving_weight)
     pos = vector_loss(pred.xy - scene.xy[1:], agent_norm, norm_delta)
     head = _smooth_l1(wrap_angle(pred.heading - scene.heading[1:]))
     bce = optax.sigmoid_binary_cross_entropy(pred.valid_logit, tv)
@@ -187,30 +168,26 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
     mv = jnp.broadcast_to(scene.map_valid[1:, None], ce.shape).astype(jnp.float32)
     terms = {}
     if pred.velocity is not None:
-        both = tv * scene.valid[:-1] * w
+        both = tv * scene.valid[:-1]
         terms["velocity_sum"] = jnp.sum(vector_loss(pred.velocity - scene.velocity[1:], agent_norm, norm_delta) * both)
         terms["velocity_count"] = jnp.sum(both)
     return terms | {
-        "position_sum": jnp.sum(pos * tv * w), "heading_sum": jnp.sum(head * tv * w), "agent_count": jnp.sum(tv * w),
+        "position_sum": jnp.sum(pos * tv), "heading_sum": jnp.sum(head * tv), "agent_count": jnp.sum(tv),
         "valid_sum": jnp.sum(bce), "valid_count": jnp.asarray(bce.size, jnp.float32),
         "map_sum": jnp.sum(ce * mv), "map_count": jnp.sum(mv),
         "map_correct": jnp.sum((jnp.argmax(pred.map_logits, -1) == scene.map_tokens[1:]) * mv),
     }
 
 
-def agent_norm_of(loss_cfg) -> tuple[str, float, float]:
-    """(`loss.agent_norm`, `loss.agent_norm_delta`, `loss.moving_weight`) of a loss config, with the official
-    unweighted smooth-L1 where a config (for example an older checkpoint's) lacks them; an unknown norm, a
-    non-positive width or weight is refused here, before anything compiles."""
-    norm, delta = str(loss_cfg.get("agent_norm", "smooth_l1")), float(loss_cfg.get("agent_norm_delta", NORM_DELTA))
-    moving = float(loss_cfg.get("moving_weight", 1.0))
+def agent_norm_of(loss_cfg) -> tuple[str, float]:
+    """(`loss.agent_norm`, `loss.agent_norm_delta`) of a loss config; an unknown norm or a non-positive width is
+    refused here, before anything compiles."""
+    norm, delta = str(loss_cfg.agent_norm), float(loss_cfg.agent_norm_delta)
     if norm not in AGENT_NORMS:
         raise ValueError(f"loss.agent_norm must be one of {AGENT_NORMS}, got {norm!r}")
     if not delta > 0:
         raise ValueError(f"loss.agent_norm_delta must be > 0, got {delta}")
-    if not moving > 0:
-        raise ValueError(f"loss.moving_weight must be > 0, got {moving}")
-    return norm, delta, moving
+    return norm, delta
 
 
 def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout_passes: int = 0,
@@ -224,8 +201,8 @@ def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout
     idx = jnp.arange(b)
     feed = idx < round(float(map_feedback) * b)
     drop = idx >= b - round(float(lane_drop) * b)
-    norm, delta, moving = agent_norm_of(weights)
-    terms = jax.vmap(lambda s, f, d: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, moving, d))(
+    norm, delta = agent_norm_of(weights)
+    terms = jax.vmap(lambda s, f, d: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, d))(
         scenes, feed, drop)
     terms = jax.tree.map(jnp.sum, terms)
     n_agents = jnp.maximum(terms["agent_count"], 1.0)
@@ -273,8 +250,9 @@ class TrainState(NamedTuple):
 class Trainer(NamedTuple):
     """A model's static structure with its pure, jitted train and eval steps.
 
-    `train_step(state, scenes) -> (state, metrics)`; `eval_step(params, scenes) -> metrics`.
-    `merge(params)` rebuilds an NNX model from a params state.
+    `train_step(state, scenes) -> (state, metrics)`; `eval_step(params, scenes) -> metrics` (compiled);
+    `step_fn`: the train step uncompiled (to wrap or trace it yourself). `merge(params)` rebuilds an NNX model
+    from a params state.
     """
 
     graphdef: Any
@@ -282,6 +260,7 @@ class Trainer(NamedTuple):
     tx: optax.GradientTransformation
     train_step: Any
     eval_step: Any
+    step_fn: Any = None
 
     def merge(self, params) -> GPD:
         return nnx.merge(self.graphdef, params, self.rest)
@@ -290,39 +269,48 @@ class Trainer(NamedTuple):
         return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=self.tx.init(params))
 
 
-def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, TrainState]:
-    """Splits `model` into a static graph and parameters and builds the jitted steps."""
-    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
-    tx = make_optimizer(config.train)
+def _gpd_steps(graphdef, config, tx, donate: bool):
+    """The jitted (train step, eval step, uncompiled train step) of `make_trainer`: (state, scenes, rest) ->
+    (state, metrics), (params, scenes, rest) -> metrics; the frozen state `rest` (the map codebook) is an argument,
+    so runs of one model and config share them (`compiled_once`)."""
     weights = config.loss
-    agent_norm_of(weights)
-    num_history = int(config.model.num_history)
-    passes = int(config.train.get("rollout_passes", 0))
-    map_feedback = float(config.train.get("map_feedback", 0.0))
-    lane_drop = float(config.train.get("lane_context_drop", 0.0))
-    if not 0.0 <= lane_drop <= 1.0:
-        raise ValueError(f"train.lane_context_drop must be a fraction in [0, 1], got {lane_drop}")
-    if not 0.0 <= map_feedback <= 1.0:
-        raise ValueError(f"train.map_feedback must be a fraction in [0, 1], got {map_feedback}")
-    if map_feedback > 0 and passes <= 0:
-        raise ValueError("train.map_feedback feeds back the map tokens of the rollout passes: set "
-                         "train.rollout_passes > 0")
+    h, passes = int(config.model.num_history), int(config.train.rollout_passes)
+    feed, drop = float(config.train.map_feedback), float(config.train.lane_context_drop)
 
-    def loss_of(p, scenes):
-        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, num_history, passes, map_feedback,
-                          lane_drop)
+    def loss_of(p, rest, scenes):
+        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, h, passes, feed, drop)
 
-    def train_step(state: TrainState, scenes: Scene):
-        (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, scenes)
+    def train_step(state: TrainState, scenes: Scene, rest):
+        (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, rest, scenes)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         parts["grad_norm"] = optax.tree.norm(grads)
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), parts
 
-    def eval_step(p, scenes: Scene):
-        return loss_of(p, scenes)[1]
+    return (jax.jit(train_step, donate_argnums=(0,) if donate else ()),
+            jax.jit(lambda p, scenes, rest: loss_of(p, rest, scenes)[1]), train_step)
 
+
+def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, TrainState]:
+    """Splits `model` into a static graph and parameters and binds the jitted steps (shared by runs of one model
+    structure and config: `gpd_jax.training.common.compiled_once`) to its frozen state. The config is checked
+    here, before anything compiles. `donate`: the train step consumes its input state."""
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    agent_norm_of(config.loss)
+    passes, feed = int(config.train.rollout_passes), float(config.train.map_feedback)
+    drop = float(config.train.lane_context_drop)
+    if not 0.0 <= drop <= 1.0:
+        raise ValueError(f"train.lane_context_drop must be a fraction in [0, 1], got {drop}")
+    if not 0.0 <= feed <= 1.0:
+        raise ValueError(f"train.map_feedback must be a fraction in [0, 1], got {feed}")
+    if feed > 0 and passes <= 0:
+        raise ValueError("train.map_feedback feeds back the map tokens of the rollout passes: set "
+                         "train.rollout_passes > 0")
+    tx = make_optimizer(config.train)
+    train, evaluate, step_fn = compiled_once(("gpd", graphdef, step_key(config), donate),
+                                             lambda: _gpd_steps(graphdef, config, tx, donate))
     trainer = Trainer(graphdef=graphdef, rest=rest, tx=tx,
-                      train_step=jax.jit(train_step, donate_argnums=(0,) if donate else ()),
-                      eval_step=jax.jit(eval_step))
+                      train_step=lambda state, scenes: train(state, scenes, rest),
+                      eval_step=lambda p, scenes: evaluate(p, scenes, rest),
+                      step_fn=lambda state, scenes: step_fn(state, scenes, rest))
     return trainer, trainer.init_state(params)

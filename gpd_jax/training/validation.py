@@ -8,9 +8,9 @@ import os
 
 import jax
 
-from gpd_jax.checkpoint import model_spec
+from gpd_jax.checkpoint import Model, model_spec
 from gpd_jax.data import loader as data_loader
-from gpd_jax.decoding import rollout_jit
+from gpd_jax.decoding import rollout_model
 from gpd_jax.evaluation.scoring import baseline_predictions
 from gpd_jax.metrics import agents as agent_metrics_lib
 from gpd_jax.model import reads_lanes
@@ -49,7 +49,10 @@ class Validator:
             self.scenes = training_scene(data_loader.load_split(data_dir, split, indices=range(n_roll),
                                                                 with_polylines=lanes))
         if self.scenes is not None:
-            self.view = view_spec.view(self.scenes)
+            # the model being trained, without parameters (each validation passes the current ones)
+            self.model = Model(config=config, graphdef=trainer.graphdef, params=None, rest=trainer.rest,
+                               spec=view_spec)
+            self.view = self.model.prepare(self.scenes)
             # Constant velocity from the stored frame rate, as rollout.py scores it; fixed, so scored once here.
             cv_xy, cv_heading, _ = baseline_predictions(self.scenes, self.spec, with_lanes=False)["constant_velocity"]
             self.cv_scores = self._score(cv_xy, cv_heading)
@@ -74,8 +77,7 @@ class Validator:
                     acc[k] = acc.get(k, 0.0) + float(v) / len(self.loss_batches)
             out.update(acc)
         if self.scenes is not None:
-            pred = rollout_jit(self.trainer.graphdef, params, self.trainer.rest, self.view, self.tasks,
-                               jax.random.key(step), self.spec.num_history, float(self.config.rollout.temperature))
+            pred = rollout_model(self.model, self.view, self.tasks, jax.random.key(step), params=params)
             pred = jax.tree.map(lambda x: x[:, 0], pred)  # the one task
             model, cv = self._score(pred.xy, pred.heading), self.cv_scores
             for k, v in model.items():

@@ -1,0 +1,56 @@
+"""The recipe of gpd_planner: the paper's planning head (one decoder layer on the ego token,
+`gpd_jax.model.PlanningHead`) trained on the logged ego's next 8 s over a pre-trained 1 Hz GPD.
+
+Variants (`configs/gpd_planner.py:VARIANT`), all with the same head, data and targets:
+
+* `frozen` (shipped): the backbone frozen and its output tokens computed once per scene
+  (`train.cache_features`), so only the head's ~0.3 M parameters train: 2,000 steps of 32 scenes, 27 min on 2 CPU
+  cores; the model's own agent and map predictions stay exactly its backbone's.
+* `finetune`: the paper's setting, the backbone fine-tuned too at a tenth of the head's learning rate (a backbone
+  pass per step).
+* `scratch`, `frozen_scratch`: the no-pre-training ablations at the same budget (a random backbone trained on the
+  planning loss, or frozen).
+
+The backbone is the retired first GPD, gpd_sumo (docs/model-lineage.md: `git show 42b82c9:checkpoints/gpd_sumo/...`
+into runs/gpd_sumo).
+
+    python -m gpd_jax.data build --source sumo --traffic legacy --out data/plan_train2 --scenarios 1600 --seed 31 \
+        --per-job 25 --split train
+    python -m gpd_jax.data build --source sumo --traffic legacy --out data/plan_dev --scenarios 150 --seed 37 \
+        --per-job 25 --split val --against data/plan_train2
+    for d in plan_train2 plan_dev; do python -m gpd_jax.map_tokenizer encode --checkpoint map_tokenizer --data data/$d \
+        --frame-stride 10; done
+    python train.py --config configs/gpd_planner.py:frozen --workdir runs/planner
+    python -m gpd_jax.checkpoint export runs/planner gpd_planner --tokenizer-ref map_tokenizer
+"""
+
+from gpd_jax.config import gpd_config
+
+VARIANTS = ("frozen", "finetune", "scratch", "frozen_scratch")
+
+
+def get_config(variant: str = "frozen"):
+    if variant not in VARIANTS:
+        raise ValueError(f"configs/gpd_planner.py: variant {variant!r} is not one of {VARIANTS}")
+    c = gpd_config(plan_head=True)
+    c.data.dir, c.data.val_dir, c.data.frame_stride = "data/plan_train2", "data/plan_dev", 10
+    m = c.model  # the backbone: gpd_sumo's architecture
+    m.num_frames, m.num_history, m.num_agents = 11, 3, 17
+    m.num_layers, m.num_heads, m.ffn_dim, m.head_hidden, m.attn_chunk_frames = 4, 4, 512, 128, 4
+    m.predict_delta = m.velocity_residual = m.velocity_inputs = True
+    m.map_tokenizer = "map_tokenizer"
+    t = c.train
+    t.init_from = "runs/gpd_sumo"
+    t.backbone_lr_scale, t.gpd_loss_weight, t.cache_features = 0.1, 0.0, False
+    t.batch_size, t.steps, t.learning_rate, t.warmup_steps, t.min_learning_rate = 8, 300, 1e-3, 50, 1e-5
+    t.grad_clip, t.log_every, t.eval_every, t.eval_batches, t.checkpoint_every = 1.0, 25, 150, 4, 100
+    t.loader_threads = 2
+    if variant.startswith("frozen"):
+        t.backbone_lr_scale, t.cache_features = 0.0, True
+        t.batch_size, t.steps, t.warmup_steps = 32, 2_000, 200
+        t.log_every, t.eval_every, t.checkpoint_every = 100, 500, 500
+    if variant.endswith("scratch"):
+        t.init_from = ""
+        if variant == "scratch":
+            t.backbone_lr_scale = 1.0
+    return c

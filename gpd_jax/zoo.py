@@ -1,0 +1,140 @@
+"""The shipped models by name: a small registry (as timm's model names or gemma's checkpoint enum).
+
+    gpd_jax.list_models()                    # a ModelCard per shipped model: purpose, tokenizer, data, figures
+    gpd_jax.load_model()                     # DEFAULT_MODEL, the best we have on real roads
+    gpd_jax.load_model("gpd_maps")           # another by name
+    gpd_jax.load_model("runs/mine/export")   # or any exported model or train.py workdir by path
+
+A model is a folder named after it (`config.json`, `params.npz`, a `README.md` that is its card). Folders are found
+by name in `$GPD_JAX_MODELS` (a folder holding one sub-folder per model; set it when the package is installed
+without its source tree) and then in the `checkpoints/` folder of the source checkout the package runs from. A GPD
+names its map tokenizer in its config (`model.map_tokenizer`): a name looked up the same way (after a copy inside
+the model's own folder), so a model folder loads wherever it is copied.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+MODELS_ENV = "GPD_JAX_MODELS"
+CONFIG_FILE = "config.json"
+_CHECKOUT_MODELS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelCard:
+    """One shipped model: `name` (its folder), `kind` ("gpd" or "map_tokenizer"), a one-line `purpose`, the
+    `tokenizer` a GPD reads (a name; None for a tokenizer), the `data` it learned from and their terms, and its
+    headline `figures` (on held-out data; the README in its folder has the rest)."""
+
+    name: str
+    kind: str
+    purpose: str
+    tokenizer: str | None
+    data: str
+    figures: str
+
+    @property
+    def path(self) -> str | None:
+        """Its folder, or None when no models folder holds it."""
+        return find(self.name)
+
+
+_SUMO_DATA = ("SUMO traffic (eclipse-sumo, EPL-2.0) on generated networks and on real OpenStreetMap road tiles "
+              "(ODbL 1.0: (c) OpenStreetMap contributors)")
+
+MODELS: tuple[ModelCard, ...] = (
+    ModelCard(
+        name="gpd_traffic", kind="gpd",
+        purpose="the default: traffic simulation on real roads; its agents step along the scene's vector lanes",
+        tokenizer="map_tokenizer", data=_SUMO_DATA,
+        figures="real-road dev tiles, traffic simulation agent ADE / constant velocity 0.780 / 0.747 / 0.740 at "
+                "3 / 5 / 8 s; held-out real networks (test) 0.722 / 0.697 / 0.692"),
+    ModelCard(
+        name="gpd_maps", kind="gpd",
+        purpose="scene generation and map prediction: the best generated maps, on direction-aware map tokens",
+        tokenizer="map_tokenizer_directional", data=_SUMO_DATA,
+        figures="scene-generation map F1 at 3 s on held-out generated networks 0.34-0.44 (tokenizer ceiling "
+                "0.68-0.69); traffic simulation a little behind gpd_traffic on real roads"),
+    ModelCard(
+        name="gpd_planner", kind="gpd",
+        purpose="motion planning: the paper's planning head (one decoder layer on the ego token) on a frozen GPD",
+        tokenizer="map_tokenizer", data="SUMO legacy traffic on generated networks (eclipse-sumo, EPL-2.0)",
+        figures="open-loop ego ADE 1.84 / 3.80 / 8.10 m at 3 / 5 / 8 s (dev; no pre-training 3.68 / 6.22 / "
+                "11.30); closed loop weak: NR-CLS 7.9 against IDM's 75.3 on 100 held-out scenes"),
+    ModelCard(
+        name="map_tokenizer", kind="map_tokenizer",
+        purpose="the map VQ-VAE of gpd_traffic and gpd_planner: 256 x 256 binary lane rasters -> 64 of 128 codes",
+        tokenizer=None, data=_SUMO_DATA,
+        figures="paper F1 0.60-0.73 on held-out generated networks, 0.13 on SUMO's real networks (cut-free 0.74)"),
+    ModelCard(
+        name="map_tokenizer_directional", kind="map_tokenizer",
+        purpose="the map VQ-VAE of gpd_maps: rasters with lane-heading channels (SLEDGE's occupancy, cos, sin)",
+        tokenizer=None, data=_SUMO_DATA,
+        figures="paper F1 0.68-0.80 on held-out generated networks, 0.16 on SUMO's real networks (directed "
+                "cut-free 0.64)"),
+)
+DEFAULT_MODEL = "gpd_traffic"
+
+
+def model_dirs() -> list[str]:
+    """Where models are looked up by name, in order: `$GPD_JAX_MODELS` (if set), the checkout's `checkpoints/`
+    (if the package runs from a source checkout)."""
+    dirs = []
+    env = os.environ.get(MODELS_ENV, "").strip()
+    if env:
+        dirs.append(os.path.abspath(os.path.expanduser(env)))
+    if os.path.isdir(_CHECKOUT_MODELS):
+        dirs.append(_CHECKOUT_MODELS)
+    return dirs
+
+
+def find(name: str) -> str | None:
+    """The folder of the model `name` (a plain folder name) in the first models folder that has it, else None."""
+    if not name or os.sep in name or (os.altsep and os.altsep in name) or name in (".", ".."):
+        return None
+    for d in model_dirs():
+        p = os.path.join(d, name)
+        if os.path.isfile(os.path.join(p, CONFIG_FILE)):
+            return p
+    return None
+
+
+def where_searched() -> str:
+    """A phrase naming the models folders searched (for error messages)."""
+    dirs = model_dirs()
+    env = "" if os.environ.get(MODELS_ENV, "").strip() else f" (${MODELS_ENV} is not set)"
+    return (", ".join(dirs) if dirs else "no models folder") + env
+
+
+def resolve(name_or_path: str | None) -> str:
+    """The folder of a model given by name (see `list_models`; None: `DEFAULT_MODEL`) or by path (an exported
+    model or a train.py workdir). Raises FileNotFoundError naming what was looked for and where."""
+    ref = DEFAULT_MODEL if name_or_path is None else os.fspath(name_or_path)
+    if os.path.isfile(os.path.join(ref, CONFIG_FILE)):
+        return os.path.abspath(ref)
+    found = find(ref)
+    if found:
+        return found
+    if os.path.isdir(ref):
+        raise FileNotFoundError(f"{os.path.abspath(ref)}: no {CONFIG_FILE}; expected an exported model or a "
+                                "train.py workdir")
+    names = ", ".join(c.name for c in MODELS)
+    raise FileNotFoundError(f"model {ref!r} not found: not a folder, and not a model in {where_searched()} "
+                            f"(shipped: {names})")
+
+
+def list_models(kind: str | None = None) -> list[ModelCard]:
+    """The shipped models (`kind` "gpd" or "map_tokenizer" to filter), the default first."""
+    if kind not in (None, "gpd", "map_tokenizer"):
+        raise ValueError(f"kind must be 'gpd' or 'map_tokenizer', got {kind!r}")
+    return [c for c in MODELS if kind is None or c.kind == kind]
+
+
+def card(name: str) -> ModelCard:
+    """The card of a shipped model (KeyError naming the shipped ones otherwise)."""
+    for c in MODELS:
+        if c.name == name:
+            return c
+    raise KeyError(f"no shipped model {name!r}; shipped: {', '.join(c.name for c in MODELS)}")
