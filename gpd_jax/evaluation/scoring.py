@@ -125,7 +125,10 @@ def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight, count_exact_
     return {key: jnp.sum(v.reshape(b, k, f) * w, axis=0) for key, v in s.items()}
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "task_names", "per_scenario"))
+# Scored once per batch, so its compile time outweighs its run time: without LLVM's expensive passes it compiles
+# about a third faster on the CPU (18 -> 13 s for the tiny test config) and gives bit-identical sums.
+@functools.partial(jax.jit, static_argnames=("spec", "task_names", "per_scenario"),
+                   compiler_options={"xla_llvm_disable_expensive_passes": True})
 def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSpec,
                 task_names: tuple[str, ...], map_pred=None, gt_lanes=None, kept_lanes=None,
                 per_scenario: bool = False) -> dict[str, Any]:

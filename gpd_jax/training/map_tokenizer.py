@@ -115,10 +115,11 @@ def make_train_step(graphdef, config, tx):
 
 
 def compiled_steps(graphdef, config, tx):
-    """(train step, eval step), jitted once per model structure and step-relevant config (`compiled_once`)."""
-    return compiled_once(("map_tokenizer", graphdef, step_key(config)),
-                         lambda: (jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,)),
-                                  jax.jit(make_eval_step(graphdef))))
+    """(train step, eval step), jitted once per model structure and step-relevant config (`compiled_once`; the
+    eval step depends on the structure alone)."""
+    train = compiled_once(("map_tokenizer", graphdef, step_key(config)),
+                          lambda: jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,)))
+    return train, compiled_once(("map_tokenizer_eval", graphdef), lambda: jax.jit(make_eval_step(graphdef)))
 
 
 def kmeans_init(graphdef, params, config, key, batches: Iterator[dict]):
