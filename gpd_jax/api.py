@@ -92,8 +92,7 @@ def make_prompt(model: Model, scene: Scene, **choices) -> Prompt:
     A prompt with lanes needs the model's map tokenizer."""
     if np.ndim(scene.xy) != 3:
         raise EvalError(f"make_prompt takes one scene [T, A, ...], got xy of shape {np.shape(scene.xy)}")
-    if choices.get("lanes") is not None and model.tokenizer is None:
-        raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
+    model.require_tokenizer(prompt_lanes=choices.get("lanes") is not None)
     view = scene
     if (scene.num_frames, scene.num_agents) != (model.spec.num_frames, model.spec.num_agents):
         view = jax.tree.map(lambda x: x[0], model.prepare(jax.tree.map(lambda x: np.asarray(x)[None], scene)))

@@ -69,6 +69,20 @@ class Model:
     def replace(self, **changes) -> "Model":
         return dataclasses.replace(self, **changes)
 
+    def require_tokenizer(self, options: RolloutOptions | None = None, prompt_lanes: bool = False) -> None:
+        """Raises EvalError when `options` (re-encoded log lanes, a warped map) or a prompt with its own lanes
+        (`prompt_lanes`) need this model's map tokenizer and it has none: the one place that is checked."""
+        if self.tokenizer is not None:
+            return
+        if prompt_lanes:
+            what = "a vector-map prompt (lanes) needs the model's map tokenizer"
+        elif options is not None and options.needs_tokenizer:
+            what = ("log_map='lanes' re-encodes the log's lanes" if options.log_map == "lanes" else
+                    "gen_map='warp' moves generated maps") + " with the model's map tokenizer"
+        else:
+            return
+        raise EvalError(f"{what}, and the model has none (config.model.map_tokenizer is empty)")
+
     def prepare(self, scenes: Scene, options: RolloutOptions | None = None, reencode=None) -> Scene:
         """What this model's rollout reads, from stored-rate scenes [..., T_stored, A_stored, ...]
         (`gpd_jax.load_scenes`): its view (`spec.view`: its frames and slots, velocities for a velocity-input
@@ -78,8 +92,7 @@ class Model:
 
         options: checked against the model (a tokenizer where they need one). reencode: bool[...] scenes whose
         stored map tokens another tokenizer made (encoded again). Raises EvalError naming what is missing."""
-        if options is not None and options.needs_tokenizer and self.tokenizer is None:
-            raise EvalError(f"rollout options {options} need the model's map tokenizer, and the model has none")
+        self.require_tokenizer(options)
         view = self.spec.view(scenes)
         missing = ~np.asarray(view.map_valid).all(axis=-1)
         if reencode is not None:

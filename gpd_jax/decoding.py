@@ -57,7 +57,6 @@ from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forwar
 from gpd_jax.options import RolloutOptions
 from gpd_jax.prompts import Prompt, as_prompt
 from gpd_jax.scene import Scene
-from gpd_jax.spec import EvalError
 from gpd_jax.tasks import Task
 
 
@@ -502,11 +501,5 @@ def check_options(model, options: RolloutOptions, tasks=None) -> bool:
     """Raises EvalError when `options` or the prompts `tasks` need what `model` lacks (its map tokenizer); returns
     whether `tasks` are prompts with their own lanes."""
     own = isinstance(tasks, Prompt) and tasks.lanes is not None
-    if own and model.tokenizer is None:
-        raise EvalError("a vector-map prompt (lanes) needs the model's map tokenizer, and the model has none")
-    if options.needs_tokenizer and model.tokenizer is None:
-        what = "log_map='lanes' re-encodes the log's lanes" if options.log_map == "lanes" else \
-            "gen_map='warp' moves generated maps"
-        raise EvalError(f"{what} with the model's map tokenizer, and the model has none "
-                        "(config.model.map_tokenizer is empty)")
+    model.require_tokenizer(options, prompt_lanes=own)
     return own

@@ -3,7 +3,22 @@ The rollout pictures (`gpd_jax.evaluation.render`) and the closed-loop ones (`gp
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
 import numpy as np
+
+
+class Picture(NamedTuple):
+    """A picture drawn once and updated frame by frame: `draw(t)` -> uint8[size_px, size_px, 3]. `legend` (a
+    matplotlib Legend; None where the picture is too small for one) and `scale_bar` (an AnchoredSizeBar) are what
+    a reader needs to read it; `labels` are the legend's entries."""
+    fig: Any
+    ax: Any
+    legend: Any
+    scale_bar: Any
+    labels: tuple[str, ...]
+    draw: Callable[[int], np.ndarray]
 
 
 def scale_bar_m(view_m: float) -> float:

@@ -36,12 +36,21 @@ def test_quantize_straight_through():
     assert jnp.all(jnp.isfinite(gcb)) and jnp.abs(gcb).sum() > 0  # codebook loss moves the codes
 
 
-def test_gradient_reaches_encoder():
+@pytest.fixture(scope="module")
+def small_grad():
+    """(graphdef, params, grad): the test size's loss gradient on a synthetic batch, jitted once with
+    `quantized` a traced flag, so the tests of both paths share one compile."""
     from gpd_jax.training.map_tokenizer import build_model, loss_fn
     cfg = small_config()
     graphdef, params = build_model(cfg)
     batch = synthetic_lanes(0, 2)
-    grads = jax.jit(jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch)[0]))(params)  # one compile, not op by op
+    grad = jax.jit(jax.grad(lambda p, quantized: loss_fn(graphdef, cfg, p, batch, quantized)[0]))
+    return graphdef, params, grad
+
+
+def test_gradient_reaches_encoder(small_grad):
+    _, params, grad = small_grad
+    grads = grad(params, jnp.bool_(True))
     enc = jax.tree.leaves(grads["encoder"])
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in enc)
     # the first conv sits before the quantizer: only the straight-through path can give it a gradient
@@ -84,11 +93,9 @@ def test_line_loss_zero_for_perfect_prediction():
     assert float(aux2["l1"]) < 1e-5
 
 
-def test_continuous_warmup_bypasses_the_quantizer():
+def test_continuous_warmup_bypasses_the_quantizer(small_grad):
     from flax import nnx
-    from gpd_jax.training.map_tokenizer import build_model, loss_fn
-    cfg = small_config()
-    graphdef, params = build_model(cfg)
+    graphdef, params, grad = small_grad
     raster = jnp.asarray(np.random.default_rng(0).random((2, 256, 256)) < 0.05, jnp.float32)
     model = nnx.merge(graphdef, params)
     z = model.encode_latents(raster)
@@ -98,8 +105,7 @@ def test_continuous_warmup_bypasses_the_quantizer():
     np.testing.assert_allclose(quant["points"], core.forward(graphdef, params, raster)["points"], atol=1e-5)
     assert float(jnp.abs(cont["points"] - quant["points"]).max()) > 1e-4
     assert float(cont["vq_loss"]) == 0.0 and float(quant["vq_loss"]) > 0.0
-    batch = synthetic_lanes(0, 2)
-    g = jax.jit(jax.grad(lambda p: loss_fn(graphdef, cfg, p, batch, jnp.bool_(False))[0]))(params)
+    g = grad(params, jnp.bool_(False))
     assert float(jnp.abs(g["codebook"]["embedding"]).max()) == 0.0  # the codebook is untouched while bypassed
 
 
@@ -214,8 +220,9 @@ def _check_encode_cli(tmp_path, checkpoint, tok):
     sh = store.Shard(store.shard_dir(d, "train", 0))
     a = sh.read(0)
     r = tok.config.raster
-    want = tok.encode(tok.params, rasterize(a["polylines"], a["polyline_valid"], a["ego_pose"], size=r.size,
-                                            pixel_size=r.pixel_size, max_segment_length=r.max_segment_length))
+    want = jax.jit(lambda pl, v, pose: tok.encode(tok.params, rasterize(  # one compile, not op by op
+        pl, v, pose, size=r.size, pixel_size=r.pixel_size, max_segment_length=r.max_segment_length)))(
+        a["polylines"], a["polyline_valid"], a["ego_pose"])
     np.testing.assert_array_equal(sh.map_tokens[0], want)
     assert store.map_tokens_source(d, "train", 1) == tok.fingerprint()
     stamp = os.stat(path).st_ino  # a rewrite is a new file (temporary + rename)
@@ -271,8 +278,8 @@ def test_decoder_only_adds_identity_layers(tmp_path):
     tok = MapTokenizer(deeper, graphdef, grown)
     assert tok.fingerprint() == src.fingerprint()
     tokens = (jnp.arange(64) * 5 % 16)[None]
-    p0, l0 = src.decode(src.params, tokens)
-    p1, l1 = tok.decode(grown, tokens)
+    p0, l0 = jax.jit(src.decode)(src.params, tokens)  # one compile each, not op by op
+    p1, l1 = jax.jit(tok.decode)(grown, tokens)
     np.testing.assert_allclose(p1, p0, atol=1e-5)
     np.testing.assert_allclose(l1, l0, atol=1e-5)
     grads = jax.jit(jax.grad(lambda p: loss_fn(graphdef, deeper, p, synthetic_lanes(0, 2))[0]))(grown)
@@ -302,8 +309,8 @@ def test_direction_channels_start_from_a_binary_tokenizer(tmp_path):
     assert tok.fingerprint() != src.fingerprint()  # other rasters: other tokens in general
     batch = synthetic_lanes(0, 3)
     poses = jnp.asarray(batch["pose"])
-    t_src = src.encode_lanes(src.params, batch["polylines"], batch["polyline_valid"], poses)
-    t_dir = tok.encode_lanes(grown, batch["polylines"], batch["polyline_valid"], poses)
+    t_src = jax.jit(src.encode_lanes)(src.params, batch["polylines"], batch["polyline_valid"], poses)
+    t_dir = jax.jit(tok.encode_lanes)(grown, batch["polylines"], batch["polyline_valid"], poses)
     np.testing.assert_array_equal(t_dir, t_src)
     grads = jax.jit(jax.grad(lambda p: loss_fn(graphdef, directed, p, batch)[0]))(grown)
     stem = grads["encoder"]["stem"]["conv"]["kernel"].reshape(3, 3, -1, 3, grads["encoder"]["stem"]["conv"][

@@ -144,9 +144,6 @@ def _read_prompts(spec: str | None, has_tokenizer: bool, config) -> dict:
             raise UsageError(f"--prompt {path}: not valid JSON ({e})") from None
         if not isinstance(obj, dict):
             raise UsageError(f"--prompt {path}: expected a JSON object at the top level")
-        if "lanes" in obj and not has_tokenizer:
-            raise UsageError(f"--prompt {path}: a vector-map prompt (lanes) needs the model's map tokenizer, and "
-                             "the model has none (config.model.map_tokenizer is empty)")
         mspec, _ = spec_from_config(config)
         blank = jax.tree.map(np.asarray, empty_scene(mspec.num_frames, mspec.num_agents, mspec.num_map_tokens)).replace(
             polylines=np.array([[[0.0, 0.0], [1.0, 0.0]]], np.float32), polyline_valid=np.ones((1, 2), bool))

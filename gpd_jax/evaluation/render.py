@@ -20,12 +20,11 @@ artists are updated frame by frame, which keeps a 21-frame scenario x task near 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from collections.abc import Sequence
 
 import numpy as np
 
-from gpd_jax.plotting import add_scale_bar, legend_band
+from gpd_jax.plotting import Picture, add_scale_bar, legend_band
 from gpd_jax.tasks import generated
 
 EGO, AGENT = "#d62728", "#1f77b4"
@@ -64,23 +63,11 @@ def _runs(xy: np.ndarray, valid: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-class RolloutFigure(NamedTuple):
-    """One rollout's figure, drawn once and updated frame by frame: `draw(t)` -> uint8[size_px, size_px, 3].
-    `legend` (a matplotlib Legend, None under 240 px) and `scale_bar` (an AnchoredSizeBar) are what a reader
-    needs to read it; `labels` are the legend's entries."""
-    fig: Any
-    ax: Any
-    legend: Any
-    scale_bar: Any
-    labels: tuple[str, ...]
-    draw: Callable[[int], np.ndarray]
-
-
 def rollout_figure(*, pred_xy, pred_heading, pred_valid, log_xy, log_heading, log_valid, size, num_history: int,
                    frame_period_s: float, title: str = "", generated: Sequence[str] = ("ego", "agent", "map"),
                    lanes=None, lanes_valid=None, lane_poses=None, log_lanes=None, log_lanes_valid=None,
                    size_px: int = 320, view_m: float = 40.0, given=None, given_lanes=None,
-                   given_lanes_valid=None) -> RolloutFigure:
+                   given_lanes_valid=None) -> Picture:
     """The figure of `render_rollout` (same arguments, less the output's stem and panels), not yet drawn.
 
     The legend (at `size_px` >= 240, in a band under the scene) names what is drawn: the ego's and the agents'
@@ -206,7 +193,7 @@ def rollout_figure(*, pred_xy, pred_heading, pred_valid, log_xy, log_heading, lo
         canvas.draw()
         return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
-    return RolloutFigure(fig, ax, legend, scale_bar, labels, draw)
+    return Picture(fig, ax, legend, scale_bar, labels, draw)
 
 
 def render_rollout(stem: str, *, pred_xy, pred_heading, pred_valid, log_xy, log_heading, log_valid, size,

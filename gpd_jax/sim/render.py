@@ -7,12 +7,10 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable
-from typing import Any, NamedTuple
 
 import numpy as np
 
-from gpd_jax.plotting import add_scale_bar, legend_band
+from gpd_jax.plotting import Picture, add_scale_bar, legend_band
 
 EGO, AGENT = "#d62728", "#1f77b4"
 AREA, EDGE, LANE = "#e6e6e6", "#888888", "#bbbbbb"
@@ -36,21 +34,9 @@ def _agent_mode(agents: str | None, title: str) -> str | None:
     return m.group(1) if m else None
 
 
-class RunFigure(NamedTuple):
-    """One run's figure: `draw(t)` draws stored frame t and returns uint8[size_px, size_px, 3]. `legend` (a
-    matplotlib Legend) and `scale_bar` (an AnchoredSizeBar) are what a reader needs; `labels` the legend's
-    entries."""
-    fig: Any
-    ax: Any
-    legend: Any
-    scale_bar: Any
-    labels: tuple[str, ...]
-    draw: Callable[[int], np.ndarray]
-
-
 def run_figure(*, fine_xy, fine_heading, fine_valid, size, road=None, polylines=None, polyline_valid=None,
                plan=None, start: int = 0, title: str = "", size_px: int = 360, view_m: float = 45.0,
-               agents: str | None = None) -> RunFigure:
+               agents: str | None = None) -> Picture:
     """The figure of `render_run` (same arguments less the path and `every`), not yet drawn. `agents`: who moves
     the other agents ("log", "idm", "gpd"; default: read from the title's "<mode> agents", else unnamed)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -118,7 +104,7 @@ def run_figure(*, fine_xy, fine_heading, fine_valid, size, road=None, polylines=
         fig.canvas.draw()
         return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
-    return RunFigure(fig, ax, legend, scale_bar, labels, draw)
+    return Picture(fig, ax, legend, scale_bar, labels, draw)
 
 
 def render_run(path: str, *, fine_xy, fine_heading, fine_valid, size, road=None, polylines=None,
