@@ -76,6 +76,7 @@ def test_native_kernel_falls_back_when_it_cannot_build(monkeypatch):
     def broken_build(*args, **kwargs):
         raise RuntimeError("no C++ compiler found")
 
+    monkeypatch.delenv("GPD_JAX_DECODE_ATTENTION", raising=False)  # tests/conftest.py pins it
     monkeypatch.setattr(native, "build", broken_build)
     monkeypatch.setattr(native, "_state", {})
     with pytest.warns(UserWarning, match="native attention kernel unavailable.*no C\\+\\+ compiler"):
