@@ -1,5 +1,13 @@
 """Benchmarks that print figures (never timed tests).
 
+    python -m gpd_jax.bench realism [--data DIR --split test] [--rollouts 32] [--agents 32] [--scenarios 8]
+        [--realism-config 2025] [--repeats 3] [--json PATH]
+
+    seconds per scenario of the WOSAC-form realism metric (`gpd_jax.metrics.realism.scenario_realism`, compiled
+    once, `vmap`ped over a batch of scenarios): K rollouts x 8 s at 10 Hz (11 history frames) x A agents. Scenes
+    from a store (its road geometry) or, without `--data`, synthetic scenes on a synthetic city grid of roads;
+    rollouts are the log's future with a random walk added (the metric's cost does not depend on the values).
+
     python -m gpd_jax.bench rollout --config configs/gpd_paper.py --batch 1 16 --json PATH
         [--future-frames F] [--recompute-points K] [--repeats R] [--decode-attention auto native xla]
         [--native-march native x86-64-v3] [--config.model.x=y ...]
@@ -269,6 +277,72 @@ def bench_recompute(model, m, cfg, t_total: int, h: int, args) -> tuple[float, s
     return total, method, rows
 
 
+def _grid_road(blocks: int = 5, block_m: float = 40.0, street_m: float = 10.0):
+    """A synthetic city grid: a square of road with `blocks` x `blocks` square blocks as holes (even-odd rule);
+    every block outline and the outer square is a closed road edge."""
+    from gpd_jax.geometry import RoadGeometry
+
+    span = blocks * (block_m + street_m) + street_m
+    lo = -span / 2
+    rings = [np.array([[lo, lo], [-lo, lo], [-lo, -lo], [lo, -lo]])]
+    for i in range(blocks):
+        for j in range(blocks):
+            x0, y0 = lo + street_m + i * (block_m + street_m), lo + street_m + j * (block_m + street_m)
+            rings.append(np.array([[x0, y0], [x0 + block_m, y0], [x0 + block_m, y0 + block_m], [x0, y0 + block_m]]))
+    polys = np.stack(rings).astype(np.float32)
+    edges = np.concatenate([polys, polys[:, :1]], axis=1)
+    n = len(rings)
+    return RoadGeometry(polygons=polys, polygon_valid=np.ones((n, 4), bool), polygon_kind=np.zeros(n, np.int32),
+                        edges=edges, edge_valid=np.ones((n, 5), bool), lanes=np.zeros((1, 2, 2), np.float32),
+                        lane_valid=np.zeros((1, 2), bool))
+
+
+def bench_realism(args) -> dict:
+    from gpd_jax.metrics import realism
+
+    h, f, k, a = 11, 80, args.rollouts, args.agents
+    if args.data:
+        from gpd_jax.data.loader import load_split
+
+        scenes = load_split(args.data, args.split, indices=range(args.scenarios), with_polylines=True)
+        scenes = scenes[0] if isinstance(scenes, tuple) else scenes
+        if scenes.road is None:
+            raise ValueError(f"{args.data}: the store has no road geometry (rebuild it to get it)")
+        if scenes.num_agents < a or scenes.num_frames < 21 + f:
+            raise ValueError(f"{args.data}: {scenes.num_agents} agents x {scenes.num_frames} frames; the benchmark "
+                             f"needs {a} x {21 + f}")
+        scenes = scenes.subsample(1, h + f, a, start=21 - h)
+        road = scenes.road
+        source = f"{args.data}:{args.split}"
+    else:
+        scenes = synthetic_scenes(0, args.scenarios, h + f, h, a, 64, 512)
+        road = jax.tree.map(lambda x: np.broadcast_to(x, (args.scenarios,) + x.shape), _grid_road())
+        source = "synthetic scenes on a synthetic 5 x 5 city grid"
+    budget = realism.edge_segment_budget(road.edge_valid)
+    keys = jax.random.split(jax.random.key(0), args.scenarios)
+
+    def one(xy, heading, valid, size, road, key):
+        steps = jax.random.normal(key, (k,) + xy.shape) * 0.05
+        sim_xy = xy[None] + jnp.cumsum(steps.at[:, :h].set(0.0), axis=1)
+        rep = lambda x: jnp.broadcast_to(x, (k,) + x.shape)
+        return realism.scenario_realism(sim_xy, rep(heading), rep(valid), xy, heading, valid, size, h, road,
+                                        config=args.realism_config, max_edge_segments=budget)
+
+    fn = jax.jit(jax.vmap(one))
+    inputs = (jnp.asarray(scenes.xy), jnp.asarray(scenes.heading), jnp.asarray(scenes.valid),
+              jnp.asarray(scenes.size), jax.tree.map(jnp.asarray, road), keys)
+    t0 = time.perf_counter()
+    compiled = fn.lower(*inputs).compile()
+    compile_s = time.perf_counter() - t0
+    out = jax.block_until_ready(compiled(*inputs))
+    wall = _time(lambda: jax.block_until_ready(compiled(*inputs)), args.repeats)
+    red = realism.reduce_realism(jax.device_get(out), args.realism_config)
+    return {"machine": native.machine_info(), "source": source, "rollouts": k, "agents": a, "future_frames": f,
+            "history_frames": h, "scenarios": args.scenarios, "edge_segment_slots": budget,
+            "config": args.realism_config, "compile_s": compile_s, "s_per_scenario": wall / args.scenarios,
+            "metametric": red["metametric"], "road_edge_inexact_share": red["road_edge_inexact_share"]}
+
+
 def _print_table(out: dict) -> None:
     mc = out.get("machine", {})
     print(f"machine: {mc.get('cpu')} ({mc.get('isa')}, {mc.get('usable_cores')} cores), jax {mc.get('jax')}, "
@@ -319,11 +393,33 @@ def main(argv=None) -> int:
                    help="build target(s) of the native kernel (gcc -march), each measured with native and auto "
                         "(default: $GPD_JAX_NATIVE_MARCH or native); e.g. native x86-64-v3")
     r.add_argument("--json", default=None, help="write the results here")
+    q = sub.add_parser("realism", help="seconds per scenario of the WOSAC-form realism metric")
+    q.add_argument("--data", default=None, help="a store with road geometry (default: synthetic scenes and roads)")
+    q.add_argument("--split", default="test")
+    q.add_argument("--rollouts", type=int, default=32)
+    q.add_argument("--agents", type=int, default=32)
+    q.add_argument("--scenarios", type=int, default=8, help="scenarios per compiled batch")
+    q.add_argument("--realism-config", choices=("2024", "2025"), default="2025")
+    q.add_argument("--repeats", type=int, default=3)
+    q.add_argument("--json", default=None, help="write the results here")
+
     def work():
         args = p.parse_args(rest)
-        parallel.use_host_cores()
-        out = bench_rollout(args, overrides)
-        _print_table(out)
+        if args.what == "realism":
+            if overrides:
+                raise UsageError("python -m gpd_jax.bench realism takes no --config.* overrides")
+            out = bench_realism(args)
+            mc = out["machine"]
+            print(f"machine: {mc.get('cpu')} ({mc.get('usable_cores')} cores), jax {mc.get('jax')}, "
+                  f"backend {mc.get('backend')}; {out['source']}")
+            print(f"realism ({out['config']}): {out['rollouts']} rollouts x {out['future_frames']} frames x "
+                  f"{out['agents']} agents, {out['scenarios']} scenarios per call: "
+                  f"{out['s_per_scenario']:.3f} s per scenario (compile {out['compile_s']:.1f} s); "
+                  f"road-edge answers not proven exact: {out['road_edge_inexact_share']:.2%}")
+        else:
+            parallel.use_host_cores()
+            out = bench_rollout(args, overrides)
+            _print_table(out)
         if args.json:
             atomic_write_json(args.json, out, indent=2)
             print(f"wrote {args.json}")

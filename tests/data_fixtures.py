@@ -26,7 +26,6 @@ def straight_road_log(num_frames: int = 130, num_others: int = 40, seed: int = 0
     * the last track appears only from frame 100 (not valid at the current frame: never selected);
     * track 2 has a NaN position at frame 10.
     """
-    rng = np.random.default_rng(seed)
     F, N = num_frames, num_others + 1
     t = np.arange(F) * 0.1
     R = rot(THETA)

@@ -1,5 +1,6 @@
 """Metrics of GPD-1: agent ADE / FDE / collision and map F1 / lateral / Chamfer, each in the official code's
-("paper") and a corrected variant, plus the Hungarian line matching shared with the map tokenizer.
+("paper") and a corrected variant, plus the Hungarian line matching shared with the map tokenizer; and the
+distributional realism of sampled rollouts in the form of the Waymo sim-agents challenge (`realism`).
 
 Every metric is computed as sums and counts over a batch (`*_metric_sums`, jit/vmap-able, leading batch dims free)
 that add up exactly across batches (`accumulate`), then turned into numbers by a reducer (`reduce_*_metrics`).
@@ -11,6 +12,7 @@ from gpd_jax.metrics.agents import (DEFAULT_HORIZONS, MOTION_CLASSES, PAPER_BOX,
 from gpd_jax.metrics.map import (lateral_distances, map_metric_sums, map_metrics, point_to_line_distance,
                                  reduce_map_metrics, set_chamfer)
 from gpd_jax.metrics.matching import gather_matched, hungarian, line_match_cost, match_lines
+from gpd_jax.metrics.realism import (realism_weights, reduce_realism, scenario_realism, upsample_frames)
 
 __all__ = [
     "DEFAULT_HORIZONS", "MOTION_CLASSES", "PAPER_BOX", "STATIONARY_MPS", "TRACK_COMPONENTS", "VARIANTS",
@@ -20,4 +22,5 @@ __all__ = [
     "map_metric_sums", "map_metrics", "reduce_map_metrics", "lateral_distances", "point_to_line_distance",
     "set_chamfer",
     "gather_matched", "hungarian", "line_match_cost", "match_lines",
+    "scenario_realism", "reduce_realism", "realism_weights", "upsample_frames",
 ]
