@@ -168,17 +168,21 @@ def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Pro
 def evaluate(model: Model, scenes_or_dir: Scene | str, tasks: str | Sequence[str] = "all", *,
              options: RolloutOptions | None = None, split: str = "test", num_scenarios: int | None = None,
              batch_size: int = 8, seed: int = 0, variant: str = "paper", horizons_s: Sequence[float] = HORIZONS_S,
-             layouts: Sequence[str] | None = None, scene_sums: bool = False) -> dict[str, Any]:
+             layouts: Sequence[str] | None = None, scene_sums: bool = False, samples: int = 0,
+             realism_config: str = "2025") -> dict[str, Any]:
     """Scores every task (and the constant-velocity, log-replay and map baselines, on the same agents) at 3 / 5 /
     8 s on stored-rate scenes Scene [n, ...] or the split of a store directory: the content of `rollout.py`'s
     metrics.json (`results["tasks"][task]["3s"]["agent_ade"]`, `results["ratios"]`, ...; the layout is in
     `gpd_jax.evaluation`). options: how the rollouts run (`RolloutOptions`). variant: which metric variant fills
     the main keys ("paper" or "corrected"). layouts: a label per scene for figures per group. scene_sums=True adds
-    `results["scene_sums"]` (each scenario's sums, for `gpd_jax.evaluation.bootstrap.compare_runs`)."""
+    `results["scene_sums"]` (each scenario's sums, for `gpd_jax.evaluation.bootstrap.compare_runs`). samples=K adds
+    `results["realism"]`: the WOSAC-form realism (`gpd_jax.metrics.realism`, configuration `realism_config`) of K
+    rollouts of every task and of the baselines (`gpd_jax.evaluation.realism`)."""
     results, _ = run_evaluation(model, scenes_or_dir, split, task_names=tasks, num_scenarios=num_scenarios,
                                 batch_size=batch_size, seed=seed, variant=variant, horizons_s=horizons_s,
                                 options=RolloutOptions() if options is None else options, progress=False,
-                                log=lambda _msg: None, layouts=layouts, scene_sums=scene_sums)
+                                log=lambda _msg: None, layouts=layouts, scene_sums=scene_sums, samples=samples,
+                                realism_config=realism_config)
     return results
 
 

@@ -54,6 +54,24 @@ def test_a_dozen_lines_roll_out_and_score_four_scenes(model, scenes):
     assert results["scenarios"] == 4 and set(results["tasks"]) == set(TASKS)
 
 
+def test_samples_add_a_realism_table_beside_unchanged_metrics(model, scenes):
+    """evaluate(samples=K): the WOSAC-form realism of every task that moves agents and of the baselines; the
+    paper's metrics stay as they are; the log scored against itself has no displacement and no collision."""
+    plain = gpd_jax.evaluate(model, scenes, tasks=TASKS)
+    res = gpd_jax.evaluate(model, scenes, tasks=TASKS, samples=3, realism_config="2024")
+    assert res["tasks"] == plain["tasks"] and res["baselines"] == plain["baselines"]
+    real = res["realism"]
+    assert real["samples"] == 3 and real["config"] == "2024" and set(real["tasks"]) == set(TASKS)
+    assert set(real["baselines"]) == {"constant_velocity", "constant_velocity_lanes", "log"}
+    for d in list(real["tasks"].values()) + list(real["baselines"].values()):
+        assert 0 < d["metametric"] <= 1 and d["scenarios"] == 4, d
+    log = real["baselines"]["log"]
+    assert log["min_ade"] == 0 and log["collision_rate"] == 0 and log["collision_indication_likelihood"] > 0.99
+    assert real["baselines"]["constant_velocity"]["min_ade"] > 0
+    assert abs(sum(real["weights"].values()) - 1) < 1e-9
+    assert "Realism (3 rollouts per scenario" in gpd_jax.evaluation.format_tables(res)
+
+
 def test_in_memory_scenes_score_as_the_store_does(model, scenes, store):
     from_scenes = gpd_jax.evaluate(model, scenes, tasks=TASKS)
     from_store = gpd_jax.evaluate(model, store, tasks=TASKS)

@@ -57,6 +57,11 @@ def parser(prog: str = PROG) -> Parser:
     p.add_argument("--prompt", default=None, metavar="FILE[,FILE]",
                    help="JSON prompt file(s) (examples/prompt_*.json): roll out every scenario under each prompt "
                         "and score how the conditions are respected (OUT/conditions.json) instead of the tasks")
+    p.add_argument("--samples", type=int, default=0, metavar="K",
+                   help="also score the realism of K rollouts per scenario in the form of the Waymo sim-agents "
+                        "challenge (a realism table and 'realism' in metrics.json; docs/evaluation.md)")
+    p.add_argument("--realism-config", default="2025", choices=("2024", "2025"),
+                   help="the challenge configuration of --samples (weights)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -74,7 +79,7 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> argpars
         args.horizons = tuple(float(x) for x in args.horizons.split(",") if x.strip())
     except ValueError:
         raise UsageError(f"--horizons {args.horizons!r}: expected seconds, e.g. 3,5,8") from None
-    for name in ("batch", "render"):
+    for name in ("batch", "render", "samples"):
         low = 1 if name == "batch" else 0
         if getattr(args, name) < low:
             raise UsageError(f"--{name} must be >= {low}, got {getattr(args, name)}")
@@ -210,7 +215,8 @@ def run(args: argparse.Namespace) -> int:
         results, items = run_evaluation(model, args.data, args.split, task_names=args.task_names,
                                         num_scenarios=args.scenarios, batch_size=args.batch, seed=args.seed,
                                         variant=args.variant, horizons_s=args.horizons, render_count=args.render,
-                                        options=args.options, progress=not args.no_progress, scene_sums=True)
+                                        options=args.options, progress=not args.no_progress, scene_sums=True,
+                                        samples=args.samples, realism_config=args.realism_config)
     except EvalError as e:
         raise UsageError(str(e)) from None
     if args.render > len(items):

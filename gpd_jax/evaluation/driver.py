@@ -24,8 +24,10 @@ from gpd_jax.evaluation.keys import RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
 from gpd_jax.options import RolloutOptions
 from gpd_jax.evaluation.preflight import preflight
+from gpd_jax.evaluation.realism import realism_batch, reduce_groups
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
+from gpd_jax.metrics.realism import edge_segment_budget
 from gpd_jax.scene import Scene
 from gpd_jax.spec import HORIZONS_S, EvalError
 from gpd_jax.tasks import generated, make_tasks, map_task_names
@@ -46,7 +48,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                    seed: int = 0, variant: str = "paper", horizons_s: Sequence[float] = HORIZONS_S,
                    render_count: int = 0, options: RolloutOptions = RolloutOptions(), progress: bool = True,
                    log: Callable[[str], None] = print, layouts: Sequence[str] | None = None,
-                   scene_sums: bool = False) -> tuple[dict[str, Any], list[RenderItem]]:
+                   scene_sums: bool = False, samples: int = 0,
+                   realism_config: str = "2025") -> tuple[dict[str, Any], list[RenderItem]]:
     """Rolls out every task on the first `num_scenarios` scenarios of a split (or of given scenes) and scores
     them.
 
@@ -69,11 +72,17 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
       scene_sums: also keep every scenario's own metric sums, as `results["scene_sums"]` (a
         `gpd_jax.evaluation.bootstrap.SceneSums`, not JSON: `rollout.py` writes it to scene_sums.npz) for
         scene-bootstrap intervals and paired comparisons (`bootstrap.compare_runs`).
+      samples: K > 0 adds `results["realism"]`: the WOSAC-form realism of K sampled rollouts of every task that
+        generates agents or the ego, and of the baselines (`gpd_jax.evaluation.realism`; at temperature 0 the
+        model is deterministic and its K rollouts are one rollout repeated). The main metrics are unchanged.
+      realism_config: "2024" or "2025" (the challenge's weights).
 
     Returns:
       (results dict as written to metrics.json, render items). Raises EvalError on bad input.
     """
     config, tokenizer = model.config, model.tokenizer
+    if samples < 0:
+        raise EvalError(f"samples must be >= 0, got {samples}")
     if options.method != "cached":
         raise EvalError(f"evaluation runs the cached rollout; options.method is {options.method!r}")
     check_options(model, options)
@@ -92,6 +101,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     num_batches = -(-n // bs)
     tasks = jax.tree.map(jnp.asarray, make_tasks(names, spec.num_map_tokens, spec.num_agents))
     key = jax.random.key(seed)
+    sample_key = jax.random.split(key)[1]  # the extra sampled rollouts of `samples` (the main ones use `key`)
 
     if layouts is None and isinstance(data, str):
         layouts = sample_layouts(data, split)
@@ -103,6 +113,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     per_scene: list[dict[str, Any]] = []
 
     acc = None
+    realism_parts: list[dict[str, dict[str, np.ndarray]]] = []
+    has_road = True
     render_items: list[RenderItem] = []
     n_store = n_encoded = 0
     t_roll = t_score = t_data = 0.0
@@ -159,6 +171,11 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                         layout_acc[g] = add_sums(layout_acc.get(g), jax.tree.map(lambda x: x[part].sum(0), sums))
                 sums = jax.tree.map(lambda x: x[weight].sum(0), sums)
             acc = add_sums(acc, sums)
+            if samples:
+                part, road_ok = _realism(model, view, full, tasks, names, out, samples,
+                                         jax.random.fold_in(sample_key, b), options, realism_config)
+                realism_parts.append(jax.tree.map(lambda x: x[:real], part))
+                has_road = has_road and road_ok
             t_score += time.perf_counter() - tc
             for j in range(real):
                 if idx[j] < render_count:
@@ -206,10 +223,32 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
         "timing_s": {"total": round(wall, 2), "rollout": round(t_roll, 2), "scoring": round(t_score, 2),
                      "data": round(t_data, 2), "batches": num_batches, "batch_size": bs},
     }
+    if samples:
+        by_group = {g: {m: np.concatenate([p[g][m] for p in realism_parts]) for m in realism_parts[0][g]}
+                    for g in realism_parts[0]}
+        results["realism"] = reduce_groups(by_group, names, samples, realism_config, has_road)
     if scene_sums:
         pad = lambda x: list(x[:n]) + [""] * max(0, n - len(x))  # noqa: E731
         results["scene_sums"] = scene_sums_from_batches(per_scene, pad(prep.scenario_ids), pad(prep.locations))
     return results, render_items
+
+
+def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutOutput, samples: int, key,
+             options: RolloutOptions, config: str) -> tuple[dict[str, dict[str, np.ndarray]], bool]:
+    """Each scenario's realism figures of one batch (`gpd_jax.evaluation.realism`) and whether the scenes had road
+    geometry. The first of the K samples is the main rollout `out`; more are drawn only where the rollout samples
+    (temperature > 0), one compiled rollout call each."""
+    draws = [out]
+    if options.temperature > 0:
+        draws += [rollout_model(model, view, tasks, jax.random.fold_in(key, s), options) for s in range(1, samples)]
+    stack = lambda f: jnp.stack([getattr(d, f) for d in draws], axis=1)  # noqa: E731
+    reps = samples // len(draws)
+    xy, heading, valid = (jnp.repeat(stack(f), reps, axis=1) for f in ("xy", "heading", "valid"))
+    full = jax.tree.map(jnp.asarray, full.replace(map_tokens=full.map_tokens[..., :1], lanes=None, lanes_valid=None))
+    budget = None if full.road is None else edge_segment_budget(np.asarray(full.road.edge_valid))
+    part = realism_batch(xy, heading, valid, full, model.spec, tuple(names), config, budget,
+                         full.polylines is not None)
+    return jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(part)), full.road is not None
 
 
 def _agents_only(full: Scene) -> Scene:

@@ -81,11 +81,38 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
             parts = [f"{lb} {_fmt(v)}" + (f" (target <= {RATIO_TARGETS.get(lb, float('nan')):g})" if targeted else "")
                      for lb, v in ratio.items()]
             out += [f"traffic simulation agent ADE / {what} agent ADE: " + ", ".join(parts)]
+    if results.get("realism"):
+        out += [""] + format_realism_table(results["realism"])
     if results.get(MOTION_SPLIT):
         out += [""] + format_motion_table(results, variant)
     if results.get("by_layout"):
         out += [""] + format_layout_table(results)
     return "\n".join(out)
+
+
+def format_realism_table(realism: dict[str, Any]) -> list[str]:
+    """The realism table (`results["realism"]`): meta-metric, its buckets and terms, minADE, per task and
+    baseline."""
+    cols = [("meta", "metametric"), ("kinem", "kinematic"), ("inter", "interactive"), ("map", "map_based"),
+            ("speed", "linear_speed_likelihood"), ("accel", "linear_acceleration_likelihood"),
+            ("yawrate", "angular_speed_likelihood"), ("yawacc", "angular_acceleration_likelihood"),
+            ("dist", "distance_to_nearest_object_likelihood"), ("coll", "collision_indication_likelihood"),
+            ("ttc", "time_to_collision_likelihood"), ("edge", "distance_to_road_edge_likelihood"),
+            ("offroad", "offroad_indication_likelihood"), ("minADE", "min_ade"), ("coll%", "collision_rate"),
+            ("off%", "offroad_rate")]
+    rows = [(_title(t), d) for t, d in realism["tasks"].items()]
+    rows += [(_title(b) + " (baseline)", d) for b, d in realism["baselines"].items()]
+    w0 = max([8] + [len(r) for r, _ in rows]) + 2
+    head = "".join(f"{c:>9}" for c, _ in cols)
+    left = "; ".join(f"{k} left out ({why})" for k, why in realism["left_out"].items())
+    lines = [f"Realism ({realism['samples']} rollouts per scenario, WOSAC {realism['config']} form, weights "
+             f"renormalised{'; ' + left if left else ''}; minADE m; coll% / off% = share of rollouts x agents)",
+             f"{'':<{w0}}{head}", "-" * (w0 + len(head))]
+    for r, d in rows:
+        vals = {**d, "collision_rate": 100 * d.get("collision_rate", float("nan")),
+                "offroad_rate": 100 * d.get("offroad_rate", float("nan"))}
+        lines.append(f"{r:<{w0}}" + "".join(f"{_fmt(vals.get(k)):>9}" for _, k in cols))
+    return lines
 
 
 def format_motion_table(results: dict[str, Any], variant: str = "paper", task: str = "traffic_simulation"

@@ -389,10 +389,11 @@ def _compact(edges: OrientedEdges, max_segments: int) -> OrientedEdges:
 
 def edge_segment_budget(edge_valid) -> int:
     """A static segment count for `orient_edges(..., max_segments=)` that keeps every road-edge segment of a batch
-    of scenes (`edge_valid bool[..., E, P]`, on the host): the largest count, rounded up to a multiple of 64."""
+    of scenes (`edge_valid bool[..., E, P]`, on the host): the largest count rounded up to a power of two, at
+    least 64 (few distinct values: few compiles when batches differ)."""
     v = np.asarray(edge_valid)
     counts = np.sum(v[..., :-1] & v[..., 1:], axis=(-2, -1))
-    return int(max(64, -(-int(np.max(counts, initial=0)) // 64) * 64))
+    return max(64, 1 << max(0, int(np.max(counts, initial=0)) - 1).bit_length())
 
 
 def _signed_edge_distance(p, edges: OrientedEdges, seg):

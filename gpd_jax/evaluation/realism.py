@@ -1,0 +1,116 @@
+"""Realism of K sampled rollouts per scenario in the evaluation (`run_evaluation(..., samples=K)`, `rollout.py
+--samples K`): the WOSAC-form metric of `gpd_jax.metrics.realism` for every task that generates agents or the
+ego, and for the baselines on the same scenarios, agents and frames.
+
+How the model's frames meet the 10 Hz features: a model that reads every `frame_stride`-th stored frame
+predicts at its own rate; its rollouts are brought to the stored rate (`upsample_frames`: cubic Hermite
+between model frames), the history frames are the log's stored frames, and the features are computed at the
+stored rate (10 Hz) against the log at 10 Hz. Baselines are computed at the stored rate directly.
+
+Who is scored (`evaluated`): in a task, the slots it generates (the ego, the agents) that are valid in the log at
+the current frame; the slots a task takes from the log are replayed and only interact. The baselines are scored
+on the agents (slots 1..) valid at the current frame, the traffic-simulation set:
+
+* `constant_velocity`: K identical copies of constant velocity at the stored rate;
+* `constant_velocity_lanes`: K copies of constant velocity along the lanes (where the scenes have lanes);
+* `log`: K copies of the log itself (what a perfect single-future model scores; not 1: the histograms of one
+  future are not the spread of all the futures the scene allows).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow_lanes
+from gpd_jax.metrics.realism import reduce_realism, scenario_realism, upsample_frames
+from gpd_jax.scene import Scene
+from gpd_jax.spec import ModelSpec
+from gpd_jax.tasks import generated
+
+BASELINES = ("constant_velocity", "constant_velocity_lanes", "log")
+
+
+def _evaluated(gen: Sequence[str], valid_now: jax.Array) -> jax.Array:
+    """bool[..., A]: the generated slots (ego = slot 0, agents = 1..) valid at the current frame."""
+    a = valid_now.shape[-1]
+    slot = jnp.arange(a)
+    mask = jnp.zeros(a, bool)
+    if "ego" in gen:
+        mask = mask | (slot == 0)
+    if "agent" in gen:
+        mask = mask | (slot > 0)
+    return valid_now & mask
+
+
+@partial(jax.jit, static_argnames=("spec", "task_names", "config", "max_edge_segments", "with_lanes"))
+def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpec, task_names: tuple[str, ...],
+                  config: str, max_edge_segments: int | None, with_lanes: bool) -> dict[str, dict[str, jax.Array]]:
+    """Per-scenario realism of a batch: `{group: {metric: f32[B]}}` for every task and baseline.
+
+    Args:
+      pred_xy: f32[B, K, N, T, A, 2] K sampled rollouts of the N tasks at the model's frames (T, A: the model's);
+        pred_heading: f32[B, K, N, T, A]; pred_valid: bool[B, K, N, T, A].
+      full: the stored-rate scenes (`Scene [B, ...]` with `road`, and `polylines` for the lane baseline).
+    """
+    k = pred_xy.shape[1]
+    a, ts, h = spec.num_agents, spec.stored_frames_needed, spec.full_history
+    log = Trajectories(full.xy[:, :ts, :a], full.heading[:, :ts, :a], full.valid[:, :ts, :a])
+    size, road = full.size[:, :a], full.road
+    valid_now = log.valid[:, h - 1]
+
+    def stored_rate(xy, heading, valid):  # [B, K, T, A] at the model's frames -> [B, K, ts, A], log history
+        xy, heading, valid = upsample_frames(xy, heading, valid, spec.frame_stride)
+        keep = (jnp.arange(ts) < h)[None, None, :, None]
+        return (jnp.where(keep[..., None], log.xy[:, None], xy), jnp.where(keep, log.heading[:, None], heading),
+                jnp.where(keep, log.valid[:, None], valid))
+
+    def copies(t: Trajectories):
+        return tuple(jnp.broadcast_to(x[:, None], (x.shape[0], k) + x.shape[1:]) for x in (t.xy, t.heading, t.valid))
+
+    groups, sims, evaluated = [], [], []
+    for n, task in enumerate(task_names):
+        gen = generated(task)
+        if "ego" in gen or "agent" in gen:
+            groups.append(task)
+            sims.append(stored_rate(pred_xy[:, :, n], pred_heading[:, :, n], pred_valid[:, :, n]))
+            evaluated.append(_evaluated(gen, valid_now))
+    agents = _evaluated(("agent",), valid_now)
+    cv_full = constant_velocity(full, h)
+    cv = Trajectories(cv_full.xy[:, :ts, :a], cv_full.heading[:, :ts, :a], cv_full.valid[:, :ts, :a])
+    baselines = {"constant_velocity": cv, "log": log}
+    if with_lanes:
+        baselines["constant_velocity_lanes"] = jax.vmap(lambda c, p, v: follow_lanes(c, h, p, v))(
+            cv, full.polylines, full.polyline_valid)
+    for name in BASELINES:
+        if name in baselines:
+            groups.append(name)
+            sims.append(copies(baselines[name]))
+            evaluated.append(agents)
+    # every group (task or baseline) through one vmapped metric: one compiled copy of it, whatever the groups
+    stacked = [jnp.stack([g[i] for g in sims], axis=1) for i in range(3)]  # [B, G, K, ts, A, ...]
+    fn = lambda sx, sh, sv, ev, lx, lh, lv, sz, rd: scenario_realism(  # noqa: E731
+        sx, sh, sv, lx, lh, lv, sz, h, rd, ev, spec.stored_period_s, config, max_edge_segments)
+    per_group = jax.vmap(fn, in_axes=(0, 0, 0, 0) + (None,) * 5)
+    res = jax.vmap(per_group)(*stacked, jnp.stack(evaluated, axis=1), log.xy, log.heading, log.valid, size, road)
+    return {g: {m: v[:, i] for m, v in res.items()} for i, g in enumerate(groups)}
+
+
+def reduce_groups(per_scene: dict[str, dict[str, np.ndarray]], task_names: Sequence[str], samples: int,
+                  config: str, has_road: bool) -> dict:
+    """metrics.json's "realism": {"config", "samples", "weights", "left_out", "tasks": {task: figures},
+    "baselines": {name: figures}} from each scenario's figures (`{group: {metric: f64[n]}}`)."""
+    groups = {g: reduce_realism(v, config, has_road=has_road) for g, v in per_scene.items()}
+    first = next(iter(groups.values()))
+    strip = lambda r: {k: v for k, v in r.items() if k not in ("config", "weights", "left_out")}
+    return {"config": config, "samples": samples, "weights": first["weights"], "left_out": first["left_out"],
+            "evaluated": "tasks: the slots each task generates, valid at the current frame; baselines: the agents "
+                         "(slots 1..) valid at the current frame",
+            "frame_rate": "rollouts at the model's frames are brought to the stored rate by cubic Hermite "
+                          "interpolation (gpd_jax.metrics.realism.upsample_frames); features at the stored rate",
+            "tasks": {t: strip(groups[t]) for t in task_names if t in groups},
+            "baselines": {b: strip(groups[b]) for b in BASELINES if b in groups}}
