@@ -7,7 +7,7 @@
     gpd-jax eval --data DIR --out DIR           rollouts of every task, metrics, baselines (rollout.py)
     gpd-jax compare RUN_A RUN_B ...             scene-bootstrap intervals of evaluation runs
     gpd-jax plan evaluate|bench                 closed-loop planning scores (python -m gpd_jax.plan)
-    gpd-jax bench rollout ...                   rollout speed (python -m gpd_jax.bench)
+    gpd-jax bench rollout|realism ...           rollout and realism-metric speed (python -m gpd_jax.bench)
     gpd-jax checkpoint export|average           export a workdir, average models (python -m gpd_jax.checkpoint)
 
 Every command exits 0, or 2 with one line naming what is wrong.
@@ -27,7 +27,7 @@ COMMANDS = {
     "eval": ("gpd_jax.evaluation.command", "gpd-jax eval", "rollouts of every task, metrics, tables (as rollout.py)"),
     "compare": ("gpd_jax.evaluation.__main__", None, "scene-bootstrap intervals of evaluation runs"),
     "plan": ("gpd_jax.plan.__main__", None, "closed-loop planning scores and the simulator's speed"),
-    "bench": ("gpd_jax.bench", None, "rollout speed: cached against recompute, attention paths"),
+    "bench": ("gpd_jax.bench", None, "rollout speed (cached against recompute, attention paths); realism metric speed"),
     "checkpoint": ("gpd_jax.checkpoint", None, "export a training workdir, average models"),
 }
 

@@ -43,3 +43,15 @@ def test_bench_records_machine_build_and_auto_choice(tmp_path):
     assert all(r["speedup"] == pytest.approx(r["recompute_s_per_scenario"] / r["cached_s_per_scenario"]) for r in b1)
     if any(c["source"] == "measured" for r in auto for c in r["auto_choices"]):
         assert list((tmp_path / "cache" / "decode-attention").glob("*.json"))
+
+
+def test_realism_bench_prints_and_records_seconds_per_scenario(tmp_path, capsys):
+    from gpd_jax import bench
+
+    out = tmp_path / "realism.json"
+    assert bench.main(["realism", "--rollouts", "2", "--agents", "4", "--scenarios", "2", "--repeats", "1",
+                       "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["s_per_scenario"] > 0 and rec["rollouts"] == 2 and rec["agents"] == 4 and rec["scenarios"] == 2
+    assert 0 < rec["metametric"] <= 1 and rec["road_edge_inexact_share"] == 0 and rec["machine"]["cpu"]
+    assert "s per scenario" in capsys.readouterr().out

@@ -81,8 +81,10 @@ def test_box_distance_equals_an_independent_minkowski_and_polygon_computation():
     assert (got < 0).sum() > 20 and (got > 0).sum() > 20  # both cases were exercised
 
 
-def _road_square(side=20.0, reverse=False):
-    """A square drivable area [0, side]^2 with its boundary as one closed road edge (one extra padded edge)."""
+def _road_square(side=20.0, reverse=False, interior=False):
+    """A square drivable area [0, side]^2 with its boundary as one closed road edge; the second edge slot is
+    padding, or with `interior` a line through the middle (drivable on both sides: not an edge of the road) and a
+    5 cm sliver."""
     ring = np.array([[0, 0], [side, 0], [side, side], [0, side]], np.float32)
     polys = np.zeros((2, 6, 2), np.float32)
     polys[0, :4] = ring
@@ -95,6 +97,12 @@ def _road_square(side=20.0, reverse=False):
     edges[0, :5] = edge
     evalid = np.zeros((2, 8), bool)
     evalid[0, :5] = True
+    if interior:
+        edges = np.concatenate([edges, np.zeros((1, 8, 2), np.float32)])
+        evalid = np.concatenate([evalid, np.zeros((1, 8), bool)])
+        edges[1, :2] = [[5, side / 2], [15, side / 2]]
+        edges[2, :2] = [[side, 3], [side, 3.05]]
+        evalid[1:, :2] = True
     lanes = np.zeros((1, 2, 2), np.float32)
     return RoadGeometry(polygons=jnp.asarray(polys), polygon_valid=jnp.asarray(pvalid),
                         polygon_kind=jnp.zeros(2, jnp.int32), edges=jnp.asarray(edges),
@@ -102,9 +110,10 @@ def _road_square(side=20.0, reverse=False):
                         lane_valid=jnp.zeros((1, 2), bool))
 
 
-@pytest.mark.parametrize("reverse", [False, True])
-def test_road_edge_distance_is_signed_off_the_road_whatever_the_edge_direction(reverse):
-    road = _road_square(reverse=reverse)
+@pytest.mark.parametrize("reverse,interior", [(False, False), (True, True)])
+def test_road_edge_distance_is_signed_off_the_road_whatever_the_edge_direction(reverse, interior):
+    """Edges in either direction; lines with the road on both sides and slivers are no edges of the road."""
+    road = _road_square(reverse=reverse, interior=interior)
     rng = np.random.default_rng(2)
     pts = rng.uniform(-8, 28, (30, 1, 4, 2)).astype(np.float32)  # 30 "frames" x 1 agent x 4 corners
     valid = jnp.ones((30, 1), bool)

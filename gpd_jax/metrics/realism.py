@@ -324,11 +324,15 @@ def _cross(u, v):
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
 
-def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: float = 0.05) -> OrientedEdges:
+def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: float = 0.05,
+                 min_length_m: float = 1.0) -> OrientedEdges:
     """The unbatched `road`'s edge polylines as segments with the drivable area on their left.
 
     Each polyline is reversed where most of its segments have the drivable area (`on_road`) on their right
-    (probes `probe_m` either side of each segment's midpoint). Valid points of a polyline must be a prefix.
+    (probes `probe_m` either side of each segment's midpoint); segments with the drivable area on both sides or on
+    neither are left out (not edges of the road; they still serve as a vertex's neighbour in the sign rule), and
+    so are polylines shorter than `min_length_m` in all.
+    Valid points of a polyline must be a prefix.
     `max_segments` (static): keep only that many segment slots, the existing ones first (stores pad their edge
     arrays heavily; `edge_segment_budget` picks a count that keeps them all) -- the distance search costs in
     proportion to it.
@@ -345,7 +349,13 @@ def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: f
     mid = (a + b) / 2
     left = on_road(road, mid + probe_m * n_left)
     right = on_road(road, mid - probe_m * n_left)
-    vote = jnp.sum(jnp.where(ok, (left & ~right).astype(jnp.int32) - (right & ~left).astype(jnp.int32), 0), -1)
+    # a segment with the drivable area on both sides (or neither) bounds nothing: stores' edges include such
+    # interior lines on real-road tiles, and a distance to them is no distance to the road's edge
+    ok = ok & (left != right)
+    # so are slivers: polylines shorter than `min_length_m` (artifacts of the areas' union), whose open ends would
+    # lend their side to points far along their line
+    ok = ok & (jnp.sum(jnp.where(ok, length, 0.0), -1, keepdims=True) >= min_length_m)
+    vote = jnp.sum(jnp.where(ok, left.astype(jnp.int32) - right.astype(jnp.int32), 0), -1)
     flip = vote < 0  # [E]
     # reversing a polyline: segment k becomes the reverse of segment S-1-k
     a_r, b_r, ok_r = b[:, ::-1], a[:, ::-1], ok[:, ::-1]
@@ -359,18 +369,23 @@ def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: f
     last = s - 1 - jnp.argmax(ok[:, ::-1], -1)
     start = jnp.take_along_axis(a, first[:, None, None], 1)[:, 0]
     end = jnp.take_along_axis(b, last[:, None, None], 1)[:, 0]
-    cyclic = has & (jnp.sum((start - end) ** 2, -1) < 1.0)
-    prior = jnp.where(idx[None] > first[:, None], idx[None] - 1, jnp.where(cyclic[:, None], last[:, None], idx[None]))
-    nxt = jnp.where(idx[None] < last[:, None], idx[None] + 1, jnp.where(cyclic[:, None], first[:, None], idx[None]))
-    # the official code pads the segment directions with the last before the first and the first after the last
-    t = b - a
-    t_prior = jnp.take_along_axis(t, jnp.where(idx[None] > first[:, None], idx[None] - 1, last[:, None])[..., None], 1)
-    t_next = jnp.take_along_axis(t, jnp.where(idx[None] < last[:, None], idx[None] + 1, first[:, None])[..., None], 1)
-    base = (jnp.arange(e) * s)[:, None]
-    edges = OrientedEdges(a=a.reshape(-1, 2), b=b.reshape(-1, 2), ok=ok.reshape(-1),
-                          prior=(prior + base).reshape(-1), next=(nxt + base).reshape(-1),
-                          convex_before=(_cross(t_prior, t) > 0).reshape(-1),
-                          convex_after=(_cross(t, t_next) > 0).reshape(-1), dropped=jnp.int32(0))
+    # Neighbours across polyline ends: a polyline closes on itself when its ends are within 1 m (the official
+    # rule), and continues into another polyline that starts where it ends (stores cut long edges into pieces);
+    # the sign rule at a vertex needs the segment on the other side of it.
+    gid = jnp.arange(e)[:, None] * s + idx[None]  # [E, S] index into the flattened segments
+    first_g, last_g = jnp.arange(e) * s + first, jnp.arange(e) * s + last
+    d2 = jnp.sum((end[:, None] - start[None]) ** 2, -1)  # [i, j]: end of i to start of j
+    tol = jnp.where(jnp.eye(e, dtype=bool), 1.0, 1e-4)
+    d2 = jnp.where(has[:, None] & has[None] & (d2 < tol), d2, jnp.inf)
+    succ, pred = jnp.argmin(d2, 1), jnp.argmin(d2, 0)
+    next_end = jnp.where(jnp.isfinite(jnp.min(d2, 1)), first_g[succ], last_g)  # after the last segment
+    prior_start = jnp.where(jnp.isfinite(jnp.min(d2, 0)), last_g[pred], first_g)  # before the first
+    prior = jnp.where(idx[None] > first[:, None], gid - 1, prior_start[:, None]).reshape(-1)
+    nxt = jnp.where(idx[None] < last[:, None], gid + 1, next_end[:, None]).reshape(-1)
+    t = (b - a).reshape(-1, 2)
+    edges = OrientedEdges(a=a.reshape(-1, 2), b=b.reshape(-1, 2), ok=ok.reshape(-1), prior=prior, next=nxt,
+                          convex_before=_cross(t[prior], t) > 0, convex_after=_cross(t, t[nxt]) > 0,
+                          dropped=jnp.int32(0))
     return edges if max_segments is None else _compact(edges, max_segments)
 
 
