@@ -4,7 +4,8 @@ Modules, by job: `driver` (the batched loop: `run_evaluation`, under `gpd_jax.ev
 `scoring` (metric sums of a batch, jitted), `reduce` (sums -> metrics), `report` (tables, strict JSON), `maps`
 (the lanes generated maps are scored against), `baselines` (constant velocity, log replay), `render` (pictures),
 `keys` (the names of what is reported), `bootstrap` (each scenario's sums: scene-bootstrap intervals and paired
-comparisons of runs on the same scenes; `python -m gpd_jax.evaluation compare`).
+comparisons of runs on the same scenes; `python -m gpd_jax.evaluation compare`), `realism` (the WOSAC-form realism
+of K rollouts per scenario, `samples=K`).
 
 What `run_evaluation` does (the command line is `rollout.py` at the repository root):
 
@@ -92,6 +93,10 @@ metrics.json (written by rollout.py; NaN written as null)::
                                  "traffic_simulation_over_constant_velocity_lanes": {...}}},
      "by_layout": {layout: {"scenarios": n, "tasks": ..., "baselines": ..., "ratios": ...,
                             "motion_split": ...}},  # 2+ layouts only
+     "realism": {"config", "samples", "weights", "left_out", "evaluated", "frame_rate",     # only with samples=K
+                 "tasks": {task: {"metametric", "kinematic", "interactive", "map_based", "<feature>_likelihood",
+                                  "min_ade", "ade", "collision_rate", "offroad_rate", "scenarios", ...}},
+                 "baselines": {"constant_velocity" | "constant_velocity_lanes" | "log": {...}}},
      "timing_s": {...}, "render": {...}}                           # render: only with --render
 
 **Motion split** ("motion_split"): ego and agent ADE / FDE of every task and baseline again, separately for slots

@@ -23,7 +23,8 @@ Features, per agent and future frame (`realism_features`; 10 Hz frames, `dt` = 0
 * **distance to the road edge**: the most off-road of the box's four corners, signed like WOSAC (negative on the
   road, positive off it), from the scene's road-edge polylines (`Scene.road`). The official rule needs edges
   oriented with the road on their left; the stores' edges carry no orientation, so each polyline is oriented
-  here by which side of it is drivable (`gpd_jax.geometry.on_road` probes beside every segment, majority vote).
+  here by which side of it is drivable (`gpd_jax.geometry.on_road` probes beside every segment, majority vote);
+  segments drivable on both sides (interior lines of real-road tiles) and slivers under 1 m are not edges.
   The sign of a point whose nearest edge point is a polyline vertex follows the official convexity rule.
   **Offroad** where it is above 0.
 
