@@ -27,6 +27,7 @@ from gpd_jax.evaluation.preflight import preflight
 from gpd_jax.evaluation.realism import realism_batch, reduce_groups
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
+from gpd_jax.metrics.realism import CONFIGS as REALISM_CONFIGS
 from gpd_jax.metrics.realism import edge_segment_budget
 from gpd_jax.scene import Scene
 from gpd_jax.spec import HORIZONS_S, EvalError
@@ -83,6 +84,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     config, tokenizer = model.config, model.tokenizer
     if samples < 0:
         raise EvalError(f"samples must be >= 0, got {samples}")
+    if realism_config not in REALISM_CONFIGS:
+        raise EvalError(f"realism_config {realism_config!r}: expected one of {sorted(REALISM_CONFIGS)}")
     if options.method != "cached":
         raise EvalError(f"evaluation runs the cached rollout; options.method is {options.method!r}")
     check_options(model, options)
