@@ -123,12 +123,13 @@ def test_road_edge_distance_is_signed_off_the_road_whatever_the_edge_direction(r
         d = [square.exterior.distance(shapely.Point(p)) * (-1 if square.contains(shapely.Point(p)) else 1)
              for p in pts[f, 0]]
         want.append(max(d))
-    got, inexact = R.road_edge_distance(R.orient_edges(road), jnp.asarray(pts), valid, chunk=4)
+    orient = jax.jit(R.orient_edges, static_argnums=1)
+    distance = jax.jit(R.road_edge_distance, static_argnames=("num_candidates", "chunk"))
+    got, inexact = distance(orient(road, None), jnp.asarray(pts), valid, chunk=4)
     np.testing.assert_allclose(np.asarray(got)[:, 0], want, atol=1e-4)
     assert not np.asarray(inexact).any()
     # two candidates per frame over a compacted road: an answer is either right or said to be unproven
-    got, inexact = R.road_edge_distance(R.orient_edges(road, 64), jnp.asarray(pts), valid, num_candidates=2,
-                                        chunk=1)
+    got, inexact = distance(orient(road, 64), jnp.asarray(pts), valid, num_candidates=2, chunk=1)
     right = np.abs(np.asarray(got)[:, 0] - want) < 1e-4
     assert np.all(right | np.asarray(inexact)[:, 0]) and right.sum() >= 10
 
