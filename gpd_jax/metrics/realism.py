@@ -427,10 +427,11 @@ def _signed_edge_distance(p, edges: OrientedEdges, seg):
     # the nearest candidate (the first among ties), by reductions that fuse (argmin + gathers do not on a CPU)
     d2 = jnp.min(dist2, axis=-1)  # [B, P]
     c = seg.shape[-1]
-    k = jnp.min(jnp.where(dist2 == d2[..., None], jnp.arange(c), c), axis=-1)
-    pick = jnp.arange(c) == k[..., None]
-    t = jnp.sum(jnp.where(pick, rel_t, 0.0), axis=-1)
-    s = jnp.sum(jnp.where(pick, seg[:, None, :], 0), axis=-1)  # [B, P]
+    k = jnp.minimum(jnp.min(jnp.where(dist2 == d2[..., None], jnp.arange(c), c), axis=-1), c - 1)
+    s = jnp.take_along_axis(seg, k, axis=-1)  # [B, P]
+    sa, sb = edges.a[s], edges.b[s]
+    ab_s = sb - sa
+    t = jnp.sum((p - sa) * ab_s, -1) / jnp.maximum(jnp.sum(ab_s * ab_s, -1), 1e-12)
     d = jnp.sqrt(d2)
 
     def side(i):  # +1 where the point is on segment i's starboard (off-road) side, -1 port
