@@ -72,6 +72,7 @@ import numpy as np
 
 from gpd_jax.geometry import RoadGeometry, on_road
 from gpd_jax.metrics.agents import box_corners
+from gpd_jax.scene import wrap_angle
 
 # ------------------------------------------------------------------------------------------------ constants
 CORNER_ROUNDING_FACTOR = 0.7  # 0: sharp rectangles, 1: capsules
@@ -190,10 +191,6 @@ class RealismFeatures:
     edge_inexact: jax.Array
 
 
-def _wrap(a):
-    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
-
-
 def _central_diff(x):
     """[T, ...] -> [T, ...]: (x[t+1] - x[t-1]) / 2, NaN at both ends."""
     nan = jnp.full_like(x[:1], jnp.nan)
@@ -212,8 +209,8 @@ def kinematics(xy: jax.Array, heading: jax.Array, valid: jax.Array, dt: float):
     """
     speed = jnp.linalg.norm(_central_diff(xy), axis=-1) / dt
     accel = _central_diff(speed) / dt
-    dh_step = _wrap(_central_diff(heading) * 2) / 2
-    d2h_step = _wrap(_central_diff(dh_step) * 2) / 2
+    dh_step = wrap_angle(_central_diff(heading) * 2) / 2
+    d2h_step = wrap_angle(_central_diff(dh_step) * 2) / 2
     speed_valid = _central_and(valid)
     return speed, accel, dh_step / dt, d2h_step / dt ** 2, speed_valid, _central_and(speed_valid)
 
@@ -707,4 +704,4 @@ def upsample_frames(xy, heading, valid, stride: int):
     vs = jnp.concatenate([v[:-1, None], jnp.repeat(both[:, None], stride - 1, axis=1)], axis=1)
     v_u = jnp.concatenate([vs.reshape(((n - 1) * stride,) + v.shape[1:]), v[-1:]], axis=0)
     back = lambda q: jnp.moveaxis(q, 0, lead)
-    return back(interp(x)), back(_wrap(interp(h)[..., 0])), back(v_u)
+    return back(interp(x)), back(wrap_angle(interp(h)[..., 0])), back(v_u)
