@@ -416,9 +416,6 @@ def main(argv=None) -> int:
                   f"{out['agents']} agents, {out['scenarios']} scenarios per call: "
                   f"{out['s_per_scenario']:.3f} s per scenario (compile {out['compile_s']:.1f} s); "
                   f"road-edge answers not proven exact: {out['road_edge_inexact_share']:.2%}")
-            if args.json:
-                atomic_write_json(args.json, out, indent=2)
-                print(f"wrote {args.json}")
         else:
             parallel.use_host_cores()
             out = bench_rollout(args, overrides)
