@@ -190,3 +190,30 @@ def test_raster_reconstruction_frames_agree():
                            jnp.where(jnp.asarray(gv), 5.0, -5.0)[None])
     r2 = reduce_raster(jax.device_get(raster_sums(moved, target)))
     assert r2["raster_iou"] < 0.2 and r2["raster_f1"] < r["raster_f1"]
+
+
+@pytest.mark.parametrize("n_pred, n_gt", [(23, 17), (50, 50), (5, 0), (0, 9)])
+def test_tiled_nearest_segment_search_equals_the_full_one(n_pred, n_gt):
+    """The cut-free score visits only the tiles of valid lines (`_nearest_by_line`): on every point of a valid
+    line it gives the distances of the search over every pair (to float32 rounding: the compiler may arrange a
+    tile's arithmetic differently), valid lines in any slots."""
+    from gpd_jax.metrics.map import _nearest_by_line, _point_to_segments
+
+    rng = np.random.default_rng(n_pred + 100 * n_gt)
+    lp, ls, n, m = 50, 50, 6, 3
+    p = rng.normal(size=(lp, n, 2)).astype(np.float32) * 20
+    pdir = rng.normal(size=(lp, n, 2)).astype(np.float32)
+    a = rng.normal(size=(ls, m, 2)).astype(np.float32) * 20
+    b = a + rng.normal(size=(ls, m, 2)).astype(np.float32) * 3
+    b[0, 0] = a[0, 0]  # a zero-length segment
+    pv = np.zeros(lp, bool)
+    pv[rng.permutation(lp)[:n_pred]] = True
+    sv = np.zeros(ls, bool)
+    sv[rng.permutation(ls)[:n_gt]] = True
+    d, dd = jax.jit(_nearest_by_line)(p, pdir, pv, a, b, sv)
+    ref = jax.jit(_point_to_segments)(p.reshape(-1, 2), a.reshape(-1, 2), b.reshape(-1, 2), np.repeat(sv, m),
+                                      pdir.reshape(-1, 2))
+    rd, rdd = (np.asarray(x).reshape(lp, n) for x in ref)
+    np.testing.assert_allclose(np.asarray(d)[pv], rd[pv], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(dd)[pv], rdd[pv], rtol=1e-6, atol=1e-6)
+    assert (np.asarray(d)[~pv] == 0).all() and (np.asarray(dd)[~pv] == 0).all()
