@@ -43,10 +43,11 @@ current frame does not continue.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # The official collision checker's fixed box (length, width) in metres.
 PAPER_BOX = (4.084, 1.85)
@@ -170,100 +171,151 @@ def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Ar
       of `MOTION_CLASSES`; with `current_direction` also "{g}_{ade,fde}_{along,cross}_moving_num". Feed to
       `reduce_agent_metrics`.
     """
+    rows = agent_sum_rows(horizons, variant, dt, current_speed is not None, current_direction is not None)
+    return name_agent_sums(agent_sum_table(
+        pred_xy, pred_heading, gt_xy, gt_valid, size, num_history=num_history, pred_valid=pred_valid,
+        eval_mask=eval_mask, horizons=horizons, variant=variant, dt=dt, current_speed=current_speed,
+        stationary_below=stationary_below, current_direction=current_direction), rows)
+
+
+def _paper_or_corrected(variant: str, paper, corrected):
+    return paper if variant == "paper" else corrected
+
+
+def agent_sum_rows(horizons: Sequence[int], variant: str, dt: float = 0.1, split: bool = False,
+                   track: bool = False) -> tuple[tuple[str, str, str, int, int], ...]:
+    """What each entry of `agent_sum_table` is: (horizon label, key of `agent_metric_sums`, the sum it is,
+    selection set, horizon index), in the order of `agent_metric_sums`' keys. The sums are the per-set and
+    per-horizon quantities of `agent_sum_table`; the sets are ego and agents (0, 1) and, with `split`, each
+    group's motion classes (2 + 3 * group + class). `track`: the along- / cross-track sums of the moving class."""
+    rows = []
+    for hi, h in enumerate(horizons):
+        hl = horizon_label(h, dt)
+        for gi, g in enumerate(("ego", "agent")):
+            src = _paper_or_corrected(
+                variant,
+                {"ade_num": "err", "ade_den": "exist_h", "fde_num": "fde", "fde_den": "exist", "collision_num": "col",
+                 "collision_den": "exist", "collision_frames_num": "colf", "collision_frames_den": "exist_h"},
+                {"ade_num": "err", "ade_den": "cnt", "fde_num": "fde", "fde_den": "anyv", "collision_num": "col",
+                 "collision_den": "col_den", "collision_frames_num": "colf", "collision_frames_den": "colf_den"})
+            rows += [(hl, f"{g}_{n}", q, gi, hi) for n, q in src.items()]
+            if not split:
+                continue
+            for ki, k in enumerate(MOTION_CLASSES):
+                si = 2 + 3 * gi + ki
+                rows += [(hl, f"{g}_ade_{k}_num", "err", si, hi), (hl, f"{g}_n_{k}", "anyv", si, hi),
+                         (hl, f"{g}_ade_{k}_den", _paper_or_corrected(variant, "exist_h", "cnt"), si, hi),
+                         (hl, f"{g}_fde_{k}_num", "fde", si, hi),
+                         (hl, f"{g}_fde_{k}_den", _paper_or_corrected(variant, "exist", "anyv"), si, hi)]
+                if k == "moving" and track:
+                    for comp in TRACK_COMPONENTS:
+                        rows += [(hl, f"{g}_ade_{comp}_moving_num", f"{comp}_err", si, hi),
+                                 (hl, f"{g}_fde_{comp}_moving_num", f"{comp}_fde", si, hi)]
+    return tuple(rows)
+
+
+def name_agent_sums(table, rows) -> dict[str, dict[str, Any]]:
+    """`agent_sum_table`'s f32[..., R] (any leading dims: jax or numpy) -> `agent_metric_sums`' dict
+    {horizon label: {key: [...]}} (`rows`: `agent_sum_rows`)."""
+    out: dict[str, dict[str, Any]] = {}
+    for i, (hl, key, *_) in enumerate(rows):
+        out.setdefault(hl, {})[key] = table[..., i]
+    return out
+
+
+def agent_sum_table(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Array, gt_valid: jax.Array,
+                    size: jax.Array, *, num_history: int = 0, pred_valid: jax.Array | None = None,
+                    eval_mask: jax.Array | None = None, horizons: Sequence[int] = DEFAULT_HORIZONS,
+                    variant: str = "paper", dt: float = 0.1, current_speed: jax.Array | None = None,
+                    stationary_below: float = STATIONARY_MPS, current_direction: jax.Array | None = None
+                    ) -> jax.Array:
+    """`agent_metric_sums` as one array f32[R]: entry r is the sum `agent_sum_rows(...)[r]` names (same
+    arguments). Every sum of every horizon and selection set comes from a dozen masked reductions over
+    [set, horizon, ..., frame, slot] instead of one reduction per key, horizon and set (hundreds of kernels, the
+    compile time of the evaluation), and one gather picks the entries; `name_agent_sums` names them (on the
+    host, after the compiled call, it adds no kernels)."""
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
     if current_direction is not None and current_speed is None:
         raise ValueError("current_direction splits the moving class's errors: pass current_speed too")
+    horizons = tuple(horizons)
     t_total = gt_xy.shape[-3]
     fut = t_total - num_history
     if max(horizons) > fut:
         raise ValueError(f"horizon {max(horizons)} frames exceeds the {fut} future frames given (frames at another "
                          "rate? pass a model's frames with horizons and dt, or agent_metrics(..., spec=model.spec))")
-    sl = lambda a, axis: jax.lax.slice_in_dim(a, num_history, t_total, axis=a.ndim + axis)
+    sl = lambda a, axis: jax.lax.slice_in_dim(a, num_history, t_total, axis=a.ndim + axis)  # noqa: E731
     pxy, ph, gxy, gv = sl(pred_xy, -3), sl(pred_heading, -2), sl(gt_xy, -3), sl(gt_valid, -2)
     pv = gv if pred_valid is None else sl(pred_valid, -2)
     a = gxy.shape[-2]
     batch = gxy.shape[:-3]
+    nb = len(batch)
     ev = jnp.ones(batch + (a,), bool) if eval_mask is None else jnp.broadcast_to(eval_mask, batch + (a,))
     is_ego = jnp.arange(a) == 0
-    groups = {"ego": ev & is_ego, "agent": ev & ~is_ego}  # [..., A]
-
+    sets = [ev & is_ego, ev & ~is_ego]  # [..., A]: ego, agents
     if current_speed is not None:
         speed = jnp.broadcast_to(current_speed, batch + (a,))
         known = ~jnp.isnan(speed)
-        classes = {"stationary": known & (speed < stationary_below), "moving": known & (speed >= stationary_below),
-                   "speed_unknown": ~known}  # [..., A], a partition of the slots
+        classes = (known & (speed < stationary_below), known & (speed >= stationary_below), ~known)
+        sets += [g & k for g in sets[:2] for k in classes]  # each group's MOTION_CLASSES, a partition of it
+    sel = jnp.stack(sets)  # [S, ..., A]
 
     evec = pxy - gxy  # [..., F, A, 2]
     err = jnp.where(gv, jnp.linalg.norm(evec, axis=-1), 0.0)  # [..., F, A]
-    track = {}
+    if variant == "paper":
+        collide = jnp.any(box_overlap_pairwise(pxy, ph, jnp.array(PAPER_BOX, pxy.dtype), gv), -1)  # [..., F, A]
+        q = gv  # where a collision counts
+    else:
+        q = gv & pv  # present: valid in the log and in the prediction
+        own = box_overlap_pairwise(pxy, ph, jnp.broadcast_to(size[..., None, :, :], pxy.shape), q)
+        collide = jnp.any(own, -1) & q
+
+    f = gxy.shape[-3]
+    hmask = jnp.arange(f)[None, :] < jnp.array(horizons)[:, None]  # [Hn, F]
+    # [S or 1, Hn or 1, ..., F or 1, A] layouts: sets lead, then horizons, then the batch, frames and slots
+    per_set = lambda x: x[:, None, ..., None, :]  # noqa: E731  [S, ..., A] -> [S, 1, ..., 1, A]
+    per_h = lambda x: x[None]  # noqa: E731  [Hn, ..., A] -> [1, Hn, ..., A]
+    hm = hmask.reshape((1, len(horizons)) + (1,) * nb + (f, 1))  # [1, Hn, 1.., F, 1]
+    total = lambda x: jnp.sum(x.astype(jnp.float32), axis=tuple(range(2, x.ndim)))  # noqa: E731  -> [S, Hn]
+    sm = per_set(sel)
+    mh = hm & gv[None, None]  # valid within the horizon [1, Hn, ..., F, A]
+
+    def last_valid(x):  # [..., F, A] -> the value at the last valid frame within each horizon [Hn, ..., A]
+        idx = jnp.max(jnp.where(mh, jnp.arange(f)[:, None], -1), axis=-2)[0]  # [Hn, ..., A]
+        v = jnp.take_along_axis(jnp.broadcast_to(x, idx.shape[:1] + x.shape), jnp.maximum(idx, 0)[..., None, :],
+                                axis=-2)[..., 0, :]
+        return jnp.where(idx >= 0, v, 0.0), idx >= 0
+
+    fde_err, any_valid = last_valid(err)
+    sm_h = sm[..., 0, :]  # [S, 1, ..., A]
+    qs = {"err": jnp.where(sm & mh, err, 0.0), "fde": jnp.where(sm_h, per_h(fde_err), 0.0),
+          "anyv": sm_h & per_h(any_valid), "colf": sm & hm & collide & q,
+          "col": sm_h & jnp.any(hm & collide & q, axis=-2)}
+    shape = (sel.shape[0], len(horizons))
+    sums = {}  # [S, Hn] sums that are not a reduction of their own
+    if variant == "paper":
+        exists = jnp.any(gv, axis=-2) | is_ego  # [..., A]: the ego counts once per scenario, as the official code
+        n_exist = total(sm_h & exists)  # [S, 1]
+        sums["exist"] = jnp.broadcast_to(n_exist, shape)
+        sums["exist_h"] = jnp.array(horizons, jnp.float32)[None] * n_exist
+    else:
+        qs["cnt"] = sm & mh
+        qs["col_den"] = sm_h & jnp.any(hm & q, axis=-2)
+        qs["colf_den"] = sm & hm & q
     if current_direction is not None:
         u = jnp.broadcast_to(current_direction, batch + (a, 2))[..., None, :, :]  # [..., 1, A, 2]
         track = {"along": jnp.abs(jnp.sum(evec * u, -1)),
                  "cross": jnp.abs(evec[..., 0] * u[..., 1] - evec[..., 1] * u[..., 0])}
-        track = {k: jnp.where(gv, v, 0.0) for k, v in track.items()}  # [..., F, A]
-    f32 = lambda x: jnp.sum(x.astype(jnp.float32))
-
-    if variant == "paper":
-        collide = jnp.any(box_overlap_pairwise(pxy, ph, jnp.array(PAPER_BOX, pxy.dtype), gv), -1)  # [..., F, A]
-        exists = jnp.any(gv, axis=-2)  # [..., A] valid anywhere in the future
-        # The ego's N_exist is the number of scenarios (one per scenario), as in the official code.
-        n_exist = {"ego": f32(jnp.broadcast_to(groups["ego"][..., 0], batch)),
-                   "agent": f32(exists & groups["agent"])}
-    else:
-        present = gv & pv
-        own = box_overlap_pairwise(pxy, ph, jnp.broadcast_to(size[..., None, :, :], pxy.shape), present)
-        collide = jnp.any(own, -1) & present
-
-    out = {}
-    for h in horizons:
-        e, m, c = err[..., :h, :], gv[..., :h, :], collide[..., :h, :]
-        fde_err, any_valid = _last_valid_error(e, m)
-        d = {}
-        for g, sel in groups.items():
-            s = sel[..., None, :]
-            if variant == "paper":
-                d[f"{g}_ade_num"] = f32(jnp.where(s & m, e, 0.0))
-                d[f"{g}_ade_den"] = h * n_exist[g]
-                d[f"{g}_fde_num"] = f32(jnp.where(sel, fde_err, 0.0))
-                d[f"{g}_fde_den"] = n_exist[g]
-                d[f"{g}_collision_num"] = f32(jnp.any(c & m, axis=-2) & sel)
-                d[f"{g}_collision_den"] = n_exist[g]
-                d[f"{g}_collision_frames_num"] = f32(c & m & s)
-                d[f"{g}_collision_frames_den"] = h * n_exist[g]
-            else:
-                pres = present[..., :h, :] & s
-                d[f"{g}_ade_num"] = f32(jnp.where(s & m, e, 0.0))
-                d[f"{g}_ade_den"] = f32(s & m)
-                d[f"{g}_fde_num"] = f32(jnp.where(sel & any_valid, fde_err, 0.0))
-                d[f"{g}_fde_den"] = f32(sel & any_valid)
-                d[f"{g}_collision_num"] = f32(jnp.any(c & pres, axis=-2))
-                d[f"{g}_collision_den"] = f32(jnp.any(pres, axis=-2))
-                d[f"{g}_collision_frames_num"] = f32(c & pres)
-                d[f"{g}_collision_frames_den"] = f32(pres)
-            if current_speed is None:
-                continue
-            for k, in_class in classes.items():
-                sk = sel & in_class  # [..., A]
-                d[f"{g}_ade_{k}_num"] = f32(jnp.where(sk[..., None, :] & m, e, 0.0))
-                d[f"{g}_n_{k}"] = f32(sk & any_valid)
-                if variant == "paper":
-                    ne = (f32(sk[..., 0]) if g == "ego" else f32(exists & sk))
-                    d[f"{g}_ade_{k}_den"] = h * ne
-                    d[f"{g}_fde_{k}_num"] = f32(jnp.where(sk, fde_err, 0.0))
-                    d[f"{g}_fde_{k}_den"] = ne
-                else:
-                    d[f"{g}_ade_{k}_den"] = f32(sk[..., None, :] & m)
-                    d[f"{g}_fde_{k}_num"] = f32(jnp.where(sk & any_valid, fde_err, 0.0))
-                    d[f"{g}_fde_{k}_den"] = f32(sk & any_valid)
-                if k != "moving":
-                    continue
-                for comp, te in track.items():  # the same numerators' sets as the moving ADE / FDE above
-                    te = te[..., :h, :]
-                    d[f"{g}_ade_{comp}_moving_num"] = f32(jnp.where(sk[..., None, :] & m, te, 0.0))
-                    d[f"{g}_fde_{comp}_moving_num"] = f32(jnp.where(sk & any_valid, _last_valid_error(te, m)[0], 0.0))
-        out[horizon_label(h, dt)] = d
-    return out
+        for comp, te in track.items():
+            te = jnp.where(gv, te, 0.0)  # [..., F, A]
+            qs[f"{comp}_err"] = jnp.where(sm & mh, te, 0.0)
+            qs[f"{comp}_fde"] = jnp.where(sm_h, per_h(last_valid(te)[0]), 0.0)
+    sums.update({k: total(v) for k, v in qs.items()})
+    names = sorted(sums)
+    table = jnp.stack([sums[k] for k in names])  # [sums, S, Hn]
+    rows = agent_sum_rows(horizons, variant, dt, current_speed is not None, current_direction is not None)
+    idx = np.array([(names.index(src), si, hi) for _, _, src, si, hi in rows])
+    return table[idx[:, 0], idx[:, 1], idx[:, 2]]
 
 
 def accumulate(a, b):

@@ -335,7 +335,7 @@ def reduce_cutfree(s: dict[str, np.ndarray]) -> dict[str, float]:
 
 def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: jax.Array, gt_valid: jax.Array, *,
                     threshold: float = 1.5, step_axis: int | None = None,
-                    count_exact_hits: bool = False,
+                    count_exact_hits: bool | jax.Array = False,
                     length_edges: tuple[float, ...] | None = None, window_half: float | None = None,
                     cutfree: bool = True, cutfree_samples: int = CUTFREE_SAMPLES) -> dict[str, jax.Array]:
     """Sums and counts of the map metrics for a batch of decoded frames.
@@ -346,7 +346,9 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
       gt_points: f32[..., L, P, 2] GT lines (L = Q); gt_valid: bool[..., L].
       threshold: F1 distance threshold in metres (1.5 in the paper).
       count_exact_hits: False (paper) counts a point as TP only when 0 < d <= threshold, so a point predicted
-        exactly on the GT is not a TP (identical lines score F1 = 0); True counts 0 <= d <= threshold.
+        exactly on the GT is not a TP (identical lines score F1 = 0); True counts 0 <= d <= threshold. Or
+        bool[...] (broadcast against the leading dims): which frames count exact hits (frames of both kinds in
+        one call; not with `map_metrics`, whose jit takes it as a static argument).
       step_axis: index (in the leading dims `...`, e.g. 1 for [B, T_future, ...]) of the future-step axis to keep,
         so that ratios are formed per step and then averaged over steps, as the official code does; None pools
         every frame as one step.
@@ -369,7 +371,11 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
 
     d = jnp.linalg.norm(matched - gt_points, axis=-1)  # [..., L, P]
     both = (matched_exists & gv)[..., None]
-    tp_mask = both & ((d >= 0) if count_exact_hits else (d > 0)) & (d <= threshold)
+    if isinstance(count_exact_hits, bool):
+        lower = (d >= 0) if count_exact_hits else (d > 0)
+    else:  # per frame
+        lower = (d > 0) | (jnp.asarray(count_exact_hits, bool)[..., None, None] & (d >= 0))
+    tp_mask = both & lower & (d <= threshold)
     tp_line = jnp.sum(tp_mask, -1).astype(jnp.float32)  # [..., L]
     tp = jnp.sum(tp_line, -1)
     n_pred = jnp.sum(pred_exists, -1).astype(jnp.float32)
