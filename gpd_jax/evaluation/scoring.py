@@ -16,7 +16,8 @@ import numpy as np
 from gpd_jax.decoding import RolloutOutput
 from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow_lanes
 from gpd_jax.evaluation.keys import LANE_BASELINE, MAP_PERSISTENCE, TOKENIZER_CEILING
-from gpd_jax.metrics import VARIANTS, agent_metric_sums, map_metric_sums
+from gpd_jax.metrics import VARIANTS, map_metric_sums
+from gpd_jax.metrics.agents import agent_sum_rows, agent_sum_table, name_agent_sums
 from gpd_jax.scene import Scene
 from gpd_jax.spec import ModelSpec
 from gpd_jax.tasks import map_task_names
@@ -58,17 +59,23 @@ def current_motion(full: Scene, spec: ModelSpec) -> tuple[jax.Array, jax.Array]:
 
 def agent_sums(pred_xy, pred_heading, pred_valid, scene: Scene, scored, spec: ModelSpec, speed=None,
                direction=None) -> dict[str, Any]:
-    """{variant: agent_metric_sums(...)} for both variants, scoring `scored: bool[..., A]` slots only; with
-    `speed` (f32[..., A], `current_speed`) ADE / FDE split by motion at the current frame too, and with
-    `direction` (f32[..., A, 2], `current_motion`) the moving class's along- and cross-track errors.
+    """{variant: `agent_sum_table`(...) f32[R]} for both variants (`agent_rows` names the entries), scoring
+    `scored: bool[..., A]` slots only; with `speed` (f32[..., A], `current_speed`) ADE / FDE split by motion at the
+    current frame too, and with `direction` (f32[..., A, 2], `current_motion`) the moving class's along- and
+    cross-track errors.
 
     Ground-truth validity is restricted to the scored slots, so unscored slots are not obstacles either.
     """
     gv = scene.valid & scored[..., None, :]
-    return {v: agent_metric_sums(pred_xy, pred_heading, scene.xy, gv, scene.size, num_history=spec.num_history,
-                                 pred_valid=pred_valid, eval_mask=scored, horizons=spec.horizons, variant=v,
-                                 dt=spec.frame_period_s, current_speed=speed, current_direction=direction)
+    return {v: agent_sum_table(pred_xy, pred_heading, scene.xy, gv, scene.size, num_history=spec.num_history,
+                               pred_valid=pred_valid, eval_mask=scored, horizons=spec.horizons, variant=v,
+                               dt=spec.frame_period_s, current_speed=speed, current_direction=direction)
             for v in VARIANTS}
+
+
+def agent_rows(spec: ModelSpec, speed: bool = False, direction: bool = False) -> dict[str, tuple]:
+    """{variant: `agent_sum_rows`}: what each entry of `agent_sums`' tables is (`speed` / `direction`: given)."""
+    return {v: agent_sum_rows(spec.horizons, v, spec.frame_period_s, speed, direction) for v in VARIANTS}
 
 
 def subsample_trajectories(xy, heading, valid, spec: ModelSpec):
@@ -76,6 +83,14 @@ def subsample_trajectories(xy, heading, valid, spec: ModelSpec):
     fr = slice(0, spec.stored_frames_needed, spec.frame_stride)
     a = spec.num_agents
     return xy[..., fr, :a, :], heading[..., fr, :a], valid[..., fr, :a]
+
+
+AGENT_BASELINES = ("constant_velocity", "constant_velocity_model_rate", "log_replay")  # + LANE_BASELINE with lanes
+
+
+def baseline_names(with_lanes: bool) -> tuple[str, ...]:
+    """The keys of `baseline_predictions`, in its order (`with_lanes`: the scenes carry lane polylines)."""
+    return AGENT_BASELINES + ((LANE_BASELINE,) if with_lanes else ())
 
 
 def baseline_predictions(full: Scene, spec: ModelSpec, with_lanes: bool = True
@@ -87,14 +102,14 @@ def baseline_predictions(full: Scene, spec: ModelSpec, with_lanes: bool = True
     last two model frames: exactly the information the model gets). They coincide when the stride is 1.
     Where the scenes carry their lane polylines (`Scene.polylines`, one leading batch dim) and `with_lanes`,
     also `constant_velocity_lanes`: `constant_velocity` moved along the lanes (`follow_lanes`); callers that only
-    need constant velocity (training's validation) skip its lane walks with `with_lanes=False`."""
+    need constant velocity (training's validation) skip its lane walks with `with_lanes=False`. Keys in the order
+    of `baseline_names`."""
     cv = constant_velocity(full, spec.full_history)
     log = subsample_trajectories(full.xy, full.heading, full.valid, spec)
     xy, heading, valid = log
     cvm = constant_velocity(full.replace(xy=xy, heading=heading, valid=valid), spec.num_history)
-    out = {"constant_velocity": subsample_trajectories(cv.xy, cv.heading, cv.valid, spec),
-           "constant_velocity_model_rate": (cvm.xy, cvm.heading, cvm.valid),
-           "log_replay": log}
+    out = dict(zip(AGENT_BASELINES, (subsample_trajectories(cv.xy, cv.heading, cv.valid, spec),
+                                     (cvm.xy, cvm.heading, cvm.valid), log)))
     if with_lanes and full.polylines is not None:
         lanes = jax.vmap(lambda c, p, v: follow_lanes(c, spec.num_history, p, v))(
             Trajectories(*out["constant_velocity"]), full.polylines, full.polyline_valid)
@@ -102,37 +117,38 @@ def baseline_predictions(full: Scene, spec: ModelSpec, with_lanes: bool = True
     return out
 
 
-def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight, count_exact_hits: bool = False
-             ) -> dict[str, jax.Array]:
-    """Map-metric sums per (task, future step), padded scenarios weighted out.
+def map_sums(pred_points, pred_logits, gt_points, gt_valid, weight, count_exact_hits=False) -> dict[str, jax.Array]:
+    """Map-metric sums per (scenario, task, future step), padded scenarios weighted out.
 
     Args:
       pred_points: f32[B, K, F, Q, P, 2] decoded lines of K map-generating tasks at F future frames.
       pred_logits: f32[B, K, F, Q]; gt_points: f32[B, F, L, P, 2]; gt_valid: bool[B, F, L]; weight: bool[B].
-      count_exact_hits: as in `map_metric_sums` (False: the paper's F1, where a point exactly on the GT is a miss).
+      count_exact_hits: as in `map_metric_sums` (False: the paper's F1, where a point exactly on the GT is a miss),
+        or bool[K]: per task.
 
     Returns:
-      {key: f32[K, F]} (`map_metric_sums` keys) summed over the real scenarios.
+      {key: f32[B, K, F]} (`map_metric_sums` keys), zero in the padded scenarios.
     """
     b, k, f = pred_logits.shape[:3]
     gp = jnp.broadcast_to(gt_points[:, None], (b, k) + gt_points.shape[1:])
     gv = jnp.broadcast_to(gt_valid[:, None], (b, k) + gt_valid.shape[1:])
-    flat = lambda x, n: x.reshape((b * k * f,) + x.shape[n:])
-    # One "step" per (scenario, task, frame): per-frame sums come back, which are weighted and summed here.
+    flat = lambda x, n: x.reshape((b * k * f,) + x.shape[n:])  # noqa: E731
+    if not isinstance(count_exact_hits, bool):
+        count_exact_hits = flat(jnp.broadcast_to(jnp.asarray(count_exact_hits, bool)[None, :, None], (b, k, f)), 3)
+    # One "step" per (scenario, task, frame): per-frame sums come back, which are weighted here.
     s = map_metric_sums(flat(pred_points, 3), flat(pred_logits, 3), flat(gp, 3), flat(gv, 3), step_axis=0,
                         count_exact_hits=count_exact_hits)
     w = jnp.asarray(weight, jnp.float32)[:, None, None]
-    return {key: jnp.sum(v.reshape(b, k, f) * w, axis=0) for key, v in s.items()}
+    return {key: v.reshape(b, k, f) * w for key, v in s.items()}
 
 
-# Scored once per batch, so its compile time outweighs its run time: without LLVM's expensive passes it compiles
-# about a third faster on the CPU (18 -> 13 s for the tiny test config) and gives bit-identical sums.
-@functools.partial(jax.jit, static_argnames=("spec", "task_names", "per_scenario"),
-                   compiler_options={"xla_llvm_disable_expensive_passes": True})
 def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSpec,
                 task_names: tuple[str, ...], map_pred=None, gt_lanes=None, kept_lanes=None,
                 per_scenario: bool = False) -> dict[str, Any]:
-    """Metric sums of one batch: every task and both baselines, both variants.
+    """Metric sums of one batch: every task and both baselines, both variants (host numpy, float32).
+
+    One compiled call (`_score_stacked`: compiled once per batch shape) returns every metric stacked over the
+    tasks and baselines; they are named here, on the host.
 
     With `per_scenario`, every leaf keeps a leading [B] (each scenario's own sums, which add up to the batch's):
     what per-group figures (e.g. per network layout) are summed from on the host.
@@ -154,47 +170,76 @@ def score_batch(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: Mo
       {"tasks": {name: {"paper": sums, "corrected": sums[, "map": {key: f32[F]}]}},
        "baselines": {name: {"paper": sums, "corrected": sums}}, "counts": {...}}.
     """
-    if per_scenario:
-        # each scenario as a batch of one: [B, ...] -> [B, 1, ...] and vmapped over the B
-        args = (pred, scene, full, jnp.asarray(weight), map_pred, gt_lanes, kept_lanes)
-        args = [None if x is None else jax.tree.map(lambda a: jnp.asarray(a)[:, None], x) for x in args]
-        return jax.vmap(lambda p, sc, fu, w, mp, gl, kl: _score(p, sc, fu, w, spec, task_names, mp, gl, kl))(*args)
-    return _score(pred, scene, full, weight, spec, task_names, map_pred, gt_lanes, kept_lanes)
+    task_names = tuple(task_names)
+    maps = map_task_names(task_names)
+    if not (maps and map_pred is not None):
+        map_pred = gt_lanes = kept_lanes = None
+    s = jax.device_get(_score_stacked(pred, scene.replace(road=None), full, weight, spec, task_names, map_pred,
+                                      gt_lanes, kept_lanes, per_scenario))
+    # agents: f32[(B,) N, R] per variant over the tasks then the baselines; map: f32[(B,) slots, F] per key
+    rows = agent_rows(spec, speed=True, direction=True)
+    names = task_names + baseline_names(full.polylines is not None)
+    agents = {name: {v: name_agent_sums(t[..., i, :], rows[v]) for v, t in s["agents"].items()}
+              for i, name in enumerate(names)}
+    out: dict[str, Any] = {"tasks": {name: agents[name] for name in task_names},
+                           "baselines": {name: agents[name] for name in names[len(task_names):]},
+                           "counts": s["counts"]}
+    if map_pred is not None:
+        slot = lambda j: jax.tree.map(lambda x: x[..., j, :], s["map"])  # noqa: E731
+        for j, name in enumerate(maps):
+            out["tasks"][name]["map"] = slot(j)
+        if map_pred[0].shape[1] > len(maps):  # the logged tokens decoded: the map tokenizer's own reconstruction
+            out["baselines"][TOKENIZER_CEILING] = {"map": slot(len(maps))}
+        if kept_lanes is not None:  # after every slot of map_pred
+            out["baselines"][MAP_PERSISTENCE] = {"map": slot(map_pred[0].shape[1])}
+    return out
 
 
-def _score(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSpec, task_names: tuple[str, ...],
-           map_pred=None, gt_lanes=None, kept_lanes=None) -> dict[str, Any]:
+# Scored once per batch, so its compile time outweighs its run time: without LLVM's expensive passes it compiles
+# about a third faster on the CPU (18 -> 13 s for the tiny test config) and gives bit-identical sums.
+@functools.partial(jax.jit, static_argnames=("spec", "task_names", "per_scenario"),
+                   compiler_options={"xla_llvm_disable_expensive_passes": True})
+def _score_stacked(pred: RolloutOutput, scene: Scene, full: Scene, weight, spec: ModelSpec,
+                   task_names: tuple[str, ...], map_pred=None, gt_lanes=None, kept_lanes=None,
+                   per_scenario: bool = False) -> dict[str, Any]:
+    """`score_batch`'s sums, stacked: {"agents": {variant: f32[(B,) N, R]} (`agent_sums`' tables of the N tasks
+    then baselines, `baseline_names`), "map": {key: f32[(B,) Km (+1), F]} over the map tasks, the tokenizer
+    ceiling and the persistence baseline, "counts": {...}}. Stacked, not split by name here: a slice per name and
+    leaf is a kernel of its own (1400 of them were most of the compile time)."""
     scored = scored_mask(scene, spec, weight)
-    # Tasks and baselines stacked on axis 1 and scored under one vmap (one traced metric graph, not K + 2).
+    # Tasks and baselines stacked on axis 1 and scored under one vmap (one traced metric graph, not K + 4).
     base = baseline_predictions(full, spec)
-    stack = lambda i, x: jnp.concatenate([x] + [b[i][:, None] for b in base.values()], axis=1)
+    stack = lambda i, x: jnp.concatenate([x] + [b[i][:, None] for b in base.values()], axis=1)  # noqa: E731
     preds = (stack(0, pred.xy), stack(1, pred.heading), stack(2, pred.valid))
     speed, direction = current_motion(full, spec)
-    sums = jax.vmap(lambda xy, hd, v: agent_sums(xy, hd, v, scene, scored, spec, speed, direction),
-                    in_axes=1)(*preds)
-    pick = lambda i: jax.tree.map(lambda x: x[i], sums)
-    out: dict[str, Any] = {"tasks": {name: pick(k) for k, name in enumerate(task_names)},
-                           "baselines": {name: pick(len(task_names) + j) for j, name in enumerate(base)}}
-    maps = map_task_names(task_names)
-    if maps and map_pred is not None:
+
+    def agents(xy, hd, v, sc, sm, sp, dr):  # [b, N, ...] -> {variant: f32[N, R]}
+        return jax.vmap(lambda x, h, m: agent_sums(x, h, m, sc, sm, spec, sp, dr), in_axes=1)(xy, hd, v)
+
+    gt = scene.replace(map_tokens=None, map_valid=None, ego_pose=None, velocity=None)
+    args = (*preds, gt, scored, speed, direction)
+    if per_scenario:  # each scenario as a batch of one: [B, ...] -> [B, 1, ...] and vmapped over the B
+        out: dict[str, Any] = {"agents": jax.vmap(agents)(*jax.tree.map(lambda a: a[:, None], args))}
+    else:
+        out = {"agents": agents(*args)}
+    total = (lambda x: x) if per_scenario else (lambda x: jnp.sum(x, axis=0))  # noqa: E731
+    if map_pred is not None:
         f = spec.max_horizon
-        pts, logits = map_pred
-        ms = map_sums(pts[:, :, :f], logits[:, :, :f], gt_lanes[0][:, :f], gt_lanes[1][:, :f], weight)
-        for j, name in enumerate(maps):
-            out["tasks"][name]["map"] = {key: v[j] for key, v in ms.items()}
-        if pts.shape[1] > len(maps):  # the logged tokens decoded: the map tokenizer's own reconstruction
-            out["baselines"][TOKENIZER_CEILING] = {"map": {key: v[len(maps)] for key, v in ms.items()}}
+        pts, logits = (x[:, :, :f] for x in map_pred)
+        exact = [False] * pts.shape[1]
         if kept_lanes is not None:
-            kp, kv = kept_lanes
             # Its lines are cut from the same polylines as the ground truth, so a line inside both windows is
             # bit-identical to it: the paper's F1 (which misses points at distance exactly 0) would score such a
             # perfect line 0. Exact hits count here.
-            ms = map_sums(kp[:, None, :f], jnp.where(kv, 10.0, -10.0)[:, None, :f], gt_lanes[0][:, :f],
-                          gt_lanes[1][:, :f], weight, count_exact_hits=True)
-            out["baselines"][MAP_PERSISTENCE] = {"map": {key: v[0] for key, v in ms.items()}}
+            kp, kv = kept_lanes
+            pts = jnp.concatenate([pts, kp[:, None, :f]], axis=1)
+            logits = jnp.concatenate([logits, jnp.where(kv, 10.0, -10.0)[:, None, :f]], axis=1)
+            exact.append(True)
+        ms = map_sums(pts, logits, gt_lanes[0][:, :f], gt_lanes[1][:, :f], weight, jnp.asarray(exact))
+        out["map"] = {key: total(v) for key, v in ms.items()}
     w = jnp.asarray(weight, bool)
-    out["counts"] = {"scenarios": jnp.sum(w).astype(jnp.float32),
-                     "scored_agents": jnp.sum(scored[:, 1:]).astype(jnp.float32)}
+    out["counts"] = {"scenarios": total(w.astype(jnp.float32)),
+                     "scored_agents": total(jnp.sum(scored[:, 1:], axis=-1).astype(jnp.float32))}
     return out
 
 
