@@ -194,9 +194,9 @@ def test_raster_reconstruction_frames_agree():
 
 @pytest.mark.parametrize("n_pred, n_gt", [(23, 17), (50, 50), (5, 0), (0, 9)])
 def test_tiled_nearest_segment_search_equals_the_full_one(n_pred, n_gt):
-    """The cut-free score visits only the tiles of valid lines (`_nearest_by_line`): on every point of a valid
-    line it gives the distances of the search over every pair (to float32 rounding: the compiler may arrange a
-    tile's arithmetic differently), valid lines in any slots."""
+    """The cut-free score and the set Chamfer visit only the tiles of valid lines (`_tiled_nearest`): on every
+    point of a valid line they give the distances of the search over every pair (to float32 rounding: the
+    compiler may arrange a tile's arithmetic differently), valid lines in any slots."""
     from gpd_jax.metrics.map import _nearest_by_line, _point_to_segments
 
     rng = np.random.default_rng(n_pred + 100 * n_gt)
@@ -217,3 +217,10 @@ def test_tiled_nearest_segment_search_equals_the_full_one(n_pred, n_gt):
     np.testing.assert_allclose(np.asarray(d)[pv], rd[pv], rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(np.asarray(dd)[pv], rdd[pv], rtol=1e-6, atol=1e-6)
     assert (np.asarray(d)[~pv] == 0).all() and (np.asarray(dd)[~pv] == 0).all()
+    # the set Chamfer between the points of valid lines, the same way
+    from gpd_jax.metrics.map import _set_chamfer_by_line, set_chamfer
+
+    c, ok = jax.jit(_set_chamfer_by_line)(p, pv, a, sv)
+    rc, rok = jax.jit(set_chamfer)(p.reshape(-1, 2), np.repeat(pv, n), a.reshape(-1, 2), np.repeat(sv, m))
+    assert bool(ok) == bool(rok) == (n_pred > 0 and n_gt > 0)
+    np.testing.assert_allclose(float(c), float(rc), rtol=1e-6)

@@ -122,11 +122,16 @@ def set_chamfer(a: jax.Array, a_valid: jax.Array, b: jax.Array, b_valid: jax.Arr
     d = jnp.sqrt(dx * dx + dy * dy)  # [..., N, M]
     big = jnp.asarray(jnp.inf, d.dtype)
     d = jnp.where(a_valid[..., :, None] & b_valid[..., None, :], d, big)
+    return _chamfer_of_nearest(jnp.min(d, -1), a_valid, jnp.min(d, -2), b_valid)
+
+
+def _chamfer_of_nearest(a2b, a_valid, b2a, b_valid):
+    """`set_chamfer` from each point's distance to the other set: a2b f32[..., N], b2a f32[..., M]."""
     na = jnp.sum(a_valid, -1)
     nb = jnp.sum(b_valid, -1)
     ok = (na > 0) & (nb > 0)
-    a2b = jnp.sum(jnp.where(a_valid, jnp.min(d, -1), 0.0), -1) / jnp.maximum(na, 1)
-    b2a = jnp.sum(jnp.where(b_valid, jnp.min(d, -2), 0.0), -1) / jnp.maximum(nb, 1)
+    a2b = jnp.sum(jnp.where(a_valid, a2b, 0.0), -1) / jnp.maximum(na, 1)
+    b2a = jnp.sum(jnp.where(b_valid, b2a, 0.0), -1) / jnp.maximum(nb, 1)
     return jnp.where(ok, 0.5 * (a2b + b2a), 0.0), ok
 
 
@@ -174,22 +179,24 @@ def _nearest_squared(p, a, b, seg_valid, p_dir=None):
     return jnp.min(d2, -1), jnp.min(jnp.where(same, d2, jnp.inf), -1)
 
 
-CUTFREE_BLOCK_LINES = 8  # lines per tile of `_nearest_by_line`
+CUTFREE_BLOCK_LINES = 8  # lines per tile of `_tiled_nearest`
 
 
-def _nearest_by_line(p, p_dir, p_line_valid, a, b, line_valid, block: int = CUTFREE_BLOCK_LINES):
-    """`_point_to_segments(p, a, b, seg_valid, p_dir)` for points and segments grouped by line, visiting only the
-    valid lines: the same distances (the same arithmetic per pair, a min is exact in any order; to float32
-    rounding, as the compiler may arrange a tile's arithmetic differently), a fraction of the work where most line
-    slots are padding (about a third of them are valid in the decoded maps: 7x less time in the evaluation).
+def _tiled_nearest(pair_min, p, p_line_valid, s, s_line_valid, block: int = CUTFREE_BLOCK_LINES):
+    """Nearest-neighbour distances between two sets of points (or segments) grouped by line, visiting only the
+    valid lines: the distances of the search over every pair (a min is exact in any order; to float32 rounding, as
+    the compiler may arrange a tile's arithmetic differently) for a fraction of the work where most line slots are
+    padding (about a third of them are valid in the decoded maps: 7x less time in the evaluation).
 
     Args:
-      p, p_dir: f32[Lp, n, 2] points and their directions, line by line; p_line_valid: bool[Lp].
-      a, b: f32[Ls, m, 2] segment ends, line by line; line_valid: bool[Ls] (a segment is valid with its line).
+      pair_min: (p tile, s tile, s valid bool[m']) -> tuple of f32[n'] squared distances, each the min over the
+        tile's valid s; a tile is the arrays of `p` / `s` with their first two dims merged ([block * k, ...]).
+      p: tuple of f32[Lp, n, ...] (points, directions, ...) line by line; p_line_valid: bool[Lp].
+      s: tuple of f32[Ls, m, ...] line by line; s_line_valid: bool[Ls] (its points or segments are valid with it).
 
     Returns:
-      (f32[Lp, n], f32[Lp, n]) the distance and the directed distance of every point of a valid line; 0 for the
-      points of invalid lines (not computed: their weights are 0 wherever they are summed).
+      tuple of f32[Lp, n]: the distances (square roots of `pair_min`'s minima over every valid s) of every point of
+      a valid line; 0 for the points of invalid lines (not computed: their weights are 0 wherever they are summed).
 
     Both sets are sorted valid lines first and cut into tiles of `block` lines; two loops run over the tiles
     that hold valid lines only (dynamic trip counts; under `vmap` every frame runs to the longest one's, which
@@ -200,32 +207,53 @@ def _nearest_by_line(p, p_dir, p_line_valid, a, b, line_valid, block: int = CUTF
         x = jnp.pad(x, [(0, (-x.shape[0]) % block)] + [(0, 0)] * (x.ndim - 1))
         return x.reshape((x.shape[0] // block, block * x.shape[1]) + x.shape[2:])
 
-    lp, n = p.shape[:2]
-    m = a.shape[1]
-    po, so = jnp.argsort(~p_line_valid, stable=True), jnp.argsort(~line_valid, stable=True)
-    pt, pdt = tiles(p, po), tiles(p_dir, po)
-    at, bt = tiles(a, so), tiles(b, so)
-    svt = tiles(jnp.broadcast_to(line_valid[:, None], (line_valid.shape[0], m)), so)
+    lp, n = p[0].shape[:2]
+    po, so = jnp.argsort(~p_line_valid, stable=True), jnp.argsort(~s_line_valid, stable=True)
+    pt, st = [tiles(x, po) for x in p], [tiles(x, so) for x in s]
+    svt = tiles(jnp.broadcast_to(s_line_valid[:, None], s[0].shape[:2]), so)
     n_p = -(-jnp.sum(p_line_valid) // block)  # tiles holding valid lines
-    n_s = -(-jnp.sum(line_valid) // block)
+    n_s = -(-jnp.sum(s_line_valid) // block)
+    k = len(jax.eval_shape(pair_min, [x[0] for x in pt], [x[0] for x in st], svt[0]))
+    dtype = p[0].dtype
 
-    def point_tile(i, acc):
-        def segment_tile(j, best):
-            d2, dd2 = _nearest_squared(pt[i], at[j], bt[j], svt[j], pdt[i])
-            return jnp.minimum(best[0], d2), jnp.minimum(best[1], dd2)
+    def p_tile(i, acc):
+        def s_tile(j, best):
+            return tuple(jnp.minimum(a, b) for a, b in zip(best, pair_min([x[i] for x in pt], [x[j] for x in st],
+                                                                          svt[j])))
 
-        inf = jnp.full(pt.shape[1], jnp.inf, p.dtype)
-        d2, dd2 = jax.lax.fori_loop(0, n_s, segment_tile, (inf, inf))
-        return acc[0].at[i].set(d2), acc[1].at[i].set(dd2)
+        found = jax.lax.fori_loop(0, n_s, s_tile, (jnp.full(pt[0].shape[1], jnp.inf, dtype),) * k)
+        return tuple(a.at[i].set(f) for a, f in zip(acc, found))
 
-    init = jnp.full(pt.shape[:2], jnp.inf, p.dtype)
-    d2, dd2 = jax.lax.fori_loop(0, n_p, point_tile, (init, init))
+    d2 = jax.lax.fori_loop(0, n_p, p_tile, (jnp.full(pt[0].shape[:2], jnp.inf, dtype),) * k)
     back = jnp.argsort(po)  # the inverse permutation
+    return tuple(jnp.where(p_line_valid[:, None], jnp.sqrt(x.reshape(-1, n)[:lp][back]), 0.0) for x in d2)
 
-    def untile(x):
-        return jnp.where(p_line_valid[:, None], jnp.sqrt(x.reshape(-1, n)[:lp][back]), 0.0)
 
-    return untile(d2), untile(dd2)
+def _nearest_by_line(p, p_dir, p_line_valid, a, b, line_valid):
+    """`_point_to_segments(p, a, b, seg_valid, p_dir)` for points and segments grouped by line (`_tiled_nearest`):
+    p, p_dir f32[Lp, n, 2], p_line_valid bool[Lp]; a, b f32[Ls, m, 2] segment ends, line_valid bool[Ls] ->
+    (distance, directed distance) f32[Lp, n], 0 for the points of invalid lines."""
+    return _tiled_nearest(lambda pt, st, sv: _nearest_squared(pt[0], st[0], st[1], sv, pt[1]), (p, p_dir),
+                          p_line_valid, (a, b), line_valid)
+
+
+def _nearest_point_squared(pt, st, sv):
+    """pair_min of `_tiled_nearest` between points: squared distance from each point of pt[0] f32[N, 2] to the
+    nearest valid point of st[0] f32[M, 2] (x and y planes, as in `set_chamfer`)."""
+    dx = pt[0][:, None, 0] - st[0][None, :, 0]
+    dy = pt[0][:, None, 1] - st[0][None, :, 1]
+    return (jnp.min(jnp.where(sv[None], dx * dx + dy * dy, jnp.inf), -1),)
+
+
+def _set_chamfer_by_line(a: jax.Array, a_valid: jax.Array, b: jax.Array, b_valid: jax.Array
+                         ) -> tuple[jax.Array, jax.Array]:
+    """`set_chamfer` of the points of the valid lines of a f32[La, P, 2] (a_valid bool[La]) and of b f32[Lb, P, 2]
+    (b_valid bool[Lb]), visiting only valid lines (`_tiled_nearest`)."""
+    (a2b,) = _tiled_nearest(_nearest_point_squared, (a,), a_valid, (b,), b_valid)
+    (b2a,) = _tiled_nearest(_nearest_point_squared, (b,), b_valid, (a,), a_valid)
+    av = jnp.broadcast_to(a_valid[:, None], a.shape[:2]).reshape(-1)
+    bv = jnp.broadcast_to(b_valid[:, None], b.shape[:2]).reshape(-1)
+    return _chamfer_of_nearest(a2b.reshape(-1), av, b2a.reshape(-1), bv)
 
 
 def _segment_samples(lines: jax.Array, line_valid: jax.Array, samples: int):
@@ -382,20 +410,18 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
     n_gt = jnp.sum(gv, -1).astype(jnp.float32)
     lat = jnp.sum(jnp.where(tp_mask, lateral_distances(matched, gt_points), 0.0), (-2, -1))
     lead_shape = tp.shape
-    pv = jnp.broadcast_to(pred_exists[..., None], pred_points.shape[:-1])  # [..., Q, P]
-    gvp = jnp.broadcast_to(gv[..., None], gt_points.shape[:-1])  # [..., L, P]
 
     def chamfers(args):  # one frame: [L, P, 2] ... -> (paper numerator, corrected Chamfer, both sets non-empty)
-        m, g, v, pp, pvv, gpv = args
-        cc, ok = set_chamfer(pp.reshape(-1, 2), pvv.reshape(-1), g.reshape(-1, 2), gpv.reshape(-1))
+        m, g, v, pp, pe = args
+        cc, ok = _set_chamfer_by_line(pp, pe, g, v)
         return _paper_chamfer_sum(m, g, v), cc, ok
 
-    # Frames in chunks of 16 (vmapped inside lax.map) keep the [L*P]^2 pairwise distances small for big batches.
+    # Frames in chunks (vmapped inside lax.map) keep the pairwise distances small for big batches.
     n = int(np.prod(lead_shape))
     frames = lambda x, k: x.reshape((n,) + x.shape[x.ndim - k:])
     cham, cc, ok = jax.lax.map(chamfers, (frames(matched, 3), frames(gt_points, 3), frames(gv, 1),
-                                          frames(pred_points, 3), frames(pv, 2), frames(gvp, 2)),
-                               batch_size=min(n, 16))
+                                          frames(pred_points, 3), frames(pred_exists, 1)),
+                               batch_size=min(n, 4))
     cham, cc, ok = (x.reshape(lead_shape) for x in (cham, cc, ok))
 
     per_frame = {
