@@ -35,6 +35,8 @@ from gpd_jax.fsutil import (atomic_directory, atomic_write_json, flatten_params,
                             unflatten_params)
 from gpd_jax.map_tokenizer import MapTokenizer, load_tokenizer
 from gpd_jax.model import GPD, PlanningHead
+from gpd_jax.model.attention import KERNELS
+from gpd_jax.model.transformer import resolve_decode_dtype
 from gpd_jax.options import RolloutOptions
 from gpd_jax.scene import Scene
 from gpd_jax.spec import EvalError, ModelSpec, model_frame_period_s, spec_from_config
@@ -68,6 +70,22 @@ class Model:
 
     def replace(self, **changes) -> "Model":
         return dataclasses.replace(self, **changes)
+
+    def with_decode(self, dtype: str | None = None, attention: str | None = None) -> "Model":
+        """This model with its rollout's KV cache / attention dtype (`model.decode_dtype`: "auto", "float32",
+        "bfloat16") or attention path (`model.decode_attention`) changed: the same parameters, another compiled
+        rollout (`gpd_jax.load_model().with_decode(dtype="float32")` keeps a GPU rollout in float32)."""
+        cfg = self.config.copy_and_resolve_references()
+        if dtype is not None:
+            resolve_decode_dtype(dtype)  # a ValueError naming the allowed ones
+            cfg.model.decode_dtype = dtype
+        if attention is not None:
+            if attention not in KERNELS:
+                raise ValueError(f"decode attention {attention!r}: expected one of {KERNELS}")
+            cfg.model.decode_attention = attention
+        module = self.module
+        module.decode_dtype, module.decode_attention = cfg.model.decode_dtype, cfg.model.decode_attention
+        return self.from_module(module, cfg, self.tokenizer, self.path)
 
     def require_tokenizer(self, options: RolloutOptions | None = None, prompt_lanes: bool = False) -> None:
         """Raises EvalError when `options` (re-encoded log lanes, a warped map) or a prompt with its own lanes

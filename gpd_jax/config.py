@@ -65,6 +65,9 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         train_attention="flash",   # "flash": chunked, memory-linear; "dense": one masked softmax (short sequences)
         decode_attention="auto",   # rollout attention: "native" (fused CPU kernel), "xla", "xla_batched" or "auto"
                                    # (the fastest, measured on this machine: gpd_jax.model.autotune)
+        decode_dtype="auto",       # rollout KV cache and attention: "float32", "bfloat16" (fp32 accumulation;
+                                   # activations, norms and heads stay fp32) or "auto" (bfloat16 on GPUs, float32
+                                   # on CPUs: the faster there, measured in docs/benchmarks.md)
         predict_delta=False,       # regress displacements from the input frame instead of absolute positions
         velocity_residual=False,   # with predict_delta: the residual over constant velocity
         velocity_inputs=False,     # not in the paper: tokens encode each agent's velocity; a head predicts the next

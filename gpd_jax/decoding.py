@@ -53,6 +53,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from gpd_jax.model import autotune
 from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forward_cached, reads_lanes
 from gpd_jax.options import RolloutOptions
 from gpd_jax.prompts import Prompt, as_prompt
@@ -137,6 +138,15 @@ class DecodeState:
     pred: Prediction
     last_xy: jax.Array
     last_valid: jax.Array
+    hidden: jax.Array
+
+
+@flax.struct.dataclass
+class PrefillCarry:
+    """The carry of `prefill`'s scan over history frames: the KV cache and the last frame's output tokens
+    hidden f32[N, d]."""
+
+    cache: KVCache
     hidden: jax.Array
 
 
@@ -309,17 +319,32 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
 def prefill(model: GPD, log: Frame, num_history: int, num_frames: int,
             lanes: LaneContext | None = None) -> DecodeState:
     """Pushes the history frames `log[:num_history]` (a `Frame` with a leading T >= num_history) through the
-    transformer in one call into a fresh KV cache for `num_frames` frames; the returned state holds the
-    prediction of frame `num_history`. The first half of every cached rollout (and of `gpd_jax.sim.reset`).
-    `lanes`: what a model that reads lanes uses (`on` over all T frames or the history's)."""
+    transformer into a fresh KV cache for `num_frames` frames; the returned state holds the prediction of frame
+    `num_history`. The first half of every cached rollout (and of `gpd_jax.sim.reset`). `lanes`: what a model that
+    reads lanes uses (`on` over all T frames or the history's).
+
+    One scenario pushes the history in one block (bigger matmuls); under `vmap` over a batch it goes frame by
+    frame (a `lax.scan` whose temporaries are one frame's, as in `advance`), so a scenario's memory is its cache
+    rather than [H, h * N, chunk] scores and [h * N, ffn] activations (docs/benchmarks.md has both measured)."""
     h = num_history
     tokens = model.embed(log.xy[:h], log.heading[:h], log.valid[:h], log.map_tokens[:h], jnp.arange(h),
                          log.velocity[:h])
-    hidden, cache = forward_cached(model, tokens, model.init_cache(num_frames), 0)
-    pred = model.predict(hidden[-1:], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
+
+    if autotune.batch_size(tokens) == 1:  # one scenario: the whole history in one block (bigger matmuls)
+        hid, cache = forward_cached(model, tokens, model.init_cache(num_frames), 0)
+        hidden = hid[-1]
+    else:  # a batch: frame by frame, so no temporary holds [H, h * N, chunk] scores or [h * N, ffn] per scenario
+        def push(carry: PrefillCarry, t):
+            hid, cache = forward_cached(model, jax.lax.dynamic_index_in_dim(tokens, t, 0), carry.cache, t)
+            return PrefillCarry(cache=cache, hidden=hid[0]), None
+
+        start = PrefillCarry(cache=model.init_cache(num_frames), hidden=tokens[0])
+        done, _ = jax.lax.scan(push, start, jnp.arange(h))
+        cache, hidden = done.cache, done.hidden
+    pred = model.predict(hidden[None], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
                          *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h], _context_at(lanes, h - 1))
     return DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1],
-                       hidden=hidden[-1])
+                       hidden=hidden)
 
 
 def advance(model: GPD, state: DecodeState, frame: Frame, t, lanes: LaneContext | None = None) -> DecodeState:

@@ -260,7 +260,7 @@ def test_auto_forced_by_environment(fresh_auto, monkeypatch, forced):
     assert autotune.auto_choices()[-1]["choice"] == forced and autotune.auto_choices()[-1]["source"] == "forced"
     assert use_native("auto") == (forced == "native")
     monkeypatch.setenv(autotune.FORCE_ENV, "fastest")
-    with pytest.raises(ValueError, match="expected native, xla, xla_batched or auto"):
+    with pytest.raises(ValueError, match="expected one of native, xla, xla_batched, cudnn or auto"):
         use_native("auto")
 
 
@@ -373,8 +373,22 @@ def test_auto_without_the_native_kernel_measures_the_two_xla_batching_rules(fres
     (rec,) = autotune.auto_choices()
     assert rec["source"] == "measured" and set(rec["times_ms"]) == {"xla", "xla_batched"}
     assert rec["choice"] == min(rec["times_ms"], key=rec["times_ms"].get) and len(calls) == 1
-    assert calls[0][-1] == ("xla", "xla_batched")
+    assert calls[0][8] == ("xla", "xla_batched")  # the candidates measured
     one = attend_dynamic(q[0], k[0], v[0], qf, chunks[0], n, c, "auto")
     _close(one, got[0])
     assert autotune.auto_choices()[-1]["source"] == "only candidate" and len(calls) == 1
     assert autotune.candidates(1) == ["xla"] and autotune.candidates(2) == ["xla", "xla_batched"]
+
+
+def test_cudnn_path_is_a_gpu_bfloat16_candidate_and_refused_elsewhere(monkeypatch):
+    from gpd_jax.model import autotune
+    from gpd_jax.model.attention import attend_dynamic
+
+    q = jnp.zeros((2, 4, 8), jnp.bfloat16)
+    kv = jnp.zeros((2, 16, 8), jnp.bfloat16)
+    with pytest.raises(ValueError, match="cudnn attention path runs bfloat16 .* on a GPU"):
+        attend_dynamic(q, kv, kv, jnp.zeros(4, jnp.int32), 1, 4, 8, kernel="cudnn")
+    assert "cudnn" not in autotune.candidates(8, f32=False)  # this CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert autotune.candidates(8, f32=False) == ["xla", "xla_batched", "cudnn"]
+    assert "cudnn" not in autotune.candidates(8, f32=True)  # cuDNN's fused attention takes 16-bit inputs

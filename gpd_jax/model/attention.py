@@ -50,20 +50,22 @@ def _chunk_update(q, q_frame, kc, vc, start, tokens_per_frame, carry):
     m, l, acc = carry
     k_frame = (start + jnp.arange(kc.shape[1])) // tokens_per_frame
     bias = jnp.where(k_frame[None, :] <= q_frame[:, None], 0.0, _NEG)  # [Sq, C], shared by heads
-    s = jnp.einsum("hqd,hkd->hqk", q, kc) + bias[None]
+    f32 = jnp.float32  # bf16 inputs (a bf16 cache) accumulate in fp32; the carry is fp32 either way
+    s = jnp.einsum("hqd,hkd->hqk", q, kc, preferred_element_type=f32) + bias[None]
     m_new = jnp.maximum(m, jnp.max(s, axis=-1))
     # Every query sees frame 0, which is in the first chunk, so m_new is a real score from the first chunk
     # on and masked entries underflow to exactly 0.
     p = jnp.exp(s - m_new[..., None])
     corr = jnp.exp(m - m_new)
     l = l * corr + jnp.sum(p, axis=-1)
-    acc = acc * corr[..., None] + jnp.einsum("hqk,hkd->hqd", p, vc)
+    acc = acc * corr[..., None] + jnp.einsum("hqk,hkd->hqd", p.astype(vc.dtype), vc, preferred_element_type=f32)
     return m_new, l, acc
 
 
 def _init_carry(q):
     h, sq, dh = q.shape
-    return (jnp.full((h, sq), _NEG, q.dtype), jnp.zeros((h, sq), q.dtype), jnp.zeros((h, sq, dh), q.dtype))
+    f32 = jnp.float32
+    return (jnp.full((h, sq), _NEG, f32), jnp.zeros((h, sq), f32), jnp.zeros((h, sq, dh), f32))
 
 
 def _finish(carry):
@@ -146,7 +148,7 @@ def use_native(kernel: str) -> bool:
     (`autotune.auto_choices()`)."""
     if kernel not in KERNELS:
         raise ValueError(f"attention kernel {kernel!r}: expected one of {KERNELS}")
-    if kernel in ("xla", "xla_batched"):
+    if kernel in ("xla", "xla_batched", "cudnn"):
         return False
     if kernel == "native":
         if jax.default_backend() != "cpu":
@@ -175,8 +177,10 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
     filled count; later chunks are masked, so the result is the same): on a GPU the per-scenario loop
     serializes the batch.
 
-    `kernel`: "xla", "xla_batched" (the above; the same without `vmap`), "native" (the fused CPU kernel of
-    `gpd_jax.model.native`, float32 only; same results within float rounding) or "auto" (the fastest of
+    `kernel`: "xla", "xla_batched" (the above; the same without `vmap`), "cudnn" (one frame of queries per
+    scenario, a decode step, through cuDNN's fused bf16 attention on a GPU, the batch in one call), "native" (the
+    fused CPU kernel of `gpd_jax.model.native`, float32 only; same results within float rounding) or "auto" (the
+    fastest of
     `autotune.candidates()` at this shape and batch, measured once per machine and shape; see
     `gpd_jax.model.autotune`). The choice is made while tracing, never inside the compiled computation.
     """
@@ -184,6 +188,9 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
     f32 = all(x.dtype == jnp.float32 for x in (q, k, v))
     if kernel == "native" and not f32:
         raise ValueError(f"the native attention kernel takes float32, got q {q.dtype}, k {k.dtype}, v {v.dtype}")
+    if kernel == "cudnn" and (jax.default_backend() != "gpu" or k.dtype != jnp.bfloat16):
+        raise ValueError(f"the cudnn attention path runs bfloat16 (model.decode_dtype) on a GPU; got k {k.dtype} "
+                         f"on backend {jax.default_backend()}")
     if kernel == "auto":
         if autotune.forced() is None:
             return autotune.dispatch(q, k, v, q_frame, num_chunks, tokens_per_frame, chunk_len, f32,
@@ -193,18 +200,60 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
                                  kernel_for=decode_kernel)["choice"]
     if f32 and use_native(kernel):
         return native.block_causal_attention(q, k, v, q_frame, num_chunks, tokens_per_frame, chunk_len)
-    return _dynamic_kernel(tokens_per_frame, chunk_len, kernel == "xla_batched")(q, k, v, q_frame, num_chunks)
+    return decode_kernel(kernel, tokens_per_frame, chunk_len)(q, k, v, q_frame, num_chunks)
 
 
 def decode_kernel(kind: str, n: int, c: int):
-    """Path `kind` ("native", "xla" or "xla_batched") of the decode attention of one scenario with `n` tokens per
-    frame and chunks of `c`: `f(q, k, v, q_frame, num_chunks)` with q pre-scaled, vmappable. What
+    """Path `kind` ("native", "xla", "xla_batched" or "cudnn") of the decode attention of one scenario with `n`
+    tokens per frame and chunks of `c`: `f(q, k, v, q_frame, num_chunks)` with q pre-scaled, vmappable. What
     `gpd_jax.model.autotune` measures and runs for "auto"."""
     if kind == "native":
         return lambda q, k, v, f, m: native.block_causal_attention(q, k, v, f, m, n, c)
     if kind in ("xla", "xla_batched"):
         return _dynamic_kernel(n, c, kind == "xla_batched")
+    if kind == "cudnn":
+        return _cudnn_kernel(n, c)
     raise ValueError(f"decode attention path {kind!r}: expected one of {autotune.PATHS}")
+
+
+def _cudnn_attention(q, k, v, q_frame, n: int):
+    """cuDNN's fused (flash) attention of a batch whose queries q bf16[B, H, n, Dh] (pre-scaled) are one frame each
+    (q_frame i32[B, n], the same frame f within a row) against k, v bf16[B, H, S, Dh] (head-major, as the cache is
+    held: no transpose): every key of frames <= f, i.e. the first (f + 1) * n, is visible (a padding mask of that
+    length per scenario). Returns f32[B, H, n, Dh]."""
+    from jax._src.cudnn.fused_attention_stablehlo import MaskType, dot_product_attention
+
+    b, _, sq, _ = q.shape
+    kv_len = ((q_frame[:, 0] + 1) * n).astype(jnp.int32)
+    out = dot_product_attention(q, k, v, None, None, jnp.full((b,), sq, jnp.int32), kv_len, scale=1.0,
+                                mask_type=MaskType.PADDING, qkv_layout="BNTH")
+    return out.astype(jnp.float32)
+
+
+@functools.lru_cache(maxsize=None)
+def _cudnn_kernel(n: int, c: int):
+    """The "cudnn" decode path of one scenario (bf16 on a GPU): one frame of queries (n of them, a decode step) goes
+    to cuDNN's flash attention in one call for the whole batch (its `vmap` rule); a block of several frames (a
+    prefill outside `vmap`) takes the "xla_batched" path, since its mask is block-causal rather than a length."""
+    masked = _dynamic_kernel(n, c, True)
+
+    def one(q, k, v, q_frame, num_chunks):
+        if q.shape[-2] != n:
+            return masked(q, k, v, q_frame, num_chunks)
+        return _cudnn_attention(q[None], k[None], v[None], q_frame[None], n)[0]
+
+    kernel = jax.custom_batching.custom_vmap(one)
+
+    @kernel.def_vmap
+    def _all_scenarios(axis_size, in_batched, q, k, v, q_frame, num_chunks):
+        if q.shape[-2] != n:
+            axes = tuple(0 if b else None for b in in_batched)
+            return jax.vmap(masked, in_axes=axes, axis_size=axis_size)(q, k, v, q_frame, num_chunks), True
+        bcast = lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
+        q, k, v, q_frame = (bcast(x, b) for x, b in zip((q, k, v, q_frame), in_batched))
+        return _cudnn_attention(q, k, v, q_frame, n), True
+
+    return kernel
 
 
 def _attend_one(q, q_frame, num_chunks, n, c, kv_slice):
@@ -256,7 +305,7 @@ def _dynamic_kernel(n: int, c: int, batched: bool = False):
             res = _attend_one(q[b], q_frame[b], num_chunks, n, c, sl)
             return jax.lax.dynamic_update_index_in_dim(out, res.astype(out.dtype), b, axis=0)
 
-        out = jax.lax.fori_loop(0, axis_size, scenario, jnp.zeros_like(q))
+        out = jax.lax.fori_loop(0, axis_size, scenario, jnp.zeros(q.shape, jnp.float32))
         return out, True
 
     return kernel

@@ -2,7 +2,8 @@
 
 The decode attention of the KV-cached rollout (`gpd_jax.model.attention.attend_dynamic`) has several paths with
 the same results: `"native"` (the fused CPU kernel of `gpd_jax.model.native`, float32 only), `"xla"` (under
-`vmap`, the scenarios one after another) and `"xla_batched"` (every scenario's chunk at once). Which is fastest
+`vmap`, the scenarios one after another), `"xla_batched"` (every scenario's chunk at once) and `"cudnn"` (cuDNN's
+fused attention, bfloat16 on a GPU). Which is fastest
 depends on the machine, the backend, the shape and the batch, so "auto" measures: the first time a shape is
 traced, a few calls of each candidate (`candidates()`: the native kernel on a CPU where it builds, the two XLA
 rules where the batch is above 1) at that shape (batch, heads, queries, cache length, head size, devices running
@@ -18,7 +19,7 @@ returns path `kind`'s attention of one scenario, `f(q, k, v, q_frame, num_chunks
 `dispatch` / `choose` measure and run those. So `attention` imports this module, never the reverse.
 
 Public names: `FORCE_ENV`, `forced()`, `candidates(batch, f32)`, `choose(...)`, `choice_path(key)`,
-`auto_choices()`, `dispatch(...)`.
+`auto_choices()`, `dispatch(...)`, `batch_size(x)`.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ import numpy as np
 from gpd_jax.model import native
 
 FORCE_ENV = "GPD_JAX_DECODE_ATTENTION"
-PATHS = ("native", "xla", "xla_batched")  # what "auto" may choose
+PATHS = ("native", "xla", "xla_batched", "cudnn")  # what "auto" may choose
 
 # kernel_for(kind, tokens_per_frame, chunk_len) -> f(q, k, v, q_frame, num_chunks): one scenario's attention
 KernelFor = Callable[[str, int, int], Callable]
@@ -54,15 +55,17 @@ def forced() -> str | None:
     if value in ("", "auto"):
         return None
     if value not in PATHS:
-        raise ValueError(f"{FORCE_ENV}={value!r}: expected native, xla, xla_batched or auto")
+        raise ValueError(f"{FORCE_ENV}={value!r}: expected one of {', '.join(PATHS)} or auto")
     return value
 
 
 def candidates(batch: int, f32: bool = True) -> list[str]:
     """The decode attention paths "auto" chooses among at this batch: "native" on a CPU where the kernel builds
-    (float32 only), "xla", and "xla_batched" where a batch makes its batching rule differ from "xla"'s."""
+    (float32 only), "xla", "xla_batched" where a batch makes its batching rule differ from "xla"'s, and "cudnn"
+    on a GPU for bfloat16 (a candidate that fails to compile there is dropped when measured)."""
     out = ["native"] if f32 and jax.default_backend() == "cpu" and native.available() else []
-    return out + (["xla", "xla_batched"] if batch > 1 else ["xla"])
+    out += ["xla", "xla_batched"] if batch > 1 else ["xla"]
+    return out + (["cudnn"] if not f32 and jax.default_backend() == "gpu" else [])
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -90,10 +93,11 @@ def _concurrent_devices() -> int:
     return n
 
 
-def _choice_key(batch, h, sq, s, dh, n, c, ndev, kinds) -> dict:
+def _choice_key(batch, h, sq, s, dh, n, c, ndev, kinds, f32=True) -> dict:
     build = native.build_info() or {}
     return {"cpu": hashlib.sha256(native._cpu_id().encode()).hexdigest()[:12], "jax": jax.__version__,
-            "backend": jax.default_backend(), "kernel_build": build.get("key"), "march": build.get("target"),
+            "backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
+            "dtype": "float32" if f32 else "bfloat16", "kernel_build": build.get("key"), "march": build.get("target"),
             "batch_bucket": _bucket(batch), "heads": h, "queries": sq, "cache_len": s, "head_dim": dh,
             "tokens_per_frame": n, "chunk_len": c, "devices": ndev, "candidates": list(kinds)}
 
@@ -145,7 +149,7 @@ def choose(batch: int, h: int, sq: int, s: int, dh: int, n: int, c: int, ndev: i
         rec = {"choice": kinds[0], "source": "only candidate", "why": why}
         _choice_log.append(rec)
         return rec
-    key = _choice_key(batch, h, sq, s, dh, n, c, ndev, kinds)
+    key = _choice_key(batch, h, sq, s, dh, n, c, ndev, kinds, f32)
     digest = json.dumps(key, sort_keys=True)
     with _choice_lock:
         rec = _choices.get(digest)
@@ -153,7 +157,8 @@ def choose(batch: int, h: int, sq: int, s: int, dh: int, n: int, c: int, ndev: i
             path = choice_path(key)
             rec = _read(path, key)
             if rec is None:
-                times = _measure_in_thread(batch, h, sq, s, dh, n, c, ndev, tuple(kinds), kernel_for=kernel_for)
+                times = _measure_in_thread(batch, h, sq, s, dh, n, c, ndev, tuple(kinds), f32,
+                                           kernel_for=kernel_for)
                 best = min(times, key=times.get)
                 others = ", ".join(f"{k} {t * 1e3:.2f} ms ({t / times[best]:.2f}x)" for k, t in
                                    sorted(times.items(), key=lambda kv: kv[1]) if k != best)
@@ -204,17 +209,19 @@ def _measure_in_thread(*args, **kwargs) -> dict:
     return box["times"]
 
 
-def _measure(batch, h, sq, s, dh, n, c, ndev, kinds=("native", "xla"), *, kernel_for: KernelFor,
+def _measure(batch, h, sq, s, dh, n, c, ndev, kinds=("native", "xla"), f32=True, *, kernel_for: KernelFor,
              budget_s: float = 0.25, max_repeats: int = 7) -> dict:
-    """Seconds per call (the fastest of a few) of each path in `kinds` on random float32 data of this shape,
-    with the cache filled to about 60 % and the queries in the frames just before the filled end (a mid-rollout
-    step)."""
+    """Seconds per call (the fastest of a few) of each path in `kinds` on random data of this shape (float32, or
+    bfloat16 where not `f32`), with the cache filled to about 60 % and the queries in the frames just before the
+    filled end (a mid-rollout step). A candidate after the first that fails to compile (a cuDNN without this
+    shape) is left out."""
     devices = jax.devices()[:ndev]
     total = batch * len(devices)
     rng = np.random.default_rng(0)
-    q = rng.standard_normal((total, h, sq, dh), np.float32) * dh**-0.5
-    kk = rng.standard_normal((total, h, s, dh), np.float32)
-    vv = rng.standard_normal((total, h, s, dh), np.float32)
+    dtype = np.float32 if f32 else jax.numpy.bfloat16
+    q = (rng.standard_normal((total, h, sq, dh), np.float32) * dh**-0.5).astype(dtype)
+    kk = rng.standard_normal((total, h, s, dh), np.float32).astype(dtype)
+    vv = rng.standard_normal((total, h, s, dh), np.float32).astype(dtype)
     chunks = max(1, round(0.6 * (s // c)))
     end_frame = max(1, (chunks * c) // n)  # frames [0, end_frame) are filled
     q_frame = np.maximum(0, end_frame - max(1, sq // n) + np.arange(sq) // n).astype(np.int32)
@@ -236,7 +243,17 @@ def _measure(batch, h, sq, s, dh, n, c, ndev, kinds=("native", "xla"), *, kernel
 
         mesh = Mesh(np.array(devices), ("data",))
         args = [jax.device_put(x, NamedSharding(mesh, P() if i == 3 else P("data"))) for i, x in enumerate(args)]
-    fns = {kind: make(kind).lower(*args).compile() for kind in kinds}
+    fns = {}
+    for i, kind in enumerate(kinds):
+        try:
+            fns[kind] = make(kind).lower(*args).compile()
+        except Exception:  # noqa: BLE001 - an optional path this backend cannot compile at this shape
+            if i == 0:
+                raise
+    if len(fns) == 1:
+        t0 = time.perf_counter()
+        jax.block_until_ready(next(iter(fns.values()))(*args))
+        return {next(iter(fns)): time.perf_counter() - t0}
     best = {}
     spent, rounds = 0.0, 0
     # Rounds alternate the candidates, so a change of load hits them all. The first call of each is already a
@@ -261,7 +278,7 @@ def _measure(batch, h, sq, s, dh, n, c, ndev, kinds=("native", "xla"), *, kernel
 # "auto" dispatch: decide while tracing, run the chosen path
 
 
-def _batch_size(x) -> int:
+def batch_size(x) -> int:
     """The product of the `vmap` batch sizes around a traced array (1 outside vmap). Reads JAX's batching
     tracers; if their layout ever changes this degrades to 1 (a choice measured at batch 1), never an error."""
     try:
@@ -286,7 +303,7 @@ def dispatch(q, k, v, q_frame, num_chunks, n: int, c: int, f32: bool = True, *, 
     there a `custom_vmap` decides again at the real batch (the unbatched trace also makes a batch-1 choice,
     which is what runs when nothing batches it)."""
     h, sq, dh = q.shape[-3:]
-    batch = max(_batch_size(q), _batch_size(k))
+    batch = max(batch_size(q), batch_size(k))
     if batch > 1:
         choice = choose(batch, h, sq, k.shape[-2], dh, n, c, _concurrent_devices(), f32, kernel_for=kernel_for)
         return _run(kernel_for(choice["choice"], n, c), None, q, k, v, q_frame, num_chunks)

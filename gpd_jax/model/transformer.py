@@ -127,10 +127,25 @@ class Prediction(NamedTuple):
     velocity: jax.Array | None = None
 
 
+DECODE_DTYPES = ("auto", "float32", "bfloat16")
+
+
+def resolve_decode_dtype(name: str, backend: str | None = None):
+    """`model.decode_dtype` as a dtype: "auto" is bfloat16 on an accelerator (GPU, TPU: half the cache bytes and the
+    fused bf16 attention; docs/benchmarks.md) and float32 on a CPU (no native bf16 arithmetic there: XLA converts
+    every element, and the fused CPU kernel is float32)."""
+    if name not in DECODE_DTYPES:
+        raise ValueError(f"decode dtype {name!r}: expected one of {DECODE_DTYPES}")
+    if name == "auto":
+        name = "float32" if (backend or jax.default_backend()) == "cpu" else "bfloat16"
+    return jnp.dtype(name)
+
+
 @flax.struct.dataclass
 class KVCache:
     """Keys and values per layer: k, v are tuples of L arrays f32[H, S, Dh] (S = frames * N padded to a chunk
-    multiple). One array per layer so that a scan carrying the cache updates each in place."""
+    multiple; bf16 with `decode_dtype` bfloat16). One array per layer so that a scan carrying the cache updates each
+    in place."""
 
     k: tuple[jax.Array, ...]
     v: tuple[jax.Array, ...]
@@ -159,6 +174,9 @@ class GPD(nnx.Module):
         self.decode_attention = str(cfg.decode_attention)
         if self.decode_attention not in KERNELS:
             raise ValueError(f"model.decode_attention {self.decode_attention!r}: expected one of {KERNELS}")
+        self.decode_dtype = str(cfg.decode_dtype)
+        if self.decode_dtype not in DECODE_DTYPES:
+            raise ValueError(f"model.decode_dtype {self.decode_dtype!r}: expected one of {DECODE_DTYPES}")
         self.velocity_residual = bool(cfg.velocity_residual)
         if self.velocity_residual and not self.predict_delta:
             raise ValueError("model.velocity_residual needs model.predict_delta")
@@ -306,9 +324,16 @@ class GPD(nnx.Module):
         s = frames * self.tokens_per_frame
         return -(-s // self.chunk_len) * self.chunk_len
 
-    def init_cache(self, frames: int | None = None, dtype=jnp.float32) -> KVCache:
-        """An empty cache for `frames` frames (default: the config's num_frames)."""
+    def cache_dtype(self):
+        """The dtype of the rollout's KV cache and decode attention (`decode_dtype`, "auto" resolved for the
+        default backend: `resolve_decode_dtype`)."""
+        return resolve_decode_dtype(self.decode_dtype)
+
+    def init_cache(self, frames: int | None = None, dtype=None) -> KVCache:
+        """An empty cache for `frames` frames (default: the config's num_frames) of `dtype` (default:
+        `cache_dtype()`)."""
         frames = self.num_frames if frames is None else frames
+        dtype = self.cache_dtype() if dtype is None else dtype
         blk = self.blocks[0]
         d = blk.qkv.in_features
         shape = (blk.heads, self.padded_len(frames), d // blk.heads)
@@ -350,6 +375,9 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
       start_frame: i32[] (may be traced).
     Returns:
       (hidden f32[F, N, d], updated cache).
+
+    Keys, values and queries go into attention in the cache's dtype (bfloat16 with `decode_dtype` bfloat16:
+    scores, softmax and the value sum accumulate in float32); the residual stream, norms and heads stay float32.
     """
     f, n, d = tokens.shape
     s = f * n
@@ -364,8 +392,9 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
         vc = jax.lax.dynamic_update_slice_in_dim(cache.v[i], v.astype(cache.v[i].dtype), start, axis=1)
         ks.append(kc)
         vs.append(vc)
-        x = blk.finish(x, attend_dynamic(q, kc, vc, q_frame, num_chunks, n, model.chunk_len,
-                                         model.decode_attention))
+        attn = attend_dynamic(q.astype(kc.dtype), kc, vc, q_frame, num_chunks, n, model.chunk_len,
+                              model.decode_attention)
+        x = blk.finish(x, attn.astype(x.dtype))
     return x.reshape(f, n, d), KVCache(k=tuple(ks), v=tuple(vs))
 
 
