@@ -59,6 +59,7 @@ from gpd_jax.model.attention import KERNELS
 from gpd_jax.fsutil import atomic_write_json
 from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
+from gpd_jax.model.transformer import DECODE_DTYPES
 from gpd_jax.decoding import rollout_batch, rollout_recompute
 from gpd_jax.synthetic import synthetic_scenes
 from gpd_jax.tasks import TASK_NAMES, make_tasks
@@ -78,15 +79,31 @@ def _time(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def matmul_gflops(n: int = 4096, repeats: int = 5) -> float:
-    """fp32 GFLOP/s of an n x n by n x n matmul under jit."""
+def matmul_gflops(n: int = 4096, repeats: int = 5, dtype=jnp.float32) -> float:
+    """GFLOP/s of an n x n by n x n matmul of `dtype` under jit (accumulating in float32)."""
     ka, kb = jax.random.split(jax.random.key(0))
-    a = jax.random.normal(ka, (n, n), jnp.float32)
-    b = jax.random.normal(kb, (n, n), jnp.float32)
-    f = jax.jit(jnp.matmul)
+    a = jax.random.normal(ka, (n, n), jnp.float32).astype(dtype)
+    b = jax.random.normal(kb, (n, n), jnp.float32).astype(dtype)
+    f = jax.jit(lambda a, b: jnp.matmul(a, b, preferred_element_type=jnp.float32))
     f(a, b).block_until_ready()
     t = _time(lambda: f(a, b).block_until_ready(), repeats)
     return 2 * n**3 / t / 1e9
+
+
+def copy_gbps(mib: int = 256, repeats: int = 5) -> float:
+    """Memory bandwidth in GB/s of a device-to-device copy (read and write of `mib` MiB: an elementwise scale, which
+    XLA cannot elide)."""
+    x = jnp.ones((mib * 2**20 // 4,), jnp.float32)
+    f = jax.jit(lambda x: x * 2.0)
+    f(x).block_until_ready()
+    t = _time(lambda: f(x).block_until_ready(), repeats)
+    return 2 * x.nbytes / t / 1e9
+
+
+def device_info() -> dict:
+    """The machine (`native.machine_info`: CPU, cores, JAX, backend) and the accelerator: device kind and count."""
+    dev = jax.devices()
+    return dict(native.machine_info(), device=dev[0].device_kind, device_count=len(dev))
 
 
 def linear_flops_per_token(m) -> tuple[float, float]:
@@ -112,6 +129,29 @@ def rollout_flops(m, num_frames: int, num_history: int) -> float:
     return float(linear + attn)
 
 
+def rollout_bytes(m, num_frames: int, cache_itemsize: int, param_bytes: int, batch: int) -> float:
+    """Bytes a cached rollout of one scenario must move at the least (`rollout_flops`' frames): every frame step reads
+    the keys and values of every visible token (its own and earlier frames) in every layer and writes its own
+    frame's, and reads the weights once per batch (so 1/batch of them per scenario)."""
+    n, d, layers = m.num_map_tokens + m.num_agents, m.d_model, m.num_layers
+    steps = num_frames - 1
+    reads = sum((f + 1) * n for f in range(steps)) * 2 * d * layers * cache_itemsize
+    writes = steps * n * 2 * d * layers * cache_itemsize
+    return float(reads + writes + steps * param_bytes / batch)
+
+
+def memory_figures(compiled, batch: int) -> dict:
+    """Peak memory of a compiled program from XLA's memory analysis (on a CPU too): temporaries, arguments and
+    outputs (less what outputs alias), total and per scenario."""
+    ma = compiled.memory_analysis()
+    if ma is None:
+        return {}
+    peak = ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes - ma.alias_size_in_bytes
+    return {"temp_bytes": int(ma.temp_size_in_bytes), "argument_bytes": int(ma.argument_size_in_bytes),
+            "output_bytes": int(ma.output_size_in_bytes), "peak_bytes": int(peak),
+            "temp_bytes_per_scenario": ma.temp_size_in_bytes / batch, "peak_bytes_per_scenario": peak / batch}
+
+
 def _mixed_tasks(batch: int, m):
     names = [TASK_NAMES[i % len(TASK_NAMES)] for i in range(batch)]
     return make_tasks(names, m.num_map_tokens, m.num_agents)
@@ -126,12 +166,15 @@ def bench_rollout(args, overrides) -> dict:
     if t_total > m.num_frames:
         raise UsageError(f"--future-frames {future}: history {h} + future exceeds num_frames {m.num_frames}")
     _log(f"devices: {jax.devices()}")
-    machine = native.machine_info()
+    machine = device_info()
     _log("machine: " + ", ".join(f"{k} {v}" for k, v in machine.items()))
     mm = matmul_gflops(args.matmul_size)
-    _log(f"matmul: {mm:.1f} GFLOP/s")
+    mm16 = matmul_gflops(args.matmul_size, dtype=jnp.bfloat16)
+    bw = copy_gbps(args.copy_mib)
+    _log(f"peaks: matmul fp32 {mm:.1f} GFLOP/s, bf16 {mm16:.1f} GFLOP/s; copy {bw:.1f} GB/s")
     model = GPD(m, nnx.Rngs(cfg.seed))
     state = nnx.state(model)
+    param_bytes = sum(x.nbytes for x in jax.tree.leaves(state))
     config_name = os.path.splitext(os.path.basename(args.config))[0]
 
     def cached(graphdef, state, scenes, tasks, keys):
@@ -139,15 +182,19 @@ def bench_rollout(args, overrides) -> dict:
 
     runs = []
     flops = rollout_flops(m, t_total, h)
-    bytes_per_scenario = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * 4
     kernels = args.decode_attention or [m.decode_attention]
     marches = args.native_march or [native.march()]
+    dtypes = args.decode_dtype or [m.decode_dtype]
     # a native build per target: native runs (and auto) are measured with each
-    variants = [(k, t) for k in kernels for t in (marches if k not in ("xla", "xla_batched") else [None])]
-    for (kernel, target), batch in ((v, b) for v in variants for b in args.batch):
+    variants = [(k, t, dt) for dt in dtypes for k in kernels
+                for t in (marches if k in ("native", "auto") else [None])]
+    for (kernel, target, dtype), batch in ((v, b) for v in variants for b in args.batch):
         if target is not None:
             os.environ["GPD_JAX_NATIVE_MARCH"] = target  # read while tracing
-        model.decode_attention = kernel  # a static attribute: part of the graph definition
+        model.decode_attention = kernel  # static attributes: part of the graph definition
+        model.decode_dtype = dtype
+        cache_dtype = model.cache_dtype()
+        cache_bytes = 2 * m.num_layers * model.padded_len(t_total) * m.d_model * cache_dtype.itemsize
         graphdef = nnx.graphdef(model)
         scenes = synthetic_scenes(batch, batch, t_total, h, m.num_agents, m.num_map_tokens, m.codebook_size)
         tasks = _mixed_tasks(batch, m)
@@ -164,25 +211,36 @@ def bench_rollout(args, overrides) -> dict:
         choices = autotune._choice_log[logged:]
         label = _label(kernel, choices)
         build = native.build_info() if "native" in label else None
-        _log(f"batch {batch}, {label} attention: compiled in {compile_s:.1f} s ({ndev} device(s))")
+        _log(f"batch {batch}, {label} attention, {cache_dtype.name} cache: compiled in {compile_s:.1f} s "
+             f"({ndev} device(s))")
         for c in {json.dumps(_public(c), sort_keys=True): c for c in choices}.values():
             _log(f"  auto chose {c['choice']} ({c['source']}): {c['why']}")
         run = lambda: jax.block_until_ready(compiled(state_b, scenes, tasks, keys))
         run()
         t = _time(run, args.repeats)
         per = t / batch
-        _log(f"batch {batch}: cached {per:.3f} s per scenario")
+        _log(f"batch {batch}: cached {per:.4f} s per scenario")
+        moved = rollout_bytes(m, t_total, cache_dtype.itemsize, param_bytes, batch)
+        workload = None
+        if args.workload and batch == max(args.batch):
+            workload = _workload(run, args.workload, batch, compile_s)
+            _log(f"{args.workload} scenarios x {len(TASK_NAMES)} tasks: {workload['seconds']:.2f} s "
+                 f"({workload['calls']} calls of batch {batch})")
         runs.append({
             "config": config_name, "batch": batch, "future_frames": future, "devices": ndev,
-            "decode_attention": label, "native_march": build["target"] if build else None,
+            "decode_attention": label, "decode_dtype": cache_dtype.name,
+            "native_march": build["target"] if build else None,
             "native_vector_width": build["vector_width"] if build else None,
             "auto_choices": [_public(c) for c in {json.dumps(_public(c), sort_keys=True): c
                                                   for c in choices}.values()],
             "cached_s_per_scenario": per, "recompute_s_per_scenario": None, "speedup": None,
             "compile_s": compile_s, "achieved_gflops": flops * batch / t / 1e9,
-            "kv_cache_bytes": bytes_per_scenario * batch,
+            "kv_cache_bytes": cache_bytes * batch, "kv_cache_bytes_per_scenario": cache_bytes,
+            "bytes_per_scenario": moved, "achieved_gbps": moved * batch / t / 1e9,
+            "memory": memory_figures(compiled, batch), "workload": workload,
         })
-    out = {"machine": machine, "matmul_gflops": mm, "rollout_gflop_per_scenario": flops / 1e9, "runs": runs}
+    out = {"machine": machine, "matmul_gflops": mm, "matmul_bf16_gflops": mm16, "copy_gbps": bw,
+           "rollout_gflop_per_scenario": flops / 1e9, "runs": runs}
     if 1 in args.batch:
         rec, method, rows = bench_recompute(model, m, cfg, t_total, h, args)
         for r in runs:
@@ -193,7 +251,21 @@ def bench_rollout(args, overrides) -> dict:
         out["recompute_forward"] = rows
     for r in runs:
         r["achieved_over_matmul"] = r["achieved_gflops"] / mm
+        r["achieved_over_matmul_bf16"] = r["achieved_gflops"] / mm16
+        r["achieved_over_copy"] = r["achieved_gbps"] / bw
     return out
+
+
+def _workload(run, scenarios: int, batch: int, compile_s: float) -> dict:
+    """Wall seconds for `scenarios` scenarios under every task (`scenarios` x 6 rollouts) in calls of `batch`, one
+    after another, compilation excluded (reported beside)."""
+    rollouts = scenarios * len(TASK_NAMES)
+    calls = -(-rollouts // batch)
+    t0 = time.perf_counter()
+    for _ in range(calls):
+        run()
+    return {"scenarios": scenarios, "tasks": len(TASK_NAMES), "rollouts": calls * batch, "calls": calls,
+            "batch": batch, "seconds": time.perf_counter() - t0, "compile_s": compile_s}
 
 
 def _public(choice: dict) -> dict:
@@ -343,26 +415,89 @@ def bench_realism(args) -> dict:
             "metametric": red["metametric"], "road_edge_inexact_share": red["road_edge_inexact_share"]}
 
 
+def precision_differences(a, b, num_history: int, frame_period_s: float) -> dict:
+    """How far rollouts `b` are from rollouts `a` of the same scenes and tasks (RolloutOutput [B, K, T, ...] as
+    numpy), over the generated frames t >= num_history: agent position |xy_a - xy_b| (m) and heading difference
+    (rad, wrapped) over slots valid in both, per horizon (seconds after the last history frame) and over all
+    generated frames (mean, 99th percentile, max); the share of slots whose validity agrees and of map tokens
+    that agree."""
+    h = num_history
+    both = np.asarray(a.valid)[:, :, h:] & np.asarray(b.valid)[:, :, h:]
+    dxy = np.linalg.norm(np.asarray(a.xy)[:, :, h:] - np.asarray(b.xy)[:, :, h:], axis=-1)
+    dh = np.abs(np.angle(np.exp(1j * (np.asarray(a.heading)[:, :, h:] - np.asarray(b.heading)[:, :, h:]))))
+
+    def stats(x, m):
+        x = x[m]
+        return ({"mean": float(x.mean()), "p99": float(np.percentile(x, 99)), "max": float(x.max())} if x.size
+                else {"mean": None, "p99": None, "max": None})
+
+    per_horizon = {}
+    for i in range(dxy.shape[2]):
+        per_horizon[f"{(i + 1) * frame_period_s:g}s"] = stats(dxy[:, :, i], both[:, :, i])
+    return {"xy_m": stats(dxy, both), "xy_m_by_horizon": per_horizon, "heading_rad": stats(dh, both),
+            "valid_agree": float((np.asarray(a.valid)[:, :, h:] == np.asarray(b.valid)[:, :, h:]).mean()),
+            "map_token_agree": float((np.asarray(a.map_tokens)[:, :, h:] == np.asarray(b.map_tokens)[:, :, h:]).mean()),
+            "agent_slots_compared": int(both.sum())}
+
+
+def bench_precision(args) -> dict:
+    """A shipped model's rollouts of stored scenes under every task with a float32 and a bfloat16 KV cache and decode
+    attention (this backend's fastest attention for each: `auto`), and how far apart they are
+    (`precision_differences`)."""
+    import gpd_jax
+
+    model = gpd_jax.load_model(args.model)
+    idx = range(args.scenarios) if args.scenarios else None
+    scenes = gpd_jax.load_scenes(args.data, args.split, indices=idx)
+    n = scenes.xy.shape[0]
+    outs = {}
+    for dtype in ("float32", "bfloat16"):
+        m = model.with_decode(dtype=dtype)
+        parts = []
+        for lo in range(0, n, args.batch):
+            part = jax.tree.map(lambda x: x[lo:lo + args.batch], scenes)
+            out = jax.block_until_ready(gpd_jax.rollout(m, part, "all", jax.random.key(0)))
+            parts.append(jax.device_get(out))
+        outs[dtype] = jax.tree.map(lambda *x: np.concatenate(x, 0), *parts)
+    spec = model.spec
+    diff = {"all": precision_differences(outs["float32"], outs["bfloat16"], spec.num_history, spec.frame_period_s)}
+    for k, name in enumerate(TASK_NAMES):
+        pick = lambda o: jax.tree.map(lambda x: x[:, k:k + 1], o)
+        diff[name] = precision_differences(pick(outs["float32"]), pick(outs["bfloat16"]), spec.num_history,
+                                           spec.frame_period_s)
+    return {"machine": device_info(), "model": args.model or "default", "data": f"{args.data}:{args.split}",
+            "scenarios": n, "tasks": list(TASK_NAMES), "future_s": (spec.num_frames - spec.num_history)
+            * spec.frame_period_s, "bfloat16_vs_float32": diff}
+
+
 def _print_table(out: dict) -> None:
     mc = out.get("machine", {})
     print(f"machine: {mc.get('cpu')} ({mc.get('isa')}, {mc.get('usable_cores')} cores), jax {mc.get('jax')}, "
           f"backend {mc.get('backend')}")
-    print(f"matmul fp32: {out['matmul_gflops']:.1f} GFLOP/s; cached rollout: "
-          f"{out['rollout_gflop_per_scenario']:.1f} GFLOP per scenario")
-    head = ("config", "attention", "batch", "future", "cached s/scn", "recompute s/scn", "speedup", "compile s",
-            "GFLOP/s", "of matmul", "KV cache MiB")
+    print(f"peaks: matmul fp32 {out['matmul_gflops']:.1f} GFLOP/s, bf16 {out['matmul_bf16_gflops']:.1f} GFLOP/s, "
+          f"copy {out['copy_gbps']:.1f} GB/s; cached rollout: {out['rollout_gflop_per_scenario']:.1f} GFLOP per "
+          "scenario")
+    head = ("config", "attention", "dtype", "batch", "future", "cached s/scn", "recompute s/scn", "speedup",
+            "compile s", "GFLOP/s", "of matmul", "GB/s", "of copy", "KV cache MiB/scn", "peak MiB/scn")
     print(" | ".join(head))
     for r in out["runs"]:
         rec = "-" if r["recompute_s_per_scenario"] is None else f"{r['recompute_s_per_scenario']:.2f}"
         sp = "-" if r["speedup"] is None else f"{r['speedup']:.1f}x"
-        print(" | ".join([r["config"], r["decode_attention"], str(r["batch"]), str(r["future_frames"]),
-                          f"{r['cached_s_per_scenario']:.3f}", rec, sp, f"{r['compile_s']:.1f}",
-                          f"{r['achieved_gflops']:.1f}", f"{r['achieved_over_matmul']:.2f}",
-                          f"{r['kv_cache_bytes'] / 2**20:.1f}"]))
-    for kernel in dict.fromkeys(r["decode_attention"] for r in out["runs"]):
-        runs = [r for r in out["runs"] if r["decode_attention"] == kernel]
+        peak = r["memory"].get("peak_bytes_per_scenario")
+        print(" | ".join([r["config"], r["decode_attention"], r["decode_dtype"], str(r["batch"]),
+                          str(r["future_frames"]), f"{r['cached_s_per_scenario']:.4f}", rec, sp,
+                          f"{r['compile_s']:.1f}", f"{r['achieved_gflops']:.1f}", f"{r['achieved_over_matmul']:.2f}",
+                          f"{r['achieved_gbps']:.1f}", f"{r['achieved_over_copy']:.2f}",
+                          f"{r['kv_cache_bytes_per_scenario'] / 2**20:.1f}",
+                          "-" if peak is None else f"{peak / 2**20:.1f}"]))
+        if r["workload"]:
+            w = r["workload"]
+            print(f"  {w['scenarios']} scenarios x {w['tasks']} tasks: {w['seconds']:.2f} s in {w['calls']} calls "
+                  f"of batch {w['batch']} (compile {w['compile_s']:.1f} s, excluded)")
+    for kernel in dict.fromkeys((r["decode_attention"], r["decode_dtype"]) for r in out["runs"]):
+        runs = [r for r in out["runs"] if (r["decode_attention"], r["decode_dtype"]) == kernel]
         for r in runs[1:]:
-            print(f"{kernel}: batch {r['batch']} throughput per scenario = "
+            print(f"{'/'.join(kernel)}: batch {r['batch']} throughput per scenario = "
                   f"{runs[0]['cached_s_per_scenario'] / r['cached_s_per_scenario']:.2f}x batch {runs[0]['batch']}")
     for r in out["runs"]:
         for c in r.get("auto_choices") or []:
@@ -384,6 +519,12 @@ def main(argv=None) -> int:
                    help="prefix lengths at which to time the recompute forward (0: time the whole rollout)")
     r.add_argument("--repeats", type=int, default=3)
     r.add_argument("--matmul-size", type=int, default=4096)
+    r.add_argument("--copy-mib", type=int, default=256, help="size of the copy that measures memory bandwidth")
+    r.add_argument("--decode-dtype", nargs="+", choices=DECODE_DTYPES, default=None,
+                   help="KV cache / decode attention dtype(s), each measured with every kernel and batch "
+                        "(default: the config's model.decode_dtype)")
+    r.add_argument("--workload", type=int, default=None, metavar="SCENARIOS",
+                   help="also time SCENARIOS scenarios x 6 tasks in calls of the largest batch (compile excluded)")
     r.add_argument("--devices", type=int, default=None,
                    help="shard each batch over this many local devices (default: all; on a CPU one per core)")
     r.add_argument("--decode-attention", nargs="+", choices=KERNELS, default=None,
@@ -403,9 +544,29 @@ def main(argv=None) -> int:
     q.add_argument("--repeats", type=int, default=3)
     q.add_argument("--json", default=None, help="write the results here")
 
+    c = sub.add_parser("precision", help="a shipped model's rollouts with a bfloat16 vs a float32 KV cache")
+    c.add_argument("--data", required=True, help="a store of held-out scenes")
+    c.add_argument("--split", default="test")
+    c.add_argument("--model", default=None, help="a shipped model's name or a folder (default: the default model)")
+    c.add_argument("--scenarios", type=int, default=None, help="the first N scenes (default: all)")
+    c.add_argument("--batch", type=int, default=40, help="scenes per rollout call")
+    c.add_argument("--json", default=None, help="write the results here")
+
     def work():
         args = p.parse_args(rest)
-        if args.what == "realism":
+        if args.what == "precision":
+            if overrides:
+                raise UsageError("python -m gpd_jax.bench precision takes no --config.* overrides")
+            out = bench_precision(args)
+            print(f"{out['model']} on {out['data']} ({out['scenarios']} scenes x {len(out['tasks'])} tasks, "
+                  f"{out['future_s']:g} s; backend {out['machine']['backend']}): bfloat16 vs float32")
+            print("task | xy mean m | xy p99 m | xy max m | heading p99 rad | valid agree | map tokens agree")
+            num = lambda x: "-" if x is None else f"{x:.2e}"
+            for name, d in out["bfloat16_vs_float32"].items():
+                print(" | ".join([name, *(num(d["xy_m"][k]) for k in ("mean", "p99", "max")),
+                                  num(d["heading_rad"]["p99"]), f"{d['valid_agree']:.4f}",
+                                  f"{d['map_token_agree']:.4f}"]))
+        elif args.what == "realism":
             if overrides:
                 raise UsageError("python -m gpd_jax.bench realism takes no --config.* overrides")
             out = bench_realism(args)
