@@ -53,6 +53,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from gpd_jax import parallel
 from gpd_jax.model import autotune
 from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forward_cached, reads_lanes
 from gpd_jax.options import RolloutOptions
@@ -446,12 +447,14 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Arra
 
     Prompts may also be per scenario, Prompt [S, K, ...] (e.g. paths given in each scene's frame): scenario s
     then runs prompts[s, k]. The S x K pairs are flattened into one vmapped batch (so the attention kernel's
-    per-scenario batching rule sees the whole batch); keys are split per (scenario, task).
+    per-scenario batching rule sees the whole batch); `key` is split per (scenario, task) (`task_keys`; or give
+    those keys [S, K] yourself).
     """
     s = scenes.xy.shape[0]
     tasks = as_prompt(tasks, scenes.xy.shape[-3])
     per_scene = tasks.from_log.ndim == 4
     k = tasks.from_log.shape[1 if per_scene else 0]
+    keys = task_keys(key, s, k)
     flat_scenes, flat_lanes = jax.tree.map(lambda x: jnp.repeat(x, k, axis=0), (scenes, lanes))
     if per_scene:
         if tasks.from_log.shape[0] != s:
@@ -459,10 +462,19 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Arra
         flat_tasks = jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks)
     else:
         flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
-    keys = jax.random.split(key, s * k)
     out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature, flat_lanes, map_encoder,
                         map_warp)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
+
+
+def task_keys(key: jax.Array, num_scenes: int, num_tasks: int) -> jax.Array:
+    """The key of every (scenario, task) pair, flat [S * K]: `key` split S * K ways, or `key` itself when it already
+    holds S x K keys (what a rollout sharded over devices hands each device: its scenarios' keys)."""
+    if key.shape == (num_scenes, num_tasks):
+        return key.reshape(num_scenes * num_tasks)
+    if key.shape != ():
+        raise ValueError(f"key of shape {key.shape}: expected one key or [S, K] = [{num_scenes}, {num_tasks}] keys")
+    return jax.random.split(key, num_scenes * num_tasks)
 
 
 def rollout_prepared(module: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Array, num_history: int,
@@ -493,7 +505,7 @@ def rollout_prepared(module: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.
     flat_t = (jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks) if per_scene else
               jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks))
     one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder, warp)
-    out = jax.vmap(one)(flat_s, flat_t, jax.random.split(key, s * k), flat_l)
+    out = jax.vmap(one)(flat_s, flat_t, task_keys(key, s, k), flat_l)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
 
 
@@ -501,9 +513,26 @@ def rollout_prepared(module: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.
 def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key, num_history: int,
                 options: RolloutOptions = RolloutOptions(), tok=None, tok_params=None) -> RolloutOutput:
     """`rollout_prepared` of the model `nnx.merge(graphdef, params, rest)`, jitted: the one compiled rollout (one
-    compile per shape, options and model structure). `rollout_model` calls it for a loaded model."""
-    return rollout_prepared(nnx.merge(graphdef, params, rest), scenes, tasks, key, num_history, options, tok,
-                            tok_params)
+    compile per shape, options and model structure). `rollout_model` calls it for a loaded model.
+
+    With several local devices (GPUs; CPU devices where XLA is asked for them) the scenarios are split over as many
+    as divide S (`gpd_jax.parallel`): each device rolls out its scenarios with their own keys, so the outputs are
+    those of one device (to float rounding), in 1/devices of the time."""
+    s = scenes.xy.shape[0]
+    prompts = as_prompt(tasks, scenes.xy.shape[-3])
+    per_scene = prompts.from_log.ndim == 4
+    k = prompts.from_log.shape[1 if per_scene else 0]
+    keys = task_keys(key, s, k).reshape(s, k)
+
+    def run(params, rest, tok_params, shared, scenes, keys, own):
+        return rollout_prepared(nnx.merge(graphdef, params, rest), scenes, own if per_scene else shared, keys,
+                                num_history, options, tok, tok_params)
+
+    shared, own = (None, tasks) if per_scene else (tasks, None)
+    ndev = parallel.devices_for_batch(s, jax.local_device_count())
+    if ndev > 1:
+        run = parallel.data_parallel(run, parallel.data_mesh(ndev), num_replicated=4)
+    return run(params, rest, tok_params, shared, scenes, keys, own)
 
 
 def rollout_model(model, scenes: Scene, tasks: Task | Prompt, key: jax.Array,

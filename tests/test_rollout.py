@@ -410,3 +410,51 @@ def test_a_batched_rollout_holds_little_beyond_its_cache():
     assert temp["float32"] < 1.6 * cache, (temp, cache)  # 1.34 measured
     if jax.default_backend() != "cpu":  # XLA:CPU has no bf16 arithmetic: it keeps an f32 copy of each layer's cache
         assert temp["bfloat16"] < 0.75 * temp["float32"], temp
+
+
+_SHARDED_SCRIPT = r"""
+import sys
+sys.path.insert(0, {tests!r})
+import jax, jax.numpy as jnp, numpy as np
+from flax import nnx
+from gpd_jax.config import load_config
+from gpd_jax.decoding import rollout_jit, rollout_prepared
+from gpd_jax.model import GPD
+from gpd_jax.options import RolloutOptions
+from gpd_jax.synthetic import synthetic_scenes
+from gpd_jax.tasks import make_tasks
+
+assert jax.local_device_count() == 4
+m = load_config("configs/gpd_tiny.py:test").model
+graphdef, params, rest = nnx.split(GPD(m, nnx.Rngs(0)), nnx.Param, ...)
+scenes = jax.tree.map(jnp.asarray, synthetic_scenes(0, 8, m.num_frames, m.num_history, m.num_agents,
+                                                    m.num_map_tokens, m.codebook_size))
+tasks = jax.tree.map(jnp.asarray, make_tasks(["all"], m.num_map_tokens, m.num_agents))
+opts = RolloutOptions(temperature=1.0)  # sampled map tokens: each pair's key must be the one device's
+key = jax.random.key(5)
+sharded = rollout_jit(graphdef, params, rest, scenes, tasks, key, m.num_history, opts)
+one = jax.jit(lambda p, sc, t, k: rollout_prepared(nnx.merge(graphdef, p, rest), sc, t, k, m.num_history, opts))(
+    params, scenes, tasks, key)
+assert len(sharded.xy.sharding.device_set) == 4, sharded.xy.sharding
+np.testing.assert_allclose(np.asarray(sharded.xy), np.asarray(one.xy), rtol=1e-5, atol=1e-4)
+np.testing.assert_array_equal(np.asarray(sharded.map_tokens), np.asarray(one.map_tokens))
+np.testing.assert_array_equal(np.asarray(sharded.valid), np.asarray(one.valid))
+odd = rollout_jit(graphdef, params, rest, jax.tree.map(lambda x: x[:3], scenes), tasks, key, m.num_history, opts)
+assert odd.xy.shape[0] == 3  # 3 scenarios: no split over 4 devices divides them, one device runs them
+print("OK")
+"""
+
+
+def test_rollout_is_split_over_local_devices_with_one_devices_results(tmp_path):
+    """rollout_jit (what gpd_jax.rollout, evaluate and rollout.py run) splits the scenarios over 4 forced CPU
+    devices; outputs equal one device's, sampled map tokens included (each (scenario, task) keeps its key)."""
+    import os
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    script = tmp_path / "sharded.py"
+    script.write_text(_SHARDED_SCRIPT.format(tests=os.path.dirname(os.path.abspath(__file__))))
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    r = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, cwd=root, timeout=600)
+    assert r.returncode == 0 and "OK" in r.stdout, r.stdout[-2000:] + r.stderr[-4000:]
