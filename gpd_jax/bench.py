@@ -9,12 +9,25 @@
     rollouts are the log's future with a random walk added (the metric's cost does not depend on the values).
 
     python -m gpd_jax.bench rollout --config configs/gpd_paper.py --batch 1 16 --json PATH
-        [--future-frames F] [--recompute-points K] [--repeats R] [--decode-attention auto native xla]
-        [--native-march native x86-64-v3] [--config.model.x=y ...]
+        [--future-frames F] [--recompute-points K] [--repeats R] [--decode-attention auto native xla cudnn]
+        [--decode-dtype float32 bfloat16] [--workload SCENARIOS] [--native-march native x86-64-v3]
+        [--config.model.x=y ...]
 
-Measures, in one run (so ratios are meaningful on a noisy shared machine):
+    python -m gpd_jax.bench precision --data DIR [--split test] [--model NAME] [--json PATH]
 
-* `matmul_gflops`: throughput of a large fp32 matmul (4096^2 x 4096^2 by default), the machine's ceiling.
+    a shipped model's rollouts of a store's scenes under every task with a bfloat16 and a float32 KV cache: how far
+    apart agents and map tokens end up (`precision_differences`).
+
+`bench rollout` measures, in one run (so ratios are meaningful on a noisy shared machine):
+
+* the peaks: `matmul_gflops` and `matmul_bf16_gflops` (a large fp32 / bf16 matmul, 4096^2 x 4096^2 by default) and
+  `copy_gbps` (a device-to-device copy, read and write counted), the machine's ceilings;
+* per run the roofline: useful FLOPs (`achieved_gflops`, below) and useful bytes (`bytes_per_scenario`: every frame
+  step reads the visible keys and values of every layer and writes its own, and the weights once per batch;
+  `achieved_gbps`) against both peaks (`achieved_over_matmul[_bf16]`, `achieved_over_copy`), the KV cache per
+  scenario in its dtype, and the compiled program's memory (`memory`: XLA's analysis, on a CPU too: temporaries,
+  arguments, outputs, peak and per scenario); `--workload N` also times N scenarios x 6 tasks in calls of the
+  largest batch, compile excluded;
 * cached rollout per scenario at each batch size (a batch that mixes all six tasks, random weights,
   synthetic scenes), with its compile time. A batch is sharded over the local devices (on a CPU, one XLA
   device per core; see gpd_jax/parallel.py), so batches use every core; batch 1 runs on one device. With

@@ -392,3 +392,23 @@ def test_cudnn_path_is_a_gpu_bfloat16_candidate_and_refused_elsewhere(monkeypatc
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     assert autotune.candidates(8, f32=False) == ["xla", "xla_batched", "cudnn"]
     assert "cudnn" not in autotune.candidates(8, f32=True)  # cuDNN's fused attention takes 16-bit inputs
+
+
+@pytest.mark.parametrize("dh", [16, 12])  # the vectorized kernel and the generic one
+def test_native_kernel_reads_a_bfloat16_cache(dh):
+    """A bfloat16 cache: the native kernel widens keys and values to float32 and does float32 arithmetic, so it
+    equals float32 attention over the widened cache (the XLA path, which multiplies in bf16, is near it)."""
+    from gpd_jax.model import autotune
+
+    if not native.available():
+        pytest.skip("the native attention kernel is unavailable here")
+    q, k, v, qf, chunks, n, c = _decode_case(b=3, dh=dh)
+    k16, v16 = k.astype(jnp.bfloat16), v.astype(jnp.bfloat16)
+    run = lambda kern, k, v: jax.jit(jax.vmap(lambda q, k, v, m: attend_dynamic(q, k, v, qf, m, n, c, kern)))(
+        q, k, v, chunks)
+    wide = run("xla", k16.astype(jnp.float32), v16.astype(jnp.float32))
+    got = run("native", k16, v16)
+    assert got.dtype == jnp.float32
+    _close(got, wide)
+    _close(run("xla", k16, v16), wide, rtol=2e-2)  # bf16 products: about 2^-8 relative
+    assert "native" in autotune.candidates(4, f32=False)

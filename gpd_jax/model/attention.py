@@ -51,7 +51,7 @@ def _chunk_update(q, q_frame, kc, vc, start, tokens_per_frame, carry):
     k_frame = (start + jnp.arange(kc.shape[1])) // tokens_per_frame
     bias = jnp.where(k_frame[None, :] <= q_frame[:, None], 0.0, _NEG)  # [Sq, C], shared by heads
     f32 = jnp.float32  # bf16 inputs (a bf16 cache) accumulate in fp32; the carry is fp32 either way
-    s = jnp.einsum("hqd,hkd->hqk", q, kc, preferred_element_type=f32) + bias[None]
+    s = jnp.einsum("hqd,hkd->hqk", q.astype(kc.dtype), kc, preferred_element_type=f32) + bias[None]
     m_new = jnp.maximum(m, jnp.max(s, axis=-1))
     # Every query sees frame 0, which is in the first chunk, so m_new is a real score from the first chunk
     # on and masked entries underflow to exactly 0.
@@ -179,15 +179,14 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
 
     `kernel`: "xla", "xla_batched" (the above; the same without `vmap`), "cudnn" (one frame of queries per
     scenario, a decode step, through cuDNN's fused bf16 attention on a GPU, the batch in one call), "native" (the
-    fused CPU kernel of `gpd_jax.model.native`, float32 only; same results within float rounding) or "auto" (the
+    fused CPU kernel of `gpd_jax.model.native`, float32 arithmetic on a float32 or bfloat16 cache; same results
+    within float rounding) or "auto" (the
     fastest of
     `autotune.candidates()` at this shape and batch, measured once per machine and shape; see
     `gpd_jax.model.autotune`). The choice is made while tracing, never inside the compiled computation.
     """
     q = q * (q.shape[-1] ** -0.5)
     f32 = all(x.dtype == jnp.float32 for x in (q, k, v))
-    if kernel == "native" and not f32:
-        raise ValueError(f"the native attention kernel takes float32, got q {q.dtype}, k {k.dtype}, v {v.dtype}")
     if kernel == "cudnn" and (jax.default_backend() != "gpu" or k.dtype != jnp.bfloat16):
         raise ValueError(f"the cudnn attention path runs bfloat16 (model.decode_dtype) on a GPU; got k {k.dtype} "
                          f"on backend {jax.default_backend()}")
@@ -198,7 +197,7 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
         h, sq, dh = q.shape[-3:]  # forced: logged for auto_choices()
         kernel = autotune.choose(1, h, sq, k.shape[-2], dh, tokens_per_frame, chunk_len,
                                  kernel_for=decode_kernel)["choice"]
-    if f32 and use_native(kernel):
+    if use_native(kernel):
         return native.block_causal_attention(q, k, v, q_frame, num_chunks, tokens_per_frame, chunk_len)
     return decode_kernel(kernel, tokens_per_frame, chunk_len)(q, k, v, q_frame, num_chunks)
 
@@ -225,7 +224,7 @@ def _cudnn_attention(q, k, v, q_frame, n: int):
 
     b, _, sq, _ = q.shape
     kv_len = ((q_frame[:, 0] + 1) * n).astype(jnp.int32)
-    out = dot_product_attention(q, k, v, None, None, jnp.full((b,), sq, jnp.int32), kv_len, scale=1.0,
+    out = dot_product_attention(q.astype(k.dtype), k, v, None, None, jnp.full((b,), sq, jnp.int32), kv_len, scale=1.0,
                                 mask_type=MaskType.PADDING, qkv_layout="BNTH")
     return out.astype(jnp.float32)
 

@@ -1,7 +1,7 @@
 """Choosing the decode attention path by measurement: what `attend_dynamic(..., kernel="auto")` runs.
 
 The decode attention of the KV-cached rollout (`gpd_jax.model.attention.attend_dynamic`) has several paths with
-the same results: `"native"` (the fused CPU kernel of `gpd_jax.model.native`, float32 only), `"xla"` (under
+the same results: `"native"` (the fused CPU kernel of `gpd_jax.model.native`), `"xla"` (under
 `vmap`, the scenarios one after another), `"xla_batched"` (every scenario's chunk at once) and `"cudnn"` (cuDNN's
 fused attention, bfloat16 on a GPU). Which is fastest
 depends on the machine, the backend, the shape and the batch, so "auto" measures: the first time a shape is
@@ -60,10 +60,11 @@ def forced() -> str | None:
 
 
 def candidates(batch: int, f32: bool = True) -> list[str]:
-    """The decode attention paths "auto" chooses among at this batch: "native" on a CPU where the kernel builds
-    (float32 only), "xla", "xla_batched" where a batch makes its batching rule differ from "xla"'s, and "cudnn"
-    on a GPU for bfloat16 (a candidate that fails to compile there is dropped when measured)."""
-    out = ["native"] if f32 and jax.default_backend() == "cpu" and native.available() else []
+    """The decode attention paths "auto" chooses among at this batch (`f32`: a float32 cache, else bfloat16):
+    "native" on a CPU where the kernel builds, "xla", "xla_batched" where a batch makes its batching rule differ
+    from "xla"'s, and "cudnn" on a GPU for bfloat16 (a candidate that fails to compile there is dropped when
+    measured)."""
+    out = ["native"] if jax.default_backend() == "cpu" and native.available() else []
     out += ["xla", "xla_batched"] if batch > 1 else ["xla"]
     return out + (["cudnn"] if not f32 and jax.default_backend() == "gpu" else [])
 
@@ -144,7 +145,7 @@ def choose(batch: int, h: int, sq: int, s: int, dh: int, n: int, c: int, ndev: i
         return rec
     kinds = candidates(batch, f32)
     if len(kinds) == 1:
-        why = ("float16/bfloat16 inputs" if not f32 else "GPD_JAX_NATIVE=0" if native.disabled() else
+        why = ("GPD_JAX_NATIVE=0" if native.disabled() else
                "the backend is not a CPU" if jax.default_backend() != "cpu" else "the native kernel did not build")
         rec = {"choice": kinds[0], "source": "only candidate", "why": why}
         _choice_log.append(rec)

@@ -211,6 +211,8 @@ def _load(target: str) -> dict | None:
         lib = ctypes.cdll.LoadLibrary(str(path))
         name = _target_name(target)
         jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(lib.GpdBlockCausalAttention), platform="cpu")
+        jax.ffi.register_ffi_target(name + "_bf16", jax.ffi.pycapsule(lib.GpdBlockCausalAttentionBf16),
+                                    platform="cpu")
         width = int(lib.GpdAttentionVectorWidth())
     except Exception as e:  # noqa: BLE001 - any failure means: use the XLA path, and say why
         warnings.warn(f"gpd_jax: native attention kernel unavailable, using the XLA path: {e}", stacklevel=3)
@@ -236,12 +238,18 @@ def build_info(target: str | None = None) -> dict | None:
 
 def block_causal_attention(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_len: int,
                            target: str | None = None):
-    """The FFI call. q f32[..., H, Sq, Dh] (pre-scaled), k, v f32[..., H, S, Dh], q_frame i32[..., Sq],
-    num_chunks i32[...] -> f32[..., H, Sq, Dh]. Batches under `vmap` by passing the batch dims through.
-    `target`: which build (default `march()`); it must have been loaded (`available(target)`)."""
+    """The FFI call. q f32[..., H, Sq, Dh] (pre-scaled; other float dtypes are widened), k, v f32 or bf16
+    [..., H, S, Dh] (a bfloat16 cache is read as such: half the bytes), q_frame i32[..., Sq], num_chunks i32[...]
+    -> f32[..., H, Sq, Dh]. Batches under `vmap` by passing the batch dims through. `target`: which build
+    (default `march()`); it must have been loaded (`available(target)`)."""
     lib = load(target)
     if lib is None:
         raise RuntimeError(f"the native attention kernel for -march={target or march()} is not available")
-    call = jax.ffi.ffi_call(lib["ffi_target"], jax.ShapeDtypeStruct(q.shape, q.dtype), vmap_method="broadcast_all")
+    if k.dtype != v.dtype or k.dtype not in (jnp.float32, jnp.bfloat16):
+        raise ValueError(f"the native attention kernel reads a float32 or bfloat16 cache, got k {k.dtype}, "
+                         f"v {v.dtype}")
+    name = lib["ffi_target"] + ("_bf16" if k.dtype == jnp.bfloat16 else "")
+    q = q.astype(jnp.float32)
+    call = jax.ffi.ffi_call(name, jax.ShapeDtypeStruct(q.shape, jnp.float32), vmap_method="broadcast_all")
     return call(q, k, v, jnp.asarray(q_frame, jnp.int32), jnp.asarray(num_chunks, jnp.int32),
                 tokens_per_frame=int(tokens_per_frame), chunk_len=int(chunk_len))

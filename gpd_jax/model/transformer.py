@@ -376,8 +376,9 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
     Returns:
       (hidden f32[F, N, d], updated cache).
 
-    Keys, values and queries go into attention in the cache's dtype (bfloat16 with `decode_dtype` bfloat16:
-    scores, softmax and the value sum accumulate in float32); the residual stream, norms and heads stay float32.
+    Keys and values are stored in the cache's dtype (bfloat16 with `decode_dtype` bfloat16); each attention path
+    reads them as such (the XLA and cuDNN ones multiply in bf16 with float32 accumulation and softmax, the native
+    CPU kernel widens them to float32); the residual stream, norms and heads stay float32.
     """
     f, n, d = tokens.shape
     s = f * n
@@ -392,8 +393,7 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
         vc = jax.lax.dynamic_update_slice_in_dim(cache.v[i], v.astype(cache.v[i].dtype), start, axis=1)
         ks.append(kc)
         vs.append(vc)
-        attn = attend_dynamic(q.astype(kc.dtype), kc, vc, q_frame, num_chunks, n, model.chunk_len,
-                              model.decode_attention)
+        attn = attend_dynamic(q, kc, vc, q_frame, num_chunks, n, model.chunk_len, model.decode_attention)
         x = blk.finish(x, attn.astype(x.dtype))
     return x.reshape(f, n, d), KVCache(k=tuple(ks), v=tuple(vs))
 

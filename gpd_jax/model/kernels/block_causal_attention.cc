@@ -18,7 +18,8 @@
 //
 // Buffers (any number of leading batch dims, flattened to B):
 //   q f32[B, H, Sq, Dh], k f32[B, H, S, Dh], v f32[B, H, S, Dh], q_frame s32[B, Sq], num_chunks s32[B]
-//   -> out f32[B, H, Sq, Dh].
+//   -> out f32[B, H, Sq, Dh]. GpdBlockCausalAttentionBf16 takes a bfloat16 cache (k, v bf16[B, H, S, Dh]: half
+//   the bytes read) and widens each key block and value block to float32 in L1; the arithmetic is float32.
 // Attributes: tokens_per_frame (i64), chunk_len (i64).
 //
 // Built on first use by gpd_jax/model/native.py with the system C++ compiler (-O3 -march=$GPD_JAX_NATIVE_MARCH,
@@ -105,10 +106,25 @@ inline vf exp2_nonpositive(vf t) {
 
 inline float exp2_nonpositive(float t) { return exp2_nonpositive(splat(t))[0]; }
 
+// bfloat16 is the top half of a float32: widening is a shift
+inline float Bf16ToF32(uint16_t h) {
+  const uint32_t u = static_cast<uint32_t>(h) << 16;
+  float f;
+  __builtin_memcpy(&f, &u, sizeof(f));
+  return f;
+}
+
+// Key or value j, component d, of one (scenario, head) item whose rows start at row0 (either dtype)
+inline float KvAt(const float* f32, const uint16_t* b16, int64_t row0, int64_t dh, int64_t j, int64_t d) {
+  return b16 ? Bf16ToF32(b16[(row0 + j) * dh + d]) : f32[(row0 + j) * dh + d];
+}
+
 struct Problem {
   const float* q;
-  const float* k;
+  const float* k;  // float32 keys and values, or (k16, v16 set, these null) bfloat16 ones
   const float* v;
+  const uint16_t* k16;
+  const uint16_t* v16;
   const int32_t* q_frame;
   const int32_t* num_chunks;
   float* out;
@@ -140,9 +156,10 @@ void RunItem(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
   constexpr float kLog2e = 1.4426950408889634f;
   const int64_t b = item / pb.heads;
   const float* __restrict q = pb.q + item * pb.sq * DH;
-  const float* __restrict k = pb.k + item * pb.s * DH;
-  const float* __restrict v = pb.v + item * pb.s * DH;
+  const int64_t row0 = item * pb.s;  // this item's first key / value row
   float* __restrict out = pb.out + item * pb.sq * DH;
+  // bfloat16 values are widened a block at a time into this L1 buffer; float32 ones are read in place
+  std::vector<float> vwide(pb.v16 ? static_cast<size_t>(kKeyBlock) * DH : 0);
 
   std::vector<int64_t> limit(pb.sq);
   const int64_t max_limit = Limits(pb, b, i0, i1, limit);
@@ -163,12 +180,22 @@ void RunItem(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
   for (int64_t start = 0; start < max_limit; start += kKeyBlock) {
     const int64_t nk = std::min<int64_t>(kKeyBlock, max_limit - start);
     float* ktf = reinterpret_cast<float*>(kt.data());
-    const float* kb = k + start * DH;
-    for (int64_t j = 0; j < nk; ++j)
-      for (int d = 0; d < DH; ++d) ktf[d * kKeyBlock + j] = kb[j * DH + d];
+    if (pb.k16) {
+      const uint16_t* kb = pb.k16 + (row0 + start) * DH;
+      for (int64_t j = 0; j < nk; ++j)
+        for (int d = 0; d < DH; ++d) ktf[d * kKeyBlock + j] = Bf16ToF32(kb[j * DH + d]);
+    } else {
+      const float* kb = pb.k + (row0 + start) * DH;
+      for (int64_t j = 0; j < nk; ++j)
+        for (int d = 0; d < DH; ++d) ktf[d * kKeyBlock + j] = kb[j * DH + d];
+    }
     for (int64_t j = nk; j < kKeyBlock; ++j)
       for (int d = 0; d < DH; ++d) ktf[d * kKeyBlock + j] = 0.0f;
-    const float* __restrict vb = v + start * DH;
+    if (pb.v16) {
+      const uint16_t* v16 = pb.v16 + (row0 + start) * DH;
+      for (int64_t i = 0; i < nk * DH; ++i) vwide[i] = Bf16ToF32(v16[i]);
+    }
+    const float* __restrict vb = pb.v16 ? vwide.data() : pb.v + (row0 + start) * DH;
 
     for (int64_t tile = 0; tile < ntiles; ++tile) {
       const int64_t base = tile * kQueryTile;
@@ -300,10 +327,8 @@ void RunItem(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
 
 // Any head size: the same algorithm in plain loops.
 void RunItemGeneric(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
-  const int64_t dh = pb.dh, b = item / pb.heads;
+  const int64_t dh = pb.dh, b = item / pb.heads, row0 = item * pb.s;
   const float* q = pb.q + item * pb.sq * dh;
-  const float* k = pb.k + item * pb.s * dh;
-  const float* v = pb.v + item * pb.s * dh;
   float* out = pb.out + item * pb.sq * dh;
   std::vector<int64_t> limit(pb.sq);
   Limits(pb, b, i0, i1, limit);
@@ -313,7 +338,7 @@ void RunItemGeneric(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
     sc.assign(n, 0.0f);
     float mx = -INFINITY;
     for (int64_t j = 0; j < n; ++j) {
-      for (int64_t d = 0; d < dh; ++d) sc[j] += q[i * dh + d] * k[j * dh + d];
+      for (int64_t d = 0; d < dh; ++d) sc[j] += q[i * dh + d] * KvAt(pb.k, pb.k16, row0, dh, j, d);
       mx = std::max(mx, sc[j]);
     }
     float sum = 0.0f;
@@ -321,7 +346,7 @@ void RunItemGeneric(const Problem& pb, int64_t item, int64_t i0, int64_t i1) {
     const float inv = sum > 0.0f ? 1.0f / sum : 0.0f;
     for (int64_t d = 0; d < dh; ++d) {
       float o = 0.0f;
-      for (int64_t j = 0; j < n; ++j) o += sc[j] * v[j * dh + d];
+      for (int64_t j = 0; j < n; ++j) o += sc[j] * KvAt(pb.v, pb.v16, row0, dh, j, d);
       out[i * dh + d] = o * inv;
     }
   }
@@ -367,8 +392,10 @@ struct Shared {
   }
 };
 
-ffi::Error Attention(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> q, ffi::Buffer<ffi::F32> k,
-                     ffi::Buffer<ffi::F32> v, ffi::Buffer<ffi::S32> q_frame, ffi::Buffer<ffi::S32> num_chunks,
+// K, V: ffi::F32 or ffi::BF16 keys and values (queries and output are float32 either way)
+template <ffi::DataType KV>
+ffi::Error Attention(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> q, ffi::Buffer<KV> k,
+                     ffi::Buffer<KV> v, ffi::Buffer<ffi::S32> q_frame, ffi::Buffer<ffi::S32> num_chunks,
                      ffi::ResultBuffer<ffi::F32> out, int64_t tokens_per_frame, int64_t chunk_len) {
   const auto qd = q.dimensions();
   const auto kd = k.dimensions();
@@ -390,9 +417,15 @@ ffi::Error Attention(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> q, ffi::Buffer<
     return ffi::Error::InvalidArgument("block_causal_attention: tokens_per_frame and chunk_len must be > 0");
 
   auto shared = std::make_shared<Shared>();
-  shared->pb = Problem{q.typed_data(), k.typed_data(), v.typed_data(), q_frame.typed_data(),
-                       num_chunks.typed_data(), out->typed_data(), heads, sq, s, dh, tokens_per_frame,
-                       chunk_len, 1};
+  const bool wide = KV == ffi::DataType::F32;
+  const void* kp = k.untyped_data();
+  const void* vp = v.untyped_data();
+  const float* kf = wide ? static_cast<const float*>(kp) : nullptr;
+  const float* vf32 = wide ? static_cast<const float*>(vp) : nullptr;
+  const uint16_t* kh = wide ? nullptr : static_cast<const uint16_t*>(kp);
+  const uint16_t* vh = wide ? nullptr : static_cast<const uint16_t*>(vp);
+  shared->pb = Problem{q.typed_data(), kf, vf32, kh, vh, q_frame.typed_data(), num_chunks.typed_data(),
+                       out->typed_data(), heads, sq, s, dh, tokens_per_frame, chunk_len, 1};
   const int64_t items = batch * heads;
   if (items == 0 || sq == 0) return ffi::Error::Success();
   // At least four units per thread when there are few (scenario, head) items (batch 1), so that no thread
@@ -415,12 +448,25 @@ ffi::Error Attention(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> q, ffi::Buffer<
 // The float vector width the kernel was compiled for (16: AVX-512, 8: AVX2, 4: SSE or NEON).
 extern "C" int GpdAttentionVectorWidth() { return W; }
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(GpdBlockCausalAttention, Attention,
+XLA_FFI_DEFINE_HANDLER_SYMBOL(GpdBlockCausalAttention, Attention<ffi::DataType::F32>,
                               ffi::Ffi::Bind()
                                   .Ctx<ffi::ThreadPool>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::F32>>()
+                                  .Attr<int64_t>("tokens_per_frame")
+                                  .Attr<int64_t>("chunk_len"));
+
+// The same with a bfloat16 cache (keys and values widened to float32 a block at a time, in L1)
+XLA_FFI_DEFINE_HANDLER_SYMBOL(GpdBlockCausalAttentionBf16, Attention<ffi::DataType::BF16>,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::BF16>>()
+                                  .Arg<ffi::Buffer<ffi::BF16>>()
                                   .Arg<ffi::Buffer<ffi::S32>>()
                                   .Arg<ffi::Buffer<ffi::S32>>()
                                   .Ret<ffi::Buffer<ffi::F32>>()
