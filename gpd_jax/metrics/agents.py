@@ -126,15 +126,6 @@ def box_overlap_pairwise(xy: jax.Array, heading: jax.Array, size: jax.Array,
 
 
 # --------------------------------------------------------------------------------------------- sums
-def _last_valid_error(err: jax.Array, m: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """err, m: [..., H, A] -> (error at the last valid frame [..., A] (0 if none), any valid bool[..., A])."""
-    h = err.shape[-2]
-    idx = jnp.max(jnp.where(m, jnp.arange(h)[:, None], -1), axis=-2)
-    any_valid = idx >= 0
-    e = jnp.take_along_axis(err, jnp.maximum(idx, 0)[..., None, :], axis=-2)[..., 0, :]
-    return jnp.where(any_valid, e, 0.0), any_valid
-
-
 def agent_metric_sums(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Array, gt_valid: jax.Array,
                       size: jax.Array, *, num_history: int = 0, pred_valid: jax.Array | None = None,
                       eval_mask: jax.Array | None = None, horizons: Sequence[int] = DEFAULT_HORIZONS,
@@ -280,13 +271,15 @@ def agent_sum_table(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Arra
     sm = per_set(sel)
     mh = hm & gv[None, None]  # valid within the horizon [1, Hn, ..., F, A]
 
-    def last_valid(x):  # [..., F, A] -> the value at the last valid frame within each horizon [Hn, ..., A]
-        idx = jnp.max(jnp.where(mh, jnp.arange(f)[:, None], -1), axis=-2)[0]  # [Hn, ..., A]
-        v = jnp.take_along_axis(jnp.broadcast_to(x, idx.shape[:1] + x.shape), jnp.maximum(idx, 0)[..., None, :],
-                                axis=-2)[..., 0, :]
-        return jnp.where(idx >= 0, v, 0.0), idx >= 0
+    last = jnp.max(jnp.where(mh, jnp.arange(f)[:, None], -1), axis=-2)[0]  # [Hn, ..., A] last valid frame, or -1
+    any_valid = last >= 0
 
-    fde_err, any_valid = last_valid(err)
+    def last_valid(x):  # [..., F, A] -> the value at the last valid frame within each horizon (0 if none) [Hn, ..., A]
+        v = jnp.take_along_axis(jnp.broadcast_to(x, last.shape[:1] + x.shape), jnp.maximum(last, 0)[..., None, :],
+                                axis=-2)[..., 0, :]
+        return jnp.where(any_valid, v, 0.0)
+
+    fde_err = last_valid(err)
     sm_h = sm[..., 0, :]  # [S, 1, ..., A]
     qs = {"err": jnp.where(sm & mh, err, 0.0), "fde": jnp.where(sm_h, per_h(fde_err), 0.0),
           "anyv": sm_h & per_h(any_valid), "colf": sm & hm & collide & q,
@@ -309,7 +302,7 @@ def agent_sum_table(pred_xy: jax.Array, pred_heading: jax.Array, gt_xy: jax.Arra
         for comp, te in track.items():
             te = jnp.where(gv, te, 0.0)  # [..., F, A]
             qs[f"{comp}_err"] = jnp.where(sm & mh, te, 0.0)
-            qs[f"{comp}_fde"] = jnp.where(sm_h, per_h(last_valid(te)[0]), 0.0)
+            qs[f"{comp}_fde"] = jnp.where(sm_h, per_h(last_valid(te)), 0.0)
     sums.update({k: total(v) for k, v in qs.items()})
     names = sorted(sums)
     table = jnp.stack([sums[k] for k in names])  # [sums, S, Hn]
