@@ -155,7 +155,8 @@ def rollout_bytes(m, num_frames: int, cache_itemsize: int, param_bytes: int, bat
 
 def memory_figures(compiled, batch: int) -> dict:
     """Peak memory of a compiled program from XLA's memory analysis (on a CPU too): temporaries, arguments and
-    outputs (less what outputs alias), total and per scenario."""
+    outputs (less what outputs alias), total and per scenario. A program sharded over devices is analysed per
+    device: `batch` is then one device's share."""
     ma = compiled.memory_analysis()
     if ma is None:
         return {}
@@ -250,7 +251,7 @@ def bench_rollout(args, overrides) -> dict:
             "compile_s": compile_s, "achieved_gflops": flops * batch / t / 1e9,
             "kv_cache_bytes": cache_bytes * batch, "kv_cache_bytes_per_scenario": cache_bytes,
             "bytes_per_scenario": moved, "achieved_gbps": moved * batch / t / 1e9,
-            "memory": memory_figures(compiled, batch), "workload": workload,
+            "memory": memory_figures(compiled, batch // ndev), "workload": workload,
         })
     out = {"machine": machine, "matmul_gflops": mm, "matmul_bf16_gflops": mm16, "copy_gbps": bw,
            "rollout_gflop_per_scenario": flops / 1e9, "runs": runs}
@@ -453,6 +454,14 @@ def precision_differences(a, b, num_history: int, frame_period_s: float) -> dict
             "agent_slots_compared": int(both.sum())}
 
 
+def _from_log(out, view, h: int) -> float | None:
+    """Mean distance (m) of rolled-out agents ([B, 1, T, A, ...]) from the log over the generated frames, slots valid
+    in both."""
+    both = np.asarray(out.valid)[:, 0, h:] & np.asarray(view.valid)[:, h:]
+    d = np.linalg.norm(np.asarray(out.xy)[:, 0, h:] - np.asarray(view.xy)[:, h:], axis=-1)
+    return float(d[both].mean()) if both.any() else None
+
+
 def bench_precision(args) -> dict:
     """A shipped model's rollouts of stored scenes under every task with a float32 and a bfloat16 KV cache and decode
     attention (this backend's fastest attention for each: `auto`), and how far apart they are
@@ -473,11 +482,14 @@ def bench_precision(args) -> dict:
             parts.append(jax.device_get(out))
         outs[dtype] = jax.tree.map(lambda *x: np.concatenate(x, 0), *parts)
     spec = model.spec
+    view = model.prepare(scenes)
     diff = {"all": precision_differences(outs["float32"], outs["bfloat16"], spec.num_history, spec.frame_period_s)}
     for k, name in enumerate(TASK_NAMES):
         pick = lambda o: jax.tree.map(lambda x: x[:, k:k + 1], o)
         diff[name] = precision_differences(pick(outs["float32"]), pick(outs["bfloat16"]), spec.num_history,
                                            spec.frame_period_s)
+        # what the difference does to a figure: the mean distance of the rolled-out agents from the log
+        diff[name]["from_log_m"] = {dt: _from_log(pick(o), view, spec.num_history) for dt, o in outs.items()}
     return {"machine": device_info(), "model": args.model or "default", "data": f"{args.data}:{args.split}",
             "scenarios": n, "tasks": list(TASK_NAMES), "future_s": (spec.num_frames - spec.num_history)
             * spec.frame_period_s, "bfloat16_vs_float32": diff}
@@ -573,12 +585,15 @@ def main(argv=None) -> int:
             out = bench_precision(args)
             print(f"{out['model']} on {out['data']} ({out['scenarios']} scenes x {len(out['tasks'])} tasks, "
                   f"{out['future_s']:g} s; backend {out['machine']['backend']}): bfloat16 vs float32")
-            print("task | xy mean m | xy p99 m | xy max m | heading p99 rad | valid agree | map tokens agree")
+            print("task | xy mean m | xy p99 m | xy max m | heading p99 rad | valid agree | map tokens agree | "
+                  "from the log, m: float32 / bfloat16")
             num = lambda x: "-" if x is None else f"{x:.2e}"
             for name, d in out["bfloat16_vs_float32"].items():
+                fl = d.get("from_log_m")
                 print(" | ".join([name, *(num(d["xy_m"][k]) for k in ("mean", "p99", "max")),
                                   num(d["heading_rad"]["p99"]), f"{d['valid_agree']:.4f}",
-                                  f"{d['map_token_agree']:.4f}"]))
+                                  f"{d['map_token_agree']:.4f}",
+                                  "-" if fl is None else f"{fl['float32']:.4f} / {fl['bfloat16']:.4f}"]))
         elif args.what == "realism":
             if overrides:
                 raise UsageError("python -m gpd_jax.bench realism takes no --config.* overrides")
