@@ -180,10 +180,9 @@ def attend_dynamic(q, k, v, q_frame, num_chunks, tokens_per_frame: int, chunk_le
     `kernel`: "xla", "xla_batched" (the above; the same without `vmap`), "cudnn" (one frame of queries per
     scenario, a decode step, through cuDNN's fused bf16 attention on a GPU, the batch in one call), "native" (the
     fused CPU kernel of `gpd_jax.model.native`, float32 arithmetic on a float32 or bfloat16 cache; same results
-    within float rounding) or "auto" (the
-    fastest of
-    `autotune.candidates()` at this shape and batch, measured once per machine and shape; see
-    `gpd_jax.model.autotune`). The choice is made while tracing, never inside the compiled computation.
+    within float rounding) or "auto" (the fastest of `autotune.candidates()` at this shape and batch, measured once
+    per machine and shape; see `gpd_jax.model.autotune`). The choice is made while tracing, never inside the
+    compiled computation.
     """
     q = q * (q.shape[-1] ** -0.5)
     f32 = all(x.dtype == jnp.float32 for x in (q, k, v))
@@ -224,8 +223,8 @@ def _cudnn_attention(q, k, v, q_frame, n: int):
 
     b, _, sq, _ = q.shape
     kv_len = ((q_frame[:, 0] + 1) * n).astype(jnp.int32)
-    out = dot_product_attention(q.astype(k.dtype), k, v, None, None, jnp.full((b,), sq, jnp.int32), kv_len, scale=1.0,
-                                mask_type=MaskType.PADDING, qkv_layout="BNTH")
+    out = dot_product_attention(q.astype(k.dtype), k, v, None, None, jnp.full((b,), sq, jnp.int32), kv_len,
+                                scale=1.0, mask_type=MaskType.PADDING, qkv_layout="BNTH")
     return out.astype(jnp.float32)
 
 

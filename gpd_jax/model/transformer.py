@@ -132,8 +132,8 @@ DECODE_DTYPES = ("auto", "float32", "bfloat16")
 
 def resolve_decode_dtype(name: str, backend: str | None = None):
     """`model.decode_dtype` as a dtype: "auto" is bfloat16 on an accelerator (GPU, TPU: half the cache bytes and the
-    fused bf16 attention; docs/benchmarks.md) and float32 on a CPU (no native bf16 arithmetic there: XLA converts
-    every element, and the fused CPU kernel is float32)."""
+    fused bf16 attention) and float32 on a CPU (no bf16 arithmetic there, so no faster; the shipped figures were
+    computed in float32). docs/benchmarks.md has the measurements."""
     if name not in DECODE_DTYPES:
         raise ValueError(f"decode dtype {name!r}: expected one of {DECODE_DTYPES}")
     if name == "auto":
