@@ -74,6 +74,7 @@ from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
 from gpd_jax.model.transformer import DECODE_DTYPES
 from gpd_jax.decoding import rollout_batch, rollout_recompute
+from gpd_jax.scene import wrap_angle
 from gpd_jax.synthetic import synthetic_scenes
 from gpd_jax.tasks import TASK_NAMES, make_tasks
 
@@ -438,7 +439,7 @@ def precision_differences(a, b, num_history: int, frame_period_s: float) -> dict
     h = num_history
     both = np.asarray(a.valid)[:, :, h:] & np.asarray(b.valid)[:, :, h:]
     dxy = np.linalg.norm(np.asarray(a.xy)[:, :, h:] - np.asarray(b.xy)[:, :, h:], axis=-1)
-    dh = np.abs(np.angle(np.exp(1j * (np.asarray(a.heading)[:, :, h:] - np.asarray(b.heading)[:, :, h:]))))
+    dh = np.abs(np.asarray(wrap_angle(np.asarray(a.heading)[:, :, h:] - np.asarray(b.heading)[:, :, h:])))
 
     def stats(x, m):
         x = x[m]

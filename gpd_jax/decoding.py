@@ -450,21 +450,31 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Arra
     per-scenario batching rule sees the whole batch); `key` is split per (scenario, task) (`task_keys`; or give
     those keys [S, K] yourself).
     """
-    s = scenes.xy.shape[0]
-    tasks = as_prompt(tasks, scenes.xy.shape[-3])
-    per_scene = tasks.from_log.ndim == 4
-    k = tasks.from_log.shape[1 if per_scene else 0]
-    keys = task_keys(key, s, k)
+    flat_scenes, flat_tasks, flat_lanes, s, k = _flat_pairs(scenes, tasks, lanes)
+    out = rollout_batch(model, flat_scenes, flat_tasks, task_keys(key, s, k), num_history, temperature, flat_lanes,
+                        map_encoder, map_warp)
+    return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
+
+
+def _pairs(scenes: Scene, tasks: Task | Prompt) -> tuple[Prompt, bool, int, int]:
+    """(tasks as prompts, whether they are per scenario, S, K) of scenes [S, ...] under tasks or prompts [K, ...]
+    or per-scenario prompts [S, K, ...]."""
+    prompts = as_prompt(tasks, scenes.xy.shape[-3])
+    per_scene = prompts.from_log.ndim == 4
+    return prompts, per_scene, scenes.xy.shape[0], prompts.from_log.shape[1 if per_scene else 0]
+
+
+def _flat_pairs(scenes: Scene, tasks: Task | Prompt, lanes: LogLanes | None):
+    """The S x K (scenario, task) pairs as one batch: (scenes, prompts, lanes) [S * K, ...], S, K."""
+    prompts, per_scene, s, k = _pairs(scenes, tasks)
     flat_scenes, flat_lanes = jax.tree.map(lambda x: jnp.repeat(x, k, axis=0), (scenes, lanes))
     if per_scene:
-        if tasks.from_log.shape[0] != s:
-            raise ValueError(f"per-scenario prompts [S, K, ...] with S = {tasks.from_log.shape[0]} for {s} scenes")
-        flat_tasks = jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks)
+        if prompts.from_log.shape[0] != s:
+            raise ValueError(f"per-scenario prompts [S, K, ...] with S = {prompts.from_log.shape[0]} for {s} scenes")
+        flat_tasks = jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), prompts)
     else:
-        flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks)
-    out = rollout_batch(model, flat_scenes, flat_tasks, keys, num_history, temperature, flat_lanes, map_encoder,
-                        map_warp)
-    return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
+        flat_tasks = jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), prompts)
+    return flat_scenes, flat_tasks, flat_lanes, s, k
 
 
 def task_keys(key: jax.Array, num_scenes: int, num_tasks: int) -> jax.Array:
@@ -497,13 +507,7 @@ def rollout_prepared(module: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.
     h, temp = num_history, options.temperature
     if options.method == "cached":
         return rollout_tasks(module, scenes, tasks, key, h, temp, lanes, encoder, warp)
-    tasks = as_prompt(tasks, scenes.xy.shape[-3])
-    per_scene = tasks.from_log.ndim == 4
-    s, k = scenes.xy.shape[0], tasks.from_log.shape[1 if per_scene else 0]
-    rep = lambda x: jnp.repeat(x, k, axis=0)
-    flat_s, flat_l = jax.tree.map(rep, (scenes, lanes))
-    flat_t = (jax.tree.map(lambda x: x.reshape((s * k,) + x.shape[2:]), tasks) if per_scene else
-              jax.tree.map(lambda x: jnp.tile(x, (s,) + (1,) * (x.ndim - 1)), tasks))
+    flat_s, flat_t, flat_l, s, k = _flat_pairs(scenes, tasks, lanes)
     one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder, warp)
     out = jax.vmap(one)(flat_s, flat_t, task_keys(key, s, k), flat_l)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
@@ -518,10 +522,7 @@ def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key
     With several local devices (GPUs; CPU devices where XLA is asked for them) the scenarios are split over as many
     as divide S (`gpd_jax.parallel`): each device rolls out its scenarios with their own keys, so the outputs are
     those of one device (to float rounding), in 1/devices of the time."""
-    s = scenes.xy.shape[0]
-    prompts = as_prompt(tasks, scenes.xy.shape[-3])
-    per_scene = prompts.from_log.ndim == 4
-    k = prompts.from_log.shape[1 if per_scene else 0]
+    _, per_scene, s, k = _pairs(scenes, tasks)
     keys = task_keys(key, s, k).reshape(s, k)
 
     def run(params, rest, tok_params, shared, scenes, keys, own):
