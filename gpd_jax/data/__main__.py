@@ -7,6 +7,8 @@
         [--ego-stationary-share F] [--lefthand-share F] [--static-tls-share F]
   build --source nuplan --out DIR --db PATH_OR_DIR --maps DIR [--max-per-log K] [--split SPLIT]
   build --source scenarionet --out DIR --db DATASET_DIR_OR_PKL [--max-per-log K] [--split SPLIT] [--workers W]
+  build --source interaction --out DIR --db INTERACTION_ROOT [--split SPLIT] [--sites SITE ...] [--max-per-log K]
+        [--workers W]   (splits by site: gpd_jax.data.sources.interaction.SITE_SPLITS; --split S builds the sites of S)
         (--split SPLIT: train, val or test, everything into that one split; default: splits by location)
   inspect DIR [--json PATH] [--no-lanes]
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
@@ -65,7 +67,7 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     b = sub.add_parser("build", help="build a dataset of samples")
-    b.add_argument("--source", choices=("sumo", "nuplan", "scenarionet"), default="sumo")
+    b.add_argument("--source", choices=("sumo", "nuplan", "scenarionet", "interaction"), default="sumo")
     b.add_argument("--out", required=True)
     b.add_argument("--scenarios", type=count, default=1000, help="SUMO: number of scenarios")
     b.add_argument("--seed", type=int, default=0)
@@ -74,7 +76,10 @@ def main(argv=None) -> int:
     b.add_argument("--per-job", type=count, default=50, help="SUMO: scenarios per simulation run")
     b.add_argument("--split", choices=SPLITS, default=None,
                    help="put everything into this one split (default: splits by location)")
-    b.add_argument("--db", help="nuPlan: a .db file or a directory of them")
+    b.add_argument("--db", help="nuPlan: a .db file or a directory of them; ScenarioNet: a dataset directory or "
+                                "scenario .pkl files; INTERACTION: the dataset root (recorded_trackfiles/, maps/)")
+    b.add_argument("--sites", nargs="+", default=None, metavar="SITE",
+                   help="INTERACTION: only these sites (e.g. DR_USA_Roundabout_FT); default: those of --split, or all")
     b.add_argument("--maps", help="nuPlan: maps root (nuplan-maps-v1.0.json)")
     b.add_argument("--max-per-log", type=count, default=None, help="nuPlan: at most this many windows per log")
     b.add_argument("--real-networks", nargs="*", default=None, metavar="NAME",
@@ -174,6 +179,8 @@ def _run(p: ArgumentParser, args) -> int:
     if args.cmd == "build":
         if args.source != "sumo" and (args.real_networks is not None or args.keep_overlaps or args.against):
             p.error("--real-networks, --keep-overlaps and --against are for --source sumo")
+        if args.source != "interaction" and args.sites:
+            p.error("--sites is for --source interaction")
         traffic_flags = [f"--{k.replace('_', '-')}" for k in TRAFFIC_FLAGS if getattr(args, k) is not None]
         if args.source != "sumo" and (traffic_flags or args.traffic != "realistic"):
             p.error(f"the SUMO traffic options ({', '.join(traffic_flags) or '--traffic'}) are for --source sumo")
@@ -192,6 +199,13 @@ def _run(p: ArgumentParser, args) -> int:
                                   refuse_near_duplicates=args.refuse_near_duplicates,
                                   near_duplicate_tol=args.near_duplicate_tol, against=args.against,
                                   **traffic_options(args))
+        elif args.source == "interaction":
+            if not args.db:
+                p.error("--source interaction needs --db (the INTERACTION dataset root: recorded_trackfiles/, maps/)")
+            from gpd_jax.data.sources import interaction
+
+            man = interaction.build_interaction(args.out, args.db, args.seed, args.split, args.sites,
+                                                args.max_per_log, workers=args.workers)
         elif args.source == "scenarionet":
             if not args.db:
                 p.error("--source scenarionet needs --db (a ScenarioNet dataset directory or .pkl files)")
