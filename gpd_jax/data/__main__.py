@@ -75,7 +75,8 @@ def main(argv=None) -> int:
     b.add_argument("--workers", type=count, default=2, help="SUMO: processes (one SUMO each)")
     b.add_argument("--per-job", type=count, default=50, help="SUMO: scenarios per simulation run")
     b.add_argument("--split", choices=SPLITS, default=None,
-                   help="put everything into this one split (default: splits by location)")
+                   help="put everything into this one split (default: splits by location); INTERACTION: build the "
+                        "sites of this split (or put --sites into it)")
     b.add_argument("--db", help="nuPlan: a .db file or a directory of them; ScenarioNet: a dataset directory or "
                                 "scenario .pkl files; INTERACTION: the dataset root (recorded_trackfiles/, maps/)")
     b.add_argument("--sites", nargs="+", default=None, metavar="SITE",
