@@ -1,6 +1,7 @@
 """Shared fixtures: the tiny GPD config and model (built once per session to keep compiles few)."""
 
 import os
+import sys
 
 import pytest
 
@@ -11,6 +12,34 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # tests of "auto" itself (tests/test_attention.py, tests/test_bench.py) unset it; the native kernel has its own
 # equality tests.
 os.environ.setdefault("GPD_JAX_DECODE_ATTENTION", "xla")
+
+# One XLA compilation cache for the whole test session: the xdist workers and the command lines the tests start
+# (benchmarks, the data-parallel step, the CLIs) compile many of the same programs (the tiny model's steps and
+# rollouts, the shipped model's rollout); each is compiled once and read back by the other processes. It starts
+# empty in every session (a fresh temporary folder, removed at the end by the process that made it), so CI times
+# a cold run and no test reads executables from an earlier checkout. An already set JAX_COMPILATION_CACHE_DIR is
+# kept (the xdist workers inherit the controller's).
+_OWN_XLA_CACHE = None
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    _OWN_XLA_CACHE = tempfile.mkdtemp(prefix="gpd-jax-test-xla-cache-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _OWN_XLA_CACHE
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+    if "jax" in sys.modules:  # a plugin imported jax before this file: its config has read the environment
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", _OWN_XLA_CACHE)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                          float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]))
+
+
+def pytest_unconfigure(config):
+    if _OWN_XLA_CACHE is not None and not hasattr(config, "workerinput"):
+        import shutil
+
+        shutil.rmtree(_OWN_XLA_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")
