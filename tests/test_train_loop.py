@@ -57,17 +57,27 @@ def store_dir(tmp_path_factory):
     return _store(str(tmp_path_factory.mktemp("gpdstore")))
 
 
+@pytest.fixture(scope="module")
+def trained(store_dir, tmp_path_factory):
+    """(workdir, result) of the uninterrupted 6-step run of `_config(store_dir)`: the reference of the resume test,
+    the workdir the model-config check refuses, and the exported model fine-tunes start from (one training run
+    and one compiled train step for all of them). Tests copy the workdir before they write to it."""
+    from gpd_jax.training.loop import train_and_evaluate
+
+    full = str(tmp_path_factory.mktemp("trained") / "full")
+    return full, train_and_evaluate(_config(store_dir), full, quiet=True)
+
+
 def _params(workdir):
     from gpd_jax.checkpoint import load_model
 
     return load_model(workdir).params
 
 
-def test_resume_after_stop_equals_uninterrupted_run(store_dir, tmp_path):
+def test_resume_after_stop_equals_uninterrupted_run(store_dir, trained, tmp_path):
     from gpd_jax.training.loop import train_and_evaluate
 
-    full = str(tmp_path / "full")
-    out = train_and_evaluate(_config(store_dir), full, quiet=True)
+    full, out = trained
     assert out["step"] == 6 and out["export"]
     part = str(tmp_path / "part")
     assert train_and_evaluate(_config(store_dir), part, stop_after=4, quiet=True)["step"] == 4
@@ -138,15 +148,18 @@ def test_map_tokens_of_another_tokenizer_are_refused(tmp_path):
         train_and_evaluate(c, str(tmp_path / "w"), quiet=True)
 
 
-def test_workdir_with_another_model_is_refused(store_dir, tmp_path):
+def test_workdir_with_another_model_is_refused(store_dir, trained, tmp_path):
+    import shutil
+
     from gpd_jax.training.loop import train_and_evaluate
 
     w = str(tmp_path / "w")
-    train_and_evaluate(_config(store_dir, steps=1, eval_every=0), w, quiet=True)
-    c = _config(store_dir, steps=1, eval_every=0)
+    shutil.copytree(trained[0], w)  # a workdir that trained the model of _config
+    c = _config(store_dir, eval_every=0)
     c.model.d_model = 48
     with pytest.raises(ValueError, match="different model config"):
         train_and_evaluate(c, w, quiet=True)
+    assert _config(store_dir).to_json() in open(os.path.join(w, "config.json")).read()  # left as it was
 
 
 _DP_SCRIPT = textwrap.dedent("""
@@ -245,12 +258,13 @@ def test_a_mixture_of_stores_trains_and_validates_on_val_dir(store_dir, tmp_path
     tokens = np.full((4, 101, 64), store.MISSING_MAP_TOKEN, np.uint8)
     tokens[:, ::10] = 5
     store.save_map_tokens(other, "train", 0, tokens, frame_stride=10)
-    c = _config(f"{other}:1,{store_dir}:1", steps=2, eval_every=2)
+    # the schedule of `_config` (6 steps): the train step compiled for the other runs of this file serves
+    c = _config(f"{other}:1,{store_dir}:1", eval_every=6)
     with pytest.raises(DataError, match="no complete shards"):  # the first store has no val split
         train_and_evaluate(c, str(tmp_path / "w1"), quiet=True)
     c.data.val_dir = store_dir
     out = train_and_evaluate(c, str(tmp_path / "w2"), quiet=True)
-    assert out["step"] == 2 and np.isfinite(out["eval"]["loss"]) and out["export"]
+    assert out["step"] == 6 and np.isfinite(out["eval"]["loss"]) and out["export"]
 
 
 def test_best_validation_is_exported_and_kept_on_resume_over_several_val_stores(store_dir, tmp_path):
@@ -307,14 +321,13 @@ def test_best_validation_is_exported_and_kept_on_resume_over_several_val_stores(
         train_and_evaluate(c3, str(tmp_path / "w3"), quiet=True)
 
 
-def test_eval_at_start_validates_step_0_and_it_can_stay_the_best(store_dir, tmp_path):
+def test_eval_at_start_validates_step_0_and_it_can_stay_the_best(store_dir, trained, tmp_path):
     """`train.eval_at_start` validates the starting parameters (logged as step 0) and lets them be the best; a
     resumed run does not validate step 0 again."""
     from gpd_jax.checkpoint import load_model
     from gpd_jax.training.loop import train_and_evaluate
 
-    src = str(tmp_path / "src")
-    train_and_evaluate(_config(store_dir, steps=2, eval_every=0), src, quiet=True)
+    src = trained[0]  # a trained model's export is where the fine-tune starts
     w = str(tmp_path / "w")
     # a learning rate this high makes the first steps worse than where the run started
     c = _config(store_dir, steps=2, eval_every=2, eval_at_start=True, best_metric="loss",
