@@ -159,7 +159,8 @@ def test_workdir_with_another_model_is_refused(store_dir, trained, tmp_path):
     c.model.d_model = 48
     with pytest.raises(ValueError, match="different model config"):
         train_and_evaluate(c, w, quiet=True)
-    assert _config(store_dir).to_json() in open(os.path.join(w, "config.json")).read()  # left as it was
+    with open(os.path.join(w, "config.json")) as f:  # left as it was
+        assert json.load(f)["model"] == json.loads(_config(store_dir).to_json())["model"]
 
 
 _DP_SCRIPT = textwrap.dedent("""
