@@ -92,6 +92,7 @@ def test_free_running_inputs_are_the_models_own_rollout():
     scene = jax.tree.map(lambda x: x[0], scenes)
     logged_maps = np.asarray(scene.map_tokens[:-1])
     assert np.asarray(scene.map_valid).all()
+    teacher = nnx.jit(teacher_forced)  # one compile for every frame of the reference, not op by op
     for feed_map in (False, True):
         # Reference: a frame-by-frame rollout (validity, and the map unless fed back, from the log), one frame
         # replaced per pass.
@@ -100,7 +101,7 @@ def test_free_running_inputs_are_the_models_own_rollout():
         valid = np.asarray(scene.valid[:-1])
         tracked = valid & np.concatenate([np.zeros_like(valid[:1]), valid[:-1]], 0)
         for f in range(h, t - 1):
-            pred = teacher_forced(model, xy, heading, valid, maps, vel)
+            pred = teacher(model, xy, heading, valid, maps, vel)
             own = tracked[f]
             xy[f][own], heading[f][own], vel[f][own] = (np.asarray(p)[f - 1][own]
                                                         for p in (pred.xy, pred.heading, pred.velocity))
@@ -138,7 +139,9 @@ def test_rollout_passes_train_on_own_predictions_against_the_log():
     cfg.train.map_feedback = 1.0
     full, _ = make_trainer(model, cfg, donate=False)
     assert scenes.xy.shape[0] == 2
-    acc = lambda tr, i: float(tr.eval_step(state.params, jax.tree.map(lambda x: x[i:i + 1], scenes))["map_accuracy"])
+    # scene i's own accuracy: a batch of scene i twice (the batch's shape: no compile for a batch of one)
+    acc = lambda tr, i: float(tr.eval_step(state.params, jax.tree.map(lambda x: x[np.array([i, i])], scenes))[
+        "map_accuracy"])
     assert acc(full, 0) != acc(fr, 0)  # an untrained model's own map tokens as inputs change its predictions
     c = half.eval_step(state.params, scenes)
     np.testing.assert_allclose(float(c["map_accuracy"]) * 2, acc(full, 0) + acc(fr, 1), rtol=1e-5)
