@@ -3,7 +3,8 @@
     python rollout.py --data data/test --out runs/eval                         # the default model, test split
     python rollout.py --checkpoint NAME_OR_DIR --data DIR [--split test] [--tasks all|a,b] --out DIR
                       [--scenarios N] [--batch B] [--render K] [--seed S] [--variant paper|corrected]
-                      [--horizons 3,5,8] [--temperature T] [--log-map tokens|lanes] [--gen-map model|warp]
+                      [--horizons 3,5,8] [--temperature T] [--top-k K] [--top-p P] [--log-map tokens|lanes]
+                      [--gen-map model|warp] [--samples K] [--realism-config 2024|2025]
     python rollout.py --data DIR --out DIR --prompt examples/prompt_inpaint.json[,more.json] [--render K]
 
 Runs every task (gpd_jax/tasks.py) on the first N scenarios of the split in one compiled rollout per batch, scores

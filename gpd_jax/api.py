@@ -105,8 +105,8 @@ def make_rollout_fn(model: Model, options: RolloutOptions | None = None) -> Call
 
     view: Scene [S, T, A, ...] prepared for the model (`model.prepare`); tasks: Task [K, ...] (`make_tasks`) or
     Prompt [K, ...] / [S, K, ...] (`make_prompt`, `stack_prompts`); key: a PRNG key (used at temperature > 0);
-    params: a pytree shaped like `model.params` (swap or perturb it freely). Returns RolloutOutput [S, K, T, ...].
-    Nothing is compiled until you `jax.jit` it; it also `vmap`s. `options` (`RolloutOptions`) as in `rollout`;
+    params: a pytree shaped like `model.params` (swap or perturb it freely). Returns RolloutOutput [S, K, T, ...]
+    ([S, K, N, T, ...] with `RolloutOptions(samples=N)`: N futures of every pair). Nothing is compiled until you `jax.jit` it; it also `vmap`s. `options` (`RolloutOptions`) as in `rollout`;
     `RolloutOptions(method="recompute")` is the official full-prefix rollout, which `jax.grad` goes through.
     """
     options = RolloutOptions() if options is None else options
@@ -145,9 +145,10 @@ def rollout(model: Model, scenes: Scene, tasks: str | Sequence[str] | Task | Pro
     is taken inside (`model.prepare`). tasks: a task name, names, "all", Task arrays, a Prompt (`make_prompt`,
     `task_prompt`), a list of prompts (stacked: K prompts, every scene under each), or a Prompt [B, K, ...]
     (scene b under prompts[b, k]). key: PRNG key for sampling (temperature > 0; default key 0). options: a
-    `RolloutOptions` (default: the paper's rollout).
-    Returns RolloutOutput at the model's rate: [B, K, T, A, ...], without the B axis for one scene and without
-    the K axis for one task (a single name or an unstacked Task).
+    `RolloutOptions` (default: the paper's rollout; `RolloutOptions(temperature=1.0, samples=32)` with a
+    sampling model, `load_model("gpd_sampling")`: 32 futures of each scene and task in one compiled call).
+    Returns RolloutOutput at the model's rate: [B, K, T, A, ...] ([B, K, N, T, A, ...] with N samples), without
+    the B axis for one scene and without the K axis for one task (a single name or an unstacked Task).
     """
     options = RolloutOptions() if options is None else options
     single_scene = np.ndim(scenes.xy) == 3

@@ -13,6 +13,13 @@
         [--decode-dtype float32 bfloat16] [--workload SCENARIOS] [--native-march native x86-64-v3]
         [--config.model.x=y ...]
 
+    python -m gpd_jax.bench samples --data DIR [--split test] [--model gpd_sampling] [--samples 32] [--scenarios 4]
+        [--tasks traffic_simulation] [--temperature 1] [--repeats 3] [--json PATH]
+
+    K sampled futures of S scenes in one compiled rollout of a shipped model (`RolloutOptions(samples=K)`, the
+    public path): seconds per scene and per sampled rollout, compile time, the KV cache bytes of the S x tasks x K
+    rollouts and XLA's memory analysis of the compiled program (peak bytes, per scene), on a store's scenes.
+
     python -m gpd_jax.bench precision --data DIR [--split test] [--model NAME] [--json PATH]
 
     a shipped model's rollouts of a store's scenes under every task with a bfloat16 and a float32 KV cache: how far
@@ -430,6 +437,42 @@ def bench_realism(args) -> dict:
             "metametric": red["metametric"], "road_edge_inexact_share": red["road_edge_inexact_share"]}
 
 
+def bench_samples(args) -> dict:
+    """`--samples` futures of `--scenarios` scenes under `--tasks` in one compiled rollout of a shipped model: time,
+    compile time, KV cache bytes and XLA's memory analysis (the public path: `Model.prepare`, `rollout_jit` with
+    `RolloutOptions(samples=K)`)."""
+    import gpd_jax
+    from gpd_jax.decoding import rollout_jit
+
+    model = gpd_jax.load_model(args.model)
+    spec, m = model.spec, model.config.model
+    scenes = gpd_jax.load_scenes(args.data, args.split, indices=range(args.scenarios))
+    source = f"{args.data}:{args.split}"
+    opts = gpd_jax.RolloutOptions(temperature=args.temperature, samples=args.samples)
+    view = jax.tree.map(jnp.asarray, model.prepare(scenes, opts))
+    if not m.agent_lane_residual:
+        view = view.replace(polylines=None, polyline_valid=None)
+    tasks = jax.tree.map(jnp.asarray, gpd_jax.make_tasks(model, args.tasks))
+    call = (model.graphdef, model.params, model.rest, view, tasks, jax.random.key(0), spec.num_history, opts)
+    t0 = time.perf_counter()
+    compiled = rollout_jit.lower(*call).compile()
+    compile_s = time.perf_counter() - t0
+    run = lambda: jax.block_until_ready(compiled(*call[1:6]))  # noqa: E731
+    out = run()
+    wall = _time(run, args.repeats)
+    s, k = view.xy.shape[0], len(args.tasks)
+    rollouts = s * k * args.samples
+    gm = model.module
+    cache = 2 * m.num_layers * gm.padded_len(spec.num_frames) * m.d_model * gm.cache_dtype().itemsize
+    gen = np.asarray(out.xy)[:, :, :, spec.num_history:]
+    return {"machine": device_info(), "model": args.model or "default", "source": source, "scenarios": s,
+            "tasks": list(args.tasks), "samples": args.samples, "temperature": args.temperature,
+            "rollouts": rollouts, "compile_s": compile_s, "s_per_scenario": wall / s, "s_per_rollout": wall / rollouts,
+            "kv_cache_bytes_per_rollout": cache, "kv_cache_bytes_per_scenario": cache * k * args.samples,
+            "kv_cache_bytes": cache * rollouts, "memory": memory_figures(compiled, s),
+            "sample_spread_m": float(np.nanmean(np.std(gen, axis=2)))}
+
+
 def precision_differences(a, b, num_history: int, frame_period_s: float) -> dict:
     """How far rollouts `b` are from rollouts `a` of the same scenes and tasks (RolloutOutput [B, K, T, ...] as
     numpy), over the generated frames t >= num_history: agent position |xy_a - xy_b| (m) and heading difference
@@ -578,11 +621,33 @@ def main(argv=None) -> int:
     c.add_argument("--batch", type=int, default=40, help="scenes per rollout call")
     c.add_argument("--json", default=None, help="write the results here")
 
+    g = sub.add_parser("samples", help="K sampled futures per scene in one compiled rollout: time and memory")
+    g.add_argument("--model", default="gpd_sampling", help="a shipped model's name or a folder")
+    g.add_argument("--data", required=True, help="a store of scenes")
+    g.add_argument("--split", default="test")
+    g.add_argument("--samples", type=int, default=32)
+    g.add_argument("--scenarios", type=int, default=4, help="scenes in the one compiled call")
+    g.add_argument("--tasks", nargs="+", default=["traffic_simulation"], choices=TASK_NAMES)
+    g.add_argument("--temperature", type=float, default=1.0)
+    g.add_argument("--repeats", type=int, default=3)
+    g.add_argument("--json", default=None, help="write the results here")
+
     def work():
         args = p.parse_args(rest)
-        if args.what == "precision":
-            if overrides:
-                raise UsageError("python -m gpd_jax.bench precision takes no --config.* overrides")
+        if overrides and args.what != "rollout":
+            raise UsageError(f"python -m gpd_jax.bench {args.what} takes no --config.* overrides")
+        if args.what == "samples":
+            out = bench_samples(args)
+            mem = out["memory"]
+            print(f"{out['model']}: {out['scenarios']} scenes x {len(out['tasks'])} task(s) x {out['samples']} "
+                  f"samples = {out['rollouts']} rollouts in one call ({out['source']}; backend "
+                  f"{out['machine']['backend']}): {out['s_per_scenario']:.3f} s per scene, "
+                  f"{out['s_per_rollout'] * 1e3:.2f} ms per rollout (compile {out['compile_s']:.1f} s)")
+            print(f"KV cache: {out['kv_cache_bytes_per_rollout'] / 2**20:.2f} MiB per rollout, "
+                  f"{out['kv_cache_bytes_per_scenario'] / 2**20:.1f} MiB per scene at K = {out['samples']}; "
+                  f"compiled peak {mem.get('peak_bytes_per_scenario', float('nan')) / 2**20:.1f} MiB per scene; "
+                  f"spread of the samples {out['sample_spread_m']:.2f} m")
+        elif args.what == "precision":
             out = bench_precision(args)
             print(f"{out['model']} on {out['data']} ({out['scenarios']} scenes x {len(out['tasks'])} tasks, "
                   f"{out['future_s']:g} s; backend {out['machine']['backend']}): bfloat16 vs float32")
@@ -596,8 +661,6 @@ def main(argv=None) -> int:
                                   f"{d['map_token_agree']:.4f}",
                                   "-" if fl is None else f"{fl['float32']:.4f} / {fl['bfloat16']:.4f}"]))
         elif args.what == "realism":
-            if overrides:
-                raise UsageError("python -m gpd_jax.bench realism takes no --config.* overrides")
             out = bench_realism(args)
             mc = out["machine"]
             print(f"machine: {mc.get('cpu')} ({mc.get('usable_cores')} cores), jax {mc.get('jax')}, "

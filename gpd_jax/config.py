@@ -76,6 +76,9 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         velocity_code_dim=32,
         agent_lane_residual=False,  # not in the paper (needs velocity_residual): the base the heads add to is an
                                    # agent that keeps its lane (gpd_jax.geometry.lane_follow), where lanes are given
+        agent_modes=0,             # not in the paper: C > 0 adds a mixture head of C joint Laplace components over
+                                   # each agent's next state, which a rollout samples at temperature > 0 (the
+                                   # regression heads stay: temperature 0 is the paper's head)
         lane_context_stride=4,     # lanes read every this-many stored points (1 m apart): 4 m segments
         map_tokenizer="",          # the map tokenizer whose frozen codebook embeds map tokens: a model name
                                    # (gpd_jax.list_models) or a path; "" learns a token table instead
@@ -97,6 +100,7 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         agent_norm="smooth_l1",    # position / velocity loss: "smooth_l1" (official) or "euclidean" (the
                                    # pseudo-Huber of the error's length: gpd_jax.training.step)
         agent_norm_delta=0.05,     # the euclidean loss's pseudo-Huber width (m, m/s)
+        modes=1.0,                 # agent_modes models: the mixture's negative log-likelihood of the next state
     )
     c.train = _section(
         batch_size=16,
@@ -120,6 +124,8 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         map_feedback=0.0,          # with rollout_passes: share of each batch whose future map tokens are its own too
         lane_context_drop=0.0,     # share of each batch's scenes whose future frames get no lanes (agent_lane_residual)
         init_from="",              # an exported model or workdir whose parameters start this run (fine-tuning)
+        trainable="all",           # "all", or "agent_modes": only the mixture head learns (the rest stays as
+                                   # init_from left it, so temperature 0 rolls out exactly as that model)
     )
     if plan_head:
         c.plan_head = _section(

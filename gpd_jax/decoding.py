@@ -10,7 +10,11 @@ frame's offset and attends only to the filled part of the cache (chunked; see at
 
 Feedback: predicted positions and headings (and velocities, for a `velocity_inputs` model) are re-tokenized as
 regressed; valid = logit > 0; a map token is the argmax of its logits (temperature 0, the default) or sampled at
-a temperature with an explicit key.
+a temperature with an explicit key (`gpd_jax.options.Sampling`: temperature, top-k, top-p). A model with a mixture
+agent head (`model.agent_modes`) samples each agent's next state at temperature > 0 too (`sample_agents`: a
+component, then its Laplace noise times the temperature); at temperature 0 its agents are regressed as any model's.
+`RolloutOptions.samples` = N draws N futures of every (scenario, task) pair in the same compiled rollout, each with
+its own key (a sample axis: outputs [S, K, N, ...]).
 
 The log's map around a generated ego: the logged map tokens of frame t were encoded around the *logged* ego pose.
 In tasks that take the map from the log but generate the ego (traffic simulation, motion planning), a rollout
@@ -55,10 +59,11 @@ from flax import nnx
 
 from gpd_jax import parallel
 from gpd_jax.model import autotune
-from gpd_jax.model import GPD, KVCache, LaneContext, Prediction, forward, forward_cached, reads_lanes
-from gpd_jax.options import RolloutOptions
+from gpd_jax.model import GPD, KVCache, LaneContext, Modes, Prediction, forward, forward_cached, reads_lanes
+from gpd_jax.geometry import rotate
+from gpd_jax.options import RolloutOptions, Sampling
 from gpd_jax.prompts import Prompt, as_prompt
-from gpd_jax.scene import Scene
+from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.tasks import Task
 
 
@@ -227,7 +232,46 @@ def given_inputs(model: GPD, scene: Scene, task: Task | Prompt, lanes: LogLanes 
     return Given(log=log, task=prompt, lanes=lanes, context=lane_context(model, scene, prompt, num_history))
 
 
-def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
+def as_sampling(sampling: Sampling | float) -> Sampling:
+    """A `Sampling`, or a bare temperature as one."""
+    return sampling if isinstance(sampling, Sampling) else Sampling(temperature=sampling)
+
+
+def sample_categorical(key: jax.Array, logits: jax.Array, sampling: Sampling) -> jax.Array:
+    """Indices i32[...] drawn from logits f32[..., C] / temperature (> 0) after the top-k and top-p cuts."""
+    logits = logits / sampling.temperature
+    if 0 < sampling.top_k < logits.shape[-1]:
+        kth = jax.lax.top_k(logits, sampling.top_k)[0][..., -1:]
+        logits = jnp.where(logits >= kth, logits, -jnp.inf)
+    if sampling.top_p < 1:  # the smallest set of the most likely whose probability reaches top_p
+        order = -jnp.sort(-logits, axis=-1)
+        probs = jax.nn.softmax(order, axis=-1)
+        before = jnp.cumsum(probs, axis=-1) - probs
+        least = jnp.min(jnp.where(before < sampling.top_p, order, jnp.inf), axis=-1, keepdims=True)
+        logits = jnp.where(logits >= least, logits, -jnp.inf)
+    return jax.random.categorical(key, logits, axis=-1)
+
+
+def sample_agents(modes: Modes, key: jax.Array, sampling: Sampling):
+    """One draw of every agent's next state from a mixture head's `Modes` of one frame (leading dims [A]): a
+    component from its logits (`sample_categorical`), then the component's Laplace noise times the temperature.
+    Returns (xy f32[A, 2], heading f32[A], velocity f32[A, 2] or None)."""
+    k_mode, k_noise = jax.random.split(key)
+    pick = sample_categorical(k_mode, modes.logits, sampling)
+
+    def chosen(a):
+        idx = pick.reshape(pick.shape + (1,) * (a.ndim - pick.ndim))
+        return jnp.take_along_axis(a, idx, axis=pick.ndim)[:, 0]
+
+    scale = chosen(modes.scale)
+    noise = jax.random.laplace(k_noise, scale.shape, scale.dtype) * scale * sampling.temperature
+    xy = chosen(modes.xy) + rotate(noise[..., 0:2], modes.axes)
+    heading = wrap_angle(chosen(modes.heading) + noise[..., 2])
+    vel = None if modes.velocity is None else chosen(modes.velocity) + rotate(noise[..., 3:5], modes.axes)
+    return xy, heading, vel
+
+
+def _choose_frame(pred: Prediction, given: Given, t, key, sampling: Sampling,
                   map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None,
                   anchor: Frame | None = None) -> Frame:
     """Frame t's inputs: the given data where the prompt says so at frame t, the prediction elsewhere.
@@ -242,8 +286,14 @@ def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
     log, task = given.log, given.task
     num_map = log.map_tokens.shape[-1]
     logits = pred.map_logits[0]
-    if temperature > 0:
-        sampled = jax.random.categorical(jax.random.fold_in(key, t), logits / temperature, axis=-1)
+    agent_xy, agent_heading = pred.xy[0], pred.heading[0]
+    agent_vel = None if pred.velocity is None else pred.velocity[0]
+    if sampling.samples:
+        frame_key = jax.random.fold_in(key, t)
+        sampled = sample_categorical(frame_key, logits, sampling)
+        if pred.modes is not None:
+            modes = jax.tree.map(lambda a: a[0], pred.modes)
+            agent_xy, agent_heading, agent_vel = sample_agents(modes, jax.random.fold_in(frame_key, 1), sampling)
     else:
         sampled = jnp.argmax(logits, axis=-1)
     log_map = log.map_tokens[t]
@@ -252,8 +302,8 @@ def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
     removed = task.removed() if prompt else task.hidden
     fl_map, fl_agent = row[:num_map], row[num_map:]
     map_t = jnp.where(fl_map, log_map, sampled.astype(log_map.dtype))
-    xy_t = jnp.where(fl_agent[:, None], log.xy[t], pred.xy[0])
-    heading_t = jnp.where(fl_agent, log.heading[t], pred.heading[0])
+    xy_t = jnp.where(fl_agent[:, None], log.xy[t], agent_xy)
+    heading_t = jnp.where(fl_agent, log.heading[t], agent_heading)
     valid_t = jnp.where(fl_agent, log.valid[t], pred.valid_logit[0] > 0) & ~removed
     logit_t = jnp.where(fl_agent, 0.0, pred.valid_logit[0])
     if map_encoder is not None and given.lanes is not None:
@@ -271,13 +321,13 @@ def _choose_frame(pred: Prediction, given: Given, t, key, temperature: float,
         warped, new = map_warp(anchor.map_tokens, anchor_pose, pose)
         keep = ~fl_map & ~new & anchor.valid[0] & valid_t[0]
         map_t = jnp.where(keep, warped.astype(map_t.dtype), map_t)
-    pred_vel = jnp.zeros_like(log.velocity[t]) if pred.velocity is None else pred.velocity[0]
+    pred_vel = jnp.zeros_like(log.velocity[t]) if agent_vel is None else agent_vel
     vel_t = jnp.where(fl_agent[:, None], log.velocity[t], pred_vel)
     return Frame(xy=xy_t, heading=heading_t, valid=valid_t, valid_logit=logit_t, map_tokens=map_t, velocity=vel_t)
 
 
 def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_history: int,
-            temperature: float = 0.0, lanes: LogLanes | None = None,
+            sampling: Sampling | float = 0.0, lanes: LogLanes | None = None,
             map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """KV-cached rollout of one scenario under one task or prompt.
 
@@ -285,21 +335,23 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
       model: the GPD transformer.
       scene: a single (unbatched) scene with T frames at the model's rate; frames [0, num_history) are given.
       task: a single task (from_log bool[M + A], hidden bool[A]) or prompt (from_log bool[T, M + A], ...).
-      key: PRNG key (used only when temperature > 0).
+      key: PRNG key (used only when the temperature is > 0).
       num_history: H, the number of given frames (21 in the paper).
-      temperature: 0 for greedy map tokens, > 0 to sample them.
+      sampling: how map tokens and a mixture head's agents are drawn (`Sampling`; a bare number is its temperature:
+        0 for greedy map tokens and regressed agents, > 0 to sample them).
       lanes, map_encoder: the scene's logged lanes and a tokenizer's pose encoder, to re-encode the logged map
         around a generated ego (see the module docstring); a prompt with its own lanes needs the encoder.
       map_warp: move the last given map with the ego where the map is generated (module docstring).
     """
     t_total, h = scene.num_frames, num_history
     task = as_prompt(task, t_total)
+    sampling = as_sampling(sampling)
     _check_map_encoder(lanes, map_encoder, task)
     given = given_inputs(model, scene, task, lanes, map_encoder, h)
     log = given.log
 
     def choose(carry: RolloutCarry, t) -> Frame:
-        return _choose_frame(carry.decode.pred, given, t, key, temperature, map_encoder, map_warp, carry.anchor)
+        return _choose_frame(carry.decode.pred, given, t, key, sampling, map_encoder, map_warp, carry.anchor)
 
     def step(carry: RolloutCarry, t):
         f = choose(carry, t)
@@ -395,7 +447,7 @@ def _assemble(log: Frame, frames: Frame, h: int) -> RolloutOutput:
 
 
 def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_history: int,
-                      temperature: float = 0.0, lanes: LogLanes | None = None,
+                      sampling: Sampling | float = 0.0, lanes: LogLanes | None = None,
                       map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """The official method: for every future frame, a full forward over the whole buffer (no cache).
 
@@ -405,6 +457,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
     """
     t_total, h = scene.num_frames, num_history
     task = as_prompt(task, t_total)
+    sampling = as_sampling(sampling)
     _check_map_encoder(lanes, map_encoder, task)
     given = given_inputs(model, scene, task, lanes, map_encoder, h)
 
@@ -421,7 +474,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
             given_map = jax.vmap(lambda s: _map_given(given.task, s))(frames) | (frames < h)
             a = jnp.max(jnp.where(given_map & (frames < t), frames, 0))
             anchor = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, a, 0, keepdims=False), buf)
-        frame = _choose_frame(pred, given, t, key, temperature, map_encoder, map_warp, anchor)
+        frame = _choose_frame(pred, given, t, key, sampling, map_encoder, map_warp, anchor)
         buf = jax.tree.map(lambda b, f: jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0),
                            buf, frame)
         return buf, None
@@ -432,16 +485,16 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
 
 
 def rollout_batch(model: GPD, scenes: Scene, tasks: Task | Prompt, keys: jax.Array, num_history: int,
-                  temperature: float = 0.0, lanes: LogLanes | None = None,
+                  sampling: Sampling | float = 0.0, lanes: LogLanes | None = None,
                   map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """`rollout` vmapped over a leading batch dim shared by scenes, tasks or prompts, keys (and lanes; mixed
     tasks and prompts allowed)."""
-    fn = lambda s, t, k, ln: rollout(model, s, t, k, num_history, temperature, ln, map_encoder, map_warp)
+    fn = lambda s, t, k, ln: rollout(model, s, t, k, num_history, sampling, ln, map_encoder, map_warp)
     return jax.vmap(fn)(scenes, tasks, keys, lanes)
 
 
 def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Array, num_history: int,
-                  temperature: float = 0.0, lanes: LogLanes | None = None,
+                  sampling: Sampling | float = 0.0, lanes: LogLanes | None = None,
                   map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None) -> RolloutOutput:
     """Every scenario under every task or prompt: scenes [S, ...], tasks [K, ...] -> outputs [S, K, ...].
 
@@ -451,7 +504,7 @@ def rollout_tasks(model: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.Arra
     those keys [S, K] yourself).
     """
     flat_scenes, flat_tasks, flat_lanes, s, k = _flat_pairs(scenes, tasks, lanes)
-    out = rollout_batch(model, flat_scenes, flat_tasks, task_keys(key, s, k), num_history, temperature, flat_lanes,
+    out = rollout_batch(model, flat_scenes, flat_tasks, task_keys(key, s, k), num_history, sampling, flat_lanes,
                         map_encoder, map_warp)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
 
@@ -477,6 +530,15 @@ def _flat_pairs(scenes: Scene, tasks: Task | Prompt, lanes: LogLanes | None):
     return flat_scenes, flat_tasks, flat_lanes, s, k
 
 
+def _over_samples(run: Callable[[Prompt], RolloutOutput], scenes: Scene, tasks: Task | Prompt,
+                  n: int) -> RolloutOutput:
+    """`run` (a rollout of `scenes` under given tasks, outputs [S, K', ...]) under every task or prompt of `tasks`
+    repeated `n` times in a row (so each copy gets its own key), its outputs [S, K * n, ...] as [S, K, n, ...]."""
+    prompts, per_scene, s, k = _pairs(scenes, tasks)
+    repeated = jax.tree.map(lambda x: jnp.repeat(x, n, axis=1 if per_scene else 0), prompts)
+    return jax.tree.map(lambda x: x.reshape((s, k, n) + x.shape[2:]), run(repeated))
+
+
 def task_keys(key: jax.Array, num_scenes: int, num_tasks: int) -> jax.Array:
     """The key of every (scenario, task) pair, flat [S * K]: `key` split S * K ways, or `key` itself when it already
     holds S x K keys (what a rollout sharded over devices hands each device: its scenarios' keys)."""
@@ -493,6 +555,10 @@ def rollout_prepared(module: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.
     also [S, K, ...]) -> outputs [S, K, ...], as `options` say: the body of every rollout entry (`rollout_jit`,
     `gpd_jax.make_rollout_fn`). `tok` (the model's map tokenizer) and its `tok_params` are needed where the options
     or a prompt's own lanes run it."""
+    if options.samples is not None:
+        return _over_samples(lambda ts: rollout_prepared(module, scenes, ts, key, num_history,
+                                                         options.replace(samples=None), tok, tok_params),
+                             scenes, tasks, options.samples)
     own = isinstance(tasks, Prompt) and tasks.lanes is not None
     if (options.needs_tokenizer or own) and tok is None:
         raise ValueError("this rollout runs the model's map tokenizer (log_map='lanes', gen_map='warp' or a prompt "
@@ -504,11 +570,11 @@ def rollout_prepared(module: GPD, scenes: Scene, tasks: Task | Prompt, key: jax.
         lanes = LogLanes(scenes.polylines, scenes.polyline_valid)
     encoder = tok.pose_encoder(tok_params) if lanes is not None or own else None
     warp = tok.warper(tok_params) if options.gen_map == "warp" else None
-    h, temp = num_history, options.temperature
+    h, sampling = num_history, options.sampling
     if options.method == "cached":
-        return rollout_tasks(module, scenes, tasks, key, h, temp, lanes, encoder, warp)
+        return rollout_tasks(module, scenes, tasks, key, h, sampling, lanes, encoder, warp)
     flat_s, flat_t, flat_l, s, k = _flat_pairs(scenes, tasks, lanes)
-    one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, temp, ln, encoder, warp)
+    one = lambda sc, ta, ke, ln: rollout_recompute(module, sc, ta, ke, h, sampling, ln, encoder, warp)
     out = jax.vmap(one)(flat_s, flat_t, task_keys(key, s, k), flat_l)
     return jax.tree.map(lambda x: x.reshape((s, k) + x.shape[1:]), out)
 
@@ -521,7 +587,12 @@ def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key
 
     With several local devices (GPUs; CPU devices where XLA is asked for them) the scenarios are split over as many
     as divide S (`gpd_jax.parallel`): each device rolls out its scenarios with their own keys, so the outputs are
-    those of one device (to float rounding), in 1/devices of the time."""
+    those of one device (to float rounding), in 1/devices of the time. With `options.samples` = N every task runs N
+    times, each with its own key (outputs [S, K, N, ...]), in the same compiled call."""
+    if options.samples is not None:
+        return _over_samples(lambda ts: rollout_jit(graphdef, params, rest, scenes, ts, key, num_history,
+                                                    options.replace(samples=None), tok, tok_params),
+                             scenes, tasks, options.samples)
     _, per_scene, s, k = _pairs(scenes, tasks)
     keys = task_keys(key, s, k).reshape(s, k)
 
@@ -541,7 +612,8 @@ def rollout_model(model, scenes: Scene, tasks: Task | Prompt, key: jax.Array,
     """The one way a loaded model (`gpd_jax.checkpoint.Model`) rolls out prepared scenes [S, ...] (`model.prepare`)
     under tasks or prompts [K, ...] ([S, K, ...]): lane polylines the rollout does not read are dropped (smaller jit
     arguments), the tokenizer goes in only where the options or a prompt's own lanes need it, and `rollout_jit`
-    runs. `params`: other parameters of the same structure (default: the model's). Outputs [S, K, ...]."""
+    runs. `params`: other parameters of the same structure (default: the model's). Outputs [S, K, ...] ([S, K, N,
+    ...] with `options.samples` = N)."""
     own = check_options(model, options, tasks)
     if not (reads_lanes(model.config.model) or options.log_map == "lanes"):
         scenes = scenes.replace(polylines=None, polyline_valid=None)

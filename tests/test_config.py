@@ -35,7 +35,7 @@ def test_split_args():
 
 
 # each shipped model and the recipe that made it (configs/*.py[:variant])
-SHIPPED = (("gpd_traffic", "gpd_traffic.py"), ("gpd_maps", "gpd_maps.py"), ("gpd_planner", "gpd_planner.py"),
+SHIPPED = (("gpd_traffic", "gpd_traffic.py"), ("gpd_sampling", "gpd_sampling.py"), ("gpd_maps", "gpd_maps.py"), ("gpd_planner", "gpd_planner.py"),
            ("map_tokenizer", "map_tokenizer.py"), ("map_tokenizer_directional", "map_tokenizer.py:directional"))
 
 

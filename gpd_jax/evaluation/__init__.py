@@ -68,7 +68,7 @@ metrics.json (written by rollout.py; NaN written as null)::
      "scored_agents": "valid at the current frame", "num_scored_agents": ...,
      "task_generates": {task: ["ego", "agent", "map"]}, "map_tokens": {"from_store": n1, "encoded": n2},
      "log_map": "tokens" | "lanes", "gen_map": "model" | "warp",
-     "temperature", "seed",
+     "temperature", "top_k", "top_p" (only where set), "seed",
      "tasks": {task: {"3s": {"ego_ade", "ego_fde", "ego_collision", "ego_collision_frames",  # if it makes the ego
                              "agent_ade", "agent_fde", "agent_collision", "agent_collision_frames",  # the agents
                              "<same>_corrected",                           # the other variant

@@ -47,7 +47,13 @@ def parser(prog: str = PROG) -> Parser:
                    help="metric variant of the main keys; the other is written with its name as a suffix")
     p.add_argument("--horizons", default="3,5,8", help="horizons in seconds (comma list)")
     p.add_argument("--temperature", type=float, default=0.0,
-                   help="map-token sampling temperature (0: the most likely token, the paper's)")
+                   help="sampling temperature of map tokens and, for a model with a mixture agent head "
+                        "(gpd_sampling), of the agents (0: the most likely token and the regressed agents, the "
+                        "paper's)")
+    p.add_argument("--top-k", type=int, default=0, help="sample among the k most likely map tokens / agent "
+                                                        "components only (0: all)")
+    p.add_argument("--top-p", type=float, default=1.0, help="nucleus sampling: the smallest set of most likely "
+                                                            "tokens / components whose probability reaches p")
     p.add_argument("--log-map", default="tokens", choices=LOG_MAPS,
                    help="tasks that take the map from the log but generate the ego get the logged map tokens "
                         "(the paper's choice) or the log's lanes re-encoded around the generated ego every frame")
@@ -93,9 +99,11 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> argpars
     if not args.task_names:
         raise UsageError("--tasks: no task given")
     try:
-        args.options = RolloutOptions(temperature=args.temperature, log_map=args.log_map, gen_map=args.gen_map)
+        args.options = RolloutOptions(temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
+                                      log_map=args.log_map, gen_map=args.gen_map)
     except ValueError as e:
-        raise UsageError(f"--temperature: {e}") from None
+        flag = next((f for f in ("top-k", "top-p") if f.replace("-", "_") in str(e)), "temperature")
+        raise UsageError(f"--{flag}: {e}") from None
     try:
         ckpt = args.checkpoint = zoo.resolve(args.checkpoint)
     except FileNotFoundError as e:

@@ -84,6 +84,9 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     config, tokenizer = model.config, model.tokenizer
     if samples < 0:
         raise EvalError(f"samples must be >= 0, got {samples}")
+    if options.samples is not None:
+        raise EvalError("options.samples: an evaluation scores one rollout per scene and task; ask for realism over "
+                        "K sampled rollouts with samples=K (rollout.py --samples K)")
     if realism_config not in REALISM_CONFIGS:
         raise EvalError(f"realism_config {realism_config!r}: expected one of {sorted(REALISM_CONFIGS)}")
     if options.method != "cached":
@@ -218,6 +221,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
         "log_map": options.log_map,
         "gen_map": options.gen_map,
         "temperature": options.temperature,
+        **({"top_k": options.top_k} if options.top_k else {}),
+        **({"top_p": options.top_p} if options.top_p < 1 else {}),
         "seed": seed,
         **res,
         "ratio_targets": {k: RATIO_TARGETS for k in res["ratios"]},
@@ -236,17 +241,26 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     return results, render_items
 
 
+SAMPLED_ROLLOUTS_PER_CALL = 512  # rollouts (scenes x tasks x samples) in one call of the sampled realism draws
+
+
 def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutOutput, samples: int, key,
              options: RolloutOptions, config: str) -> tuple[dict[str, dict[str, np.ndarray]], bool]:
     """Each scenario's realism figures of one batch (`gpd_jax.evaluation.realism`) and whether the scenes had road
-    geometry. The first of the K samples is the main rollout `out`; more are drawn only where the rollout samples
-    (temperature > 0), one compiled rollout call each."""
-    draws = [out]
-    if options.temperature > 0:
-        draws += [rollout_model(model, view, tasks, jax.random.fold_in(key, s), options) for s in range(1, samples)]
-    stack = lambda f: jnp.stack([getattr(d, f) for d in draws], axis=1)  # noqa: E731
-    reps = samples // len(draws)
-    xy, heading, valid = (jnp.repeat(stack(f), reps, axis=1) for f in ("xy", "heading", "valid"))
+    geometry. The first of the K samples is the main rollout `out`; the others are drawn only where the rollout
+    samples (temperature > 0), through the rollout's sample axis (`RolloutOptions.samples`), in calls of equal size
+    (one compile) of at most `SAMPLED_ROLLOUTS_PER_CALL` rollouts."""
+    fields = ("xy", "heading", "valid")
+    draws = [tuple(getattr(out, f)[:, :, None] for f in fields)]
+    if options.temperature > 0 and samples > 1:
+        pairs = view.xy.shape[0] * len(names)
+        per_call = max(1, min(samples - 1, SAMPLED_ROLLOUTS_PER_CALL // pairs))
+        for c in range(-(-(samples - 1) // per_call)):
+            more = rollout_model(model, view, tasks, jax.random.fold_in(key, c), options.replace(samples=per_call))
+            draws.append(tuple(getattr(more, f) for f in fields))
+    xy, heading, valid = (jnp.concatenate([d[i] for d in draws], axis=2)[:, :, :samples] for i in range(3))
+    reps = samples // xy.shape[2]  # 1, or K copies of the one deterministic rollout
+    xy, heading, valid = (jnp.swapaxes(jnp.repeat(a, reps, axis=2), 1, 2) for a in (xy, heading, valid))
     full = jax.tree.map(jnp.asarray, full.replace(map_tokens=full.map_tokens[..., :1], lanes=None, lanes_valid=None))
     budget = None if full.road is None else edge_segment_budget(np.asarray(full.road.edge_valid))
     part = realism_batch(xy, heading, valid, full, model.spec, tuple(names), config, budget,

@@ -26,6 +26,13 @@ its lane instead of its straight line: the base position is where the agent land
 covering constant velocity's step along the lane it is on, keeping its offset from the lane
 (`gpd_jax.geometry.lane_follow`), and the base heading and velocity turn with the lane (`lane_base`). Agents
 farther than `gpd_jax.geometry.LANE_SNAP_M` from a lane, and frames without lanes, keep the constant-velocity base.
+
+Option `agent_modes` = C > 0 (not in the paper): a mixture head over each agent's next state beside the regression
+heads (`Modes`): C components, each a mode logit and a product of Laplace densities over (x, y, heading[, vx, vy])
+whose centres are offsets from the regressed state and whose scales are learned, positions and velocities in the
+agent's own axes (along and across its heading). A rollout at temperature 0 keeps the regressed state; at
+temperature > 0 it samples a component and its noise (`gpd_jax.decoding`). Training adds the mixture's negative
+log-likelihood of the logged next state (`gpd_jax.training.step`).
 """
 
 from __future__ import annotations
@@ -113,11 +120,43 @@ class Block(nnx.Module):
         return x + self.ff2(jax.nn.gelu(self.ff1(self.ln2(x))))
 
 
+class Modes(NamedTuple):
+    """A mixture of C components over each agent's next state (`agent_modes` models).
+
+    logits: f32[..., F, A, C] component logits; xy: f32[..., F, A, C, 2], heading: f32[..., F, A, C] and velocity
+    f32[..., F, A, C, 2] (None without `velocity_inputs`) each component's centre; scale: f32[..., F, A, C, D] its
+    Laplace scales of (along, across, heading[, v along, v across]) (m, rad, m/s), D = 3 or 5; axes: f32[..., F, A]
+    the heading (rad) that "along" points to (each agent's input heading, 0 where the slot was invalid).
+    """
+
+    logits: jax.Array
+    xy: jax.Array
+    heading: jax.Array
+    velocity: jax.Array | None
+    scale: jax.Array
+    axes: jax.Array
+
+    def log_prob(self, xy, heading, velocity=None, velocity_known=None):
+        """log density f32[..., F, A] of next states xy f32[..., F, A, 2], heading f32[..., F, A] (and velocity
+        f32[..., F, A, 2] where `velocity_known` bool[..., F, A]; a model without velocities ignores them)."""
+        err = [rotate(xy[..., None, :] - self.xy, -self.axes[..., None]),
+               wrap_angle(heading[..., None] - self.heading)[..., None]]
+        mask = [jnp.ones(err[0].shape, bool), jnp.ones(err[1].shape, bool)]
+        if self.velocity is not None:
+            err.append(rotate(velocity[..., None, :] - self.velocity, -self.axes[..., None]))
+            mask.append(jnp.broadcast_to(velocity_known[..., None, None], err[-1].shape))
+        err, mask = jnp.concatenate(err, -1), jnp.concatenate(mask, -1)
+        per_dim = -jnp.log(2.0 * self.scale) - jnp.abs(err) / self.scale
+        joint = jnp.sum(jnp.where(mask, per_dim, 0.0), -1)
+        return jax.nn.logsumexp(jax.nn.log_softmax(self.logits, -1) + joint, -1)
+
+
 class Prediction(NamedTuple):
     """Next-frame prediction of every slot of a block of frames.
 
     xy: f32[..., F, A, 2], heading: f32[..., F, A], valid_logit: f32[..., F, A], map_logits: f32[..., F, M, K],
-    velocity: f32[..., F, A, 2] (m/s) for a `velocity_inputs` model, else None.
+    velocity: f32[..., F, A, 2] (m/s) for a `velocity_inputs` model, else None; modes: the mixture over the
+    agents' next states of an `agent_modes` model, else None.
     """
 
     xy: jax.Array
@@ -125,6 +164,7 @@ class Prediction(NamedTuple):
     valid_logit: jax.Array
     map_logits: jax.Array
     velocity: jax.Array | None = None
+    modes: Modes | None = None
 
 
 DECODE_DTYPES = ("auto", "float32", "bfloat16")
@@ -215,6 +255,11 @@ class GPD(nnx.Module):
         self.valid_head = MLP((d, hh, 1), rngs)
         self.map_head = MLP((d, hh, k_codes), rngs)
         self.velocity_head = MLP((d, hh, 2), rngs) if self.velocity_inputs else None
+        self.num_modes = int(cfg.agent_modes)
+        if self.num_modes < 0:
+            raise ValueError(f"model.agent_modes must be >= 0, got {self.num_modes}")
+        self.mode_dims = 5 if self.velocity_inputs else 3
+        self.mode_head = MLP((d, hh, self.num_modes * (1 + 2 * self.mode_dims)), rngs) if self.num_modes else None
         self.grid = grid
         self.lane_stride = int(cfg.lane_context_stride)
 
@@ -298,8 +343,23 @@ class GPD(nnx.Module):
             if self.velocity_residual:
                 v = jnp.where(valid[..., None], self.input_velocity(velocity), 0.0)
                 pv = pv + (v if turn is None else rotate(v, turn))
+        modes = None if self.mode_head is None else self.modes(ha, pxy, ph, pv, jnp.where(valid, heading, 0.0))
         return Prediction(xy=pxy, heading=ph, valid_logit=self.valid_head(ha)[..., 0],
-                          map_logits=self.map_head(hm), velocity=pv)
+                          map_logits=self.map_head(hm), velocity=pv, modes=modes)
+
+    def modes(self, ha, xy, heading, velocity, axes) -> Modes:
+        """The mixture head on agent hidden states ha f32[F, A, d], around the regressed next state (xy f32[F, A, 2],
+        heading f32[F, A], velocity f32[F, A, 2] or None), offsets and scales along / across `axes` f32[F, A]."""
+        c, dims = self.num_modes, self.mode_dims
+        out = self.mode_head(ha).reshape(ha.shape[:-1] + (c, 1 + 2 * dims))
+        offset, raw = out[..., 1:1 + dims], out[..., 1 + dims:]
+        turn = axes[..., None]
+        vel = None
+        if velocity is not None:
+            vel = velocity[..., None, :] + rotate(offset[..., 3:5], turn)
+        return Modes(logits=out[..., 0], xy=xy[..., None, :] + rotate(offset[..., 0:2], turn),
+                     heading=wrap_angle(heading[..., None] + offset[..., 2]), velocity=vel,
+                     scale=jnp.exp(jnp.clip(raw, -7.0, 5.0)), axes=axes)
 
     def lane_base(self, xy, heading, valid, step, lanes: LaneContext):
         """Where each agent lands keeping its lane (`agent_lane_residual`): it covers |step| (f32[F, A, 2],

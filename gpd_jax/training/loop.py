@@ -41,6 +41,7 @@ import jax
 import ml_collections
 import numpy as np
 import tqdm
+from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
 from gpd_jax.checkpoint import (build_model, export_model, load_model, model_spec, resolve_tokenizer_path,
@@ -148,18 +149,26 @@ def check_token_sources(config: ml_collections.ConfigDict, data_dir: str) -> str
     return tok_dir
 
 
-def initial_params(path: str, config):
+def initial_params(path: str, config, fresh=None):
     """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its model
     config must equal `config.model`, except for the map tokenizer (a model moved onto re-fitted tokens of the
-    same shape) and `agent_lane_residual`, which adds no parameters (it moves the heads' base along the lanes) and
-    may be on here and off there."""
+    same shape), `agent_lane_residual`, which adds no parameters (it moves the heads' base along the lanes) and
+    may be on here and off there, and `agent_modes` on here over a model without a mixture head, whose new head
+    keeps its initial parameters from `fresh` (this run's initial parameters)."""
     src = load_model(path)
     ignore = ("map_tokenizer",)
     if config.model.agent_lane_residual and not src.config.model.agent_lane_residual:
         ignore += ("agent_lane_residual",)
+    new_head = int(config.model.agent_modes) > 0 and int(src.config.model.agent_modes) == 0
+    if new_head:
+        ignore += ("agent_modes",)
     diff = config_differences(config.model, src.config.model, ignore=ignore)
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
+    if new_head:
+        if fresh is None:
+            raise ValueError("initial_params: a model that adds a mixture head needs this run's initial parameters")
+        return nnx.merge_state(src.params, nnx.split_state(fresh, nnx.PathContains("mode_head"), ...)[0])
     return src.params
 
 
@@ -206,7 +215,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if mgr.latest_step() is not None:
         state = TrainState(**restore_state(mgr, state._asdict()))
     elif tc.init_from:
-        state = trainer.init_state(initial_params(str(tc.init_from), config))
+        state = trainer.init_state(initial_params(str(tc.init_from), config, state.params))
     start = int(state.step)
     replicated = NamedSharding(mesh, PartitionSpec())
     state = jax.device_put(state, replicated)

@@ -13,7 +13,14 @@ official values 5, 5.73, 1, 1):
 * valid: binary cross-entropy of the validity logit over every agent slot;
 * map: cross-entropy of the K-way map logits over map tokens of frames whose map is known;
 * velocity (only for `velocity_inputs` models, weight `loss.velocity`): smooth-L1 (m/s) summed over vx and vy,
-  averaged over agents valid at both frames.
+  averaged over agents valid at both frames;
+* modes (only for `agent_modes` models, weight `loss.modes`): the negative log-likelihood of the logged next state
+  under the mixture head (`gpd_jax.model.Modes.log_prob`; the velocity where the agent is valid at both frames),
+  averaged over valid target agents.
+
+`train.trainable` = "agent_modes" trains the mixture head alone: the gradient is taken with respect to its
+parameters only (no backward pass through the transformer) and every other parameter stays where `train.init_from`
+left it, so the model's temperature-0 rollouts stay that model's.
 
 `loss.agent_norm` = "euclidean" (not in the paper or the official code; default "smooth_l1", theirs) replaces the
 position and velocity smooth-L1 by the pseudo-Huber of the error vector's length, sqrt(|e|^2 + delta^2) - delta
@@ -167,10 +174,14 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
     ce = optax.softmax_cross_entropy_with_integer_labels(pred.map_logits, scene.map_tokens[1:])
     mv = jnp.broadcast_to(scene.map_valid[1:, None], ce.shape).astype(jnp.float32)
     terms = {}
+    both = tv * scene.valid[:-1]
     if pred.velocity is not None:
-        both = tv * scene.valid[:-1]
         terms["velocity_sum"] = jnp.sum(vector_loss(pred.velocity - scene.velocity[1:], agent_norm, norm_delta) * both)
         terms["velocity_count"] = jnp.sum(both)
+    if pred.modes is not None:
+        vel = None if pred.velocity is None else scene.velocity[1:]
+        log_p = pred.modes.log_prob(scene.xy[1:], scene.heading[1:], vel, both > 0)
+        terms["modes_sum"] = -jnp.sum(jnp.where(tv > 0, log_p, 0.0))
     return terms | {
         "position_sum": jnp.sum(pos * tv), "heading_sum": jnp.sum(head * tv), "agent_count": jnp.sum(tv),
         "valid_sum": jnp.sum(bce), "valid_count": jnp.asarray(bce.size, jnp.float32),
@@ -218,6 +229,9 @@ def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout
     if "velocity_sum" in terms:
         parts["velocity"] = terms["velocity_sum"] / jnp.maximum(terms["velocity_count"], 1.0)
         total = total + weights.velocity * parts["velocity"]
+    if "modes_sum" in terms:
+        parts["modes"] = terms["modes_sum"] / n_agents
+        total = total + weights.modes * parts["modes"]
     parts["map_accuracy"] = terms["map_correct"] / n_map
     parts["loss"] = total
     return total, parts
@@ -269,6 +283,20 @@ class Trainer(NamedTuple):
         return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=self.tx.init(params))
 
 
+TRAINABLE = ("all", "agent_modes")
+_MODE_HEAD = nnx.PathContains("mode_head")
+
+
+def _learned(config, graphdef) -> bool:
+    """Whether `train.trainable` trains the mixture head alone (checked: the model must have one)."""
+    which = str(config.train.trainable)
+    if which not in TRAINABLE:
+        raise ValueError(f"train.trainable must be one of {TRAINABLE}, got {which!r}")
+    if which == "agent_modes" and int(config.model.agent_modes) <= 0:
+        raise ValueError("train.trainable = 'agent_modes' trains the mixture head: set model.agent_modes > 0")
+    return which == "agent_modes"
+
+
 def _gpd_steps(graphdef, config, tx, donate: bool):
     """The jitted (train step, eval step, uncompiled train step) of `make_trainer`: (state, scenes, rest) ->
     (state, metrics), (params, scenes, rest) -> metrics; the frozen state `rest` (the map codebook) is an argument,
@@ -280,8 +308,16 @@ def _gpd_steps(graphdef, config, tx, donate: bool):
     def loss_of(p, rest, scenes):
         return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, h, passes, feed, drop)
 
+    head_only = _learned(config, graphdef)
+
     def train_step(state: TrainState, scenes: Scene, rest):
-        (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, rest, scenes)
+        if head_only:  # the gradient of the mixture head alone: no backward pass through the transformer
+            learn, keep = nnx.split_state(state.params, _MODE_HEAD, ...)
+            loss = lambda p: loss_of(nnx.merge_state(p, keep), rest, scenes)  # noqa: E731
+            (_, parts), grads = jax.value_and_grad(loss, has_aux=True)(learn)
+            grads = nnx.merge_state(grads, jax.tree.map(jnp.zeros_like, keep))
+        else:
+            (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, rest, scenes)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         parts["grad_norm"] = optax.tree.norm(grads)
@@ -307,6 +343,10 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
         raise ValueError("train.map_feedback feeds back the map tokens of the rollout passes: set "
                          "train.rollout_passes > 0")
     tx = make_optimizer(config.train)
+    if _learned(config, graphdef):  # the rest neither moves nor decays, and holds no optimizer state
+        labels = lambda p: jax.tree_util.tree_map_with_path(  # noqa: E731
+            lambda path, _: "learn" if any(getattr(k, "key", None) == "mode_head" for k in path) else "keep", p)
+        tx = optax.multi_transform({"learn": tx, "keep": optax.set_to_zero()}, labels)
     train, evaluate, step_fn = compiled_once(("gpd", graphdef, step_key(config), donate),
                                              lambda: _gpd_steps(graphdef, config, tx, donate))
     trainer = Trainer(graphdef=graphdef, rest=rest, tx=tx,
