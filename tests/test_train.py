@@ -20,12 +20,16 @@ def test_loss_falls_by_half_and_step_compiles_once():
                       ["--config.train.learning_rate=3e-3", "--config.model.predict_delta=true"])
     m = cfg.model
     trainer, state = make_trainer(GPD(m, nnx.Rngs(0)), cfg)
+    weights = cfg.loss.to_dict()
+    cfg.loss.map = 0.0  # changed after the trainer was made: its steps (traced later) keep the weights they were made with
     step = jax.jit(chex.assert_max_traces(lambda st, sc: trainer.step_fn(st, sc), n=1), donate_argnums=(0,))
     scenes = synthetic_scenes(0, 8, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
     losses = []
     for _ in range(120):
         state, metrics = step(state, scenes)
         losses.append(float(metrics["loss"]))
+    total = sum(weights[k] * float(metrics[k]) for k in ("position", "heading", "valid", "map"))
+    np.testing.assert_allclose(losses[-1], total, rtol=1e-5)
     assert np.isfinite(losses).all()
     assert losses[-1] < 0.5 * losses[0], (losses[0], losses[-1])
     assert int(state.step) == 120

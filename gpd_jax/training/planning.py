@@ -33,6 +33,7 @@ A config with a `plan_head` section (configs/gpd_planner.py) builds the GPD with
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import sys
@@ -268,7 +269,10 @@ class PlanTrainer:
 
 def _plan_steps(graphdef, config, tx, frozen: bool, features: bool, donate: bool):
     """The jitted (train step, eval step) of `PlanTrainer`: (state, batch, rest) -> (state, metrics) and
-    (params, batch, rest) -> metrics (the frozen state `rest` an argument, so runs share them: `compiled_once`)."""
+    (params, batch, rest) -> metrics (the frozen state `rest` an argument, so runs share them: `compiled_once`).
+    The steps close over a copy of `config`: they are traced later, and a config changed after this call must not
+    reach steps cached under the config they were built for."""
+    config = copy.deepcopy(config)
     batch_loss_fn = feature_batch_loss if features else plan_batch_loss
 
     def loss_of(p, rest, batch):

@@ -39,6 +39,7 @@ The step is a pure function of (params, opt_state, batch); NNX only defines the 
 
 from __future__ import annotations
 
+import copy
 from typing import Any, NamedTuple
 
 import jax
@@ -300,7 +301,9 @@ def _learned(config, graphdef) -> bool:
 def _gpd_steps(graphdef, config, tx, donate: bool):
     """The jitted (train step, eval step, uncompiled train step) of `make_trainer`: (state, scenes, rest) ->
     (state, metrics), (params, scenes, rest) -> metrics; the frozen state `rest` (the map codebook) is an argument,
-    so runs of one model and config share them (`compiled_once`)."""
+    so runs of one model and config share them (`compiled_once`). They close over a copy of `config` (they are traced
+    later, and a config changed after this call must not reach steps cached under the one they were built for)."""
+    config = copy.deepcopy(config)
     weights = config.loss
     h, passes = int(config.model.num_history), int(config.train.rollout_passes)
     feed, drop = float(config.train.map_feedback), float(config.train.lane_context_drop)
