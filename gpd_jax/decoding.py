@@ -288,7 +288,7 @@ def _choose_frame(pred: Prediction, given: Given, t, key, sampling: Sampling,
     logits = pred.map_logits[0]
     agent_xy, agent_heading = pred.xy[0], pred.heading[0]
     agent_vel = None if pred.velocity is None else pred.velocity[0]
-    if sampling.samples:
+    if sampling.random:
         frame_key = jax.random.fold_in(key, t)
         sampled = sample_categorical(frame_key, logits, sampling)
         if pred.modes is not None:

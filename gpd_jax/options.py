@@ -48,8 +48,8 @@ class Sampling:
         object.__setattr__(self, "top_p", float(p))
 
     @property
-    def samples(self) -> bool:
-        """Whether anything is sampled (temperature > 0)."""
+    def random(self) -> bool:
+        """Whether anything is drawn at random (temperature > 0)."""
         return self.temperature > 0
 
 
