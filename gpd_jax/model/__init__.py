@@ -13,8 +13,8 @@ Public names (pure functions of an NNX module; `gpd_jax.checkpoint.build_model` 
 """
 
 from gpd_jax.model.planning_head import PlanningHead, plan_trajectory, to_ego_frame, to_scene_frame
-from gpd_jax.model.transformer import (GPD, KVCache, LaneContext, Modes, Prediction, count_params, forward,
-                                      forward_cached, reads_lanes)
+from gpd_jax.model.transformer import (GPD, MODE_HEAD, KVCache, LaneContext, Modes, Prediction, count_params,
+                                      forward, forward_cached, reads_lanes)
 
-__all__ = ["GPD", "KVCache", "LaneContext", "Modes", "PlanningHead", "Prediction", "count_params", "forward", "forward_cached",
-           "plan_trajectory", "reads_lanes", "to_ego_frame", "to_scene_frame"]
+__all__ = ["GPD", "MODE_HEAD", "KVCache", "LaneContext", "Modes", "PlanningHead", "Prediction", "count_params",
+           "forward", "forward_cached", "plan_trajectory", "reads_lanes", "to_ego_frame", "to_scene_frame"]

@@ -120,6 +120,9 @@ class Block(nnx.Module):
         return x + self.ff2(jax.nn.gelu(self.ff1(self.ln2(x))))
 
 
+MODE_HEAD = nnx.PathContains("mode_head")  # the parameters of the mixture head (`agent_modes`), as an NNX filter
+
+
 class Modes(NamedTuple):
     """A mixture of C components over each agent's next state (`agent_modes` models).
 

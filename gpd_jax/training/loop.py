@@ -53,7 +53,7 @@ from gpd_jax.data.errors import DataError
 from gpd_jax.data.pack import check_packed
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import load_tokenizer
-from gpd_jax.model import count_params, reads_lanes
+from gpd_jax.model import MODE_HEAD, count_params, reads_lanes
 from gpd_jax.parallel import data_mesh
 from gpd_jax.scene import Scene
 from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, restore_state,
@@ -160,15 +160,14 @@ def initial_params(path: str, config, fresh=None):
     if config.model.agent_lane_residual and not src.config.model.agent_lane_residual:
         ignore += ("agent_lane_residual",)
     new_head = int(config.model.agent_modes) > 0 and int(src.config.model.agent_modes) == 0
-    if new_head:
-        ignore += ("agent_modes",)
+    ignore += ("agent_modes",) if new_head else ()
     diff = config_differences(config.model, src.config.model, ignore=ignore)
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
     if new_head:
         if fresh is None:
             raise ValueError("initial_params: a model that adds a mixture head needs this run's initial parameters")
-        return nnx.merge_state(src.params, nnx.split_state(fresh, nnx.PathContains("mode_head"), ...)[0])
+        return nnx.merge_state(src.params, nnx.split_state(fresh, MODE_HEAD, ...)[0])
     return src.params
 
 

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
-from gpd_jax.model import GPD, LaneContext, Prediction, forward
+from gpd_jax.model import GPD, MODE_HEAD, LaneContext, Prediction, forward
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.training.common import compiled_once, step_key
 
@@ -285,10 +285,9 @@ class Trainer(NamedTuple):
 
 
 TRAINABLE = ("all", "agent_modes")
-_MODE_HEAD = nnx.PathContains("mode_head")
 
 
-def _learned(config, graphdef) -> bool:
+def _learned(config) -> bool:
     """Whether `train.trainable` trains the mixture head alone (checked: the model must have one)."""
     which = str(config.train.trainable)
     if which not in TRAINABLE:
@@ -311,11 +310,11 @@ def _gpd_steps(graphdef, config, tx, donate: bool):
     def loss_of(p, rest, scenes):
         return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, h, passes, feed, drop)
 
-    head_only = _learned(config, graphdef)
+    head_only = _learned(config)
 
     def train_step(state: TrainState, scenes: Scene, rest):
         if head_only:  # the gradient of the mixture head alone: no backward pass through the transformer
-            learn, keep = nnx.split_state(state.params, _MODE_HEAD, ...)
+            learn, keep = nnx.split_state(state.params, MODE_HEAD, ...)
             loss = lambda p: loss_of(nnx.merge_state(p, keep), rest, scenes)  # noqa: E731
             (_, parts), grads = jax.value_and_grad(loss, has_aux=True)(learn)
             grads = nnx.merge_state(grads, jax.tree.map(jnp.zeros_like, keep))
@@ -346,9 +345,11 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
         raise ValueError("train.map_feedback feeds back the map tokens of the rollout passes: set "
                          "train.rollout_passes > 0")
     tx = make_optimizer(config.train)
-    if _learned(config, graphdef):  # the rest neither moves nor decays, and holds no optimizer state
-        labels = lambda p: jax.tree_util.tree_map_with_path(  # noqa: E731
-            lambda path, _: "learn" if any(getattr(k, "key", None) == "mode_head" for k in path) else "keep", p)
+    if _learned(config):  # the rest neither moves nor decays, and holds no optimizer state
+        def labels(p):
+            learn, keep = nnx.split_state(p, MODE_HEAD, ...)
+            return nnx.merge_state(jax.tree.map(lambda _: "learn", learn), jax.tree.map(lambda _: "keep", keep))
+
         tx = optax.multi_transform({"learn": tx, "keep": optax.set_to_zero()}, labels)
     train, evaluate, step_fn = compiled_once(("gpd", graphdef, step_key(config), donate),
                                              lambda: _gpd_steps(graphdef, config, tx, donate))
