@@ -97,10 +97,11 @@ BRAKE, LOG = {"brake": jnp.array(True)}, {"brake": jnp.array(False)}
 @pytest.fixture(scope="module")
 def gpd_runs(model, scenes, sim_scenes):
     """The test policy braking and replaying the log, both with GPD agents (one compile: `assert_max_traces`), and
-    the task rollouts they should reproduce."""
+    the task rollouts they should reproduce (the ego placed on the policy's poses: no tracker, as the tasks place
+    it)."""
     chex.clear_trace_counter()
-    brake = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(0), agents="gpd", policy_params=BRAKE)
-    log = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(1), agents="gpd", policy_params=LOG)
+    brake = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(0), agents="gpd", policy_params=BRAKE, tracker=None)
+    log = sim.run(model, sim_scenes, TEST_POLICY, jax.random.key(1), agents="gpd", policy_params=LOG, tracker=None)
     ref = gpd_jax.rollout(model, scenes, ["closed_loop", "motion_planning"], jax.random.key(0),
                           gpd_jax.RolloutOptions(log_map="lanes"))
     return brake, log, jax.tree.map(np.asarray, ref)
@@ -149,7 +150,7 @@ def test_log_replay_ego_with_gpd_agents_is_the_closed_loop_task(gpd_runs):
 
 def test_own_ego_replay_is_the_motion_planning_task_with_lane_reencoding(model, sim_scenes, gpd_runs):
     ref = jax.tree.map(lambda x: x[:, 1], gpd_runs[2])
-    out = sim.run(model, sim_scenes, sim.make_policy("gpd", model), jax.random.key(0), agents="log")
+    out = sim.run(model, sim_scenes, sim.make_policy("gpd", model), jax.random.key(0), agents="log", tracker=None)
     _same(out, ref, "motion_planning")
     # a real generated ego (not the log), and its map re-encoded around it (not the logged tokens)
     assert np.abs(ref.xy[:, 3:, 0] - np.asarray(sim_scenes.view.xy)[:, 3:, 0]).max() > 0.01
@@ -480,6 +481,8 @@ def test_plan_command_policy_file_kinds_and_errors(tmp_path, policy_file, capsys
     (["evaluate", "--render", "-1"], "--render"),
     (["bench", "--batch", "0"], "--batch"),
     (["bench", "--repeats", "0"], "--repeats"),
+    (["evaluate", "--replan-every", "0"], "--replan-every"),
+    (["evaluate", "--replan-every", "2", "--no-tracker"], "--replan-every"),
 ])
 def test_plan_command_bad_counts_exit_2_in_one_line(tmp_path, capsys, argv, flag):
     from gpd_jax.plan.__main__ import main
@@ -487,3 +490,77 @@ def test_plan_command_bad_counts_exit_2_in_one_line(tmp_path, capsys, argv, flag
     extra = ["--out", str(tmp_path)] if argv[0] == "evaluate" else []
     assert main(argv + ["--data", str(tmp_path)] + extra) == 2
     _one_line_error(capsys, f"argument {flag}:")
+
+
+# ------------------------------------------------------------------------------------------------ plan execution
+# A policy that plans 8 s straight on at its speed on its first frame and afterwards plans to veer 6 m to the left:
+# how much of the veer reaches the ego shows which plans the tracker followed.
+def _veer(params, obs, state, key):
+    k = jnp.arange(1, 9, dtype=jnp.float32)
+    v = jnp.linalg.norm(obs.ego_velocity)
+    first = obs.t == params["first"]
+    y = obs.ego_pose[1] + jnp.where(first, 0.0, 2.0 * jnp.minimum(k, 3.0))
+    return sim.Plan(poses=jnp.stack([obs.ego_pose[0] + k * v, y, jnp.zeros(8)], -1)), state
+
+
+VEER = sim.Policy(name="veer", select=_veer)
+
+
+def test_plans_are_held_between_replans(model, sim_scenes):
+    h, c = model.spec.num_history, model.spec.full_history - 1
+    params = {"first": jnp.asarray(h - 1)}
+    ys = {}
+    for every in (1, 2, 8):
+        out = sim.run(model, sim_scenes, VEER, jax.random.key(0), agents="log", policy_params=params,
+                      tracker=sim.Tracker(replan_every=every))
+        ys[every] = np.asarray(out.fine_xy[:, c:, 0, 1])                  # the ego's y from the current frame on
+        assert np.all(np.diff(np.asarray(out.fine_xy[:, c:, 0, 0]), axis=1) > 0.5)   # it keeps driving
+    np.testing.assert_allclose(ys[8], -1.6, atol=0.05)                    # the first plan, held for the whole run
+    assert np.all(ys[1][:, -1] > 2.0)                                     # replanning every frame follows the veer
+    np.testing.assert_allclose(ys[2][:, :21], -1.6, atol=0.05)            # held for 2 frames, then the veer
+    assert np.all(ys[2][:, -1] > 2.0)
+    # a host planner's Plan is followed the same way
+    first = h - 1
+
+    def host_veer(obs):
+        return jax.vmap(lambda o: _veer({"first": first}, o, (), None)[0])(jax.tree.map(jnp.asarray, obs))
+
+    host = sim.run_host(model, sim_scenes, host_veer, agents="log", with_model=False,
+                        tracker=sim.Tracker(replan_every=2))
+    np.testing.assert_allclose(np.asarray(host.fine_xy[:, c:, 0, 1]), ys[2], atol=1e-4)
+    with pytest.raises(sim.SimError, match=r"planner '_bad_plan' returned a Plan of shape \(2, 3\)"):
+        sim.run_host(model, sim_scenes, _bad_plan, agents="log", with_model=False)
+    with pytest.raises(sim.SimError, match="replan_every must be an integer >= 1"):
+        sim.run(model, sim_scenes, VEER, jax.random.key(0), agents="log", policy_params=params,
+                tracker=sim.Tracker(replan_every=0))
+
+
+def _bad_plan(obs):
+    return sim.Plan(poses=np.zeros((2, 3)))
+
+
+def _brake_plan(params, obs, state, key):
+    """Brake at 3 m/s^2 from the speed now to a stop, as poses at the next 8 model frames."""
+    t = jnp.arange(1, 9, dtype=jnp.float32)
+    v = jnp.linalg.norm(obs.ego_velocity)
+    stop = v / 3.0
+    s = jnp.where(t < stop, v * t - 1.5 * t**2, v * stop - 1.5 * stop**2)
+    return sim.Plan(poses=jnp.stack([obs.ego_pose[0] + s, jnp.full(8, obs.ego_pose[1]), jnp.zeros(8)], -1)), state
+
+
+def test_a_braking_plan_stops_the_car_and_the_route_is_observed(model, sim_scenes):
+    c = model.spec.full_history - 1
+    policy = sim.Policy(name="brake_plan", select=_brake_plan)
+    out = sim.run(model, sim_scenes, policy, jax.random.key(0), agents="log", tracker=sim.Tracker(replan_every=8))
+    x = np.asarray(out.fine_xy[:, c:, 0, 0])
+    v0 = np.asarray(sim_scenes.log_velocity[:, c, 0, 0])
+    np.testing.assert_allclose(x[:, -1] - x[:, 0], v0**2 / 6.0, atol=0.5)          # where the plan stops
+    assert np.all(np.abs(np.diff(x[:, -30:], axis=1)) < 0.01)                       # stopped
+    assert np.all(np.diff(x, axis=1) > -1e-4)                                       # never backwards
+    # the route (the logged ego's path, no timing) is in the observation: from the ego now along its lane
+    one = jax.tree.map(lambda a: a[0], sim_scenes)
+    obs = sim.observe(model, sim.reset(model, one, agents="log", with_model=False))
+    route, s = np.asarray(obs.route_xy), np.asarray(obs.route_s)
+    np.testing.assert_allclose(route[0], np.asarray(obs.ego_pose[:2]), atol=1e-4)
+    np.testing.assert_allclose(route[:, 1], -1.6, atol=1e-4)
+    assert np.all(np.diff(s) >= 0) and s[-1] > 80.0

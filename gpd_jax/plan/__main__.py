@@ -1,7 +1,8 @@
 """Planning command line (thin over `gpd_jax.sim`).
 
     python -m gpd_jax.plan evaluate --data DIR [--split test] --planners log,cv,idm,gpd,gpd_head[,gpd_head_scratch] \
-        --agents log,idm,gpd --out DIR [--render K] [--checkpoint MODEL] [--head-model M] [--scratch-head-model M]
+        --agents log,idm,gpd --out DIR [--render K] [--checkpoint MODEL] [--head-model M] [--scratch-head-model M] \
+        [--replan-every N | --no-tracker]
     python -m gpd_jax.plan bench --data DIR [--batch 8] [--planners ...] [--agents ...]
 
 `--planners` is a comma list of shipped planners (`gpd_jax.sim.PLANNERS`) and your own policies, each given as
@@ -10,7 +11,9 @@ callable `(params, obs, state, key) -> (ego, state)` (the policy's `select`), or
 called with the world model; its table row is NAME. Your policies are scored exactly as the shipped ones
 (`gpd_jax.sim.evaluate_planners`).
 
-`evaluate` prints a table shaped like GPD-1's Table 2 (one row per planner: OLS, NR-CLS, R-CLS with IDM agents,
+Every planner's output is followed by the plan tracker (`gpd_jax.sim.Tracker`: pure pursuit and a speed law on the
+bicycle model, nuPlan's way of executing plans), replanning every `--replan-every` model frames; `--no-tracker`
+places the ego on the output instead. `evaluate` prints a table shaped like GPD-1's Table 2 (one row per planner: OLS, NR-CLS, R-CLS with IDM agents,
 R-CLS with GPD agents) and writes OUT/planning.json ({"scenarios": n, "planners": {NAME: {"OLS", "NR-CLS",
 "R-CLS-idm", "R-CLS-gpd", "subscores"}}, "run_seconds", ...}), OUT/planning_table.txt and with --render K GIFs of
 the first K scenarios' runs under OUT/render/. `bench` times batched closed-loop runs per planner x agent model on
@@ -200,6 +203,13 @@ def _load(args, parsed):
     return model, heads, scenes
 
 
+def _tracker(args):
+    from gpd_jax.sim import Tracker
+    if args.no_tracker and args.replan_every != 1:
+        raise UsageError("argument --replan-every: plans are held only by the tracker; drop --no-tracker or --replan-every")
+    return None if args.no_tracker else Tracker(replan_every=args.replan_every)
+
+
 def cmd_evaluate(args) -> int:
     from gpd_jax.fsutil import atomic_write_json, atomic_write_text
     from gpd_jax.sim import evaluate_planners, planning_table
@@ -207,16 +217,18 @@ def cmd_evaluate(args) -> int:
 
     parsed = _parse_planners(args.planners)
     agents = _agents(args.agents)
+    tracker = _tracker(args)
     model, heads, scenes = _load(args, parsed)
     check_road(scenes, f"{args.data}/{args.split}")
     policies = _policies(parsed, model, heads)
     t0 = time.perf_counter()
     results = evaluate_planners(model, scenes, policies, agents, batch_size=args.batch_size, seed=args.seed,
-                                progress=not args.quiet, keep_runs=args.render)
+                                tracker=tracker, progress=not args.quiet, keep_runs=args.render)
     runs = results.pop("runs", {})
     results["seconds"] = round(time.perf_counter() - t0, 1)
     results["data"] = os.path.abspath(args.data)
     results["split"] = args.split
+    results["tracker"] = None if args.no_tracker else {"replan_every": args.replan_every}
     table = planning_table(results)
     print(table)
     os.makedirs(args.out, exist_ok=True)
@@ -246,6 +258,7 @@ def cmd_bench(args) -> int:
 
     parsed = _parse_planners(args.planners)
     agents = _agents(args.agents)
+    tracker = _tracker(args)
     args.num_scenarios = args.batch
     model, heads, scenes = _load(args, parsed)
     policies = _policies(parsed, model, heads)
@@ -260,12 +273,14 @@ def cmd_bench(args) -> int:
     for p, pol in policies.items():
         for a in agents:
             t0 = time.perf_counter()
-            jax.block_until_ready(run(model, sim, pol, jax.random.key(args.seed), agents=a).fine_xy)
+            jax.block_until_ready(run(model, sim, pol, jax.random.key(args.seed), agents=a,
+                                      tracker=tracker).fine_xy)
             compile_s = time.perf_counter() - t0
             best = np.inf
             for r in range(args.repeats):
                 t0 = time.perf_counter()
-                jax.block_until_ready(run(model, sim, pol, jax.random.key(args.seed + r + 1), agents=a).fine_xy)
+                jax.block_until_ready(run(model, sim, pol, jax.random.key(args.seed + r + 1), agents=a,
+                                          tracker=tracker).fine_xy)
                 best = min(best, time.perf_counter() - t0)
             sps = b / best
             rows.append({"planner": p, "agents": a, "batch": b, "compile_s": compile_s, "run_s": best,
@@ -300,6 +315,10 @@ def build_parser() -> Parser:
                        help="the head trained without pre-training, for gpd_head_scratch "
                             f"(default {_default_head('gpd_head_scratch')})")
         s.add_argument("--seed", type=int, default=0)
+        s.add_argument("--replan-every", type=count, default=1, metavar="N",
+                       help="model frames between replans; the tracker follows each plan in between (default 1)")
+        s.add_argument("--no-tracker", action="store_true",
+                       help="place the ego on each planner's output instead of tracking it on the bicycle model")
     e = sub.choices["evaluate"]
     e.add_argument("--out", required=True)
     e.add_argument("--render", type=count0, default=0, metavar="K", help="GIFs of the first K scenarios' runs")

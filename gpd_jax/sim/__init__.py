@@ -17,6 +17,11 @@ nuPlan's planning scores (OLS, CLS with its multipliers and weighted terms) at t
     print(sim.planning_table(results))
 
 A plain-Python planner on numpy observations runs through `run_host` (its SimResult scores with `score` alike).
+
+Every run follows the policy's output with a `Tracker` (pure pursuit and a speed law on the bicycle model, at the
+stored rate; `gpd_jax.sim.tracker`), replanning every `Tracker.replan_every` model frames; a policy may return a
+`Plan` (poses at the next F model frames) to be followed beyond the next frame. `tracker=None` places the ego on
+the policy's output instead.
 """
 
 from gpd_jax.sim.agents import IDMParams, IDMState, Paths
@@ -26,10 +31,12 @@ from gpd_jax.sim.dynamics import BicycleLimits, bicycle_path
 from gpd_jax.sim.policies import (HEAD_PLANNERS, PLANNERS, constant_velocity_policy, expert_policy, gpd_head_policy, gpd_policy,
                                   idm_policy, make_policy)
 from gpd_jax.sim.scoring import evaluate_planners, planning_table, score
+from gpd_jax.sim.tracker import Plan, Tracker
 
 __all__ = [
     "AGENT_MODELS", "HEAD_PLANNERS", "PLANNERS", "BicycleLimits", "IDMParams", "IDMState", "Observation", "Paths", "Policy",
     "RunCarry", "SimError", "SimResult", "SimScene", "SimState", "as_policy", "bicycle_path",
     "constant_velocity_policy", "evaluate_planners", "expert_policy", "gpd_head_policy", "gpd_policy", "idm_policy",
     "make_policy", "make_sim_scenes", "observe", "planning_table", "reset", "run", "run_host", "score", "step",
+    "Plan", "Tracker",
 ]

@@ -44,6 +44,7 @@ from gpd_jax.model import LaneContext
 from gpd_jax.scene import Scene
 from gpd_jax.sim.agents import IDMParams, IDMState, Paths, idm_poses, idm_substep, make_paths
 from gpd_jax.sim.dynamics import BicycleLimits, bicycle_path, hermite, lerp_heading, pose_path
+from gpd_jax.sim.tracker import Plan, Tracker, TrackState, extend, plan_path, track
 from gpd_jax.spec import EvalError, ModelSpec
 
 AGENT_MODELS = ("gpd", "log", "idm")
@@ -88,7 +89,9 @@ class SimState:
     (frames > t are empty). fine_xy f32[Ts, A, 2], fine_heading f32[Ts, A], fine_valid bool[Ts, A]: the same at
     the stored rate (frames > stride * t empty). decode: the KV cache and the model's prediction of frame t + 1
     (None when no model is needed). idm: IDM agents' arc positions and speeds. paths: every slot's logged path
-    (slot 0: the logged ego's route). scene: what the simulation was given. agents: the agent model (static).
+    (slot 0: the logged ego's route). control: the ego's speed, acceleration and steering angle (what the tracker
+    carries from one model frame to the next). scene: what the simulation was given. agents: the agent model
+    (static).
     """
 
     t: jax.Array
@@ -103,6 +106,7 @@ class SimState:
     decode: DecodeState | None
     idm: IDMState
     paths: Paths
+    control: TrackState
     scene: SimScene
     agents: str = flax.struct.field(pytree_node=False, default="gpd")
 
@@ -157,7 +161,9 @@ class Policy:
     f32[F, 3]` its open-loop plan (poses at the next F model frames, scene frame) for the open-loop score.
 
     ego: f32[3] the next model frame's pose, f32[5] pose and velocity there, f32[2] an action (acceleration,
-    steering angle) for the bicycle model, or f32[S, 3] the S stored-rate poses up to the next model frame.
+    steering angle) for the bicycle model, f32[S, 3] the S stored-rate poses up to the next model frame, or a
+    `Plan` (poses at the next F model frames). Each but the action is the reference a `Tracker` follows (see
+    `gpd_jax.sim.tracker`); without a tracker the ego is placed on it.
     needs_model: whether it reads the model's prediction or hidden tokens (the model then runs with any agents).
     needs_map: whether it reads the frames' map tokens (encoded then even when the model does not run).
     params: passed to every call (traced; e.g. a network's weights).
@@ -267,11 +273,13 @@ def _reset(parts: _Parts, scene: SimScene, agents: str) -> SimState:
     idm = IDMState(s=jnp.zeros(paths.v0.shape), v=jnp.where(scene.log_valid[c], speed[0], 0.0),
                    active=paths.spawn == 0)
     m2 = lambda x, mask: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, jnp.zeros_like(x))
+    h0, v0 = view.heading[h - 1, 0], view.velocity[h - 1, 0]
+    control = TrackState.at_rest().replace(speed=jnp.maximum(v0[0] * jnp.cos(h0) + v0[1] * jnp.sin(h0), 0.0))
     return SimState(t=jnp.asarray(h - 1, jnp.int32), xy=m2(view.xy, hist), heading=m2(view.heading, hist),
                     valid=m2(view.valid, hist), velocity=m2(view.velocity, hist),
                     map_tokens=m2(view.map_tokens, hist), fine_xy=m2(scene.log_xy, fhist),
                     fine_heading=m2(scene.log_heading, fhist), fine_valid=m2(scene.log_valid, fhist),
-                    decode=decode, idm=idm, paths=paths, scene=scene, agents=agents)
+                    decode=decode, idm=idm, paths=paths, control=control, scene=scene, agents=agents)
 
 
 def _observe(parts: _Parts, state: SimState) -> Observation:
@@ -298,15 +306,56 @@ def _observe(parts: _Parts, state: SimState) -> Observation:
         pred_velocity=pred_vel, hidden=hidden, log_ego=log_ego, log_ego_valid=sc.log_valid[:, 0])
 
 
-def ego_path(ego: jax.Array, pose0: jax.Array, vel0: jax.Array, length: jax.Array, spec: ModelSpec,
-             limits: BicycleLimits = BicycleLimits(), name: str = "policy") -> tuple[jax.Array, jax.Array]:
-    """The ego's S stored-rate poses up to the next model frame and its velocity there, from a policy's output
-    (shapes as `Policy` says; dispatched on the static shape). Raises SimError for any other shape."""
-    s, dt, period = spec.frame_stride, spec.stored_period_s, spec.frame_period_s
+def _ego_array(ego, name: str) -> jax.Array:
     ego = jnp.asarray(ego)
     if not jnp.issubdtype(ego.dtype, jnp.floating):
         raise SimError(f"policy {name!r} returned an ego of dtype {ego.dtype}; expected floats")
-    ego = ego.astype(jnp.float32)
+    return ego.astype(jnp.float32)
+
+
+def _shape_error(ego, spec: ModelSpec, name: str) -> SimError:
+    s = spec.frame_stride
+    return SimError(f"policy {name!r} returned an ego of shape {tuple(ego.shape)}; expected f32[3] (pose), f32[5] "
+                    f"(pose, velocity), f32[2] (acceleration, steering), f32[{s}, 3] (stored-rate poses) or a "
+                    f"sim.Plan of poses f32[F, 3]")
+
+
+def is_action(ego) -> bool:
+    """Whether a policy's ego output is an action (acceleration, steering): integrated as it is, never tracked."""
+    return not isinstance(ego, Plan) and tuple(ego.shape) == (2,)
+
+
+def ego_reference(ego, pose0: jax.Array, vel0: jax.Array, spec: ModelSpec, name: str = "policy") -> jax.Array:
+    """The stored-rate reference of a policy's output (not an action): f32[R, 3], the poses at the R stored frames
+    after now (R = S for a pose, pose and velocity, or S poses; F x S for a `Plan` of F poses)."""
+    s, period = spec.frame_stride, spec.frame_period_s
+    if isinstance(ego, Plan):
+        poses = _ego_array(ego.poses, name)
+        if poses.ndim != 2 or poses.shape[-1] != 3 or poses.shape[0] < 1:
+            raise SimError(f"policy {name!r} returned a Plan of shape {tuple(poses.shape)}; expected f32[F, 3] "
+                           f"(F >= 1 poses at the next model frames)")
+        return plan_path(pose0, vel0, poses, period, s)
+    ego = _ego_array(ego, name)
+    if ego.shape == (3,):
+        return pose_path(pose0, vel0, ego, None, period, s)[0]
+    if ego.shape == (5,):
+        return pose_path(pose0, vel0, ego[:3], ego[3:], period, s)[0]
+    if ego.shape == (s, 3):
+        return ego
+    raise _shape_error(ego, spec, name)
+
+
+def ego_path(ego, pose0: jax.Array, vel0: jax.Array, length: jax.Array, spec: ModelSpec,
+             limits: BicycleLimits = BicycleLimits(), name: str = "policy") -> tuple[jax.Array, jax.Array]:
+    """The ego placed on a policy's output without a tracker: its S stored-rate poses up to the next model frame and
+    its velocity there (shapes as `Policy` says; dispatched on the static shape). Raises SimError for any other
+    shape."""
+    s, dt, period = spec.frame_stride, spec.stored_period_s, spec.frame_period_s
+    if isinstance(ego, Plan):
+        path = ego_reference(ego, pose0, vel0, spec, name)
+        nxt = path[2 * s - 1, :2] if path.shape[0] > s else 2 * path[s - 1, :2] - pose0[:2]
+        return path[:s], (nxt - pose0[:2]) / (2 * period)
+    ego = _ego_array(ego, name)
     if ego.shape == (3,):
         return pose_path(pose0, vel0, ego, None, period, s)
     if ego.shape == (5,):
@@ -316,14 +365,61 @@ def ego_path(ego: jax.Array, pose0: jax.Array, vel0: jax.Array, length: jax.Arra
     elif ego.shape == (s, 3):
         path = ego
     else:
-        raise SimError(f"policy {name!r} returned an ego of shape {tuple(ego.shape)}; expected f32[3] (pose), "
-                       f"f32[5] (pose, velocity), f32[2] (acceleration, steering) or f32[{s}, 3] (stored-rate poses)")
+        raise _shape_error(ego, spec, name)
     prev = jnp.concatenate([pose0[None, :2], path[:-1, :2]], 0)[-1]
     return path, (path[-1, :2] - prev) / dt
 
 
-def _step(parts: _Parts, state: SimState, ego: jax.Array, limits: BicycleLimits = BicycleLimits(),
-          idm_params: IDMParams = IDMParams(), name: str = "policy") -> SimState:
+@flax.struct.dataclass
+class Follow:
+    """The reference the tracker holds between replans: reference f32[R + 1, 3] (its pose at the frame it was made
+    and at the R stored frames after), made_at i32[] (that model frame)."""
+
+    reference: jax.Array
+    made_at: jax.Array
+
+
+def new_follow(spec: ModelSpec, tracker: Tracker | None, t) -> Follow:
+    """An empty held reference (room for a plan over every future frame, or `replan_every` frames, plus the
+    look-ahead), due for a replan at model frame `t`."""
+    s, dt = spec.frame_stride, spec.stored_period_s
+    r = 0 if tracker is None else tracker.reference_length(spec.num_future * s, s, dt)
+    every = 1 if tracker is None else tracker.replan_every
+    return Follow(reference=jnp.zeros((r + 1, 3), jnp.float32), made_at=jnp.asarray(t, jnp.int32) - every)
+
+
+def _move_ego(spec: ModelSpec, state: SimState, ego, follow: Follow, tracker: Tracker | None,
+              limits: BicycleLimits, name: str) -> tuple[jax.Array, jax.Array, TrackState, Follow]:
+    """The ego's S stored-rate poses up to the next model frame, its velocity there and its control state, from a
+    policy's output: placed on it (no tracker, or an action), or the held reference followed by the tracker (the
+    output replacing the reference when a replan is due)."""
+    s, dt, period = spec.frame_stride, spec.stored_period_s, spec.frame_period_s
+    t = state.t
+    at = lambda x: jax.lax.dynamic_index_in_dim(x, t, 0, keepdims=False)
+    pose0 = jnp.concatenate([at(state.xy)[0], at(state.heading)[:1]])
+    vel0 = at(state.velocity)[0]
+    length = state.scene.view.size[0, 0]
+    if tracker is None or is_action(ego):
+        path, vel = ego_path(ego, pose0, vel0, length, spec, limits, name)
+        speed = jnp.maximum(vel[0] * jnp.cos(path[-1, 2]) + vel[1] * jnp.sin(path[-1, 2]), 0.0)
+        control = TrackState(speed=speed, accel=(speed - state.control.speed) / period, steer=jnp.zeros(()))
+        return path, vel, control, follow
+    reference = ego_reference(ego, pose0, vel0, spec, name)
+    fresh = jnp.concatenate([pose0[None], extend(reference, pose0, follow.reference.shape[0] - 1, dt)], 0)
+    replan = t - follow.made_at >= tracker.replan_every
+    follow = Follow(reference=jnp.where(replan, fresh, follow.reference),
+                    made_at=jnp.where(replan, t, follow.made_at))
+    window = jax.lax.dynamic_slice_in_dim(follow.reference, (t - follow.made_at) * s,
+                                          s + tracker.lookahead_steps(dt) + 1, axis=0)
+    path, control = track(window, pose0, state.control, length, s, dt, tracker, limits)
+    vel = control.speed * jnp.stack([jnp.cos(path[-1, 2]), jnp.sin(path[-1, 2])])
+    return path, vel, control, follow
+
+
+def _step(parts: _Parts, state: SimState, epath: jax.Array, evel: jax.Array, control: TrackState,
+          idm_params: IDMParams = IDMParams()) -> SimState:
+    """Appends the next model frame: the ego on `epath` f32[S, 3] (its velocity `evel` f32[2] at the end), the other
+    slots from the agent model."""
     spec = parts.spec
     s_n, dt, period = spec.frame_stride, spec.stored_period_s, spec.frame_period_s
     c = spec.full_history - 1
@@ -333,8 +429,6 @@ def _step(parts: _Parts, state: SimState, ego: jax.Array, limits: BicycleLimits 
     sc = state.scene
     at = lambda x, i: jax.lax.dynamic_index_in_dim(x, i, 0, keepdims=False)
     xy_t, h_t, v_t, vel_t = at(state.xy, t), at(state.heading, t), at(state.valid, t), at(state.velocity, t)
-    pose0 = jnp.concatenate([xy_t[0], h_t[:1]])
-    epath, evel = ego_path(ego, pose0, vel_t[0], sc.view.size[0, 0], spec, limits, name)
     a_n = xy_t.shape[0]
     fine_slice = lambda x: jax.lax.dynamic_slice_in_dim(x, g0 + 1, s_n, axis=0)
     logit = jnp.zeros((a_n,), jnp.float32)
@@ -389,7 +483,7 @@ def _step(parts: _Parts, state: SimState, ego: jax.Array, limits: BicycleLimits 
                          valid=put(state.valid, av, t1), velocity=put(state.velocity, avel, t1),
                          map_tokens=put(state.map_tokens, tokens, t1), fine_xy=putf(state.fine_xy, fxy),
                          fine_heading=putf(state.fine_heading, fh), fine_valid=putf(state.fine_valid, fv),
-                         decode=decode, idm=idm)
+                         decode=decode, idm=idm, control=control)
 
 
 # ------------------------------------------------------------------------------------------------ public pure API
@@ -402,11 +496,15 @@ def reset(model: Model, scene: SimScene, key: jax.Array | None = None, *, agents
     return _reset(_parts(model, with_model=with_model), scene, agents)
 
 
-def step(model: Model, state: SimState, ego: jax.Array, *, limits: BicycleLimits = BicycleLimits()
-         ) -> tuple[SimState, Observation]:
-    """Appends the next model frame with the ego placed by `ego` (see `Policy`): `state, obs = step(...)`. Pure."""
+def step(model: Model, state: SimState, ego, *, limits: BicycleLimits = BicycleLimits(),
+         tracker: Tracker | None = Tracker()) -> tuple[SimState, Observation]:
+    """Appends the next model frame with the ego moved by `ego` (see `Policy`): `state, obs = step(...)`. Pure.
+    The tracker follows `ego` as a fresh reference (a replan every call; `run` and `run_host` hold a reference
+    over `Tracker.replan_every` frames); `tracker=None` places the ego on it."""
     parts = _parts(model, with_model=state.decode is not None)
-    state = _step(parts, state, ego, limits)
+    follow = new_follow(model.spec, tracker, state.t)
+    epath, evel, control, _ = _move_ego(model.spec, state, ego, follow, tracker, limits, "policy")
+    state = _step(parts, state, epath, evel, control)
     return state, _observe(parts, state)
 
 
@@ -418,8 +516,8 @@ def observe(model: Model, state: SimState) -> Observation:
 @flax.struct.dataclass
 class SimResult:
     """A batch of closed-loop runs. fine_xy f32[B, Ts, A, 2], fine_heading f32[B, Ts, A], fine_valid bool[B, Ts, A]:
-    the simulated scenes at the stored rate (history from the log); xy, heading, valid [B, T, A, ...] at the
-    model's rate; map_tokens i32[B, T, M]; plan f32[B, F, 3] or None: the policy's open-loop plan at the current
+    the simulated scenes at the stored rate (history from the log); xy, heading, valid, velocity [B, T, A, ...] at
+    the model's rate (velocity: instantaneous, scene frame); map_tokens i32[B, T, M]; plan f32[B, F, 3] or None: the policy's open-loop plan at the current
     frame; nonfinite bool[B, T]: model frames whose ego output was not finite."""
 
     fine_xy: jax.Array
@@ -428,6 +526,7 @@ class SimResult:
     xy: jax.Array
     heading: jax.Array
     valid: jax.Array
+    velocity: jax.Array
     map_tokens: jax.Array
     plan: jax.Array | None
     nonfinite: jax.Array
@@ -435,16 +534,18 @@ class SimResult:
 
 @flax.struct.dataclass
 class RunCarry:
-    """The scan carry of `run`: the simulator state, the policy's state, the key, and which frames' ego outputs
-    were not finite (bool[T])."""
+    """The scan carry of `run`: the simulator state, the policy's state, the tracker's held reference, the key, and
+    which frames' ego outputs were not finite (bool[T])."""
 
     state: SimState
     policy_state: Any
+    follow: Follow
     key: jax.Array
     nonfinite: jax.Array
 
 
-def _run_one(parts: _Parts, policy: Policy, pparams, scene: SimScene, key, agents: str, limits: BicycleLimits):
+def _run_one(parts: _Parts, policy: Policy, pparams, scene: SimScene, key, agents: str, limits: BicycleLimits,
+             tracker: Tracker | None):
     spec = parts.spec
     state = _reset(parts, scene, agents)
     obs = _observe(parts, state)
@@ -456,24 +557,27 @@ def _run_one(parts: _Parts, policy: Policy, pparams, scene: SimScene, key, agent
         k, sub = jax.random.split(carry.key)
         o = _observe(parts, carry.state)
         ego, ps = policy.select(pparams, o, carry.policy_state, sub)
-        bad = ~jnp.all(jnp.isfinite(jnp.asarray(ego)))
+        leaves = jax.tree.leaves(ego)
+        bad = ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(jnp.asarray(x))) for x in leaves]))
         nonfinite = carry.nonfinite.at[carry.state.t + 1].set(bad)
-        st = _step(parts, carry.state, ego, limits, name=policy.name)
-        return RunCarry(state=st, policy_state=ps, key=k, nonfinite=nonfinite), None
+        epath, evel, control, follow = _move_ego(spec, carry.state, ego, carry.follow, tracker, limits, policy.name)
+        st = _step(parts, carry.state, epath, evel, control)
+        return RunCarry(state=st, policy_state=ps, follow=follow, key=k, nonfinite=nonfinite), None
 
-    init = RunCarry(state=state, policy_state=pstate, key=key, nonfinite=jnp.zeros(spec.num_frames, bool))
+    init = RunCarry(state=state, policy_state=pstate, follow=new_follow(spec, tracker, state.t), key=key,
+                    nonfinite=jnp.zeros(spec.num_frames, bool))
     final, _ = jax.lax.scan(body, init, None, length=spec.num_future)
     st = final.state
     return SimResult(fine_xy=st.fine_xy, fine_heading=st.fine_heading, fine_valid=st.fine_valid, xy=st.xy,
-                     heading=st.heading, valid=st.valid, map_tokens=st.map_tokens, plan=plan,
+                     heading=st.heading, valid=st.valid, velocity=st.velocity, map_tokens=st.map_tokens, plan=plan,
                      nonfinite=final.nonfinite)
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
 def _run_jit(params, rest, tok_params, pparams, scenes, keys, static):
-    model, policy, agents, with_model, limits = static
+    model, policy, agents, with_model, limits, tracker = static
     parts = _parts(model, params, rest, tok_params, with_model, policy.needs_map)
-    return jax.vmap(lambda sc, k: _run_one(parts, policy, pparams, sc, k, agents, limits))(scenes, keys)
+    return jax.vmap(lambda sc, k: _run_one(parts, policy, pparams, sc, k, agents, limits, tracker))(scenes, keys)
 
 
 @functools.lru_cache(maxsize=16)
@@ -486,12 +590,15 @@ def needs_model(policy: Policy, agents: str) -> bool:
 
 
 def run(model: Model, scenes: SimScene, policy, key: jax.Array, *, agents: str = "gpd", policy_params: Any = None,
-        limits: BicycleLimits = BicycleLimits(), check: bool = True) -> SimResult:
+        limits: BicycleLimits = BicycleLimits(), tracker: Tracker | None = Tracker(), check: bool = True
+        ) -> SimResult:
     """Closed-loop runs of `policy` on a batch of scenarios (SimScene [B, ...]) over the model's future frames,
     one `lax.scan` vmapped over the batch, compiled once per batch shape, policy and agent model.
 
     `policy_params` (default `policy.params`) is what the policy's functions receive as `params`: traced, so other
-    values of the same shapes (new weights, a different setting) reuse the compiled run.
+    values of the same shapes (new weights, a different setting) reuse the compiled run. The ego follows the
+    policy's output with `tracker` (replanning every `tracker.replan_every` model frames; `gpd_jax.sim.tracker`);
+    `tracker=None` places it on the output each frame.
 
     With `check`, a policy output that is not finite raises SimError naming the policy, the scenarios and frames.
     """
@@ -501,13 +608,22 @@ def run(model: Model, scenes: SimScene, policy, key: jax.Array, *, agents: str =
     b = np.shape(scenes.log_xy)[0]
     keys = jax.random.split(key, b)
     with_model = needs_model(policy, agents)
-    static = (_static_model_cached(model.graphdef, model.tokenizer, model.spec), policy, agents, with_model, limits)
+    static = (_static_model_cached(model.graphdef, model.tokenizer, model.spec), policy, agents, with_model, limits,
+              _check_tracker(tracker))
     tok_params = model.tokenizer.params if model.tokenizer is not None else None
     pparams = policy.params if policy_params is None else policy_params
     out = _run_jit(model.params, model.rest, tok_params, pparams, scenes, keys, static)
     if check:
         check_finite(out, policy.name)
     return out
+
+
+def _check_tracker(tracker):
+    if tracker is not None and not isinstance(tracker, Tracker):
+        raise SimError(f"tracker must be a gpd_jax.sim.Tracker or None; got {type(tracker).__name__}")
+    if tracker is not None and (not isinstance(tracker.replan_every, int) or tracker.replan_every < 1):
+        raise SimError(f"Tracker.replan_every must be an integer >= 1 (model frames), got {tracker.replan_every!r}")
+    return tracker
 
 
 def check_finite(out: SimResult, name: str) -> None:
@@ -528,15 +644,43 @@ def _reset_obs_jit(params, rest, tok_params, scenes, static):
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
-def _step_obs_jit(params, rest, tok_params, state, ego, static):
-    model, with_model, limits = static
+def _step_obs_jit(params, rest, tok_params, state, ego, follow, static):
+    model, with_model, limits, tracker = static
     parts = _parts(model, params, rest, tok_params, with_model)
-    state = jax.vmap(lambda st, e: _step(parts, st, e, limits))(state, ego)
-    return state, jax.vmap(lambda st: _observe(parts, st))(state)
+
+    def one(st, e, f):
+        epath, evel, control, f = _move_ego(model.spec, st, e, f, tracker, limits, "planner")
+        return _step(parts, st, epath, evel, control), f
+
+    state, follow = jax.vmap(one)(state, ego, follow)
+    return state, follow, jax.vmap(lambda st: _observe(parts, st))(state)
+
+
+def _host_ego(raw, b: int, shapes: dict, name: str):
+    """A host planner's output as numpy floats (an array, or a Plan of one), its shape checked against the batch."""
+    if isinstance(raw, Plan):
+        try:
+            poses = np.asarray(raw.poses, np.float32)
+        except (TypeError, ValueError) as e:
+            raise SimError(f"planner {name!r} returned a Plan whose poses are not an array of floats: {e}") from None
+        if poses.ndim != 3 or poses.shape[0] != b or poses.shape[2] != 3 or poses.shape[1] < 1:
+            raise SimError(f"planner {name!r} returned a Plan of shape {tuple(poses.shape)}; expected f32[{b}, F, 3] "
+                           f"(the batch's poses at the next F model frames)")
+        return Plan(poses=poses)
+    try:
+        ego = np.asarray(raw, np.float32)
+    except (TypeError, ValueError) as e:
+        raise SimError(f"planner {name!r} returned {type(raw).__name__}, not an array of floats: {e}") from None
+    if ego.shape[:1] != (b,) or tuple(ego.shape[1:]) not in shapes:
+        expected = ", ".join(f"[{b}, {', '.join(map(str, k))}] ({v})" for k, v in shapes.items())
+        raise SimError(f"planner {name!r} returned an array of shape {tuple(ego.shape)}; expected one ego per "
+                       f"scenario of the batch of {b}: {expected} or a sim.Plan")
+    return ego
 
 
 def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], Any], *, agents: str = "gpd",
-             with_model: bool = True, limits: BicycleLimits = BicycleLimits(), progress: bool = False) -> SimResult:
+             with_model: bool = True, limits: BicycleLimits = BicycleLimits(), tracker: Tracker | None = Tracker(),
+             progress: bool = False) -> SimResult:
     """Closed-loop runs of a batch of scenarios (SimScene [B, ...]) with a plain-Python planner in the loop.
 
     The planner is called once per model frame (`model.spec.num_future` calls) with the whole batch:
@@ -552,9 +696,11 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
     * f32[B, 3]: each scenario's next model-frame pose (x, y, heading; scene frame);
     * f32[B, 5]: pose and velocity (vx, vy) there;
     * f32[B, 2]: an action (acceleration m/s^2, steering angle rad) for the bicycle model (`limits`);
-    * f32[B, S, 3]: the S stored-rate poses up to the next model frame.
+    * f32[B, S, 3]: the S stored-rate poses up to the next model frame;
+    * `Plan(poses=f32[B, F, 3])`: poses at the next F model frames.
 
-    Batched, so the model's reset and step are each jitted once (per batch shape) and serve the whole batch; the
+    The ego follows them with `tracker` as in `run` (the planner is called every frame; its output is taken every
+    `tracker.replan_every` frames); `tracker=None` places the ego on them. Batched, so the model's reset and step are each jitted once (per batch shape) and serve the whole batch; the
     planner runs on the host in between. A planner for one scenario at a time loops over B itself. Example, a
     constant-velocity planner::
 
@@ -585,24 +731,24 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
         from tqdm import tqdm
         frames = tqdm(frames, desc="closed loop (host planner)")
     name = getattr(planner, "__name__", "planner")
+    _check_tracker(tracker)
+    follow = None
     for _ in frames:
         raw = planner(jax.device_get(obs))
-        try:
-            ego = np.asarray(raw, np.float32)
-        except (TypeError, ValueError) as e:
-            raise SimError(f"planner {name!r} returned {type(raw).__name__}, not an array of floats: {e}") from None
-        if ego.shape[:1] != (b,) or tuple(ego.shape[1:]) not in shapes:
-            expected = ", ".join(f"[{b}, {', '.join(map(str, k))}] ({v})" for k, v in shapes.items())
-            raise SimError(f"planner {name!r} returned an array of shape {tuple(ego.shape)}; expected one ego per "
-                           f"scenario of the batch of {b}: {expected}")
+        ego = _host_ego(raw, b, shapes, name)
+        flat = np.asarray(ego.poses if isinstance(ego, Plan) else ego)
         t1 = int(np.asarray(obs.t)[0]) + 1
-        nonfinite[:, t1] = ~np.isfinite(ego.reshape(b, -1)).all(-1)
+        nonfinite[:, t1] = ~np.isfinite(flat.reshape(b, -1)).all(-1)
         if nonfinite[:, t1].any():
             break
-        state, obs = _step_obs_jit(model.params, model.rest, tok_params, state, jnp.asarray(ego),
-                                   (sm, with_model, limits))
+        ego = jax.tree.map(jnp.asarray, ego)
+        if follow is None:
+            follow = jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), new_follow(model.spec, tracker, t1 - 1))
+        state, follow, obs = _step_obs_jit(model.params, model.rest, tok_params, state, ego, follow,
+                                           (sm, with_model, limits, tracker))
     out = SimResult(fine_xy=state.fine_xy, fine_heading=state.fine_heading, fine_valid=state.fine_valid,
-                    xy=state.xy, heading=state.heading, valid=state.valid, map_tokens=state.map_tokens, plan=None,
+                    xy=state.xy, heading=state.heading, valid=state.valid, velocity=state.velocity,
+                    map_tokens=state.map_tokens, plan=None,
                     nonfinite=jnp.asarray(nonfinite))
     check_finite(out, name)
     return out

@@ -11,8 +11,9 @@ shape compiles once):
   motion-planning task (no open-loop plan of its own: its open-loop score reads the run with GPD agents, the
   model's imagined future);
 * ``gpd_head``: the paper's fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the
-  current frame, run by its own backbone (a KV cache in the policy state): its first planned pose (velocity from
-  the plan's central difference); its open-loop plan is the head's 8 s trajectory at the current frame;
+  current frame, run by its own backbone (a KV cache in the policy state): its 8 s plan, a `Plan` the tracker
+  follows (without a tracker, the ego is placed on the plan's first second); its open-loop plan is the same
+  trajectory at the current frame;
   ``gpd_head_scratch`` is the same head trained without pre-training (the paper's ablation).
 """
 
@@ -28,6 +29,7 @@ from gpd_jax.checkpoint import Model
 from gpd_jax.decoding import Frame, advance, prefill
 from gpd_jax.sim.agents import IDMParams, idm_accel, pose_at, project
 from gpd_jax.sim.core import Observation, Policy, SimError
+from gpd_jax.sim.tracker import Plan
 from gpd_jax.spec import ModelSpec
 
 PLANNERS = ("log", "cv", "idm", "gpd", "gpd_head", "gpd_head_scratch")
@@ -121,7 +123,7 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
         raise SimError(f"gpd_head needs a model with the fine-tuned planning head (a config with a plan_head "
                        f"section); {head_model.path or 'the given model'} has none")
     graphdef, rest, spec = head_model.graphdef, head_model.rest, head_model.spec
-    h, t_total, period = spec.num_history, spec.num_frames, spec.frame_period_s
+    h, t_total = spec.num_history, spec.num_frames
 
     def frames(module, obs):
         vel = module.input_velocity(obs.velocity)
@@ -138,10 +140,7 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
         f = frames(module, obs)
         cur = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, obs.t, 0, keepdims=False), f)
         state = advance(module, state, cur, obs.t)
-        plan = plan_trajectory(module, state.hidden, obs.ego_pose)
-        nxt = plan[1, :2] if plan.shape[0] > 1 else 2 * plan[0, :2] - obs.ego_pose[:2]
-        vel = (nxt - obs.ego_pose[:2]) / (2 * period)
-        return jnp.concatenate([plan[0], vel]), state
+        return Plan(poses=plan_trajectory(module, state.hidden, obs.ego_pose)[: spec.num_future]), state
 
     def plan(params, obs, key):
         module = nnx.merge(graphdef, params, rest)

@@ -36,6 +36,7 @@ from gpd_jax.sim.agents import make_paths, project
 from gpd_jax.sim.core import AGENT_MODELS, Policy, SimError, SimResult, SimScene, as_policy, make_sim_scenes, run
 from gpd_jax.sim.policies import HEAD_PLANNERS, PLANNERS, make_policy
 from gpd_jax.sim.scores import cls_scores, ols_scores, road_queries
+from gpd_jax.sim.tracker import Tracker
 from gpd_jax.spec import ModelSpec
 
 COLUMNS = {"log": "NR-CLS", "idm": "R-CLS-idm", "gpd": "R-CLS-gpd"}
@@ -155,7 +156,8 @@ def _model_rate_plan(spec: ModelSpec, out: SimResult) -> jax.Array:
 def evaluate_planners(model: Model, scenes: Scene,
                       planners: Mapping[str, Any] | Sequence[Any] = ("log", "cv", "idm", "gpd"),
                       agents: Sequence[str] = ("log", "idm", "gpd"), *, batch_size: int = 8, seed: int = 0,
-                      progress: bool = False, keep_runs: int = 0, per_scenario: bool = False) -> dict:
+                      tracker: Tracker | None = Tracker(), progress: bool = False, keep_runs: int = 0,
+                      per_scenario: bool = False) -> dict:
     """Every planner against every agent model on stored-rate scenes (`gpd_jax.load_scenes`: Scene [n, ...] with
     road geometry and lane polylines), scored as `score` scores a run.
 
@@ -164,6 +166,7 @@ def evaluate_planners(model: Model, scenes: Scene,
     or a shipped one from `make_policy`), or a callable ``select(params, obs, state, key) -> (ego, state)``.
     agents: agent models among `AGENT_MODELS` (one column each). Scenes run in batches of `batch_size` (the last
     padded, so every batch has one shape and each planner x agent model compiles once); `seed` seeds the runs.
+    Every planner's output is followed by `tracker` (`run`'s; None places the ego on it).
 
     Returns the structure `python -m gpd_jax.plan evaluate` writes to planning.json: {"scenarios": n, "planners":
     {name: {"OLS": x, "NR-CLS": x, "R-CLS-idm": x, "R-CLS-gpd": x, "subscores": {column: {term: mean}}}},
@@ -207,7 +210,7 @@ def evaluate_planners(model: Model, scenes: Scene,
             plan = None
             for a in agents:
                 t0 = time.perf_counter()
-                out = run(model, sims, policy, bkey, agents=a)
+                out = run(model, sims, policy, bkey, agents=a, tracker=tracker)
                 jax.block_until_ready(out.fine_xy)
                 seconds[(p, a)] = seconds.get((p, a), 0.0) + time.perf_counter() - t0
                 sc = _cls_batch(spec, sims, out.fine_xy, out.fine_heading, out.fine_valid)
@@ -221,7 +224,7 @@ def evaluate_planners(model: Model, scenes: Scene,
                 if bar is not None:
                     bar.update(1)
             if plan is None:  # no plan of its own and no GPD-agent run: run one for its open-loop plan
-                plan = _model_rate_plan(spec, run(model, sims, policy, bkey, agents="gpd"))
+                plan = _model_rate_plan(spec, run(model, sims, policy, bkey, agents="gpd", tracker=tracker))
             _append(per[p], "OLS", _ols_batch(spec, sims, plan), hi - lo)
     if bar is not None:
         bar.close()
