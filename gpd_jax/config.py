@@ -136,6 +136,11 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
             first_frame=-1,        # plans trained from this frame on (-1: the current frame) to T - 2
             position_weight=1.0,
             heading_weight=5.73 / 5.0,  # the GPD's heading : position loss ratio
+            closed_loop_rounds=0,  # > 0 (cached features of a frozen backbone): DAgger rounds, evenly spread over
+                                   # the steps: the head drives the simulator (log agents, the plan tracker) on
+                                   # closed_loop_scenes training scenes, and the states it reaches, labelled with
+                                   # the log's future, join the training scenes
+            closed_loop_scenes=64,
         )
         c.train.backbone_lr_scale = 0.1  # the backbone's learning rate / the head's (0: frozen)
         c.train.gpd_loss_weight = 0.0    # > 0: also the GPD's teacher-forced loss (a second backbone pass)

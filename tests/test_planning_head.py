@@ -190,6 +190,12 @@ def test_loop_resume_export_and_pretrained_init(store_dir, tmp_path):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-6)
     with open(os.path.join(ft, "metrics.jsonl")) as f:
         assert any("plan_position" in json.loads(line) for line in f)
+    # A planning-head model of the same head config starts a run with its head too (more training on a trained
+    # head, e.g. closed-loop rounds).
+    again = str(tmp_path / "again")
+    train_and_evaluate(_loop_config(store_dir, os.path.join(ft, "export")), again, stop_after=0, quiet=True)
+    for a, b in zip(jax.tree.leaves(load_model(again).params), jax.tree.leaves(exported.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_scratch_config_does_not_load_pretrained(store_dir, tmp_path):
@@ -221,10 +227,11 @@ def test_scratch_config_does_not_load_pretrained(store_dir, tmp_path):
 
 def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, store_dir, tmp_path):
     """A frozen backbone's cached outputs train the head as the backbone itself would: the same loss and head
-    gradients; a stopped and resumed feature-cached run equals an uninterrupted one; a moving backbone is refused."""
+    gradients; a stopped and resumed feature-cached run with a closed-loop round equals an uninterrupted one; a
+    moving backbone is refused."""
     from gpd_jax.checkpoint import build_model, load_model
-    from gpd_jax.training.planning import (PlanFeatures, PlanTrainer, _features_jit, feature_batches, first_frame,
-                                           train_and_evaluate)
+    from gpd_jax.training.planning import (PlanFeatures, PlanTrainer, _features_jit, closed_loop_steps,
+                                           feature_batches, first_frame, train_and_evaluate)
 
     c = ml_collections.ConfigDict(head_config.to_dict())
     c.train.backbone_lr_scale = 0.0
@@ -250,15 +257,48 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
     with pytest.raises(ValueError, match="batch_size"):
         feature_batches(feats, 4, seed=0)
 
+    # With a closed-loop (DAgger) round halfway: at step 2 the head of that step drives the simulator on 3
+    # training scenes and the states it reached join the training scenes, kept in the workdir; the run stops past
+    # the round and resumes from it.
     def cfg():
         k = _loop_config(store_dir)
+        k.model.map_tokenizer, k.model.codebook_size = "map_tokenizer", 128   # the simulator encodes maps with it
         k.train.backbone_lr_scale, k.train.cache_features = 0.0, True
+        k.plan_head.closed_loop_rounds, k.plan_head.closed_loop_scenes = 1, 3
         return k
 
+    assert closed_loop_steps(cfg()) == [2]
     wd, full = str(tmp_path / "cached"), str(tmp_path / "cached_full")
-    assert train_and_evaluate(cfg(), wd, stop_after=2, quiet=True)["step"] == 2
+    assert train_and_evaluate(cfg(), wd, stop_after=3, quiet=True)["step"] == 3
+    with np.load(os.path.join(wd, "closed_loop", "round_1.npz")) as z:
+        assert z["hidden"].shape[0] == 3 and z["mask"].any() and np.isfinite(z["target"]).all()
     out = train_and_evaluate(cfg(), wd, quiet=True)
     assert out["step"] == 4 and np.isfinite(out["eval"]["plan_ade_current"])
     train_and_evaluate(cfg(), full, quiet=True)
     for x, y in zip(jax.tree.leaves(load_model(full).params), jax.tree.leaves(load_model(wd).params)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
+    bad = cfg()
+    bad.train.cache_features = False
+    with pytest.raises(ValueError, match="cache_features"):
+        train_and_evaluate(bad, str(tmp_path / "bad"), quiet=True)
+
+
+def test_closed_loop_targets_lead_back_to_the_log():
+    """A reached ego 1 m left of the logged one (same heading) is told to go back: every target lies 1 m to its
+    right at the log's positions; the log's own targets are unchanged by naming it the expert."""
+    from gpd_jax.synthetic import synthetic_scenes
+    from gpd_jax.training.planning import plan_targets
+
+    log = jax.tree.map(jnp.asarray, synthetic_scenes(0, 1, 6, 3, 4, 8, 16))
+    log = jax.tree.map(lambda x: x[0], log)
+    log = log.replace(heading=jnp.zeros_like(log.heading), valid=jnp.ones_like(log.valid))
+    reached = log.replace(xy=log.xy.at[:, 0, 1].add(1.0))
+    own, own_mask = plan_targets(log, 3, 2)
+    same, same_mask = plan_targets(log, 3, 2, log)
+    np.testing.assert_array_equal(np.asarray(own), np.asarray(same))
+    target, mask = plan_targets(reached, 3, 2, log)
+    np.testing.assert_array_equal(np.asarray(mask), np.asarray(own_mask))
+    m = np.asarray(mask)
+    np.testing.assert_allclose(np.asarray(target[..., 1])[m], np.asarray(own[..., 1])[m] - 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(target[..., 0])[m], np.asarray(own[..., 0])[m], atol=1e-5)
+

@@ -297,9 +297,9 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
               summary: Callable[[dict], str],
               next_batch: Callable[[int], Any] | None = None) -> dict[str, Any]:
     """The training steps of a run (stage 2 and the planning head's), from `start` to `train.steps` (or
-    `stop_after` more): batches from the seeded loader at the resumed step (or `next_batch(step)`, the batch of
-    step `step` + 1, e.g. of cached features: a pure function of the step, so a resumed run sees the same
-    batches), a jitted `trainer.train_step` on the device mesh, metrics every `log_every`, `validate(params,
+    `stop_after` more): batches from the seeded loader at the resumed step (or `next_batch(step, params)`, the
+    batch of step `step` + 1, e.g. of cached features: a pure function of the step and the parameters reached
+    there, so a resumed run sees the same batches), a jitted `trainer.train_step` on the device mesh, metrics every `log_every`, `validate(params,
     step)` every `eval_every`, checkpoints every `checkpoint_every` and on a stop (Ctrl-C, SIGTERM), the export
     when the run is complete.
 
@@ -338,7 +338,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
         try:
             while step < end and not stop.requested:
                 if next_batch is not None:
-                    view = next_batch(step)
+                    view = next_batch(step, state.params)
                 else:
                     view = spec.view(training_scene(next(it)))
                     if not np.all(view.map_valid):

@@ -49,11 +49,12 @@ import tqdm
 from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
-from gpd_jax.checkpoint import Model, build_model, load_model, model_spec
+from gpd_jax.checkpoint import Model, build_model, load_model, model_spec, resolve_tokenizer_path
 from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data.errors import DataError
 from gpd_jax.fsutil import atomic_write_json, atomic_write_text
+from gpd_jax.map_tokenizer import load_tokenizer
 from gpd_jax.model import count_params, forward
 from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
 from gpd_jax.scene import Scene, wrap_angle
@@ -77,21 +78,23 @@ def split_labels(params):
 
 
 # ----------------------------------------------------------------------------------------------- targets, loss
-def plan_targets(scene: Scene, num_future: int, first_frame: int):
+def plan_targets(scene: Scene, num_future: int, first_frame: int, expert: Scene | None = None):
     """The logged ego's next `num_future` poses from every frame, in that frame's ego frame.
 
-    scene: one unbatched Scene [T, A, ...] at the model's rate. Returns (target f32[T-1, F, 3] for source
-    frames t = 0 .. T-2, mask bool[T-1, F]: the ego valid at t and at t + 1 + k, t + 1 + k < T and
-    t >= first_frame)."""
+    scene: one unbatched Scene [T, A, ...] at the model's rate. expert: the scene whose ego gives the future poses
+    (default `scene` itself; a closed-loop run's scene is labelled with its log's ego: `closed_loop_features`).
+    Returns (target f32[T-1, F, 3] for source frames t = 0 .. T-2, mask bool[T-1, F]: the ego valid at t and the
+    expert's at t + 1 + k, t + 1 + k < T and t >= first_frame)."""
+    expert = scene if expert is None else expert
     t_total = scene.xy.shape[-3]
-    xy, heading, valid = scene.xy[:, 0], scene.heading[:, 0], scene.valid[:, 0]
+    xy, heading, valid = expert.xy[:, 0], expert.heading[:, 0], expert.valid[:, 0]
     src = jnp.arange(t_total - 1)
     idx = src[:, None] + 1 + jnp.arange(num_future)[None, :]          # [T-1, F]
     inside = idx < t_total
     idx_c = jnp.minimum(idx, t_total - 1)
-    pose = jnp.concatenate([xy[:-1], heading[:-1, None]], axis=-1)    # [T-1, 3]
+    pose = jnp.concatenate([scene.xy[:-1, 0], scene.heading[:-1, 0, None]], axis=-1)    # [T-1, 3]
     target = to_ego_frame(xy[idx_c], heading[idx_c], pose)
-    mask = inside & valid[idx_c] & valid[:-1, None] & (src >= first_frame)[:, None]
+    mask = inside & valid[idx_c] & scene.valid[:-1, 0, None] & (src >= first_frame)[:, None]
     return target, mask
 
 
@@ -176,17 +179,17 @@ def feature_batch_loss(model, feats: PlanFeatures, config) -> tuple[jax.Array, d
 
 
 @jax.jit
-def _features_jit(graphdef, params, rest, scenes: Scene):
+def _features_jit(graphdef, params, rest, scenes: Scene, expert: Scene | None = None):
     """Teacher-forced output tokens, plan targets and masks of every source frame: Scene [B, T, ...] ->
-    (f32[B, T-1, N, d], f32[B, T-1, F, 3], bool[B, T-1, F])."""
+    (f32[B, T-1, N, d], f32[B, T-1, F, 3], bool[B, T-1, F]); targets from `expert`'s ego where given."""
     module = nnx.merge(graphdef, params, rest)
     num_future = module.plan_head.num_future
 
-    def one(s):
-        target, mask = plan_targets(s, num_future, 0)
+    def one(s, e):
+        target, mask = plan_targets(s, num_future, 0, e)
         return backbone_hidden(module, s), target, mask
 
-    return jax.vmap(one)(scenes)
+    return jax.vmap(one)(scenes, scenes if expert is None else expert)
 
 
 def cache_features(model, config, data_dir: str, split: str, batch_size: int = 32,
@@ -210,6 +213,44 @@ def cache_features(model, config, data_dir: str, split: str, batch_size: int = 3
         bar.update(view.xy.shape[0])
     bar.close()
     return PlanFeatures(*(np.concatenate([o[i] for o in out]) for i in range(3)))
+
+
+def closed_loop_features(world: Model, policy, params, scenes: Scene, key: jax.Array, first: int,
+                         batch_size: int = 16) -> PlanFeatures:
+    """The planning head drives the closed-loop simulator and is labelled where it went (DAgger): states the head
+    reaches itself, with the log's future as their targets.
+
+    world: the GPD-with-head as a `Model` (its spec and map tokenizer; its backbone is the head's); policy: its
+    `gpd_jax.sim.gpd_head_policy`, run with `params` (so every round reuses one compiled run); scenes: Scene [n,
+    ...] at the stored rate with lane polylines. Each scene runs with log-replay agents and the plan tracker
+    (`gpd_jax.sim.run`); the model-rate frames it reached (the ego where the head drove it, the map encoded around
+    it) go through the frozen backbone, and the targets of frame t are the logged ego's next poses in the reached
+    ego's frame at t (`plan_targets` with the log as the expert). Returns PlanFeatures [n, K, ...] of source frames
+    first .. T-2, as `cache_features` (numpy)."""
+    from gpd_jax import sim
+
+    n = int(np.shape(scenes.xy)[0])
+    batch_size = min(batch_size, n)
+    graphdef, _, rest = nnx.split(world.module, nnx.Param, ...)
+    out: list[tuple[np.ndarray, ...]] = []
+    for lo in range(0, n, batch_size):
+        hi = min(n, lo + batch_size)
+        sub = jax.tree.map(lambda x: np.asarray(x)[lo:hi], scenes)
+        if hi - lo < batch_size:  # one batch shape: one compiled run
+            sub = jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], batch_size - (hi - lo), 0)]), sub)
+        sims = sim.make_sim_scenes(world, sub)
+        run = sim.run(world, sims, policy, jax.random.fold_in(key, lo), agents="log", policy_params=params)
+        reached = sims.view.replace(xy=run.xy, heading=run.heading, valid=run.valid, velocity=run.velocity,
+                                    map_tokens=run.map_tokens)
+        h, t, m = jax.device_get(_features_jit(graphdef, params, rest, reached, sims.view))
+        out.append((h[: hi - lo, first:], t[: hi - lo, first:], m[: hi - lo, first:]))
+    return PlanFeatures(*(np.concatenate([o[i] for o in out]) for i in range(3)))
+
+
+def closed_loop_steps(config) -> list[int]:
+    """The steps at which the closed-loop rounds run: round r of R at r x steps / (R + 1) (r = 1 .. R)."""
+    rounds, steps = int(config.plan_head.closed_loop_rounds), int(config.train.steps)
+    return [r * steps // (rounds + 1) for r in range(1, rounds + 1)]
 
 
 def first_frame(config) -> int:
@@ -293,12 +334,16 @@ def _plan_steps(graphdef, config, tx, frozen: bool, features: bool, donate: bool
 
 def pretrained_params(path: str, config, template):
     """`template` (a GPD-with-head params tree) with every backbone leaf taken from the GPD at `path` (exported or
-    a workdir; same `model` config, map tokenizer path aside); the head keeps its initialisation."""
+    a workdir; same `model` config, map tokenizer path aside). The head keeps its initialisation, unless `path` is
+    a planning-head model with the same `plan_head` config: then its head goes on training (closed-loop rounds
+    on a trained head)."""
     src = load_model(path)
     diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
-    out, missing = graft_params(template, src.params, is_head_path)
+    shape_keys = ("num_future", "num_heads", "ffn_dim", "position_scale")
+    with_head = HEAD in src.config and all(src.config[HEAD][k] == config[HEAD][k] for k in shape_keys)
+    out, missing = graft_params(template, src.params, (lambda p: False) if with_head else is_head_path)
     if missing:
         raise ValueError(f"train.init_from {path}: no parameters for {missing[:5]}")
     return out
@@ -342,18 +387,97 @@ class PlanValidator:
         return acc
 
 
-def feature_batches(feats: PlanFeatures, batch_size: int, seed: int) -> Callable[[int], PlanFeatures]:
-    """`next_batch(step)` for `run_steps`: `batch_size` scenes of `feats` drawn without replacement by a
-    generator seeded with (seed, step), so a resumed run draws exactly the batches it would have."""
-    n = feats.hidden.shape[0]
-    if n < batch_size:
-        raise ValueError(f"train.batch_size {batch_size} is larger than the {n} training scenes")
+class FeaturePool:
+    """Training scenes as cached features: the logged ones, then those of each closed-loop round as it comes
+    (`add`); `take(indices)` gathers scenes across the parts without copying the pool."""
 
-    def next_batch(step: int) -> PlanFeatures:
-        idx = np.sort(np.random.default_rng([int(seed), int(step)]).choice(n, batch_size, replace=False))
-        return jax.tree.map(lambda x: x[idx], feats)
+    def __init__(self, feats: PlanFeatures):
+        self.parts = [feats]
+
+    def __len__(self) -> int:
+        return sum(p.hidden.shape[0] for p in self.parts)
+
+    def add(self, feats: PlanFeatures) -> None:
+        self.parts.append(feats)
+
+    def take(self, indices: np.ndarray) -> PlanFeatures:
+        got, lo = [], 0
+        for p in self.parts:
+            n = p.hidden.shape[0]
+            sel = indices[(indices >= lo) & (indices < lo + n)] - lo
+            if sel.size:
+                got.append(jax.tree.map(lambda x: x[sel], p))
+            lo += n
+        return jax.tree.map(lambda *xs: np.concatenate(xs), *got)
+
+
+def feature_batches(pool: FeaturePool | PlanFeatures, batch_size: int, seed: int,
+                    before: Callable[[int, Any], None] | None = None) -> Callable[[int, Any], PlanFeatures]:
+    """`next_batch(step, params)` for `run_steps`: `batch_size` scenes of the pool drawn without replacement by a
+    generator seeded with (seed, step), so a resumed run draws exactly the batches it would have. `before(step,
+    params)` runs first (the closed-loop rounds grow the pool there)."""
+    pool = pool if isinstance(pool, FeaturePool) else FeaturePool(pool)
+    if len(pool) < batch_size:
+        raise ValueError(f"train.batch_size {batch_size} is larger than the {len(pool)} training scenes")
+
+    def next_batch(step: int, params=None) -> PlanFeatures:
+        if before is not None:
+            before(step, params)
+        idx = np.sort(np.random.default_rng([int(seed), int(step)]).choice(len(pool), batch_size, replace=False))
+        return pool.take(idx)
 
     return next_batch
+
+
+def closed_loop_rounds(config, pool: FeaturePool, world: Model, data_dir: str, workdir: str, lead: bool,
+                       quiet: bool) -> Callable[[int, Any], None]:
+    """`before(step, params)` for `feature_batches`: at each closed-loop step (`closed_loop_steps`) the head of
+    that step drives `plan_head.closed_loop_scenes` training scenes (a seeded draw per round) and the reached
+    states join the pool (`closed_loop_features`). Each round is kept in WORKDIR/closed_loop/round_R.npz, so a
+    resumed run reloads the rounds it passed and redoes none (the head of a later step cannot redo them)."""
+    from gpd_jax import sim
+
+    ph, split = config.plan_head, config.data.train_split
+    steps = closed_loop_steps(config)
+    n_scenes = int(ph.closed_loop_scenes)
+    total = len(data_loader.SplitSource(data_dir, split))
+    first = first_frame(config)
+    policy = sim.gpd_head_policy(world)
+    folder = os.path.join(workdir, "closed_loop")
+    done: set[int] = set()
+
+    def path(r: int) -> str:
+        return os.path.join(folder, f"round_{r}.npz")
+
+    def before(step: int, params) -> None:
+        for r, at in enumerate(steps, 1):
+            if r in done or step < at:
+                continue
+            if os.path.exists(path(r)):
+                with np.load(path(r), allow_pickle=False) as z:
+                    feats = PlanFeatures(hidden=z["hidden"], target=z["target"], mask=z["mask"])
+            elif step == at:
+                t0 = time.perf_counter()
+                idx = np.sort(np.random.default_rng([int(config.seed), 7, r]).choice(
+                    total, min(n_scenes, total), replace=False))
+                scenes = data_loader.load_split(data_dir, split, with_polylines=True, indices=idx)[0]
+                feats = closed_loop_features(world, policy, params, scenes,
+                                             jax.random.fold_in(jax.random.key(int(config.seed)), r), first)
+                if lead:
+                    os.makedirs(folder, exist_ok=True)
+                    tmp = path(r) + ".tmp.npz"
+                    np.savez(tmp, hidden=feats.hidden, target=feats.target, mask=feats.mask)
+                    os.replace(tmp, path(r))
+                if lead and not quiet:
+                    print(f"step {step}: closed-loop round {r}: the head drove {len(idx)} scenes "
+                          f"({time.perf_counter() - t0:.0f} s); {len(pool) + len(idx)} training scenes")
+            else:
+                raise DataError(path(r), f"closed-loop round {r} (step {at}) is missing and the run is past it "
+                                f"(step {step}); start a new workdir")
+            pool.add(feats)
+            done.add(r)
+
+    return before
 
 
 # ----------------------------------------------------------------------------------------------- training
@@ -385,6 +509,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     spec = model_spec(config)
     model = build_model(config)
     use_features = bool(tc.cache_features)
+    if int(config.plan_head.closed_loop_rounds) > 0 and not use_features:
+        raise ValueError("plan_head.closed_loop_rounds trains the head on states it reaches itself over a frozen "
+                         "backbone: it needs train.cache_features = True (and train.backbone_lr_scale = 0)")
     trainer = PlanTrainer(model, config, features=use_features)
     state = trainer.init_state(trainer.initial_params)
     mgr = checkpoint_manager(workdir, int(tc.keep_checkpoints))
@@ -401,7 +528,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
         backbone = nnx.merge(trainer.graphdef, state.params, trainer.rest)
         t0 = time.perf_counter()
         feats = cache_features(backbone, config, data_dir, config.data.train_split, quiet=quiet or not lead)
-        next_batch = feature_batches(feats, int(tc.batch_size), int(config.seed))
+        pool = FeaturePool(feats)
+        before = None
+        if int(config.plan_head.closed_loop_rounds) > 0:
+            tok = resolve_tokenizer_path(config.model.map_tokenizer) if config.model.map_tokenizer else ""
+            if not tok:
+                raise ValueError("plan_head.closed_loop_rounds: the simulator encodes the map around the ego with "
+                                 "the model's map tokenizer, and model.map_tokenizer is empty")
+            world = Model.from_module(backbone, config, tokenizer=load_tokenizer(tok))
+            before = closed_loop_rounds(config, pool, world, data_dir, workdir, lead, quiet)
+        next_batch = feature_batches(pool, int(tc.batch_size), int(config.seed), before)
         if int(tc.eval_every) > 0:
             validator = PlanValidator.of_features(
                 trainer, cache_features(backbone, config, val_dir, config.data.val_split, quiet=quiet or not lead),
