@@ -136,12 +136,26 @@ class MapTokenizer:
         """Map tokens of every frame of a batch of scenes, compiled once per shape: the one way scenes get their
         missing map tokens (`gpd_jax.checkpoint.Model.prepare`). polylines f32[B, L, P, 2], polyline_valid
         bool[B, L, P] (scene frame), poses f32[B, T, 3] the ego of every frame -> i32[B, T, M]."""
-        return _encode_frames(self, self.params, polylines, polyline_valid, poses)
+        return _encode_frames(_structure(self), self.params, polylines, polyline_valid, poses)
 
     def decode_tokens(self, tokens) -> tuple[jax.Array, jax.Array]:
         """`decode` with this tokenizer's parameters, compiled once per shape: tokens i32[..., M] ->
         (points f32[..., Q, P, 2], existence logits f32[..., Q])."""
-        return _decode_tokens(self, self.params, tokens)
+        return _decode_tokens(_structure(self), self.params, tokens)
+
+
+def _structure(tok: MapTokenizer) -> MapTokenizer:
+    """The one params-free `MapTokenizer` standing for every tokenizer with `tok`'s module structure and config:
+    the static argument of the compiled `encode_frames` / `decode_tokens`. A `MapTokenizer` compares by identity,
+    so keyed on `tok` itself every load of the same tokenizer (each a new object: every `encode` command, every
+    `load_model`) traced and compiled those functions again for shapes already compiled."""
+    key = (tok.graphdef, tok.config.to_json())
+    if key not in _STRUCTURES:
+        _STRUCTURES[key] = MapTokenizer(config=tok.config, graphdef=tok.graphdef, params=None)
+    return _STRUCTURES[key]
+
+
+_STRUCTURES: dict[tuple[Any, str], MapTokenizer] = {}
 
 
 @functools.partial(jax.jit, static_argnames=("tok",))

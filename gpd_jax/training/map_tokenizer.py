@@ -24,6 +24,7 @@ from typing import Any, Iterator, NamedTuple
 import jax
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 import optax
 import tqdm
 from flax import nnx
@@ -147,7 +148,11 @@ def restore_or_init(config, workdir, graphdef, params, tx, mgr, kmeans_done: boo
                        jnp.full((num_codes,), 1.0 / num_codes, jnp.float32), jnp.asarray(kmeans_done))
     if mgr.latest_step() is None:
         return state, False
-    return TrainState(**restore_state(mgr, _to_tree(state))), True
+    # orbax hands back arrays committed to a device, a fresh state's are not; jit compiles per argument placement,
+    # so a run resumed in the process that started it (`stop_after`, then again) compiled its train and eval steps
+    # a second time. Uncommitted like a fresh state, the restored one reuses them.
+    restored = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), restore_state(mgr, _to_tree(state)))
+    return TrainState(**restored), True
 
 
 def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
