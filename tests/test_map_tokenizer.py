@@ -23,6 +23,14 @@ def small_config(*extra):
     return load_config(os.path.join(ROOT, "configs/map_tokenizer.py:test"), list(extra))
 
 
+# The training tests' one config: the steps of test_training_steps_lower_the_loss and the stopped and resumed runs
+# of test_train_checkpoint_resume_and_encode_decode are one compiled train step (`compiled_steps`: built once per
+# process, and this file runs in one process). Only the step count enters the step's program (the schedule); the
+# other settings are the loop's.
+TRAIN_ARGS = ("--config.train.num_steps=30", "--config.train.checkpoint_every=1", "--config.train.eval_every=2",
+              "--config.train.restart_every=1")
+
+
 def test_quantize_straight_through():
     cb = jnp.array([[0.0, 0.0], [1.0, 1.0], [-1.0, 2.0]])
     z = jnp.array([[0.9, 1.2], [-0.1, 0.1], [-0.8, 1.7]])
@@ -117,13 +125,15 @@ def test_sine_position_code():
 
 def test_training_steps_lower_the_loss():
     import optax
-    from gpd_jax.training.map_tokenizer import TrainState, build_model, make_optimizer, make_train_step
-    cfg = small_config("--config.train.num_steps=30")
+    from gpd_jax.training.map_tokenizer import TrainState, build_model, compiled_steps, make_optimizer
+    cfg = small_config(*TRAIN_ARGS)
     graphdef, params = build_model(cfg)
     tx = make_optimizer(cfg.train, params)
     k = cfg.model.num_codes
-    state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params), jnp.full((k,), 1 / k), jnp.ones((), bool))
-    step = jax.jit(make_train_step(graphdef, cfg, tx))
+    # usage float32 as the step returns it (a weakly typed one compiled the step twice: for the first call and the rest)
+    state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params), jnp.full((k,), 1 / k, jnp.float32),
+                       jnp.ones((), bool))
+    step, _ = compiled_steps(graphdef, cfg, tx)  # the train step train_and_evaluate runs (donates the state)
     batch = synthetic_lanes(7, 4)
     losses = []
     for _ in range(12):
@@ -138,9 +148,9 @@ def test_training_steps_lower_the_loss():
 def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     from gpd_jax.training.map_tokenizer import train_and_evaluate
     wd = str(tmp_path / "wd")
-    # one config for the stopped run and its resumption: one compiled train step serves both
-    cfg = small_config("--config.train.num_steps=3", "--config.train.checkpoint_every=1",
-                       "--config.train.eval_every=2", "--config.train.restart_every=1")
+    # one config for the stopped run and its resumption (and test_training_steps_lower_the_loss): one compiled train
+    # step serves them all
+    cfg = small_config(*TRAIN_ARGS)
     metrics = train_and_evaluate(cfg, wd, stop_after=2)
     for key in ("f1", "lateral", "chamfer", "chamfer_corrected", "codebook_usage", "perplexity"):
         assert key in metrics
@@ -149,7 +159,7 @@ def test_train_checkpoint_resume_and_encode_decode(tmp_path):
     assert list(metrics["recall_by_gt_ends"]) == list(END_LABELS)
     assert sum(metrics["gt_lines_by_ends"].values()) == sum(metrics["gt_lines_by_length"].values()) > 0
     tok = load_tokenizer(wd)
-    train_and_evaluate(cfg, wd)  # resumes at step 2, runs one step
+    train_and_evaluate(cfg, wd, stop_after=1)  # resumes at step 2, runs one step
     lines = open(os.path.join(wd, "metrics.jsonl")).read().splitlines()
     assert any('"step": 3' in ln for ln in lines)
     tok3 = load_tokenizer(wd)
