@@ -350,6 +350,51 @@ def lane_follow(lanes: jax.Array, lane_valid: jax.Array, xy: jax.Array, directio
     return pts[..., 1:, :] + rotate(off[..., None, :], turn), turn, lane_h[..., 1:], use
 
 
+def project_on_path(path_xy: jax.Array, path_s: jax.Array, q: jax.Array):
+    """Projects points q f32[Q, 2] on one path (xy f32[P, 2], s f32[P]): (arc f32[Q], lateral distance f32[Q],
+    unit tangent f32[Q, 2])."""
+    a, b = path_xy[:-1], path_xy[1:]
+    ab = b - a
+    len2 = jnp.sum(ab * ab, -1)
+    t = jnp.clip(jnp.sum((q[:, None] - a[None]) * ab[None], -1) / jnp.maximum(len2, 1e-9)[None], 0.0, 1.0)
+    foot = a[None] + t[..., None] * ab[None]
+    d = jnp.linalg.norm(q[:, None] - foot, axis=-1)                              # [Q, P-1]
+    d = jnp.where(len2[None] > 1e-9, d, jnp.inf)
+    d = jnp.where(jnp.isfinite(jnp.min(d, -1, keepdims=True)), d, jnp.linalg.norm(q[:, None] - a[None], axis=-1))
+    i = jnp.argmin(d, axis=-1)
+    seg_len = jnp.sqrt(len2)
+    arc = path_s[i] + jnp.take_along_axis(t, i[:, None], 1)[:, 0] * seg_len[i]
+    tangent = ab[i] / jnp.maximum(seg_len[i], 1e-6)[:, None]
+    return arc, jnp.take_along_axis(d, i[:, None], 1)[:, 0], tangent
+
+
+def pose_on_path(path_xy: jax.Array, path_heading: jax.Array, path_s: jax.Array, s: jax.Array):
+    """Pose on one path at arc s f32[]: (xy f32[2], heading f32[]); the heading interpolates the logged ones."""
+    p = path_s.shape[0]
+    i = jnp.clip(jnp.searchsorted(path_s, s, side="right") - 1, 0, p - 2)
+    seg = path_s[i + 1] - path_s[i]
+    frac = jnp.where(seg > 1e-6, jnp.clip((s - path_s[i]) / jnp.maximum(seg, 1e-6), 0.0, 1.0), 0.0)
+    xy = path_xy[i] + frac * (path_xy[i + 1] - path_xy[i])
+    h = _wrap(path_heading[i] + frac * _wrap(path_heading[i + 1] - path_heading[i]))
+    return xy, h
+
+
+def route_ahead(path_xy: jax.Array, path_s: jax.Array, pose: jax.Array, num_points: int,
+                spacing_m: float) -> jax.Array:
+    """Where a path goes from a pose on (or beside) it: the points `spacing_m`, 2 `spacing_m`, ... `num_points`
+    `spacing_m` metres of arc ahead of the pose's projection on the path, in the pose's frame (x along its
+    heading, y to its left). path_xy f32[P, 2], path_s f32[P] (arc length, non-decreasing), pose f32[3] ->
+    f32[num_points, 2]. Past the path's end the points stay at its end (extend paths as far as you need)."""
+    s0, _, _ = project_on_path(path_xy, path_s, pose[None, :2])
+    s = s0[0] + spacing_m * jnp.arange(1, num_points + 1, dtype=path_xy.dtype)
+    p = path_s.shape[0]
+    i = jnp.clip(jnp.searchsorted(path_s, s, side="right") - 1, 0, p - 2)
+    seg = path_s[i + 1] - path_s[i]
+    frac = jnp.where(seg > 1e-6, jnp.clip((s - path_s[i]) / jnp.maximum(seg, 1e-6), 0.0, 1.0), 0.0)
+    xy = path_xy[i] + frac[:, None] * (path_xy[i + 1] - path_xy[i])
+    return rotate(xy - pose[:2], -pose[2])
+
+
 def _wrap(a: jax.Array) -> jax.Array:
     """Angles wrapped to [-pi, pi) (`gpd_jax.scene.wrap_angle`; the bottom layer's modules do not import each
     other)."""

@@ -151,3 +151,16 @@ def test_validate_and_scene_field():
     sub = batched.replace(road=two).validate().subsample(stride=2, num_frames=3, num_agents=2)
     assert sub.road is two
     assert batched.replace(road=two).slice_frames(1, 3).road is two
+
+
+def test_route_ahead_in_the_poses_frame():
+    """Points every 5 m along an L-shaped path ahead of a pose beside it, in the pose's frame; they stop at the
+    path's end."""
+    from gpd_jax.geometry import route_ahead
+
+    xy = jnp.array([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0]])
+    s = jnp.array([0.0, 20.0, 40.0])
+    pts = np.asarray(route_ahead(xy, s, jnp.array([10.0, 1.0, 0.0]), 7, 5.0))       # 1 m left of the path
+    np.testing.assert_allclose(pts, [[5, -1], [10, -1], [10, 4], [10, 9], [10, 14], [10, 19], [10, 19]], atol=1e-5)
+    turned = np.asarray(route_ahead(xy, s, jnp.array([10.0, 0.0, np.pi / 2]), 2, 5.0))  # facing +y: x ahead is right
+    np.testing.assert_allclose(turned, [[0, -5], [0, -10]], atol=1e-5)

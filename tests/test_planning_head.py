@@ -73,6 +73,20 @@ def test_head_shapes_frames_and_one_compile(head_config):
     assert float(jnp.max(jnp.abs(plan_fn(params, other, pose)[0] - plan))) > 1e-4
     plan_fn(params, hidden + 1.0, pose)
 
+    # A head that reads the route: it starts as the head without one (the route's output layer is zero) and, once
+    # that layer moves, where the route goes changes the plan; a missing or misshapen route is refused.
+    c = ml_collections.ConfigDict(head_config.to_dict())
+    c.plan_head.route_points = 3
+    routed = build_model(c).plan_head
+    with pytest.raises(ValueError, match="route of 3 points"):
+        routed(hidden)
+    with pytest.raises(ValueError, match="reads no route"):
+        model.plan_head(hidden, jnp.zeros((2, 3, 3, 2)))
+    left, right = jnp.zeros((2, 3, 3, 2)).at[..., 1].set(5.0), jnp.zeros((2, 3, 3, 2)).at[..., 1].set(-5.0)
+    np.testing.assert_array_equal(np.asarray(routed(hidden, left)), np.asarray(routed(hidden, right)))
+    routed.route_out.kernel[...] = 0.1 * jax.random.normal(jax.random.key(3), routed.route_out.kernel[...].shape)
+    assert float(jnp.max(jnp.abs(routed(hidden, left) - routed(hidden, right)))) > 1e-3
+
 
 def test_targets_in_each_frames_ego_frame():
     from gpd_jax.scene import Scene
@@ -265,6 +279,7 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
         k.model.map_tokenizer, k.model.codebook_size = "map_tokenizer", 128   # the simulator encodes maps with it
         k.train.backbone_lr_scale, k.train.cache_features = 0.0, True
         k.plan_head.closed_loop_rounds, k.plan_head.closed_loop_scenes = 1, 3
+        k.plan_head.route_points = 4                                            # and the head reads the route
         return k
 
     assert closed_loop_steps(cfg()) == [2]
@@ -272,6 +287,7 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
     assert train_and_evaluate(cfg(), wd, stop_after=3, quiet=True)["step"] == 3
     with np.load(os.path.join(wd, "closed_loop", "round_1.npz")) as z:
         assert z["hidden"].shape[0] == 3 and z["mask"].any() and np.isfinite(z["target"]).all()
+        assert z["route"].shape == z["target"].shape[:2] + (4, 2) and np.isfinite(z["route"]).all()
     out = train_and_evaluate(cfg(), wd, quiet=True)
     assert out["step"] == 4 and np.isfinite(out["eval"]["plan_ade_current"])
     train_and_evaluate(cfg(), full, quiet=True)
@@ -279,7 +295,10 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
     bad = cfg()
     bad.train.cache_features = False
-    with pytest.raises(ValueError, match="cache_features"):
+    with pytest.raises(ValueError, match="route_points.*cache_features"):
+        train_and_evaluate(bad, str(tmp_path / "bad"), quiet=True)
+    bad.plan_head.route_points = 0
+    with pytest.raises(ValueError, match="closed_loop_rounds.*cache_features"):
         train_and_evaluate(bad, str(tmp_path / "bad"), quiet=True)
 
 

@@ -5,7 +5,8 @@ token"): one transformer decoder layer that reads a frame's output tokens and re
     plan = plan_trajectory(head, hidden)                 # hidden f32[..., N, d] -> f32[..., F, 3]
     plan = plan_trajectory(head, hidden, ego_pose)       # the same in the scene frame (ego_pose f32[..., 3])
 
-The layer: F learned waypoint queries, each plus a projection of the ego token, attend to each other
+The layer: F learned waypoint queries, each plus a projection of the ego token (and, with `route_points` > 0, an
+MLP of where the route goes: `route_ahead`, the points every `route_spacing_m` metres along it), attend to each other
 (self-attention), then to the frame's N tokens (cross-attention: map, ego and agents of the current frame,
 whose hidden states already carry the history through the backbone's causal attention), then a GELU FFN
 (pre-LN residual blocks, as the backbone's). A small MLP turns each query into (dx, dy, cos, sin): the
@@ -44,10 +45,13 @@ class PlanningHead(nnx.Module):
       ego_slot: index of the ego token among a frame's N tokens (M, the number of map tokens).
       position_scale: metres per unit of the displacement output (initial outputs are O(1)).
       rngs: parameter initialisation keys.
+      route_points: R > 0 reads the route (the ego's frame, f32[..., R, 2]: `gpd_jax.geometry.route_ahead`); 0 the
+        paper's head, without one.
+      route_spacing_m: metres of route between those points.
     """
 
     def __init__(self, d_model: int, num_future: int, num_heads: int, ffn_dim: int, ego_slot: int,
-                 rngs: nnx.Rngs, position_scale: float = 10.0):
+                 rngs: nnx.Rngs, position_scale: float = 10.0, route_points: int = 0, route_spacing_m: float = 5.0):
         d = int(d_model)
         if d % int(num_heads):
             raise ValueError(f"plan_head: d_model {d} is not divisible by num_heads {num_heads}")
@@ -57,6 +61,11 @@ class PlanningHead(nnx.Module):
         self.num_heads = int(num_heads)
         self.ego_slot = int(ego_slot)
         self.position_scale = float(position_scale)
+        self.route_points = int(route_points)
+        self.route_spacing_m = float(route_spacing_m)
+        if self.route_points:
+            self.route_in = nnx.Linear(2 * self.route_points, d, rngs=rngs)
+            self.route_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros, rngs=rngs)  # starts as no route
         self.queries = nnx.Param(0.02 * jax.random.normal(rngs.params(), (self.num_future, d)))
         self.ego_in = nnx.Linear(d, d, rngs=rngs)
         self.ln_mem = nnx.LayerNorm(d, rngs=rngs)
@@ -80,20 +89,30 @@ class PlanningHead(nnx.Module):
         return cls(d_model=int(model_cfg.d_model), num_future=int(head_cfg.num_future),
                    num_heads=int(head_cfg.num_heads), ffn_dim=int(head_cfg.ffn_dim),
                    ego_slot=int(model_cfg.num_map_tokens), rngs=rngs,
-                   position_scale=float(head_cfg.position_scale))
+                   position_scale=float(head_cfg.position_scale), route_points=int(head_cfg.route_points),
+                   route_spacing_m=float(head_cfg.route_spacing_m))
 
     def _split(self, x):
         return x.reshape(x.shape[:-1] + (self.num_heads, x.shape[-1] // self.num_heads))
 
-    def __call__(self, hidden):
-        """hidden f32[..., N, d] (one frame's backbone outputs, before the backbone's final LayerNorm) ->
-        f32[..., F, 3] (x, y, heading) in the ego frame of that frame."""
+    def __call__(self, hidden, route=None):
+        """hidden f32[..., N, d] (one frame's backbone outputs, before the backbone's final LayerNorm), route
+        f32[..., R, 2] (a route head only: where the route goes, in that frame's ego frame) -> f32[..., F, 3] (x, y,
+        heading) in the ego frame of that frame."""
         if hidden.ndim < 2 or hidden.shape[-2] <= self.ego_slot:
             raise ValueError(f"plan_head: hidden must be f32[..., N, d] with N > ego slot {self.ego_slot}, "
                              f"got shape {hidden.shape}")
+        if (route is None) != (self.route_points == 0) or (
+                route is not None and tuple(route.shape[-2:]) != (self.route_points, 2)):
+            wants = (f"a route of {self.route_points} points (f32[..., {self.route_points}, 2])"
+                     if self.route_points else "no route (plan_head.route_points is 0)")
+            raise ValueError(f"plan_head: reads {wants}; got {None if route is None else tuple(route.shape)}")
         mem = self.ln_mem(hidden)
         ego = mem[..., self.ego_slot, :]
         q = self.queries[...] + self.ego_in(ego)[..., None, :]                    # [..., F, d]
+        if route is not None:
+            r = route.reshape(route.shape[:-2] + (2 * self.route_points,)) / self.position_scale
+            q = q + self.route_out(jax.nn.gelu(self.route_in(r)))[..., None, :]
         s = self.self_qkv(self.ln_self(q))
         sq, sk, sv = (self._split(a) for a in jnp.split(s, 3, axis=-1))
         q = q + self.self_out(_attend(sq, sk, sv).reshape(q.shape))
@@ -125,7 +144,7 @@ def to_ego_frame(xy, heading, ego_pose):
     return jnp.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(heading - ego_pose[..., 2:3])], axis=-1)
 
 
-def plan_trajectory(head, hidden, ego_pose=None):
+def plan_trajectory(head, hidden, ego_pose=None, route=None):
     """The planned ego trajectory from one frame's backbone output tokens.
 
     Args:
@@ -134,6 +153,8 @@ def plan_trajectory(head, hidden, ego_pose=None):
       hidden: f32[..., N, d] the frame's output tokens (map slots, then the ego at slot M, then agents), e.g.
         `gpd_jax.decoding.DecodeState.hidden` after the frame was appended.
       ego_pose: optional f32[..., 3] the ego's (x, y, heading) at that frame in the scene frame.
+      route: f32[..., R, 2] for a head that reads the route (`PlanningHead.route_points` = R): where it goes, in
+        the ego frame (`gpd_jax.geometry.route_ahead`).
     Returns:
       f32[..., F, 3] (x, y, heading) of the ego at the next F model frames: in the ego's frame at the read
       frame, or in the scene frame when `ego_pose` is given.
@@ -142,5 +163,5 @@ def plan_trajectory(head, hidden, ego_pose=None):
     if not isinstance(head, PlanningHead):
         raise TypeError(f"plan_trajectory needs a PlanningHead or a model with one (.plan_head), got "
                         f"{type(head).__name__}")
-    plan = head(hidden)
+    plan = head(hidden, route)
     return plan if ego_pose is None else to_scene_frame(plan, ego_pose)

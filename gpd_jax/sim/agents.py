@@ -24,7 +24,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from gpd_jax.scene import wrap_angle
+from gpd_jax.geometry import pose_on_path, project_on_path
 
 EXTENSION_M = 200.0
 
@@ -95,35 +95,6 @@ def make_paths(xy: jax.Array, heading: jax.Array, valid: jax.Array, speed: jax.A
                  end_s=end_s, v0=v0)
 
 
-def project(path_xy: jax.Array, path_s: jax.Array, q: jax.Array):
-    """Projects points q f32[Q, 2] on one path (xy f32[P, 2], s f32[P]): (arc f32[Q], lateral distance f32[Q],
-    unit tangent f32[Q, 2])."""
-    a, b = path_xy[:-1], path_xy[1:]
-    ab = b - a
-    len2 = jnp.sum(ab * ab, -1)
-    t = jnp.clip(jnp.sum((q[:, None] - a[None]) * ab[None], -1) / jnp.maximum(len2, 1e-9)[None], 0.0, 1.0)
-    foot = a[None] + t[..., None] * ab[None]
-    d = jnp.linalg.norm(q[:, None] - foot, axis=-1)                              # [Q, P-1]
-    d = jnp.where(len2[None] > 1e-9, d, jnp.inf)
-    d = jnp.where(jnp.isfinite(jnp.min(d, -1, keepdims=True)), d, jnp.linalg.norm(q[:, None] - a[None], axis=-1))
-    i = jnp.argmin(d, axis=-1)
-    seg_len = jnp.sqrt(len2)
-    arc = path_s[i] + jnp.take_along_axis(t, i[:, None], 1)[:, 0] * seg_len[i]
-    tangent = ab[i] / jnp.maximum(seg_len[i], 1e-6)[:, None]
-    return arc, jnp.take_along_axis(d, i[:, None], 1)[:, 0], tangent
-
-
-def pose_at(path_xy: jax.Array, path_heading: jax.Array, path_s: jax.Array, s: jax.Array):
-    """Pose on one path at arc s f32[]: (xy f32[2], heading f32[]); the heading interpolates the logged ones."""
-    p = path_s.shape[0]
-    i = jnp.clip(jnp.searchsorted(path_s, s, side="right") - 1, 0, p - 2)
-    seg = path_s[i + 1] - path_s[i]
-    frac = jnp.where(seg > 1e-6, jnp.clip((s - path_s[i]) / jnp.maximum(seg, 1e-6), 0.0, 1.0), 0.0)
-    xy = path_xy[i] + frac * (path_xy[i + 1] - path_xy[i])
-    h = wrap_angle(path_heading[i] + frac * wrap_angle(path_heading[i + 1] - path_heading[i]))
-    return xy, h
-
-
 def idm_accel(v, v0, gap, dv, p: IDMParams):
     """The IDM acceleration (clipped to [-decel_max, accel_max]); gap = +inf for a free road."""
     s_star = p.min_gap + jnp.maximum(0.0, v * p.headway + v * dv / (2 * jnp.sqrt(p.accel_max * p.decel_comfort)))
@@ -139,7 +110,7 @@ def lead_gaps(paths: Paths, state_s: jax.Array, size: jax.Array, others_xy: jax.
     paths for A slots, state_s f32[A], size f32[A, 2]; others_xy f32[B, 2], others_vel f32[B, 2], others_valid
     bool[B] (B = A: the same slots), self_mask bool[A, B] pairs to skip. -> (gap f32[A], lead speed f32[A]).
     """
-    arc, lat, tan = jax.vmap(lambda pxy, ps: project(pxy, ps, others_xy))(paths.xy, paths.s)   # [A, B]
+    arc, lat, tan = jax.vmap(lambda pxy, ps: project_on_path(pxy, ps, others_xy))(paths.xy, paths.s)   # [A, B]
     width = 0.5 * (size[:, None, 1] + size[None, :, 1])
     ahead = arc > state_s[:, None]
     cand = others_valid[None] & ~self_mask & (lat < width) & ahead
@@ -181,5 +152,5 @@ def idm_substep(paths: Paths, st: IDMState, k, size: jax.Array, others_xy, other
 
 def idm_poses(paths: Paths, st: IDMState):
     """Poses of every slot at its arc: (xy f32[A, 2], heading f32[A], valid bool[A])."""
-    xy, h = jax.vmap(pose_at)(paths.xy, paths.heading, paths.s, st.s)
+    xy, h = jax.vmap(pose_on_path)(paths.xy, paths.heading, paths.s, st.s)
     return xy, h, st.active & (st.s <= paths.end_s)

@@ -161,7 +161,8 @@ class Policy:
     f32[F, 3]` its open-loop plan (poses at the next F model frames, scene frame) for the open-loop score.
 
     ego: f32[3] the next model frame's pose, f32[5] pose and velocity there, f32[2] an action (acceleration,
-    steering angle) for the bicycle model, f32[S, 3] the S stored-rate poses up to the next model frame, or a
+    steering angle) for the bicycle model, f32[N, 3] stored-rate poses from the next stored frame on (N >= S: the
+    S up to the next model frame, and beyond for the tracker to look ahead), or a
     `Plan` (poses at the next F model frames). Each but the action is the reference a `Tracker` follows (see
     `gpd_jax.sim.tracker`); without a tracker the ego is placed on it.
     needs_model: whether it reads the model's prediction or hidden tokens (the model then runs with any agents).
@@ -316,8 +317,12 @@ def _ego_array(ego, name: str) -> jax.Array:
 def _shape_error(ego, spec: ModelSpec, name: str) -> SimError:
     s = spec.frame_stride
     return SimError(f"policy {name!r} returned an ego of shape {tuple(ego.shape)}; expected f32[3] (pose), f32[5] "
-                    f"(pose, velocity), f32[2] (acceleration, steering), f32[{s}, 3] (stored-rate poses) or a "
+                    f"(pose, velocity), f32[2] (acceleration, steering), f32[N >= {s}, 3] (stored-rate poses) or a "
                     f"sim.Plan of poses f32[F, 3]")
+
+
+def _stored_rate(ego, s: int) -> bool:
+    return ego.ndim == 2 and ego.shape[1] == 3 and ego.shape[0] >= s
 
 
 def is_action(ego) -> bool:
@@ -340,7 +345,7 @@ def ego_reference(ego, pose0: jax.Array, vel0: jax.Array, spec: ModelSpec, name:
         return pose_path(pose0, vel0, ego, None, period, s)[0]
     if ego.shape == (5,):
         return pose_path(pose0, vel0, ego[:3], ego[3:], period, s)[0]
-    if ego.shape == (s, 3):
+    if _stored_rate(ego, s):
         return ego
     raise _shape_error(ego, spec, name)
 
@@ -362,8 +367,8 @@ def ego_path(ego, pose0: jax.Array, vel0: jax.Array, length: jax.Array, spec: Mo
         return pose_path(pose0, vel0, ego[:3], ego[3:], period, s)
     if ego.shape == (2,):
         path = bicycle_path(pose0, vel0, ego, length, s, dt, limits)
-    elif ego.shape == (s, 3):
-        path = ego
+    elif _stored_rate(ego, s):
+        path = ego[:s]
     else:
         raise _shape_error(ego, spec, name)
     prev = jnp.concatenate([pose0[None, :2], path[:-1, :2]], 0)[-1]
@@ -656,7 +661,7 @@ def _step_obs_jit(params, rest, tok_params, state, ego, follow, static):
     return state, follow, jax.vmap(lambda st: _observe(parts, st))(state)
 
 
-def _host_ego(raw, b: int, shapes: dict, name: str):
+def _host_ego(raw, b: int, s: int, shapes: dict, name: str):
     """A host planner's output as numpy floats (an array, or a Plan of one), its shape checked against the batch."""
     if isinstance(raw, Plan):
         try:
@@ -671,10 +676,11 @@ def _host_ego(raw, b: int, shapes: dict, name: str):
         ego = np.asarray(raw, np.float32)
     except (TypeError, ValueError) as e:
         raise SimError(f"planner {name!r} returned {type(raw).__name__}, not an array of floats: {e}") from None
-    if ego.shape[:1] != (b,) or tuple(ego.shape[1:]) not in shapes:
+    if ego.shape[:1] != (b,) or (tuple(ego.shape[1:]) not in shapes and not (
+            ego.ndim == 3 and ego.shape[2] == 3 and ego.shape[1] >= s)):
         expected = ", ".join(f"[{b}, {', '.join(map(str, k))}] ({v})" for k, v in shapes.items())
         raise SimError(f"planner {name!r} returned an array of shape {tuple(ego.shape)}; expected one ego per "
-                       f"scenario of the batch of {b}: {expected} or a sim.Plan")
+                       f"scenario of the batch of {b}: {expected} (or more than {s} poses), or a sim.Plan")
     return ego
 
 
@@ -696,7 +702,7 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
     * f32[B, 3]: each scenario's next model-frame pose (x, y, heading; scene frame);
     * f32[B, 5]: pose and velocity (vx, vy) there;
     * f32[B, 2]: an action (acceleration m/s^2, steering angle rad) for the bicycle model (`limits`);
-    * f32[B, S, 3]: the S stored-rate poses up to the next model frame;
+    * f32[B, N, 3]: stored-rate poses from the next stored frame on (N >= S);
     * `Plan(poses=f32[B, F, 3])`: poses at the next F model frames.
 
     The ego follows them with `tracker` as in `run` (the planner is called every frame; its output is taken every
@@ -735,7 +741,7 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
     follow = None
     for _ in frames:
         raw = planner(jax.device_get(obs))
-        ego = _host_ego(raw, b, shapes, name)
+        ego = _host_ego(raw, b, s, shapes, name)
         flat = np.asarray(ego.poses if isinstance(ego, Plan) else ego)
         t1 = int(np.asarray(obs.t)[0]) + 1
         nonfinite[:, t1] = ~np.isfinite(flat.reshape(b, -1)).all(-1)

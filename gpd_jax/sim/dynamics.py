@@ -11,7 +11,7 @@ stored rate (10 Hz), so each step fills the S = `frame_stride` stored frames aft
   curve from the current (position, velocity) to the target (position, velocity); without a target velocity the
   target speed is the constant-acceleration one, 2 |chord| / dt - |v0| (at least 0), along the target heading;
   headings are interpolated linearly along the shorter arc;
-* a **path** f32[S, 3] (the S stored-rate poses themselves) is taken as it is.
+* a **path** f32[N, 3] (stored-rate poses, N >= S) is taken as it is (its first S without a tracker).
 """
 
 from __future__ import annotations

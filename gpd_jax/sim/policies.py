@@ -12,8 +12,8 @@ shape compiles once):
   model's imagined future);
 * ``gpd_head``: the paper's fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the
   current frame, run by its own backbone (a KV cache in the policy state): its 8 s plan, a `Plan` the tracker
-  follows (without a tracker, the ego is placed on the plan's first second); its open-loop plan is the same
-  trajectory at the current frame;
+  follows (without a tracker, the ego is placed on the plan's first second); a head that reads the route gets it
+  from the observation (`route_xy`); its open-loop plan is the same trajectory at the current frame;
   ``gpd_head_scratch`` is the same head trained without pre-training (the paper's ablation).
 """
 
@@ -27,7 +27,8 @@ from flax import nnx
 
 from gpd_jax.checkpoint import Model
 from gpd_jax.decoding import Frame, advance, prefill
-from gpd_jax.sim.agents import IDMParams, idm_accel, pose_at, project
+from gpd_jax.geometry import pose_on_path, project_on_path, route_ahead
+from gpd_jax.sim.agents import IDMParams, idm_accel
 from gpd_jax.sim.core import Observation, Policy, SimError
 from gpd_jax.sim.tracker import Plan
 from gpd_jax.spec import ModelSpec
@@ -36,15 +37,21 @@ PLANNERS = ("log", "cv", "idm", "gpd", "gpd_head", "gpd_head_scratch")
 HEAD_PLANNERS = ("gpd_head", "gpd_head_scratch")  # the planning head fine-tuned from GPD / trained from scratch
 
 
-def _slice_fine(obs: Observation, spec: ModelSpec, start, count: int):
-    return jax.lax.dynamic_slice_in_dim(obs.log_ego, start, count, axis=0)
+def _slice_fine(obs: Observation, start, count: int):
+    """`count` logged ego poses from stored frame `start` on; past the log's end it goes on straight at its last
+    velocity (the tracker looks ahead of the last frame too)."""
+    log = obs.log_ego
+    step = log[-1] - log[-2]
+    k = jnp.arange(1, count + 1, dtype=log.dtype)[:, None]
+    tail = jnp.concatenate([log[-1, :2] + k * step[:2], jnp.broadcast_to(log[-1, 2], (count, 1))], -1)
+    return jax.lax.dynamic_slice_in_dim(jnp.concatenate([log, tail], 0), start, count, axis=0)
 
 
 def expert_policy(spec: ModelSpec) -> Policy:
     s, h = spec.frame_stride, spec.num_history
 
-    def select(params, obs, state, key):
-        return _slice_fine(obs, spec, s * obs.t + 1, s), state
+    def select(params, obs, state, key):  # two model frames of the log: the tracker looks a second ahead
+        return _slice_fine(obs, s * obs.t + 1, 2 * s), state
 
     def plan(params, obs, key):
         return obs.log_ego[s * h:: s][: spec.num_future]
@@ -70,7 +77,7 @@ def constant_velocity_policy(spec: ModelSpec) -> Policy:
 def _idm_route(obs: Observation, num_steps: int, dt: float, target_speed: float, p: IDMParams):
     """IDM along the route for `num_steps` stored-rate steps with the current agents moved at constant velocity:
     f32[num_steps, 3] poses."""
-    s0, _, _ = project(obs.route_xy, obs.route_s, obs.ego_pose[None, :2])
+    s0, _, _ = project_on_path(obs.route_xy, obs.route_s, obs.ego_pose[None, :2])
     v = jnp.linalg.norm(obs.ego_velocity)
     length, width = obs.size[0, 0], obs.size[0, 1]
     others = obs.cur_valid.at[0].set(False)
@@ -78,7 +85,7 @@ def _idm_route(obs: Observation, num_steps: int, dt: float, target_speed: float,
     def sub(carry, k):
         s, v = carry
         q = obs.cur_xy + obs.cur_velocity * (k * dt)
-        arc, lat, tan = project(obs.route_xy, obs.route_s, q)
+        arc, lat, tan = project_on_path(obs.route_xy, obs.route_s, q)
         cand = others & (lat < 0.5 * (width + obs.size[:, 1])) & (arc > s)
         gap = jnp.where(cand, arc - s - 0.5 * (length + obs.size[:, 0]), jnp.inf)
         j = jnp.argmin(gap)
@@ -86,7 +93,7 @@ def _idm_route(obs: Observation, num_steps: int, dt: float, target_speed: float,
         a = idm_accel(v, target_speed, gap[j], v - lead_v, p)
         v = jnp.maximum(v + a * dt, 0.0)
         s = s + v * dt
-        xy, h = pose_at(obs.route_xy, obs.route_heading, obs.route_s, s)
+        xy, h = pose_on_path(obs.route_xy, obs.route_heading, obs.route_s, s)
         return (s, v), jnp.concatenate([xy, h[None]])
 
     _, poses = jax.lax.scan(sub, (s0[0], v), jnp.arange(num_steps, dtype=jnp.float32))
@@ -96,8 +103,8 @@ def _idm_route(obs: Observation, num_steps: int, dt: float, target_speed: float,
 def idm_policy(spec: ModelSpec, target_speed: float = 13.89, params: IDMParams = IDMParams()) -> Policy:
     s, dt = spec.frame_stride, spec.stored_period_s
 
-    def select(p, obs, state, key):
-        return _idm_route(obs, s, dt, target_speed, params), state
+    def select(p, obs, state, key):  # two model frames: the tracker looks a second ahead
+        return _idm_route(obs, 2 * s, dt, target_speed, params), state
 
     def plan(p, obs, key):
         return _idm_route(obs, s * spec.num_future, dt, target_speed, params)[s - 1:: s]
@@ -131,6 +138,12 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
         return Frame(xy=obs.xy, heading=obs.heading, valid=obs.valid,
                      valid_logit=jnp.zeros(obs.valid.shape, jnp.float32), map_tokens=obs.map_tokens, velocity=vel)
 
+    def route(module, obs):
+        head = module.plan_head
+        if not head.route_points:
+            return None
+        return route_ahead(obs.route_xy, obs.route_s, obs.ego_pose, head.route_points, head.route_spacing_m)
+
     def init(params, obs):
         module = nnx.merge(graphdef, params, rest)
         return prefill(module, frames(module, obs), h - 1, t_total)
@@ -140,12 +153,13 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
         f = frames(module, obs)
         cur = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, obs.t, 0, keepdims=False), f)
         state = advance(module, state, cur, obs.t)
-        return Plan(poses=plan_trajectory(module, state.hidden, obs.ego_pose)[: spec.num_future]), state
+        plan = plan_trajectory(module, state.hidden, obs.ego_pose, route(module, obs))
+        return Plan(poses=plan[: spec.num_future]), state
 
     def plan(params, obs, key):
         module = nnx.merge(graphdef, params, rest)
         st = prefill(module, frames(module, obs), h, t_total)
-        return plan_trajectory(module, st.hidden, obs.ego_pose)[: spec.num_future]
+        return plan_trajectory(module, st.hidden, obs.ego_pose, route(module, obs))[: spec.num_future]
 
     return Policy(name=name, select=select, init=init, plan=plan, needs_map=True, params=head_model.params)
 

@@ -46,10 +46,9 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.signal import savgol_filter
 
-from gpd_jax.geometry import AREA_KIND_ID, area_kinds, lane_direction, signed_distance_to_edge
+from gpd_jax.geometry import AREA_KIND_ID, area_kinds, lane_direction, project_on_path, signed_distance_to_edge
 from gpd_jax.metrics.agents import box_corners, box_overlap_pairwise
 from gpd_jax.scene import wrap_angle
-from gpd_jax.sim.agents import project
 
 OLS_THRESHOLDS = {"avg_displacement": 8.0, "final_displacement": 8.0, "avg_heading": 0.8, "final_heading": 0.8}
 OLS_WEIGHTS = {"avg_displacement": 1.0, "avg_heading": 2.0, "final_displacement": 1.0, "final_heading": 2.0}
@@ -213,7 +212,7 @@ def cls_scores(ego_xy, ego_heading, ego_size, ag_xy, ag_heading, ag_valid, ag_si
     direction = jnp.where(wrong < 2.0, 1.0, jnp.where(wrong < 6.0, 0.5, 0.0))
 
     # progress
-    arcs, _, _ = project(route_xy, route_s, ego_xy[jnp.array([0, f - 1])])
+    arcs, _, _ = project_on_path(route_xy, route_s, ego_xy[jnp.array([0, f - 1])])
     ego_prog = arcs[1] - arcs[0]
     ratio = jnp.minimum(1.0, jnp.maximum(ego_prog, 2.0) / jnp.maximum(expert_progress, 2.0))
     progress = jnp.where(ego_prog < -2.0, 0.0, ratio)

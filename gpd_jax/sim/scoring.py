@@ -30,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.checkpoint import Model
-from gpd_jax.geometry import ROAD_MISSING
+from gpd_jax.geometry import ROAD_MISSING, project_on_path
 from gpd_jax.scene import Scene
-from gpd_jax.sim.agents import make_paths, project
+from gpd_jax.sim.agents import make_paths
 from gpd_jax.sim.core import AGENT_MODELS, Policy, SimError, SimResult, SimScene, as_policy, make_sim_scenes, run
 from gpd_jax.sim.policies import HEAD_PLANNERS, PLANNERS, make_policy
 from gpd_jax.sim.scores import cls_scores, ols_scores, road_queries
@@ -59,7 +59,7 @@ def _cls_one(spec: ModelSpec, scene: SimScene, fine_xy, fine_heading, fine_valid
     speed = jnp.linalg.norm(scene.log_velocity[c:], axis=-1)
     paths = make_paths(scene.log_xy[c:], scene.log_heading[c:], scene.log_valid[c:], speed)
     log_ego = _future(spec, scene.log_xy[:, 0])
-    arcs, _, _ = project(paths.xy[0], paths.s[0], log_ego[jnp.array([0, log_ego.shape[0] - 1])])
+    arcs, _, _ = project_on_path(paths.xy[0], paths.s[0], log_ego[jnp.array([0, log_ego.shape[0] - 1])])
     rq = road_queries(scene.road, exy, eh, size[0])
     return cls_scores(exy, eh, size[0], _future(spec, fine_xy[:, 1:]), _future(spec, fine_heading[:, 1:]),
                       _future(spec, fine_valid[:, 1:]), size[1:], paths.xy[0], paths.s[0], arcs[1] - arcs[0],

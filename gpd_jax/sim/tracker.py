@@ -6,7 +6,8 @@ current frame on:
 
 * a pose f32[3] or pose and velocity f32[5] at the next model frame: the cubic Hermite curve to it
   (`gpd_jax.sim.dynamics.pose_path`);
-* S stored-rate poses f32[S, 3]: themselves;
+* stored-rate poses f32[N, 3] (N >= S): themselves (the shipped expert and IDM give two model frames, so the
+  look-ahead near the end of a frame reads where they go next);
 * a `Plan` (poses at the next F model frames, f32[F, 3]): the Hermite curves through the current pose and the F
   poses (velocities at the knots by central differences), so a plan is followed beyond the next model frame;
 * an action f32[2] (acceleration, steering) is a control already and is integrated as it is, untracked.

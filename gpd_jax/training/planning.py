@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
+import functools
 import json
 import os
 import sys
@@ -54,6 +56,7 @@ from gpd_jax.config import config_differences
 from gpd_jax.data import loader as data_loader
 from gpd_jax.data.errors import DataError
 from gpd_jax.fsutil import atomic_write_json, atomic_write_text
+from gpd_jax.geometry import route_ahead
 from gpd_jax.map_tokenizer import load_tokenizer
 from gpd_jax.model import count_params, forward
 from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
@@ -107,12 +110,13 @@ def backbone_hidden(model, scene: Scene):
 
 
 def plan_terms(head: PlanningHead, hidden: jax.Array, target: jax.Array, mask: jax.Array,
-               current: int) -> dict[str, jax.Array]:
+               current: int, route: jax.Array | None = None) -> dict[str, jax.Array]:
     """Sums and counts of the planning loss of one scene's plans, and the current frame's ADE.
 
     hidden f32[K, N, d] output tokens of K source frames; target f32[K, F, 3] and mask bool[K, F] their logged
-    ego futures (`plan_targets`); `current`: the index among the K frames of the scene's current frame."""
-    plan = head(hidden)                                               # [K, F, 3]
+    ego futures (`plan_targets`); `current`: the index among the K frames of the scene's current frame; route
+    f32[K, R, 2] where the route goes from each (a route head only: `ego_routes`)."""
+    plan = head(hidden, route)                                        # [K, F, 3]
     m = mask.astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(plan[..., :2] - target[..., :2]), axis=-1)
     hd = _smooth_l1(wrap_angle(plan[..., 2] - target[..., 2]))
@@ -162,17 +166,19 @@ class PlanFeatures:
       hidden: f32[..., K, N, d] output tokens of source frames first_frame .. T-2 (K = T-1-first_frame).
       target: f32[..., K, F, 3] the logged ego's next F poses in each source frame's ego frame.
       mask: bool[..., K, F] valid targets (`plan_targets`).
+      route: f32[..., K, R, 2] where the route goes from each source frame (`ego_routes`; a route head only).
     """
 
     hidden: jax.Array
     target: jax.Array
     mask: jax.Array
+    route: jax.Array | None = None
 
 
 def feature_batch_loss(model, feats: PlanFeatures, config) -> tuple[jax.Array, dict[str, jax.Array]]:
     """`plan_batch_loss` of cached features (leading dim B): the head alone runs."""
-    terms = jax.tree.map(jnp.sum, jax.vmap(lambda h, t, m: plan_terms(model.plan_head, h, t, m, 0))(
-        feats.hidden, feats.target, feats.mask))
+    terms = jax.tree.map(jnp.sum, jax.vmap(lambda h, t, m, r: plan_terms(model.plan_head, h, t, m, 0, r))(
+        feats.hidden, feats.target, feats.mask, feats.route))
     total, parts = _weighted(terms, config)
     parts["loss"] = total
     return total, parts
@@ -192,6 +198,37 @@ def _features_jit(graphdef, params, rest, scenes: Scene, expert: Scene | None = 
     return jax.vmap(one)(scenes, scenes if expert is None else expert)
 
 
+@functools.partial(jax.jit, static_argnames=("spec", "num_points", "spacing_m"))
+def _routes_jit(xy, heading, valid, poses, spec, num_points: int, spacing_m: float):
+    """`ego_routes` of a batch: stored-rate xy f32[B, Ts, A, 2], heading, valid [B, Ts, A], poses f32[B, K, 3]."""
+    from gpd_jax.sim.agents import make_paths
+
+    c = spec.full_history - 1
+
+    def one(x, h, v, p):
+        path = make_paths(x[c:, :1], h[c:, :1], v[c:, :1], jnp.zeros(v[c:, :1].shape, x.dtype))
+        return jax.vmap(lambda q: route_ahead(path.xy[0], path.s[0], q, num_points, spacing_m))(p)
+
+    return jax.vmap(one)(xy, heading, valid, poses)
+
+
+def ego_routes(stored: Scene, poses, spec, config) -> np.ndarray | None:
+    """Where the route goes from each of the ego's poses, as the simulator gives it (`gpd_jax.sim.Observation`:
+    the logged ego's path from the current frame on): stored: Scene [B, Ts, ...] at the stored rate; poses f32[B,
+    K, 3] (scene frame) -> f32[B, K, R, 2] in each pose's frame (`gpd_jax.geometry.route_ahead`); None for a head
+    without a route (`plan_head.route_points` = 0)."""
+    r = int(config.plan_head.route_points)
+    if r == 0:
+        return None
+    return np.asarray(_routes_jit(jnp.asarray(stored.xy), jnp.asarray(stored.heading), jnp.asarray(stored.valid),
+                                  jnp.asarray(poses), spec, r, float(config.plan_head.route_spacing_m)))
+
+
+def _poses(view) -> np.ndarray:
+    """The ego's pose at every model frame but the last: f32[B, T-1, 3]."""
+    return np.concatenate([np.asarray(view.xy)[:, :-1, 0], np.asarray(view.heading)[:, :-1, 0, None]], -1)
+
+
 def cache_features(model, config, data_dir: str, split: str, batch_size: int = 32,
                    quiet: bool = False) -> PlanFeatures:
     """Teacher-forced backbone outputs and plan targets of every scene of `data_dir/split` (numpy, host memory:
@@ -203,16 +240,19 @@ def cache_features(model, config, data_dir: str, split: str, batch_size: int = 3
     out: list[tuple[np.ndarray, ...]] = []
     bar = tqdm.tqdm(total=n, disable=quiet, desc=f"features {split}", dynamic_ncols=True, mininterval=2.0)
     for lo in range(0, n, batch_size):
-        view = spec.view(data_loader.load_split(data_dir, split, indices=range(lo, min(n, lo + batch_size))))
+        stored = data_loader.load_split(data_dir, split, indices=range(lo, min(n, lo + batch_size)))
+        view = spec.view(stored)
         if not np.all(view.map_valid):
             raise DataError(os.path.join(data_dir, split), "no map tokens at some of the model's frames; encode "
                             f"them: python -m gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
                             f"{config.data.frame_stride}")
         h, t, m = jax.device_get(_features_jit(graphdef, params, rest, jax.tree.map(jnp.asarray, view)))
-        out.append((h[:, first:], t[:, first:], m[:, first:]))
+        route = ego_routes(stored, _poses(view), spec, config)
+        out.append(PlanFeatures(h[:, first:], t[:, first:], m[:, first:],
+                                None if route is None else route[:, first:]))
         bar.update(view.xy.shape[0])
     bar.close()
-    return PlanFeatures(*(np.concatenate([o[i] for o in out]) for i in range(3)))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
 
 
 def closed_loop_features(world: Model, policy, params, scenes: Scene, key: jax.Array, first: int,
@@ -243,8 +283,11 @@ def closed_loop_features(world: Model, policy, params, scenes: Scene, key: jax.A
         reached = sims.view.replace(xy=run.xy, heading=run.heading, valid=run.valid, velocity=run.velocity,
                                     map_tokens=run.map_tokens)
         h, t, m = jax.device_get(_features_jit(graphdef, params, rest, reached, sims.view))
-        out.append((h[: hi - lo, first:], t[: hi - lo, first:], m[: hi - lo, first:]))
-    return PlanFeatures(*(np.concatenate([o[i] for o in out]) for i in range(3)))
+        route = ego_routes(sub, _poses(reached), world.spec, world.config)
+        k = hi - lo
+        out.append(PlanFeatures(h[:k, first:], t[:k, first:], m[:k, first:],
+                                None if route is None else route[:k, first:]))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
 
 
 def closed_loop_steps(config) -> list[int]:
@@ -335,15 +378,22 @@ def _plan_steps(graphdef, config, tx, frozen: bool, features: bool, donate: bool
 def pretrained_params(path: str, config, template):
     """`template` (a GPD-with-head params tree) with every backbone leaf taken from the GPD at `path` (exported or
     a workdir; same `model` config, map tokenizer path aside). The head keeps its initialisation, unless `path` is
-    a planning-head model with the same `plan_head` config: then its head goes on training (closed-loop rounds
-    on a trained head)."""
+    a planning-head model of the same head shape: then its head goes on training (closed-loop rounds on a trained
+    head), a route input it lacks starting from its initialisation."""
     src = load_model(path)
     diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
     shape_keys = ("num_future", "num_heads", "ffn_dim", "position_scale")
     with_head = HEAD in src.config and all(src.config[HEAD][k] == config[HEAD][k] for k in shape_keys)
-    out, missing = graft_params(template, src.params, (lambda p: False) if with_head else is_head_path)
+    new_route = with_head and int(src.config[HEAD].get("route_points", 0)) != int(config[HEAD].route_points)
+
+    def fresh(p) -> bool:  # leaves that keep their initialisation
+        if not with_head:
+            return is_head_path(p)
+        return new_route and is_head_path(p) and "route_" in jax.tree_util.keystr(p)
+
+    out, missing = graft_params(template, src.params, fresh)
     if missing:
         raise ValueError(f"train.init_from {path}: no parameters for {missing[:5]}")
     return out
@@ -455,7 +505,8 @@ def closed_loop_rounds(config, pool: FeaturePool, world: Model, data_dir: str, w
                 continue
             if os.path.exists(path(r)):
                 with np.load(path(r), allow_pickle=False) as z:
-                    feats = PlanFeatures(hidden=z["hidden"], target=z["target"], mask=z["mask"])
+                    feats = PlanFeatures(hidden=z["hidden"], target=z["target"], mask=z["mask"],
+                                         route=z["route"] if "route" in z else None)
             elif step == at:
                 t0 = time.perf_counter()
                 idx = np.sort(np.random.default_rng([int(config.seed), 7, r]).choice(
@@ -466,7 +517,8 @@ def closed_loop_rounds(config, pool: FeaturePool, world: Model, data_dir: str, w
                 if lead:
                     os.makedirs(folder, exist_ok=True)
                     tmp = path(r) + ".tmp.npz"
-                    np.savez(tmp, hidden=feats.hidden, target=feats.target, mask=feats.mask)
+                    np.savez(tmp, **{f.name: getattr(feats, f.name) for f in dataclasses.fields(feats)
+                                     if getattr(feats, f.name) is not None})
                     os.replace(tmp, path(r))
                 if lead and not quiet:
                     print(f"step {step}: closed-loop round {r}: the head drove {len(idx)} scenes "
@@ -488,6 +540,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     tc = config.train
     if HEAD not in config:
         raise ValueError("the config has no plan_head section (configs/gpd_planner.py)")
+    use_features = bool(tc.cache_features)
+    if int(config.plan_head.route_points) > 0 and not use_features:
+        raise ValueError("plan_head.route_points: the route is read from the stored-rate log when the backbone's "
+                         "outputs are cached: set train.cache_features = True (and train.backbone_lr_scale = 0)")
+    if int(config.plan_head.closed_loop_rounds) > 0 and not use_features:
+        raise ValueError("plan_head.closed_loop_rounds trains the head on states it reaches itself over a frozen "
+                         "backbone: it needs train.cache_features = True (and train.backbone_lr_scale = 0)")
     data_dir, n_train, mesh, pindex = prepare_run(config)
     val_dir = validation_dir(config, data_dir)
     first_frame(config)
@@ -508,10 +567,6 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
 
     spec = model_spec(config)
     model = build_model(config)
-    use_features = bool(tc.cache_features)
-    if int(config.plan_head.closed_loop_rounds) > 0 and not use_features:
-        raise ValueError("plan_head.closed_loop_rounds trains the head on states it reaches itself over a frozen "
-                         "backbone: it needs train.cache_features = True (and train.backbone_lr_scale = 0)")
     trainer = PlanTrainer(model, config, features=use_features)
     state = trainer.init_state(trainer.initial_params)
     mgr = checkpoint_manager(workdir, int(tc.keep_checkpoints))
@@ -566,21 +621,23 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
 
 
 # ----------------------------------------------------------------------------------------------- evaluation
-def current_frame_plans(model: Model, view: Scene, params=None) -> jax.Array:
+def current_frame_plans(model: Model, view: Scene, params=None, route=None) -> jax.Array:
     """The head's plan from the current frame of scenes in the model's view (only history frames are read):
-    Scene [S, ...] -> f32[S, F, 3] in the scene frame (the current ego frame)."""
+    Scene [S, ...] -> f32[S, F, 3] in the scene frame (the current ego frame). route f32[S, R, 2]: where the route
+    goes from the current frame (a route head only: `ego_routes`)."""
     h = model.spec.num_history
     params = model.params if params is None else params
-    return _plans_jit(model.graphdef, params, model.rest, jax.tree.map(jnp.asarray, view.slice_frames(0, h + 1)))
+    return _plans_jit(model.graphdef, params, model.rest, jax.tree.map(jnp.asarray, view.slice_frames(0, h + 1)),
+                      None if route is None else jnp.asarray(route))
 
 
 @jax.jit
-def _plans_jit(graphdef, params, rest, scenes: Scene):
+def _plans_jit(graphdef, params, rest, scenes: Scene, route=None):
     module = nnx.merge(graphdef, params, rest)
     h = scenes.xy.shape[-3] - 1
     # Frames [0, H) are pushed through; the extra frame only gives backbone_hidden its T - 1 = H frames.
     hidden = jax.vmap(lambda s: backbone_hidden(module, s))(scenes)[:, h - 1]
-    return module.plan_head(hidden)
+    return module.plan_head(hidden, route)
 
 
 def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Model | None = None,
@@ -615,7 +672,8 @@ def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Mod
         sl = lambda x: x[lo:lo + batch_size]
         v = jax.tree.map(lambda x: jnp.asarray(sl(x)), view.replace(polylines=None, polyline_valid=None))
         fb = jax.tree.map(sl, full)
-        plan = np.asarray(current_frame_plans(head_model, v))[:, :f]
+        route = ego_routes(fb, _poses(v)[:, h - 1:h], spec, head_model.config)
+        plan = np.asarray(current_frame_plans(head_model, v, route=None if route is None else route[:, 0]))[:, :f]
         xy, heading = np.array(v.xy), np.array(v.heading)
         xy[:, h:h + plan.shape[1], 0] = plan[..., :2]
         heading[:, h:h + plan.shape[1], 0] = plan[..., 2]
