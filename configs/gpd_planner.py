@@ -3,9 +3,13 @@
 
 Variants (`configs/gpd_planner.py:VARIANT`), all with the same head, data and targets:
 
-* `frozen` (shipped): the backbone frozen and its output tokens computed once per scene
-  (`train.cache_features`), so only the head's ~0.3 M parameters train: 2,000 steps of 32 scenes, 27 min on 2 CPU
-  cores; the model's own agent and map predictions stay exactly its backbone's.
+* `closed_loop` (shipped): `frozen`'s head continued on real-road SUMO tiles with the route as an input and two
+  closed-loop (DAgger) rounds: at steps 200 and 400 the head drives the simulator on 120 training scenes and the
+  states it reaches, labelled with the log's future, join the 240 training scenes; 600 steps of 32 (about 25 min on
+  2 busy CPU cores).
+* `frozen`: the backbone frozen and its output tokens computed once per scene (`train.cache_features`), so only
+  the head's ~0.3 M parameters train: 2,000 steps of 32 scenes, 27 min on 2 CPU cores; the model's own agent and
+  map predictions stay exactly its backbone's.
 * `finetune`: the paper's setting, the backbone fine-tuned too at a tenth of the head's learning rate (a backbone
   pass per step).
 * `scratch`, `frozen_scratch`: the no-pre-training ablations at the same budget (a random backbone trained on the
@@ -21,15 +25,27 @@ into runs/gpd_sumo).
     for d in plan_train2 plan_dev; do python -m gpd_jax.map_tokenizer encode --checkpoint map_tokenizer --data data/$d \
         --frame-stride 10; done
     python train.py --config configs/gpd_planner.py:frozen --workdir runs/planner
-    python -m gpd_jax.checkpoint export runs/planner gpd_planner --tokenizer-ref map_tokenizer
+
+`closed_loop` starts from `frozen`'s export (runs/planner/export; the one shipped before it:
+`git show 454eff3:checkpoints/gpd_planner/{config.json,params.npz}` into runs/gpd_planner_logged) and reads
+real-road SUMO tiles (the training and development tiles of `gpd_jax.data realnets`, docs/data.md):
+
+    python -m gpd_jax.data build --source sumo --net data/realnets/train/{drt_nw,drt_se,drt_sw,fin_se_east,fin_se_west,helsinki_south}.net.xml.gz \
+        --net-layout real --split train --scenarios 240 --per-job 10 --seed 71 --out data/mix_real_train
+    python -m gpd_jax.data build --source sumo --net data/realnets/dev/*.net.xml.gz --net-layout real --split val \
+        --scenarios 150 --per-job 10 --seed 73 --out data/mix_real_dev
+    for d in mix_real_train mix_real_dev; do python -m gpd_jax.map_tokenizer encode --checkpoint map_tokenizer \
+        --data data/$d --frame-stride 10; done
+    python train.py --config configs/gpd_planner.py:closed_loop --workdir runs/planner_closed_loop
+    python -m gpd_jax.checkpoint export runs/planner_closed_loop gpd_planner --tokenizer-ref map_tokenizer
 """
 
 from gpd_jax.config import gpd_config
 
-VARIANTS = ("frozen", "finetune", "scratch", "frozen_scratch")
+VARIANTS = ("closed_loop", "frozen", "finetune", "scratch", "frozen_scratch")
 
 
-def get_config(variant: str = "frozen"):
+def get_config(variant: str = "closed_loop"):
     if variant not in VARIANTS:
         raise ValueError(f"configs/gpd_planner.py: variant {variant!r} is not one of {VARIANTS}")
     c = gpd_config(plan_head=True)
@@ -45,10 +61,18 @@ def get_config(variant: str = "frozen"):
     t.batch_size, t.steps, t.learning_rate, t.warmup_steps, t.min_learning_rate = 8, 300, 1e-3, 50, 1e-5
     t.grad_clip, t.log_every, t.eval_every, t.eval_batches, t.checkpoint_every = 1.0, 25, 150, 4, 100
     t.loader_threads = 2
-    if variant.startswith("frozen"):
+    if variant.startswith("frozen") or variant == "closed_loop":
         t.backbone_lr_scale, t.cache_features = 0.0, True
         t.batch_size, t.steps, t.warmup_steps = 32, 2_000, 200
         t.log_every, t.eval_every, t.checkpoint_every = 100, 500, 500
+    if variant == "closed_loop":
+        c.data.dir, c.data.val_dir = "data/mix_real_train", "data/mix_real_dev"
+        t.init_from = "runs/gpd_planner_logged"
+        t.steps, t.learning_rate, t.warmup_steps = 600, 3e-4, 50
+        t.log_every, t.eval_every, t.checkpoint_every = 50, 200, 200
+        ph = c.plan_head
+        ph.route_points, ph.route_spacing_m = 16, 5.0
+        ph.closed_loop_rounds, ph.closed_loop_scenes = 2, 120
     if variant.endswith("scratch"):
         t.init_from = ""
         if variant == "scratch":

@@ -19,8 +19,14 @@ A config with a `plan_head` section (configs/gpd_planner.py) builds the GPD with
   `PlanFeatures` in host memory) and the steps run the head alone on batches drawn by `feature_batches`
   (configs/gpd_planner.py:frozen).
 * Initialisation: `train.init_from` (an exported GPD or a workdir) gives
-  the backbone's parameters and must have the same `model` config; empty trains everything from scratch (the
-  paper's "without pre-training" ablation, configs/gpd_planner.py:scratch).
+  the backbone's parameters and must have the same `model` config (a planning-head model gives its head too);
+  empty trains everything from scratch (the paper's "without pre-training" ablation,
+  configs/gpd_planner.py:scratch).
+* Route (`plan_head.route_points` > 0, cached features): the head also reads where the logged ego's path goes
+  from each source frame (`ego_routes`, as the simulator's observation gives it).
+* Closed-loop rounds (`plan_head.closed_loop_rounds`, cached features): DAgger; the head drives the simulator on
+  training scenes, and the states it reached, labelled with the log's future, join the training scenes
+  (`closed_loop_rounds`, `closed_loop_features`; configs/gpd_planner.py:closed_loop).
 * Checkpoints, resume, SIGTERM, metrics.jsonl and the export to WORKDIR/export work as in the stage-2 loop
   (`gpd_jax.training.loop`); validation every `train.eval_every` steps over `train.eval_batches` batches of
   `data.val_dir` (default: the first store of `data.dir`) / `data.val_split`: the loss and the ego ADE / FDE of
@@ -237,7 +243,7 @@ def cache_features(model, config, data_dir: str, split: str, batch_size: int = 3
     spec = model_spec(config)
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     n = len(data_loader.SplitSource(data_dir, split))
-    out: list[tuple[np.ndarray, ...]] = []
+    out: list[PlanFeatures] = []
     bar = tqdm.tqdm(total=n, disable=quiet, desc=f"features {split}", dynamic_ncols=True, mininterval=2.0)
     for lo in range(0, n, batch_size):
         stored = data_loader.load_split(data_dir, split, indices=range(lo, min(n, lo + batch_size)))
@@ -272,7 +278,7 @@ def closed_loop_features(world: Model, policy, params, scenes: Scene, key: jax.A
     n = int(np.shape(scenes.xy)[0])
     batch_size = min(batch_size, n)
     graphdef, _, rest = nnx.split(world.module, nnx.Param, ...)
-    out: list[tuple[np.ndarray, ...]] = []
+    out: list[PlanFeatures] = []
     for lo in range(0, n, batch_size):
         hi = min(n, lo + batch_size)
         sub = jax.tree.map(lambda x: np.asarray(x)[lo:hi], scenes)
@@ -547,6 +553,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if int(config.plan_head.closed_loop_rounds) > 0 and not use_features:
         raise ValueError("plan_head.closed_loop_rounds trains the head on states it reaches itself over a frozen "
                          "backbone: it needs train.cache_features = True (and train.backbone_lr_scale = 0)")
+    if int(config.plan_head.closed_loop_rounds) > 0 and not config.model.map_tokenizer:
+        raise ValueError("plan_head.closed_loop_rounds: the simulator encodes the map around the ego with the "
+                         "model's map tokenizer, and model.map_tokenizer is empty")
     data_dir, n_train, mesh, pindex = prepare_run(config)
     val_dir = validation_dir(config, data_dir)
     first_frame(config)
@@ -586,11 +595,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
         pool = FeaturePool(feats)
         before = None
         if int(config.plan_head.closed_loop_rounds) > 0:
-            tok = resolve_tokenizer_path(config.model.map_tokenizer) if config.model.map_tokenizer else ""
-            if not tok:
-                raise ValueError("plan_head.closed_loop_rounds: the simulator encodes the map around the ego with "
-                                 "the model's map tokenizer, and model.map_tokenizer is empty")
-            world = Model.from_module(backbone, config, tokenizer=load_tokenizer(tok))
+            tok = load_tokenizer(resolve_tokenizer_path(config.model.map_tokenizer))
+            world = Model.from_module(backbone, config, tokenizer=tok)
             before = closed_loop_rounds(config, pool, world, data_dir, workdir, lead, quiet)
         next_batch = feature_batches(pool, int(tc.batch_size), int(config.seed), before)
         if int(tc.eval_every) > 0:
