@@ -455,6 +455,7 @@ def test_rollout_is_split_over_local_devices_with_one_devices_results(tmp_path):
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     script = tmp_path / "sharded.py"
     script.write_text(_SHARDED_SCRIPT.format(tests=os.path.dirname(os.path.abspath(__file__))))
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
     r = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, cwd=root, timeout=600)
     assert r.returncode == 0 and "OK" in r.stdout, r.stdout[-2000:] + r.stderr[-4000:]

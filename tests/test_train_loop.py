@@ -204,7 +204,8 @@ _DP_SCRIPT = textwrap.dedent("""
 
 
 def test_four_device_data_parallel_step_equals_single_device(tmp_path):
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
     script = tmp_path / "dp.py"
     script.write_text(_DP_SCRIPT.format(tests=os.path.dirname(os.path.abspath(__file__))))
     r = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, cwd=ROOT, timeout=600)
