@@ -327,12 +327,12 @@ def _stored_rate(ego, s: int) -> bool:
 
 def is_action(ego) -> bool:
     """Whether a policy's ego output is an action (acceleration, steering): integrated as it is, never tracked."""
-    return not isinstance(ego, Plan) and tuple(ego.shape) == (2,)
+    return not isinstance(ego, Plan) and tuple(jnp.shape(ego)) == (2,)
 
 
 def ego_reference(ego, pose0: jax.Array, vel0: jax.Array, spec: ModelSpec, name: str = "policy") -> jax.Array:
     """The stored-rate reference of a policy's output (not an action): f32[R, 3], the poses at the R stored frames
-    after now (R = S for a pose, pose and velocity, or S poses; F x S for a `Plan` of F poses)."""
+    after now (R = S for a pose or pose and velocity, N for N stored-rate poses, F x S for a `Plan` of F poses)."""
     s, period = spec.frame_stride, spec.frame_period_s
     if isinstance(ego, Plan):
         poses = _ego_array(ego.poses, name)
@@ -522,8 +522,9 @@ def observe(model: Model, state: SimState) -> Observation:
 class SimResult:
     """A batch of closed-loop runs. fine_xy f32[B, Ts, A, 2], fine_heading f32[B, Ts, A], fine_valid bool[B, Ts, A]:
     the simulated scenes at the stored rate (history from the log); xy, heading, valid, velocity [B, T, A, ...] at
-    the model's rate (velocity: instantaneous, scene frame); map_tokens i32[B, T, M]; plan f32[B, F, 3] or None: the policy's open-loop plan at the current
-    frame; nonfinite bool[B, T]: model frames whose ego output was not finite."""
+    the model's rate (velocity: instantaneous, scene frame); map_tokens i32[B, T, M]; plan f32[B, F, 3] or None:
+    the policy's open-loop plan at the current frame; nonfinite bool[B, T]: model frames whose ego output was not
+    finite."""
 
     fine_xy: jax.Array
     fine_heading: jax.Array
@@ -706,7 +707,9 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
     * `Plan(poses=f32[B, F, 3])`: poses at the next F model frames.
 
     The ego follows them with `tracker` as in `run` (the planner is called every frame; its output is taken every
-    `tracker.replan_every` frames); `tracker=None` places the ego on them. Batched, so the model's reset and step are each jitted once (per batch shape) and serve the whole batch; the
+    `tracker.replan_every` frames); `tracker=None` places the ego on them.
+
+    Batched, so the model's reset and step are each jitted once (per batch shape) and serve the whole batch; the
     planner runs on the host in between. A planner for one scenario at a time loops over B itself. Example, a
     constant-velocity planner::
 
@@ -749,7 +752,8 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
             break
         ego = jax.tree.map(jnp.asarray, ego)
         if follow is None:
-            follow = jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), new_follow(model.spec, tracker, t1 - 1))
+            one = new_follow(model.spec, tracker, t1 - 1)
+            follow = jax.tree.map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), one)
         state, follow, obs = _step_obs_jit(model.params, model.rest, tok_params, state, ego, follow,
                                            (sm, with_model, limits, tracker))
     out = SimResult(fine_xy=state.fine_xy, fine_heading=state.fine_heading, fine_valid=state.fine_valid,
