@@ -62,10 +62,10 @@ def test_a_braking_reference_stops_the_car_where_it_stops():
 
 def test_extend_goes_on_at_the_last_velocity_and_plan_path_passes_its_knots():
     path = jnp.array([[1.0, 0.0, 0.0], [2.0, 0.5, 0.1]])
-    ext = np.asarray(extend(path, jnp.zeros(3), 5, DT))
+    ext = np.asarray(extend(path, jnp.zeros(3), 5))
     np.testing.assert_allclose(ext[2:, :2], [[3.0, 1.0], [4.0, 1.5], [5.0, 2.0]], atol=1e-6)
     np.testing.assert_allclose(ext[2:, 2], 0.1)
-    np.testing.assert_allclose(np.asarray(extend(path, jnp.zeros(3), 1, DT)), path[:1])
+    np.testing.assert_allclose(np.asarray(extend(path, jnp.zeros(3), 1)), path[:1])
     poses = jnp.array([[10.0, 0.0, 0.0], [20.0, 2.0, 0.2], [30.0, 5.0, 0.3]])
     ref = np.asarray(plan_path(jnp.zeros(3), jnp.array([10.0, 0.0]), poses, 1.0, 10))
     np.testing.assert_allclose(ref[9::10], np.asarray(poses), atol=1e-5)

@@ -410,7 +410,7 @@ def _move_ego(spec: ModelSpec, state: SimState, ego, follow: Follow, tracker: Tr
         control = TrackState(speed=speed, accel=(speed - state.control.speed) / period, steer=jnp.zeros(()))
         return path, vel, control, follow
     reference = ego_reference(ego, pose0, vel0, spec, name)
-    fresh = jnp.concatenate([pose0[None], extend(reference, pose0, follow.reference.shape[0] - 1, dt)], 0)
+    fresh = jnp.concatenate([pose0[None], extend(reference, pose0, follow.reference.shape[0] - 1)], 0)
     replan = t - follow.made_at >= tracker.replan_every
     follow = Follow(reference=jnp.where(replan, fresh, follow.reference),
                     made_at=jnp.where(replan, t, follow.made_at))

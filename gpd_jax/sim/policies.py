@@ -30,7 +30,7 @@ from gpd_jax.decoding import Frame, advance, prefill
 from gpd_jax.geometry import pose_on_path, project_on_path, route_ahead
 from gpd_jax.sim.agents import IDMParams, idm_accel
 from gpd_jax.sim.core import Observation, Policy, SimError
-from gpd_jax.sim.tracker import Plan
+from gpd_jax.sim.tracker import Plan, extend
 from gpd_jax.spec import ModelSpec
 
 PLANNERS = ("log", "cv", "idm", "gpd", "gpd_head", "gpd_head_scratch")
@@ -41,10 +41,7 @@ def _slice_fine(obs: Observation, start, count: int):
     """`count` logged ego poses from stored frame `start` on; past the log's end it goes on straight at its last
     velocity (the tracker looks ahead of the last frame too)."""
     log = obs.log_ego
-    step = log[-1] - log[-2]
-    k = jnp.arange(1, count + 1, dtype=log.dtype)[:, None]
-    tail = jnp.concatenate([log[-1, :2] + k * step[:2], jnp.broadcast_to(log[-1, 2], (count, 1))], -1)
-    return jax.lax.dynamic_slice_in_dim(jnp.concatenate([log, tail], 0), start, count, axis=0)
+    return jax.lax.dynamic_slice_in_dim(extend(log, log[0], log.shape[0] + count), start, count, axis=0)
 
 
 def expert_policy(spec: ModelSpec) -> Policy:

@@ -105,7 +105,7 @@ def plan_path(pose0: jax.Array, vel0: jax.Array, poses: jax.Array, period: float
     return jnp.concatenate([seg.reshape(f * num_steps, 2), h.reshape(f * num_steps, 1)], -1)
 
 
-def extend(path: jax.Array, start: jax.Array, length: int, dt: float) -> jax.Array:
+def extend(path: jax.Array, start: jax.Array, length: int) -> jax.Array:
     """A reference f32[R, 3] (the poses after `start` f32[3]) continued to `length` points at its last velocity
     (straight on, constant speed); cut to `length` when longer."""
     r = path.shape[0]
