@@ -175,6 +175,21 @@ def test_lanelets_aligned_directed_and_averaged(db):
     assert area == pytest.approx((X1 - X0) * LANE_W, rel=1e-3)
 
 
+def test_a_bound_made_of_several_ways(tmp_path):
+    """levelXData's maps (inD, rounD, highD) give a bound as several ways meeting end to end, in any direction:
+    they read as the one way they make up."""
+    p = tmp_path / "split.osm"
+    split_ways = ('\n  <way id="20"><nd ref="1000" /><nd ref="1001" /></way>'  # way 10's first half
+                  '\n  <way id="21"><nd ref="1003" /><nd ref="1002" /><nd ref="1001" /></way>')  # the rest, reversed
+    rel = ('  <relation id="{}"><member type="way" ref="{}" role="left" />{}<member type="way" ref="11" '
+           'role="right" /><tag k="type" v="lanelet" /></relation>')
+    write_osm(p, lanelets=[rel.format(100, 10, ""), rel.format(110, 21, '<member type="way" ref="20" role="left" />')],
+              extra=split_ways)
+    whole, split = lanelet2.read_lanelet2(p).lanelets
+    np.testing.assert_allclose(split.left, whole.left, atol=1e-6)
+    np.testing.assert_allclose(split.centreline, whole.centreline, atol=1e-6)
+
+
 def test_centreline_of_bounds_with_different_vertex_counts():
     left = np.array([[0.0, 2.0], [10.0, 2.0]])
     right = np.array([[0.0, 0.0], [5.0, 0.0], [7.5, 0.0], [10.0, 0.0]])
@@ -345,6 +360,11 @@ def test_bad_maps(tmp_path):
     write_osm(p, lanelets=['  <relation id="5"><member type="way" ref="10" role="left" /><member type="way" '
                            'ref="99" role="right" /><tag k="type" v="lanelet" /></relation>'])
     with pytest.raises(DataError, match="lanelet 5: its right bound names way 99, which is not in the file"):
+        lanelet2.read_lanelet2(p)
+    disjoint = ('  <relation id="5"><member type="way" ref="10" role="left" /><member type="way" ref="13" '
+                'role="left" /><member type="way" ref="11" role="right" /><tag k="type" v="lanelet" /></relation>')
+    write_osm(p, lanelets=[disjoint])
+    with pytest.raises(DataError, match="lanelet 5: the ways 10, 13 of its left bound do not meet end to end"):
         lanelet2.read_lanelet2(p)
     write_osm(p, lanelets=[])
     with pytest.raises(DataError, match="holds no lanelet"):

@@ -74,7 +74,43 @@ def test_netframes_mix_with_stores_deterministically(built, tmp_path):
     alone = next(frame_batches(d, "train", 4, seed=0))  # a netframes directory alone is a training source
     assert alone["lanes"].shape == (4, 50, 20, 2)
     with pytest.raises(ValueError, match="evaluate one store"):
+        next(frame_batches(mix, "val", 4, shuffle=False, repeat=False, max_batches=1))
+    with pytest.raises(ValueError, match="give max_batches"):
         next(frame_batches(d, "val", 4, shuffle=False, repeat=False))
+    evals = [list(frame_batches(d, "val", 4, shuffle=False, repeat=False, max_batches=3)) for _ in range(2)]
+    assert len(evals[0]) == 3  # a netframes directory of held-out maps evaluates on the same drawn frames
+    for x, y in zip(*evals):
+        np.testing.assert_array_equal(x["lanes"], y["lanes"])
+
+
+def test_lanelet2_maps_and_their_mirrored_copies(tmp_path):
+    """A real map in another format (Lanelet2 here) becomes a network of the directory, around its own centre;
+    its left-hand copy is the map mirrored, each lane still in its direction of travel."""
+    from test_interaction import LANE_W, X0, X1, write_osm
+
+    from gpd_jax.data.sources import maps
+
+    osm = str(tmp_path / "road.osm")
+    write_osm(osm)
+    lanes = maps.read_map_lanes(osm)
+    assert maps.map_format(osm) == "lanelet2" and len(lanes) == 2
+    east = next(lane for lane in lanes if lane[-1, 0] > lane[0, 0])
+    west = next(lane for lane in lanes if lane[-1, 0] < lane[0, 0])
+    assert east[-1, 0] - east[0, 0] == pytest.approx(X1 - X0, rel=1e-3)
+    assert abs(east[:, 0].mean()) < 0.1 * (X1 - X0)  # around the map's centre, not INTERACTION's origin
+    assert east[:, 1].mean() - west[:, 1].mean() == pytest.approx(LANE_W, rel=1e-2)
+    d = str(tmp_path / "nf")
+    man = netframes.build_netframes(d, real_nets=[osm], real_lefthand=True, log=lambda *a: None)
+    recs = {r["name"]: r for r in man["networks"]}
+    assert set(recs) == {"real_road", "real_road_lh"}
+    assert [recs[k]["lefthand"] for k in ("real_road", "real_road_lh")] == [False, True]
+    assert recs["real_road"]["layout"] == "lanelet2"
+    assert recs["real_road"]["lane_km"] == pytest.approx(2 * (X1 - X0) / 1000, rel=1e-3)
+    nf = netframes.NetFrames(d)
+    k = nf.names.index("real_road_lh")
+    np.testing.assert_allclose(nf.lanes[k].xy[:, 1], -nf.lanes[nf.names.index("real_road")].xy[:, 1], atol=1e-4)
+    with pytest.raises(DataError, match="unknown map format"):
+        maps.read_map_lanes(str(tmp_path / "road.shp"))
 
 
 def test_broken_netframes_are_refused_by_name(built, tmp_path):

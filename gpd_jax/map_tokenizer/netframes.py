@@ -17,9 +17,11 @@ clips the lanes to the ego window exactly as a store sample does (`preprocess.cl
 directory can stand in a training mixture beside stores (`--config.data.dir=NETFRAMES:0.5,STORE:0.5`).
 
 Generated networks come from `sumo_networks.random_net_spec` with seeds drawn from `SeedSequence([seed, 4321])`, a
-stream no store build uses (stores draw theirs from `[seed, 1234]`); real networks are given files (keep test
-networks out: `gpd_jax.data.sources.realnets.TEST_ONLY`), optionally with a left-hand copy each
-(`sumo_networks.make_lefthand`).
+stream no store build uses (stores draw theirs from `[seed, 1234]`); real maps are given files in any format
+`gpd_jax.data.sources.maps.read_map_lanes` reads (SUMO networks, Lanelet2, CommonRoad, Apollo HD maps; keep held-out
+places out: `gpd_jax.data.sources.realnets.TEST_ONLY`, docs/data.md's map splits), optionally with a left-hand copy
+each. A netframes directory of held-out maps is also an evaluation set: `frame_batches` with `max_batches` draws the
+same frames for every tokenizer (`python -m gpd_jax.map_tokenizer evaluate --data NETFRAMES --max-batches N`).
 """
 
 from __future__ import annotations
@@ -50,20 +52,29 @@ def _save_lanes(lp: LanePoints, path: str) -> None:
     os.replace(tmp, path)
 
 
-def _network_record(name: str, net_path: str, out_dir: str, source: str, layout: str, spacing: float,
-                    ignore_turnarounds: bool) -> dict:
-    from gpd_jax.data.sources import sumo_networks
-
-    lanes = sumo_networks.read_network_lanes(net_path, ignore_turnarounds=ignore_turnarounds)
+def _network_record(name: str, lanes, path: str, out_dir: str, source: str, layout: str, spacing: float) -> dict:
     lp = lane_points(lanes, spacing)
     if len(lp.xy) < 2:
-        raise DataError(net_path, "network has no lane of 2 m or more")
+        raise DataError(path, "map has no lane of 2 m or more")
     f = f"{name}.lanes.npz"
     _save_lanes(lp, os.path.join(out_dir, f))
     km = float(sum(np.linalg.norm(np.diff(p, axis=0), axis=-1).sum() for p in lanes)) / 1000.0
     return {"name": name, "file": f, "source": source, "layout": layout,
-            "lefthand": sumo_networks.is_lefthand(net_path),
             "lane_km": round(km, 3), "points": int(len(lp.xy))}
+
+
+def _real_lanes(path: str, lefthand: bool, tmp: str, ignore_turnarounds: bool) -> tuple[tuple, str, bool]:
+    """(lanes, format, left-hand) of a real map file; `lefthand` asks for its left-hand copy (SUMO: rebuilt by
+    netconvert; other formats: mirrored, `gpd_jax.data.sources.maps.mirror_lanes`)."""
+    from gpd_jax.data.sources import maps, sumo_networks
+
+    fmt = maps.map_format(path)
+    if fmt == "sumo":
+        net = sumo_networks.make_lefthand(path, os.path.join(tmp, "lh.net.xml")) if lefthand else path
+        return (sumo_networks.read_network_lanes(net, ignore_turnarounds=ignore_turnarounds), fmt,
+                sumo_networks.is_lefthand(net))
+    lanes = maps.read_map_lanes(path)
+    return (maps.mirror_lanes(lanes) if lefthand else lanes), fmt, lefthand
 
 
 def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_nets: Sequence[str] = (),
@@ -74,8 +85,11 @@ def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_ne
     Args:
       num_generated: generated networks (`sumo_networks.random_net_spec` over grid / spider / random layouts).
       seed: their seed stream (`SeedSequence([seed, 4321])`).
-      real_nets: SUMO network files used as they are (e.g. `gpd_jax.data.sources.realnets` training tiles).
-      real_lefthand: also a left-hand copy of each real network (`sumo_networks.make_lefthand`).
+      real_nets: real map files used as they are, in any format `gpd_jax.data.sources.maps.read_map_lanes` reads
+        (SUMO networks such as the `gpd_jax.data.sources.realnets` training tiles, Lanelet2, CommonRoad, Apollo);
+        the record's `layout` is the format.
+      real_lefthand: also a left-hand copy of each real map (SUMO: `sumo_networks.make_lefthand`; other
+        formats: mirrored).
       lefthand_share / curved_share: probabilities for generated networks (`sumo_networks.random_net_spec`).
       ignore_turnarounds: chain lanes through SUMO's turnaround connectors (`sumo_networks.read_network_lanes`); the
         stores do not, so keep the default for a tokenizer whose targets must match theirs.
@@ -114,8 +128,10 @@ def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_ne
                 continue
             spec = sumo_networks.random_net_spec(s, None, lefthand_share, 0.0, curved_share)
             net = sumo_networks.generate_network(spec, os.path.join(tmp, "net.net.xml"))
-            records[name] = _network_record(name, net, out_dir, "generated", spec.layout, settings["lane_spacing"],
-                                            ignore_turnarounds)
+            lanes = sumo_networks.read_network_lanes(net, ignore_turnarounds=ignore_turnarounds)
+            records[name] = _network_record(name, lanes, net, out_dir, "generated", spec.layout,
+                                            settings["lane_spacing"])
+            records[name]["lefthand"] = sumo_networks.is_lefthand(net)
             records[name]["bend"] = round(spec.bend, 4)
             if (i + 1) % 50 == 0:
                 save()
@@ -126,9 +142,9 @@ def build_netframes(out_dir: str, num_generated: int = 0, seed: int = 0, real_ne
                 name = f"real_{base}" + ("_lh" if lh else "")
                 if name in records and os.path.isfile(os.path.join(out_dir, records[name]["file"])):
                     continue
-                net = sumo_networks.make_lefthand(p, os.path.join(tmp, "lh.net.xml")) if lh else p
-                records[name] = _network_record(name, net, out_dir, "real", "real", settings["lane_spacing"],
-                                                ignore_turnarounds)
+                lanes, fmt, lefthand = _real_lanes(p, lh, tmp, ignore_turnarounds)
+                records[name] = _network_record(name, lanes, p, out_dir, "real", fmt, settings["lane_spacing"])
+                records[name]["lefthand"] = lefthand
                 save()
     save()
     log(f"netframes: {len(records)} networks in {out_dir} ({time.time() - t0:.0f} s)")

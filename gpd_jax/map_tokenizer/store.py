@@ -47,13 +47,21 @@ def frame_batches(data_dir: str, split: str, batch_size: int, seed: int = 0, shu
     0, stride, 2 stride, ... of every sample (evaluation), or with `all_frames` every frame. `data_dir` may be a
     weighted mixture of stores `"DIR:0.7,DIR:0.3"` (`gpd_jax.data.loader.parse_mixture`) for training
     (shuffled, repeated, one random frame per sample): each frame comes from a store drawn by weight, and each
-    store walks its own permutations (`sample` then indexes that store). `gt_recut` (a
+    store walks its own permutations (`sample` then indexes that store). A single netframes directory without
+    `shuffle` or `repeat` (evaluation) gives the `max_batches` batches its seeded draw makes, the same for every
+    caller with the same `seed`. `gt_recut` (a
     `gpd_jax.data.lanes.RECUT_MODES` mode) makes the targets the stored lanes re-cut that way; the polylines (the
     input raster) stay as stored.
     """
     if gt_recut and gt_recut not in RECUT_MODES:
         raise ValueError(f"gt_recut must be one of {RECUT_MODES} or empty, got {gt_recut!r}")
     mixture = parse_mixture(data_dir)
+    if len(mixture) == 1 and is_netframes(mixture[0][0]) and not (shuffle and repeat):
+        if max_batches is None:
+            raise ValueError(f"{data_dir} is a netframes directory: its frames are drawn, so give max_batches to "
+                             "evaluate on it")
+        yield from _mixture_batches(mixture, split, batch_size, seed, max_batches, gt_recut)
+        return
     if len(mixture) > 1 or is_netframes(mixture[0][0]):
         if not (shuffle and repeat) or all_frames or frame_stride:
             raise ValueError(f"a mixture of stores or a netframes directory ({data_dir}) is for training batches (shuffled, repeated, one "

@@ -28,7 +28,7 @@ Conventions:
 * **Drivable area** (`lanelet2.lanelet_ring`): the left bound followed by the reversed right bound.
 * **Who uses it.** A lanelet is a vehicle lane when
   - none of its types is in `NON_VEHICLE_TYPES`: sidewalk, crosswalk, bicycleLane, border, parking, busStop,
-    shoulder (a hard shoulder is not a lane of travel; Lanelet2's reader keeps its `emergency_lane`),
+    shoulder (a hard shoulder is not a lane of travel; nor is Lanelet2's `emergency_lane` to its reader),
     restricted ("cars not allowed", `commonroad-io`'s definition; on the real maps these are roundabout aprons
     and hatched islands) and restricted_area;
   - at least one of its types is in `VEHICLE_TYPES` (urban, country, highway, interstate, intersection,

@@ -32,7 +32,8 @@ Conventions:
 Parsing uses `xml.etree.ElementTree` (expat >= 2.4 refuses entity-expansion bombs; external entities are never
 fetched); nothing in a map is executed. Every problem raises `gpd_jax.data.errors.DataError` naming the file and
 what is wrong: not XML, a node without numeric `lat` / `lon`, a way naming a missing node, a lanelet without a
-left or right bound or with a bound of fewer than two points, no lanelet at all.
+left or right bound or with a bound of fewer than two points, a bound of several ways that do not meet end to
+end, no lanelet at all.
 """
 
 from __future__ import annotations
@@ -47,7 +48,10 @@ import numpy as np
 
 from gpd_jax.data.errors import DataError
 
-VEHICLE_SUBTYPES = ("road", "highway", "play_street", "emergency_lane", "bus_lane")
+# Lanes vehicles travel on. Left out as in the CommonRoad and Apollo readers: `emergency_lane` (a hard shoulder),
+# pedestrian, bicycle and crosswalk lanelets. `main_road` is not Lanelet2's: SinD's Changchun map tags its through
+# lanes so.
+VEHICLE_SUBTYPES = ("road", "highway", "play_street", "bus_lane", "main_road")
 DEFAULT_SUBTYPE = "road"  # Lanelet2's default when a lanelet has no subtype tag
 
 
@@ -192,8 +196,10 @@ def _tags(elem) -> dict[str, str]:
     return {t.get("k"): t.get("v") for t in elem.findall("tag")}
 
 
-def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0.0)) -> Lanelet2Map:
-    """Reads a Lanelet2 `.osm` file, projected around `origin` (lat, lon) (conventions: module docstring).
+def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] | None = (0.0, 0.0)) -> Lanelet2Map:
+    """Reads a Lanelet2 `.osm` file, projected around `origin` (lat, lon) (conventions: module docstring); `None`
+    is the mean of the file's nodes (a map that is not in INTERACTION's frame around lat = lon = 0: the local
+    coordinates stay small enough for float32).
 
     Raises `DataError` naming the file and the problem.
     """
@@ -221,6 +227,8 @@ def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0
     counts["nodes"] = len(ids)
     if not ids:
         raise DataError(path, "holds no node")
+    if origin is None:
+        origin = (float(np.mean(lats)), float(np.mean(lons)))
     x, y = local_projector(*origin)(np.array(lats), np.array(lons))
     node_xy = {nid: (float(a), float(b)) for nid, a, b in zip(ids, x, y)}
     ways: dict[str, list[str]] = {}
@@ -228,20 +236,44 @@ def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0
         ways[w.get("id")] = [nd.get("ref") for nd in w.findall("nd")]
     counts["ways"] = len(ways)
 
-    def way_points(wid: str, lanelet: str, role: str) -> np.ndarray:
-        if wid not in ways:
-            raise DataError(path, f"lanelet {lanelet}: its {role} bound names way {wid}, which is not in the file")
-        refs = ways[wid]
+    def chained_refs(wids: list[str], lanelet: str, role: str) -> list[str]:
+        """The node refs of a bound made of one way or of several that meet end to end (the levelXData maps:
+        inD, rounD, highD), in the first way's direction."""
+        for wid in wids:
+            if wid not in ways:
+                raise DataError(path, f"lanelet {lanelet}: its {role} bound names way {wid}, which is not in the file")
+        refs, rest = list(ways[wids[0]]), [list(ways[w]) for w in wids[1:]]
+        while rest:
+            for k, w in enumerate(rest):
+                if w and refs and w[0] == refs[-1]:
+                    refs += w[1:]
+                elif w and refs and w[-1] == refs[-1]:
+                    refs += w[::-1][1:]
+                elif w and refs and w[-1] == refs[0]:
+                    refs = w[:-1] + refs
+                elif w and refs and w[0] == refs[0]:
+                    refs = w[::-1][:-1] + refs
+                else:
+                    continue
+                rest.pop(k)
+                break
+            else:
+                raise DataError(path, f"lanelet {lanelet}: the ways {', '.join(wids)} of its {role} bound do not "
+                                      "meet end to end")
+        return refs
+
+    def way_points(wids: list[str], lanelet: str, role: str) -> np.ndarray:
+        refs = chained_refs(wids, lanelet, role)
         missing = [r for r in refs if r not in node_xy]
         if missing:
-            raise DataError(path, f"way {wid} (the {role} bound of lanelet {lanelet}) names node {missing[0]}, "
-                                  "which is not in the file")
+            raise DataError(path, f"way {'/'.join(wids)} (the {role} bound of lanelet {lanelet}) names node "
+                                  f"{missing[0]}, which is not in the file")
         pts = np.array([node_xy[r] for r in refs], np.float64).reshape(-1, 2)
         keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=-1) > 1e-6]) if len(pts) else []
         pts = pts[keep]
         if len(pts) < 2:
-            raise DataError(path, f"way {wid} (the {role} bound of lanelet {lanelet}) has {len(pts)} distinct "
-                                  "point(s); a bound needs two")
+            raise DataError(path, f"way {'/'.join(wids)} (the {role} bound of lanelet {lanelet}) has {len(pts)} "
+                                  "distinct point(s); a bound needs two")
         return pts
 
     lanelets = []
@@ -251,13 +283,11 @@ def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0
         if tags.get("type") != "lanelet":
             counts[f"relation_{tags.get('type')}_{tags.get('subtype')}"] += 1
             continue
-        bounds = {}
+        bounds: dict[str, list[str]] = {}
         for m in r.findall("member"):
             role = m.get("role")
             if role in ("left", "right") and m.get("type") == "way":
-                if role in bounds:
-                    raise DataError(path, f"lanelet {rid} has more than one {role} bound")
-                bounds[role] = m.get("ref")
+                bounds.setdefault(role, []).append(m.get("ref"))
         for role in ("left", "right"):
             if role not in bounds:
                 raise DataError(path, f"lanelet {rid} has no {role} bound (a member way with role '{role}')")
@@ -274,8 +304,9 @@ def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0
     return Lanelet2Map(path, (float(origin[0]), float(origin[1])), tuple(lanelets), dict(counts))
 
 
-def read_lanelet2_lanes(path: str | os.PathLike, origin: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, ...]:
-    """The map-only view of a Lanelet2 map: its vehicle lanes' directed centrelines f64[R, 2] in the local frame,
-    what `gpd_jax.data.preprocess.lane_points` takes (e.g. to draw map-tokenizer training frames from a map with
-    no traffic)."""
+def read_lanelet2_lanes(path: str | os.PathLike,
+                        origin: tuple[float, float] | None = None) -> tuple[np.ndarray, ...]:
+    """The map-only view of a Lanelet2 map: its vehicle lanes' directed centrelines f64[R, 2] in the local frame
+    (by default around the mean of its nodes), what `gpd_jax.data.preprocess.lane_points` takes (e.g. to draw
+    map-tokenizer training frames from a map with no traffic: `gpd_jax.map_tokenizer.netframes`)."""
     return read_lanelet2(path, origin).vehicle_centrelines()
