@@ -275,3 +275,19 @@ def test_apollo_bad_files(tmp_path, make, reason):
     assert e.value.path == str(p)
     with pytest.raises(DataError, match="no such map file"):
         apollo.read_apollo_lanes(tmp_path / "none.bin")
+
+
+def test_map_files_read_by_their_names(tmp_path):
+    """`maps.read_map_lanes` hands each format to its reader by the file's name (SUMO's `.net.xml` before
+    CommonRoad's `.xml`), as the map tokenizer's netframes read them."""
+    from gpd_jax.data.sources import maps
+
+    cr = write_commonroad(tmp_path / "town.xml")
+    ap = write_apollo(tmp_path / "apollo_town.bin")
+    assert [maps.map_format(p) for p in (cr, ap, "x.net.xml.gz", "x.NET.XML", "m.osm")] == [
+        "commonroad", "apollo", "sumo", "sumo", "lanelet2"]
+    for got, want in ((maps.read_map_lanes(cr), commonroad.read_commonroad_lanes(cr)),
+                      (maps.read_map_lanes(ap), apollo.read_apollo_lanes(ap))):
+        assert len(got) == len(want) and all(np.array_equal(g, w) for g, w in zip(got, want))
+    with pytest.raises(DataError, match="unknown map format"):
+        maps.map_format(tmp_path / "town.geojson")
