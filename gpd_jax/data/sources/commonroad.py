@@ -51,12 +51,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import xml.etree.ElementTree as ET
 from collections import Counter
 
 import numpy as np
 
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.sources.maps import xml_root
 from gpd_jax.data.sources.lanelet2 import centreline, lanelet_ring
 
 VEHICLE_TYPES = ("urban", "country", "highway", "interstate", "intersection", "driveWay", "mainCarriageWay",
@@ -179,14 +179,7 @@ def read_commonroad(path: str | os.PathLike) -> CommonRoadMap:
     Raises `DataError` naming the file and the problem.
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DataError(path, "no such map file")
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as e:
-        raise DataError(path, f"not a CommonRoad (XML) file: {e}") from None
-    if root.tag != "commonRoad":
-        raise DataError(path, f"not a CommonRoad file: the root element is <{root.tag}>, expected <commonRoad>")
+    root = xml_root(path, "CommonRoad", "commonRoad")
     counts: Counter = Counter()
     lanelets = []
     for elem in root:

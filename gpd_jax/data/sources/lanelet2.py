@@ -41,12 +41,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import xml.etree.ElementTree as ET
 from collections import Counter
 
 import numpy as np
 
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.sources.maps import xml_root
 
 # Lanes vehicles travel on. Left out as in the CommonRoad and Apollo readers: `emergency_lane` (a hard shoulder),
 # pedestrian, bicycle and crosswalk lanelets. `main_road` is not Lanelet2's: SinD's Changchun map tags its through
@@ -204,14 +204,7 @@ def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] | None = 
     Raises `DataError` naming the file and the problem.
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DataError(path, "no such map file")
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as e:
-        raise DataError(path, f"not a Lanelet2 .osm (XML) file: {e}") from None
-    if root.tag != "osm":
-        raise DataError(path, f"not a Lanelet2 .osm file: the root element is <{root.tag}>, expected <osm>")
+    root = xml_root(path, "Lanelet2 .osm", "osm")
     counts: Counter = Counter()
     ids, lats, lons = [], [], []
     for n in root.iter("node"):
