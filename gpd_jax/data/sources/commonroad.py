@@ -56,7 +56,7 @@ from collections import Counter
 import numpy as np
 
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.sources.maps import xml_root
+from gpd_jax.data.sources.xmlmap import xml_root
 from gpd_jax.data.sources.lanelet2 import centreline, lanelet_ring
 
 VEHICLE_TYPES = ("urban", "country", "highway", "interstate", "intersection", "driveWay", "mainCarriageWay",

@@ -46,7 +46,7 @@ from collections import Counter
 import numpy as np
 
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.sources.maps import xml_root
+from gpd_jax.data.sources.xmlmap import xml_root
 
 # Lanes vehicles travel on. Left out as in the CommonRoad and Apollo readers: `emergency_lane` (a hard shoulder),
 # pedestrian, bicycle and crosswalk lanelets. `main_road` is not Lanelet2's: SinD's Changchun map tags its through
