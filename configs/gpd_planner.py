@@ -10,6 +10,10 @@ Variants (`configs/gpd_planner.py:VARIANT`), all with the same head, data and ta
 * `frozen`: the backbone frozen and its output tokens computed once per scene (`train.cache_features`), so only
   the head's ~0.3 M parameters train: 2,000 steps of 32 scenes, 27 min on 2 CPU cores; the model's own agent and
   map predictions stay exactly its backbone's.
+* `idm_residual`: a head that corrects IDM's plan along the route (`plan_head.base = "idm"`; PDM-Hybrid's idea) instead
+  of planning from nothing: a fresh head on the frozen backbone, the route as an input, the same real-road tiles
+  and two closed-loop rounds as `closed_loop`, 600 steps of 32 at 1e-3; `idm_residual_scratch` is the same on a
+  frozen random backbone (the no-pre-training ablation at the same budget).
 * `finetune`: the paper's setting, the backbone fine-tuned too at a tenth of the head's learning rate (a backbone
   pass per step).
 * `scratch`, `frozen_scratch`: the no-pre-training ablations at the same budget (a random backbone trained on the
@@ -42,7 +46,7 @@ real-road SUMO tiles (the training and development tiles of `gpd_jax.data realne
 
 from gpd_jax.config import gpd_config
 
-VARIANTS = ("closed_loop", "frozen", "finetune", "scratch", "frozen_scratch")
+VARIANTS = ("closed_loop", "idm_residual", "idm_residual_scratch", "frozen", "finetune", "scratch", "frozen_scratch")
 
 
 def get_config(variant: str = "closed_loop"):
@@ -61,7 +65,7 @@ def get_config(variant: str = "closed_loop"):
     t.batch_size, t.steps, t.learning_rate, t.warmup_steps, t.min_learning_rate = 8, 300, 1e-3, 50, 1e-5
     t.grad_clip, t.log_every, t.eval_every, t.eval_batches, t.checkpoint_every = 1.0, 25, 150, 4, 100
     t.loader_threads = 2
-    if variant.startswith("frozen") or variant == "closed_loop":
+    if variant.startswith(("frozen", "idm_residual")) or variant == "closed_loop":
         t.backbone_lr_scale, t.cache_features = 0.0, True
         t.batch_size, t.steps, t.warmup_steps = 32, 2_000, 200
         t.log_every, t.eval_every, t.checkpoint_every = 100, 500, 500
@@ -72,6 +76,13 @@ def get_config(variant: str = "closed_loop"):
         t.log_every, t.eval_every, t.checkpoint_every = 50, 200, 200
         ph = c.plan_head
         ph.route_points, ph.route_spacing_m = 16, 5.0
+        ph.closed_loop_rounds, ph.closed_loop_scenes = 2, 120
+    if variant.startswith("idm_residual"):
+        c.data.dir, c.data.val_dir = "data/mix_real_train", "data/mix_real_dev"
+        t.steps, t.learning_rate, t.warmup_steps = 600, 1e-3, 50
+        t.log_every, t.eval_every, t.checkpoint_every = 50, 200, 200
+        ph = c.plan_head
+        ph.route_points, ph.route_spacing_m, ph.base = 16, 5.0, "idm"
         ph.closed_loop_rounds, ph.closed_loop_scenes = 2, 120
     if variant.endswith("scratch"):
         t.init_from = ""

@@ -139,6 +139,8 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
             route_points=0,        # > 0: the head also reads where the route goes (the logged ego's path, as nuPlan
                                    # gives its planners the route): this many points along it ahead of the ego
             route_spacing_m=5.0,   # metres of route between them
+            base="",               # "idm": the head corrects IDM's plan along the route (PlanningHead); "": the
+                                   # paper's head, which plans the poses itself
             closed_loop_rounds=0,  # > 0 (cached features of a frozen backbone): DAgger rounds, evenly spread over
                                    # the steps: the head drives the simulator (log agents, the plan tracker) on
                                    # closed_loop_scenes training scenes, and the states it reaches, labelled with

@@ -87,6 +87,26 @@ def test_head_shapes_frames_and_one_compile(head_config):
     routed.route_out.kernel[...] = 0.1 * jax.random.normal(jax.random.key(3), routed.route_out.kernel[...].shape)
     assert float(jnp.max(jnp.abs(routed(hidden, left) - routed(hidden, right)))) > 1e-3
 
+    # A head that corrects a base plan: untrained, it returns the base plan; once its output layer moves, the
+    # correction is added to it; a missing or misshapen base, or a base given to a head without one, is refused.
+    c = ml_collections.ConfigDict(head_config.to_dict())
+    c.plan_head.base = "idm"
+    corrects = build_model(c).plan_head
+    base = jnp.stack([jnp.linspace(1.0, 8.0, 4), jnp.linspace(0.0, 0.6, 4), jnp.linspace(0.0, 0.3, 4)], -1)
+    base = jnp.broadcast_to(base, (2, 3, 4, 3))
+    _close(corrects(hidden, base=base), base, 1e-6)
+    with pytest.raises(ValueError, match=r"a base plan \(idm"):
+        corrects(hidden)
+    with pytest.raises(ValueError, match="base plan"):
+        corrects(hidden, base=base[..., :3, :])
+    with pytest.raises(ValueError, match="reads no base plan"):
+        model.plan_head(hidden, base=base)
+    corrects.out2.kernel[...] = 0.1 * jax.random.normal(jax.random.key(4), corrects.out2.kernel[...].shape)
+    moved = corrects(hidden, base=base)
+    correction = corrects(hidden, base=jnp.zeros_like(base))
+    _close(moved[..., :2], base[..., :2] + correction[..., :2], 1e-5)
+    assert float(jnp.max(jnp.abs(correction[..., :2]))) > 1e-3
+
 
 def test_targets_in_each_frames_ego_frame():
     from gpd_jax.scene import Scene
@@ -279,7 +299,8 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
         k.model.map_tokenizer, k.model.codebook_size = "map_tokenizer", 128   # the simulator encodes maps with it
         k.train.backbone_lr_scale, k.train.cache_features = 0.0, True
         k.plan_head.closed_loop_rounds, k.plan_head.closed_loop_scenes = 1, 3
-        k.plan_head.route_points = 4                                            # and the head reads the route
+        k.plan_head.route_points = 4                                            # the head reads the route
+        k.plan_head.base = "idm"                                                # and corrects IDM's plan
         return k
 
     assert closed_loop_steps(cfg()) == [2]
@@ -288,6 +309,7 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
     with np.load(os.path.join(wd, "closed_loop", "round_1.npz")) as z:
         assert z["hidden"].shape[0] == 3 and z["mask"].any() and np.isfinite(z["target"]).all()
         assert z["route"].shape == z["target"].shape[:2] + (4, 2) and np.isfinite(z["route"]).all()
+        assert z["base"].shape == z["target"].shape and np.isfinite(z["base"]).all()
     out = train_and_evaluate(cfg(), wd, quiet=True)
     assert out["step"] == 4 and np.isfinite(out["eval"]["plan_ade_current"])
     train_and_evaluate(cfg(), full, quiet=True)
@@ -300,6 +322,35 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
     bad.plan_head.route_points = 0
     with pytest.raises(ValueError, match="closed_loop_rounds.*cache_features"):
         train_and_evaluate(bad, str(tmp_path / "bad"), quiet=True)
+
+
+def test_the_base_plan_is_the_simulators_idm_plan(store_dir):
+    """A head that corrects IDM's plan reads the same base plan in training (`plan_inputs`, from the stored scene)
+    as in the simulator (the `idm` planner's plan from the observation), and, untrained, plans exactly that."""
+    from gpd_jax import sim
+    from gpd_jax.checkpoint import Model, build_model, resolve_tokenizer_path
+    from gpd_jax.data import loader
+    from gpd_jax.map_tokenizer import load_tokenizer
+    from gpd_jax.model import to_scene_frame
+    from gpd_jax.training.planning import plan_inputs
+
+    k = _loop_config(store_dir)
+    k.model.map_tokenizer, k.model.codebook_size = "map_tokenizer", 128
+    k.plan_head.base, k.plan_head.route_points = "idm", 4
+    world = Model.from_module(build_model(k), k, tokenizer=load_tokenizer(resolve_tokenizer_path("map_tokenizer")))
+    stored = loader.load_split(store_dir, "train", with_polylines=True, indices=range(2))[0]
+    spec, h = world.spec, world.spec.num_history
+    route, base = plan_inputs(stored, spec.view(stored), spec, k)
+    assert route.shape == (2, spec.num_frames - 1, 4, 2) and base.shape == (2, spec.num_frames - 1, 4, 3)
+    sims = sim.make_sim_scenes(world, stored)
+    head, idm = sim.make_policy("gpd_head", world), sim.make_policy("idm", world)
+    key = jax.random.key(0)
+    for i in range(2):
+        obs = sim.observe(world, sim.reset(world, jax.tree.map(lambda a: a[i], sims), agents="log", with_model=False))
+        want = idm.plan(None, obs, key)
+        assert float(jnp.linalg.norm(want[-1, :2] - want[0, :2])) > 1.0          # it goes somewhere
+        _close(to_scene_frame(jnp.asarray(base[i, h - 1]), obs.ego_pose)[:len(want)], want, 1e-4)  # F >= frames
+        _close(head.plan(world.params, obs, key), want, 1e-4)
 
 
 def test_closed_loop_targets_lead_back_to_the_log():

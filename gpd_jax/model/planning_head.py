@@ -13,6 +13,12 @@ whose hidden states already carry the history through the backbone's causal atte
 displacement from the previous waypoint (scaled by `position_scale` metres) and the heading as a unit vector.
 Waypoint k is the running sum of the displacements, so positions start at the ego and grow smoothly.
 
+With `base` ("idm"), the head corrects a given base plan instead of planning from nothing (PDM-Hybrid's idea, Dauner
+et al. 2023: a learned offset on a rule-based planner's trajectory): the same outputs are added to the base plan's
+poses (the running sums to its positions, the heading to its headings), and the output layer starts at zero, so
+an untrained head returns the base plan. The caller computes the base plan (IDM along the route:
+`gpd_jax.sim.agents.idm_route_plan`) in the same ego frame.
+
 Frames: the head's output is in the ego frame of the frame whose tokens it read (origin at the ego's box
 centre, x along its heading); `to_scene_frame` (or `plan_trajectory(..., ego_pose)`) turns it into the scene
 frame. Output k (k = 0 .. F-1) is the ego at model frame t + 1 + k when the tokens are frame t's, at the
@@ -26,6 +32,8 @@ import jax.numpy as jnp
 from flax import nnx
 
 from gpd_jax.scene import wrap_angle
+
+BASES = ("", "idm")  # plan_head.base: what the head's outputs are added to (PlanningHead)
 
 
 def _attend(q, k, v):
@@ -48,10 +56,13 @@ class PlanningHead(nnx.Module):
       route_points: R > 0 reads the route (the ego's frame, f32[..., R, 2]: `gpd_jax.geometry.route_ahead`); 0 the
         paper's head, without one.
       route_spacing_m: metres of route between those points.
+      base: "" the paper's head (it plans the poses); "idm": it returns a correction to a base plan given with
+        every call (IDM along the route), which an untrained head returns unchanged.
     """
 
     def __init__(self, d_model: int, num_future: int, num_heads: int, ffn_dim: int, ego_slot: int,
-                 rngs: nnx.Rngs, position_scale: float = 10.0, route_points: int = 0, route_spacing_m: float = 5.0):
+                 rngs: nnx.Rngs, position_scale: float = 10.0, route_points: int = 0, route_spacing_m: float = 5.0,
+                 base: str = ""):
         d = int(d_model)
         if d % int(num_heads):
             raise ValueError(f"plan_head: d_model {d} is not divisible by num_heads {num_heads}")
@@ -63,6 +74,9 @@ class PlanningHead(nnx.Module):
         self.position_scale = float(position_scale)
         self.route_points = int(route_points)
         self.route_spacing_m = float(route_spacing_m)
+        if base not in BASES:
+            raise ValueError(f"plan_head.base {base!r} is not one of {BASES}")
+        self.base = str(base)
         if self.route_points:
             self.route_in = nnx.Linear(2 * self.route_points, d, rngs=rngs)
             self.route_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros, rngs=rngs)  # starts as no route
@@ -81,7 +95,8 @@ class PlanningHead(nnx.Module):
         self.ff2 = nnx.Linear(int(ffn_dim), d, rngs=rngs)
         self.ln_out = nnx.LayerNorm(d, rngs=rngs)
         self.out1 = nnx.Linear(d, d, rngs=rngs)
-        self.out2 = nnx.Linear(d, 4, rngs=rngs)
+        zero = {"kernel_init": nnx.initializers.zeros} if self.base else {}  # a correction starts as none
+        self.out2 = nnx.Linear(d, 4, rngs=rngs, **zero)
 
     @classmethod
     def from_config(cls, head_cfg, model_cfg, rngs: nnx.Rngs) -> "PlanningHead":
@@ -90,15 +105,16 @@ class PlanningHead(nnx.Module):
                    num_heads=int(head_cfg.num_heads), ffn_dim=int(head_cfg.ffn_dim),
                    ego_slot=int(model_cfg.num_map_tokens), rngs=rngs,
                    position_scale=float(head_cfg.position_scale), route_points=int(head_cfg.route_points),
-                   route_spacing_m=float(head_cfg.route_spacing_m))
+                   route_spacing_m=float(head_cfg.route_spacing_m), base=str(head_cfg.get("base", "")))
 
     def _split(self, x):
         return x.reshape(x.shape[:-1] + (self.num_heads, x.shape[-1] // self.num_heads))
 
-    def __call__(self, hidden, route=None):
+    def __call__(self, hidden, route=None, base=None):
         """hidden f32[..., N, d] (one frame's backbone outputs, before the backbone's final LayerNorm), route
-        f32[..., R, 2] (a route head only: where the route goes, in that frame's ego frame) -> f32[..., F, 3] (x, y,
-        heading) in the ego frame of that frame."""
+        f32[..., R, 2] (a route head only: where the route goes, in that frame's ego frame), base f32[..., F, 3] (a
+        head with a base only: the base plan in that frame's ego frame) -> f32[..., F, 3] (x, y, heading) in the
+        ego frame of that frame."""
         if hidden.ndim < 2 or hidden.shape[-2] <= self.ego_slot:
             raise ValueError(f"plan_head: hidden must be f32[..., N, d] with N > ego slot {self.ego_slot}, "
                              f"got shape {hidden.shape}")
@@ -107,6 +123,11 @@ class PlanningHead(nnx.Module):
             wants = (f"a route of {self.route_points} points (f32[..., {self.route_points}, 2])"
                      if self.route_points else "no route (plan_head.route_points is 0)")
             raise ValueError(f"plan_head: reads {wants}; got {None if route is None else tuple(route.shape)}")
+        if (base is None) != (not self.base) or (
+                base is not None and tuple(base.shape[-2:]) != (self.num_future, 3)):
+            wants = (f"a base plan ({self.base}, f32[..., {self.num_future}, 3])" if self.base
+                     else "no base plan (plan_head.base is empty)")
+            raise ValueError(f"plan_head: reads {wants}; got {None if base is None else tuple(base.shape)}")
         mem = self.ln_mem(hidden)
         ego = mem[..., self.ego_slot, :]
         q = self.queries[...] + self.ego_in(ego)[..., None, :]                    # [..., F, d]
@@ -123,7 +144,10 @@ class PlanningHead(nnx.Module):
         out = self.out2(jax.nn.gelu(self.out1(self.ln_out(q))))                  # [..., F, 4]
         xy = jnp.cumsum(out[..., :2] * self.position_scale, axis=-2)
         heading = jnp.arctan2(out[..., 3], out[..., 2] + 1.0)  # +1: heading 0 (straight on) at initialisation
-        return jnp.concatenate([xy, heading[..., None]], axis=-1)
+        plan = jnp.concatenate([xy, heading[..., None]], axis=-1)
+        if base is None:
+            return plan
+        return jnp.concatenate([base[..., :2] + xy, wrap_angle(base[..., 2:] + plan[..., 2:])], axis=-1)
 
 
 def to_scene_frame(plan, ego_pose):
@@ -144,7 +168,7 @@ def to_ego_frame(xy, heading, ego_pose):
     return jnp.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(heading - ego_pose[..., 2:3])], axis=-1)
 
 
-def plan_trajectory(head, hidden, ego_pose=None, route=None):
+def plan_trajectory(head, hidden, ego_pose=None, route=None, base=None):
     """The planned ego trajectory from one frame's backbone output tokens.
 
     Args:
@@ -155,6 +179,7 @@ def plan_trajectory(head, hidden, ego_pose=None, route=None):
       ego_pose: optional f32[..., 3] the ego's (x, y, heading) at that frame in the scene frame.
       route: f32[..., R, 2] for a head that reads the route (`PlanningHead.route_points` = R): where it goes, in
         the ego frame (`gpd_jax.geometry.route_ahead`).
+      base: f32[..., F, 3] for a head with a base plan (`PlanningHead.base`): that plan in the ego frame.
     Returns:
       f32[..., F, 3] (x, y, heading) of the ego at the next F model frames: in the ego's frame at the read
       frame, or in the scene frame when `ego_pose` is given.
@@ -163,5 +188,5 @@ def plan_trajectory(head, hidden, ego_pose=None, route=None):
     if not isinstance(head, PlanningHead):
         raise TypeError(f"plan_trajectory needs a PlanningHead or a model with one (.plan_head), got "
                         f"{type(head).__name__}")
-    plan = head(hidden, route)
+    plan = head(hidden, route, base)
     return plan if ego_pose is None else to_scene_frame(plan, ego_pose)

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from gpd_jax.geometry import pose_on_path, project_on_path
 
 EXTENSION_M = 200.0
+ROUTE_SPEED = 13.89  # m/s: the target speed of IDM along the ego's route (SUMO's default lane speed; no speed limits)
 
 
 @flax.struct.dataclass(frozen=True)
@@ -154,3 +155,48 @@ def idm_poses(paths: Paths, st: IDMState):
     """Poses of every slot at its arc: (xy f32[A, 2], heading f32[A], valid bool[A])."""
     xy, h = jax.vmap(pose_on_path)(paths.xy, paths.heading, paths.s, st.s)
     return xy, h, st.active & (st.s <= paths.end_s)
+
+
+def idm_along_route(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.Array, ego_pose: jax.Array,
+                    cur_xy: jax.Array, cur_velocity: jax.Array, cur_valid: jax.Array, size: jax.Array,
+                    num_steps: int, dt: float, target_speed: float = ROUTE_SPEED,
+                    p: IDMParams = IDMParams()) -> jax.Array:
+    """The ego driven by IDM along a route for `num_steps` steps of `dt` seconds: f32[num_steps, 3] poses (scene
+    frame). It starts at the ego's projection on the route at its current speed; its leaders are the other slots
+    of the current frame whose box overlaps the route ahead, moved at constant velocity through the steps.
+
+    route_xy f32[R, 2], route_heading f32[R], route_s f32[R]: the route (a path, `Paths`' slot 0); ego_pose f32[3];
+    cur_xy f32[A, 2], cur_velocity f32[A, 2], cur_valid bool[A], size f32[A, 2]: the frame's slots, the ego at 0
+    (its speed is |cur_velocity[0]|)."""
+    s0, _, _ = project_on_path(route_xy, route_s, ego_pose[None, :2])
+    v = jnp.linalg.norm(cur_velocity[0])
+    length, width = size[0, 0], size[0, 1]
+    others = cur_valid.at[0].set(False)
+
+    def sub(carry, k):
+        s, v = carry
+        q = cur_xy + cur_velocity * (k * dt)
+        arc, lat, tan = project_on_path(route_xy, route_s, q)
+        cand = others & (lat < 0.5 * (width + size[:, 1])) & (arc > s)
+        gap = jnp.where(cand, arc - s - 0.5 * (length + size[:, 0]), jnp.inf)
+        j = jnp.argmin(gap)
+        lead_v = jnp.sum(cur_velocity[j] * tan[j])
+        a = idm_accel(v, target_speed, gap[j], v - lead_v, p)
+        v = jnp.maximum(v + a * dt, 0.0)
+        s = s + v * dt
+        xy, h = pose_on_path(route_xy, route_heading, route_s, s)
+        return (s, v), jnp.concatenate([xy, h[None]])
+
+    _, poses = jax.lax.scan(sub, (s0[0], v), jnp.arange(num_steps, dtype=jnp.float32))
+    return poses
+
+
+def idm_route_plan(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.Array, ego_pose: jax.Array,
+                   cur_xy: jax.Array, cur_velocity: jax.Array, cur_valid: jax.Array, size: jax.Array,
+                   num_future: int, stride: int, dt: float) -> jax.Array:
+    """`idm_along_route` at the model's frames: the ego's poses f32[num_future, 3] (scene frame) at the next
+    `num_future` model frames of `stride` steps of `dt` seconds (the `idm` planner's plan, and the base plan of a
+    planning head with `plan_head.base = "idm"`)."""
+    poses = idm_along_route(route_xy, route_heading, route_s, ego_pose, cur_xy, cur_velocity, cur_valid, size,
+                            stride * num_future, dt)
+    return poses[stride - 1:: stride]

@@ -4,8 +4,8 @@ shape compiles once):
 * ``log``: the expert: the logged ego at the stored rate (its open-loop plan is the logged future);
 * ``cv``: constant velocity and heading from the ego's current velocity;
 * ``idm``: IDM lane following along the logged ego's route (the route has no timing: nuPlan gives its planners
-  the route, not the expert's speeds), target speed `target_speed` (the stores carry no speed limits; 13.89 m/s
-  is SUMO's default lane speed), leaders = the agents of the current frame projected on the route and moved at
+  the route, not the expert's speeds), target speed `sim.agents.ROUTE_SPEED` (the stores carry no speed limits:
+  13.89 m/s, SUMO's default lane speed), leaders = the agents of the current frame projected on the route and moved at
   constant velocity through the step;
 * ``gpd``: the GPD zero-shot: the model's own prediction of the ego's next frame (pose and velocity), as in the
   motion-planning task (no open-loop plan of its own: its open-loop score reads the run with GPD agents, the
@@ -13,7 +13,8 @@ shape compiles once):
 * ``gpd_head``: the paper's fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the
   current frame, run by its own backbone (a KV cache in the policy state): its 8 s plan, a `Plan` the tracker
   follows (without a tracker, the ego is placed on the plan's first second); a head that reads the route gets it
-  from the observation (`route_xy`); its open-loop plan is the same trajectory at the current frame;
+  from the observation (`route_xy`), and a head with `plan_head.base = "idm"` corrects the ``idm`` planner's plan
+  (`idm_route_plan` from the same observation); its open-loop plan is the same trajectory at the current frame;
   ``gpd_head_scratch`` is the same head trained without pre-training (the paper's ablation).
 """
 
@@ -27,8 +28,8 @@ from flax import nnx
 
 from gpd_jax.checkpoint import Model
 from gpd_jax.decoding import Frame, advance, prefill
-from gpd_jax.geometry import pose_on_path, project_on_path, route_ahead
-from gpd_jax.sim.agents import IDMParams, idm_accel
+from gpd_jax.geometry import route_ahead
+from gpd_jax.sim.agents import idm_along_route, idm_route_plan
 from gpd_jax.sim.core import Observation, Policy, SimError
 from gpd_jax.sim.tracker import Plan, extend
 from gpd_jax.spec import ModelSpec
@@ -71,42 +72,23 @@ def constant_velocity_policy(spec: ModelSpec) -> Policy:
     return Policy(name="cv", select=select, plan=plan)
 
 
-def _idm_route(obs: Observation, num_steps: int, dt: float, target_speed: float, p: IDMParams):
-    """IDM along the route for `num_steps` stored-rate steps with the current agents moved at constant velocity:
-    f32[num_steps, 3] poses."""
-    s0, _, _ = project_on_path(obs.route_xy, obs.route_s, obs.ego_pose[None, :2])
-    v = jnp.linalg.norm(obs.ego_velocity)
-    length, width = obs.size[0, 0], obs.size[0, 1]
-    others = obs.cur_valid.at[0].set(False)
-
-    def sub(carry, k):
-        s, v = carry
-        q = obs.cur_xy + obs.cur_velocity * (k * dt)
-        arc, lat, tan = project_on_path(obs.route_xy, obs.route_s, q)
-        cand = others & (lat < 0.5 * (width + obs.size[:, 1])) & (arc > s)
-        gap = jnp.where(cand, arc - s - 0.5 * (length + obs.size[:, 0]), jnp.inf)
-        j = jnp.argmin(gap)
-        lead_v = jnp.sum(obs.cur_velocity[j] * tan[j])
-        a = idm_accel(v, target_speed, gap[j], v - lead_v, p)
-        v = jnp.maximum(v + a * dt, 0.0)
-        s = s + v * dt
-        xy, h = pose_on_path(obs.route_xy, obs.route_heading, obs.route_s, s)
-        return (s, v), jnp.concatenate([xy, h[None]])
-
-    _, poses = jax.lax.scan(sub, (s0[0], v), jnp.arange(num_steps, dtype=jnp.float32))
-    return poses
-
-
-def idm_policy(spec: ModelSpec, target_speed: float = 13.89, params: IDMParams = IDMParams()) -> Policy:
+def idm_policy(spec: ModelSpec) -> Policy:
     s, dt = spec.frame_stride, spec.stored_period_s
 
     def select(p, obs, state, key):  # two model frames: the tracker looks a second ahead
-        return _idm_route(obs, 2 * s, dt, target_speed, params), state
+        return idm_along_route(obs.route_xy, obs.route_heading, obs.route_s, obs.ego_pose, obs.cur_xy,
+                               obs.cur_velocity, obs.cur_valid, obs.size, 2 * s, dt), state
 
     def plan(p, obs, key):
-        return _idm_route(obs, s * spec.num_future, dt, target_speed, params)[s - 1:: s]
+        return _idm_plan(obs, spec, spec.num_future)
 
     return Policy(name="idm", select=select, plan=plan)
+
+
+def _idm_plan(obs: Observation, spec: ModelSpec, num_future: int) -> jax.Array:
+    """IDM's plan along the observation's route at the next `num_future` model frames: f32[num_future, 3]."""
+    return idm_route_plan(obs.route_xy, obs.route_heading, obs.route_s, obs.ego_pose, obs.cur_xy, obs.cur_velocity,
+                          obs.cur_valid, obs.size, num_future, spec.frame_stride, spec.stored_period_s)
 
 
 def gpd_policy(spec: ModelSpec) -> Policy:
@@ -121,7 +103,7 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
     that carries its own backbone's KV cache in its policy state: each frame it appends what the simulator
     placed (ego, agents, the map encoded around the ego) to its cache, reads the ego token's output and plans. So
     it runs beside any world model and agent model (its backbone may be fine-tuned away from the world model's)."""
-    from gpd_jax.model import plan_trajectory
+    from gpd_jax.model import plan_trajectory, to_ego_frame
 
     if "plan_head" not in head_model.config:
         raise SimError(f"gpd_head needs a model with the fine-tuned planning head (a config with a plan_head "
@@ -141,6 +123,12 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
             return None
         return route_ahead(obs.route_xy, obs.route_s, obs.ego_pose, head.route_points, head.route_spacing_m)
 
+    def base(module, obs):
+        if not module.plan_head.base:
+            return None
+        idm = _idm_plan(obs, spec, module.plan_head.num_future)
+        return to_ego_frame(idm[:, :2], idm[:, 2], obs.ego_pose)
+
     def init(params, obs):
         module = nnx.merge(graphdef, params, rest)
         return prefill(module, frames(module, obs), h - 1, t_total)
@@ -150,13 +138,14 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
         f = frames(module, obs)
         cur = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, obs.t, 0, keepdims=False), f)
         state = advance(module, state, cur, obs.t)
-        plan = plan_trajectory(module, state.hidden, obs.ego_pose, route(module, obs))
+        plan = plan_trajectory(module, state.hidden, obs.ego_pose, route(module, obs), base(module, obs))
         return Plan(poses=plan[: spec.num_future]), state
 
     def plan(params, obs, key):
         module = nnx.merge(graphdef, params, rest)
         st = prefill(module, frames(module, obs), h, t_total)
-        return plan_trajectory(module, st.hidden, obs.ego_pose, route(module, obs))[: spec.num_future]
+        return plan_trajectory(module, st.hidden, obs.ego_pose, route(module, obs), base(module, obs))[
+            : spec.num_future]
 
     return Policy(name=name, select=select, init=init, plan=plan, needs_map=True, params=head_model.params)
 

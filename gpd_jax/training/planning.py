@@ -23,7 +23,8 @@ A config with a `plan_head` section (configs/gpd_planner.py) builds the GPD with
   empty trains everything from scratch (the paper's "without pre-training" ablation,
   configs/gpd_planner.py:scratch).
 * Route (`plan_head.route_points` > 0, cached features): the head also reads where the logged ego's path goes
-  from each source frame (`ego_routes`, as the simulator's observation gives it).
+  from each source frame, and a head with `plan_head.base = "idm"` corrects IDM's plan along the route from it
+  (`plan_inputs`, as the simulator's observation gives them).
 * Closed-loop rounds (`plan_head.closed_loop_rounds`, cached features): DAgger; the head drives the simulator on
   training scenes, and the states it reached, labelled with the log's future, join the training scenes
   (`closed_loop_rounds`, `closed_loop_features`; configs/gpd_planner.py:closed_loop).
@@ -116,13 +117,14 @@ def backbone_hidden(model, scene: Scene):
 
 
 def plan_terms(head: PlanningHead, hidden: jax.Array, target: jax.Array, mask: jax.Array,
-               current: int, route: jax.Array | None = None) -> dict[str, jax.Array]:
+               current: int, route: jax.Array | None = None, base: jax.Array | None = None) -> dict[str, jax.Array]:
     """Sums and counts of the planning loss of one scene's plans, and the current frame's ADE.
 
     hidden f32[K, N, d] output tokens of K source frames; target f32[K, F, 3] and mask bool[K, F] their logged
     ego futures (`plan_targets`); `current`: the index among the K frames of the scene's current frame; route
-    f32[K, R, 2] where the route goes from each (a route head only: `ego_routes`)."""
-    plan = head(hidden, route)                                        # [K, F, 3]
+    f32[K, R, 2] where the route goes from each and base f32[K, F, 3] the base plan from each (a route head / a
+    head with a base only: `plan_inputs`)."""
+    plan = head(hidden, route, base)                                        # [K, F, 3]
     m = mask.astype(jnp.float32)
     pos = jnp.sum(_smooth_l1(plan[..., :2] - target[..., :2]), axis=-1)
     hd = _smooth_l1(wrap_angle(plan[..., 2] - target[..., 2]))
@@ -172,19 +174,21 @@ class PlanFeatures:
       hidden: f32[..., K, N, d] output tokens of source frames first_frame .. T-2 (K = T-1-first_frame).
       target: f32[..., K, F, 3] the logged ego's next F poses in each source frame's ego frame.
       mask: bool[..., K, F] valid targets (`plan_targets`).
-      route: f32[..., K, R, 2] where the route goes from each source frame (`ego_routes`; a route head only).
+      route: f32[..., K, R, 2] where the route goes from each source frame (`plan_inputs`; a route head only).
+      base: f32[..., K, F, 3] the base plan from each source frame (`plan_inputs`; a head with a base only).
     """
 
     hidden: jax.Array
     target: jax.Array
     mask: jax.Array
     route: jax.Array | None = None
+    base: jax.Array | None = None
 
 
 def feature_batch_loss(model, feats: PlanFeatures, config) -> tuple[jax.Array, dict[str, jax.Array]]:
     """`plan_batch_loss` of cached features (leading dim B): the head alone runs."""
-    terms = jax.tree.map(jnp.sum, jax.vmap(lambda h, t, m, r: plan_terms(model.plan_head, h, t, m, 0, r))(
-        feats.hidden, feats.target, feats.mask, feats.route))
+    terms = jax.tree.map(jnp.sum, jax.vmap(lambda h, t, m, r, b: plan_terms(model.plan_head, h, t, m, 0, r, b))(
+        feats.hidden, feats.target, feats.mask, feats.route, feats.base))
     total, parts = _weighted(terms, config)
     parts["loss"] = total
     return total, parts
@@ -204,35 +208,58 @@ def _features_jit(graphdef, params, rest, scenes: Scene, expert: Scene | None = 
     return jax.vmap(one)(scenes, scenes if expert is None else expert)
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "num_points", "spacing_m"))
-def _routes_jit(xy, heading, valid, poses, spec, num_points: int, spacing_m: float):
-    """`ego_routes` of a batch: stored-rate xy f32[B, Ts, A, 2], heading, valid [B, Ts, A], poses f32[B, K, 3]."""
-    from gpd_jax.sim.agents import make_paths
+@functools.partial(jax.jit, static_argnames=("spec", "num_points", "spacing_m", "base", "num_future"))
+def _inputs_jit(stored: Scene, view: Scene, spec, num_points: int, spacing_m: float, base: str, num_future: int):
+    """`plan_inputs` of a batch (stored Scene [B, Ts, ...], view Scene [B, T, ...]): (route f32[B, T-1, R, 2] or
+    None, base f32[B, T-1, F, 3] or None)."""
+    from gpd_jax.sim.agents import idm_route_plan, make_paths
 
     c = spec.full_history - 1
 
-    def one(x, h, v, p):
-        path = make_paths(x[c:, :1], h[c:, :1], v[c:, :1], jnp.zeros(v[c:, :1].shape, x.dtype))
-        return jax.vmap(lambda q: route_ahead(path.xy[0], path.s[0], q, num_points, spacing_m))(p)
+    def one(sx, sh, sv, x, h, v, vel, size):
+        path = make_paths(sx[c:, :1], sh[c:, :1], sv[c:, :1], jnp.zeros(sv[c:, :1].shape, sx.dtype))
+        rxy, rh, rs = path.xy[0], path.heading[0], path.s[0]
+        poses = jnp.concatenate([x[:-1, 0], h[:-1, 0, None]], -1)                       # [T-1, 3]
+        route = (jax.vmap(lambda q: route_ahead(rxy, rs, q, num_points, spacing_m))(poses)
+                 if num_points else None)
+        if not base:
+            return route, None
+        plan = jax.vmap(lambda q, cx, cvel, cv: idm_route_plan(rxy, rh, rs, q, cx, cvel, cv, size, num_future,
+                                                               spec.frame_stride, spec.stored_period_s))(
+            poses, x[:-1], vel[:-1], v[:-1])                                              # [T-1, F, 3]
+        return route, to_ego_frame(plan[..., :2], plan[..., 2], poses)
 
-    return jax.vmap(one)(xy, heading, valid, poses)
-
-
-def ego_routes(stored: Scene, poses, spec, config) -> np.ndarray | None:
-    """Where the route goes from each of the ego's poses, as the simulator gives it (`gpd_jax.sim.Observation`:
-    the logged ego's path from the current frame on): stored: Scene [B, Ts, ...] at the stored rate; poses f32[B,
-    K, 3] (scene frame) -> f32[B, K, R, 2] in each pose's frame (`gpd_jax.geometry.route_ahead`); None for a head
-    without a route (`plan_head.route_points` = 0)."""
-    r = int(config.plan_head.route_points)
-    if r == 0:
-        return None
-    return np.asarray(_routes_jit(jnp.asarray(stored.xy), jnp.asarray(stored.heading), jnp.asarray(stored.valid),
-                                  jnp.asarray(poses), spec, r, float(config.plan_head.route_spacing_m)))
+    return jax.vmap(one)(stored.xy, stored.heading, stored.valid, view.xy, view.heading, view.valid, view.velocity,
+                         view.size)
 
 
-def _poses(view) -> np.ndarray:
-    """The ego's pose at every model frame but the last: f32[B, T-1, 3]."""
-    return np.concatenate([np.asarray(view.xy)[:, :-1, 0], np.asarray(view.heading)[:, :-1, 0, None]], -1)
+def plan_inputs(stored: Scene, view: Scene, spec, config) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """What a planning head reads beside the tokens at each model frame but the last, as the simulator's
+    observation gives it (`gpd_jax.sim.Observation`; the route is the logged ego's path from the current frame
+    on): stored Scene [B, Ts, ...] at the stored rate, view Scene [B, T, ...] at the model's rate (the ego where
+    it is, which in a closed-loop round is where the head drove it) ->
+
+    * route f32[B, T-1, R, 2]: where the route goes from each frame's ego pose, in its frame
+      (`gpd_jax.geometry.route_ahead`), or None for a head without a route (`plan_head.route_points` = 0);
+    * base f32[B, T-1, F, 3]: IDM's plan along the route from each frame (`gpd_jax.sim.agents.idm_route_plan`,
+      leaders the view's slots at that frame) in the ego's frame, or None for a head without a base
+      (`plan_head.base` empty)."""
+    ph = config.plan_head
+    r, base = int(ph.route_points), str(ph.get("base", ""))
+    if r == 0 and not base:
+        return None, None
+    if base and view.velocity is None:
+        raise ValueError("plan_head.base: IDM's plan starts from the ego's velocity; the model reads none "
+                         "(model.velocity_inputs = False)")
+    arrays = lambda sc: jax.tree.map(jnp.asarray, sc.replace(polylines=None, polyline_valid=None))
+    route, b = _inputs_jit(arrays(stored), arrays(view), spec, r, float(ph.route_spacing_m), base,
+                           int(ph.num_future))
+    return (None if route is None else np.asarray(route)), (None if b is None else np.asarray(b))
+
+
+def _from(first: int, *arrays):
+    """Source frames `first` .. T-2 of each [B, T-1, ...] array (None stays None)."""
+    return tuple(None if a is None else a[:, first:] for a in arrays)
 
 
 def cache_features(model, config, data_dir: str, split: str, batch_size: int = 32,
@@ -253,9 +280,8 @@ def cache_features(model, config, data_dir: str, split: str, batch_size: int = 3
                             f"them: python -m gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
                             f"{config.data.frame_stride}")
         h, t, m = jax.device_get(_features_jit(graphdef, params, rest, jax.tree.map(jnp.asarray, view)))
-        route = ego_routes(stored, _poses(view), spec, config)
-        out.append(PlanFeatures(h[:, first:], t[:, first:], m[:, first:],
-                                None if route is None else route[:, first:]))
+        route, base = plan_inputs(stored, view, spec, config)
+        out.append(PlanFeatures(h[:, first:], t[:, first:], m[:, first:], *_from(first, route, base)))
         bar.update(view.xy.shape[0])
     bar.close()
     return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
@@ -289,10 +315,10 @@ def closed_loop_features(world: Model, policy, params, scenes: Scene, key: jax.A
         reached = sims.view.replace(xy=run.xy, heading=run.heading, valid=run.valid, velocity=run.velocity,
                                     map_tokens=run.map_tokens)
         h, t, m = jax.device_get(_features_jit(graphdef, params, rest, reached, sims.view))
-        route = ego_routes(sub, _poses(reached), world.spec, world.config)
         k = hi - lo
+        route, base = plan_inputs(sub, reached, world.spec, world.config)
         out.append(PlanFeatures(h[:k, first:], t[:k, first:], m[:k, first:],
-                                None if route is None else route[:k, first:]))
+                                *_from(first, *(None if x is None else x[:k] for x in (route, base)))))
     return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
 
 
@@ -384,14 +410,16 @@ def _plan_steps(graphdef, config, tx, frozen: bool, features: bool, donate: bool
 def pretrained_params(path: str, config, template):
     """`template` (a GPD-with-head params tree) with every backbone leaf taken from the GPD at `path` (exported or
     a workdir; same `model` config, map tokenizer path aside). The head keeps its initialisation, unless `path` is
-    a planning-head model of the same head shape: then its head goes on training (closed-loop rounds on a trained
-    head), a route input it lacks starting from its initialisation."""
+    a planning-head model of the same head shape and base plan (`plan_head.base`: a head that corrects a base plan
+    means something else by its outputs than one that plans): then its head goes on training (closed-loop rounds
+    on a trained head), a route input it lacks starting from its initialisation."""
     src = load_model(path)
     diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
     shape_keys = ("num_future", "num_heads", "ffn_dim", "position_scale")
-    with_head = HEAD in src.config and all(src.config[HEAD][k] == config[HEAD][k] for k in shape_keys)
+    with_head = HEAD in src.config and all(src.config[HEAD][k] == config[HEAD][k] for k in shape_keys) and (
+        str(src.config[HEAD].get("base", "")) == str(config[HEAD].get("base", "")))
     new_route = with_head and int(src.config[HEAD].get("route_points", 0)) != int(config[HEAD].route_points)
 
     def fresh(p) -> bool:  # leaves that keep their initialisation
@@ -511,8 +539,8 @@ def closed_loop_rounds(config, pool: FeaturePool, world: Model, data_dir: str, w
                 continue
             if os.path.exists(path(r)):
                 with np.load(path(r), allow_pickle=False) as z:
-                    feats = PlanFeatures(hidden=z["hidden"], target=z["target"], mask=z["mask"],
-                                         route=z["route"] if "route" in z else None)
+                    feats = PlanFeatures(**{f.name: z[f.name] if f.name in z else None
+                                            for f in dataclasses.fields(PlanFeatures)})
             elif step == at:
                 t0 = time.perf_counter()
                 idx = np.sort(np.random.default_rng([int(config.seed), 7, r]).choice(
@@ -627,23 +655,25 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
 
 
 # ----------------------------------------------------------------------------------------------- evaluation
-def current_frame_plans(model: Model, view: Scene, params=None, route=None) -> jax.Array:
+def current_frame_plans(model: Model, view: Scene, params=None, route=None, base=None) -> jax.Array:
     """The head's plan from the current frame of scenes in the model's view (only history frames are read):
-    Scene [S, ...] -> f32[S, F, 3] in the scene frame (the current ego frame). route f32[S, R, 2]: where the route
-    goes from the current frame (a route head only: `ego_routes`)."""
+    Scene [S, ...] -> f32[S, F, 3] in the scene frame (the current ego frame). route f32[S, R, 2], base f32[S, F,
+    3]: where the route goes and the base plan from the current frame (a route head / a head with a base only:
+    `plan_inputs`)."""
     h = model.spec.num_history
     params = model.params if params is None else params
+    as_j = lambda x: None if x is None else jnp.asarray(x)
     return _plans_jit(model.graphdef, params, model.rest, jax.tree.map(jnp.asarray, view.slice_frames(0, h + 1)),
-                      None if route is None else jnp.asarray(route))
+                      as_j(route), as_j(base))
 
 
 @jax.jit
-def _plans_jit(graphdef, params, rest, scenes: Scene, route=None):
+def _plans_jit(graphdef, params, rest, scenes: Scene, route=None, base=None):
     module = nnx.merge(graphdef, params, rest)
     h = scenes.xy.shape[-3] - 1
     # Frames [0, H) are pushed through; the extra frame only gives backbone_hidden its T - 1 = H frames.
     hidden = jax.vmap(lambda s: backbone_hidden(module, s))(scenes)[:, h - 1]
-    return module.plan_head(hidden, route)
+    return module.plan_head(hidden, route, base)
 
 
 def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Model | None = None,
@@ -678,8 +708,8 @@ def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Mod
         sl = lambda x: x[lo:lo + batch_size]
         v = jax.tree.map(lambda x: jnp.asarray(sl(x)), view.replace(polylines=None, polyline_valid=None))
         fb = jax.tree.map(sl, full)
-        route = ego_routes(fb, _poses(v)[:, h - 1:h], spec, head_model.config)
-        plan = np.asarray(current_frame_plans(head_model, v, route=None if route is None else route[:, 0]))[:, :f]
+        route, base = (None if x is None else x[:, h - 1] for x in plan_inputs(fb, v, spec, head_model.config))
+        plan = np.asarray(current_frame_plans(head_model, v, route=route, base=base))[:, :f]
         xy, heading = np.array(v.xy), np.array(v.heading)
         xy[:, h:h + plan.shape[1], 0] = plan[..., :2]
         heading[:, h:h + plan.shape[1], 0] = plan[..., 2]
