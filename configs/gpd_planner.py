@@ -10,10 +10,11 @@ Variants (`configs/gpd_planner.py:VARIANT`), all with the same head, data and ta
 * `frozen`: the backbone frozen and its output tokens computed once per scene (`train.cache_features`), so only
   the head's ~0.3 M parameters train: 2,000 steps of 32 scenes, 27 min on 2 CPU cores; the model's own agent and
   map predictions stay exactly its backbone's.
-* `idm_residual`: a head that corrects IDM's plan along the route (`plan_head.base = "idm"`; PDM-Hybrid's idea) instead
-  of planning from nothing: a fresh head on the frozen backbone, the route as an input, the same real-road tiles
-  and two closed-loop rounds as `closed_loop`, 600 steps of 32 at 1e-3; `idm_residual_scratch` is the same on a
-  frozen random backbone (the no-pre-training ablation at the same budget).
+* `idm_choice`: a head that chooses its plan among IDM's plans along the route at seven target speeds
+  (`plan_head.candidates = "idm"`, `idm_speeds` 1 to 13.89 m/s; PDM's idea, the choice learned by imitation)
+  instead of drawing it: a fresh head on the frozen backbone, the route as an input, the same real-road tiles and
+  two closed-loop rounds as `closed_loop`, 600 steps of 32 at 1e-3 (about 4 min on 2 CPU cores);
+  `idm_choice_scratch` is the same on a frozen random backbone (the no-pre-training ablation at the same budget).
 * `finetune`: the paper's setting, the backbone fine-tuned too at a tenth of the head's learning rate (a backbone
   pass per step).
 * `scratch`, `frozen_scratch`: the no-pre-training ablations at the same budget (a random backbone trained on the
@@ -46,7 +47,7 @@ real-road SUMO tiles (the training and development tiles of `gpd_jax.data realne
 
 from gpd_jax.config import gpd_config
 
-VARIANTS = ("closed_loop", "idm_residual", "idm_residual_scratch", "frozen", "finetune", "scratch", "frozen_scratch")
+VARIANTS = ("idm_choice", "idm_choice_scratch", "closed_loop", "frozen", "finetune", "scratch", "frozen_scratch")
 
 
 def get_config(variant: str = "closed_loop"):
@@ -65,7 +66,7 @@ def get_config(variant: str = "closed_loop"):
     t.batch_size, t.steps, t.learning_rate, t.warmup_steps, t.min_learning_rate = 8, 300, 1e-3, 50, 1e-5
     t.grad_clip, t.log_every, t.eval_every, t.eval_batches, t.checkpoint_every = 1.0, 25, 150, 4, 100
     t.loader_threads = 2
-    if variant.startswith(("frozen", "idm_residual")) or variant == "closed_loop":
+    if variant.startswith(("frozen", "idm_choice")) or variant == "closed_loop":
         t.backbone_lr_scale, t.cache_features = 0.0, True
         t.batch_size, t.steps, t.warmup_steps = 32, 2_000, 200
         t.log_every, t.eval_every, t.checkpoint_every = 100, 500, 500
@@ -77,12 +78,13 @@ def get_config(variant: str = "closed_loop"):
         ph = c.plan_head
         ph.route_points, ph.route_spacing_m = 16, 5.0
         ph.closed_loop_rounds, ph.closed_loop_scenes = 2, 120
-    if variant.startswith("idm_residual"):
+    if variant.startswith("idm_choice"):
         c.data.dir, c.data.val_dir = "data/mix_real_train", "data/mix_real_dev"
         t.steps, t.learning_rate, t.warmup_steps = 600, 1e-3, 50
         t.log_every, t.eval_every, t.checkpoint_every = 50, 200, 200
         ph = c.plan_head
-        ph.route_points, ph.route_spacing_m, ph.base = 16, 5.0, "idm"
+        ph.route_points, ph.route_spacing_m = 16, 5.0
+        ph.candidates, ph.idm_speeds = "idm", (1.0, 3.0, 5.0, 7.0, 9.0, 11.0, 13.89)
         ph.closed_loop_rounds, ph.closed_loop_scenes = 2, 120
     if variant.endswith("scratch"):
         t.init_from = ""

@@ -139,8 +139,11 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
             route_points=0,        # > 0: the head also reads where the route goes (the logged ego's path, as nuPlan
                                    # gives its planners the route): this many points along it ahead of the ego
             route_spacing_m=5.0,   # metres of route between them
-            base="",               # "idm": the head corrects IDM's plan along the route (PlanningHead); "": the
-                                   # paper's head, which plans the poses itself
+            candidates="",         # "idm": the head chooses its plan among IDM's plans along the route at the
+                                   # target speeds idm_speeds (PlanningHead; trained by the cross-entropy of the
+                                   # one closest to the log); "": the paper's head, which draws its plan
+            idm_speeds=(1.0, 3.0, 5.0, 7.0, 9.0, 11.0, 13.89),  # m/s (13.89: SUMO's default lane speed, the idm
+                                   # planner's target)
             closed_loop_rounds=0,  # > 0 (cached features of a frozen backbone): DAgger rounds, evenly spread over
                                    # the steps: the head drives the simulator (log agents, the plan tracker) on
                                    # closed_loop_scenes training scenes, and the states it reaches, labelled with

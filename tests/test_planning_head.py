@@ -87,25 +87,28 @@ def test_head_shapes_frames_and_one_compile(head_config):
     routed.route_out.kernel[...] = 0.1 * jax.random.normal(jax.random.key(3), routed.route_out.kernel[...].shape)
     assert float(jnp.max(jnp.abs(routed(hidden, left) - routed(hidden, right)))) > 1e-3
 
-    # A head that corrects a base plan: untrained, it returns the base plan; once its output layer moves, the
-    # correction is added to it; a missing or misshapen base, or a base given to a head without one, is refused.
+    # A head that chooses its plan among candidate plans: it returns the best-scored one, unchanged; its scores
+    # read the candidates; missing or misshapen candidates, or candidates given to a head that draws its plan, are
+    # refused.
     c = ml_collections.ConfigDict(head_config.to_dict())
-    c.plan_head.base = "idm"
-    corrects = build_model(c).plan_head
-    base = jnp.stack([jnp.linspace(1.0, 8.0, 4), jnp.linspace(0.0, 0.6, 4), jnp.linspace(0.0, 0.3, 4)], -1)
-    base = jnp.broadcast_to(base, (2, 3, 4, 3))
-    _close(corrects(hidden, base=base), base, 1e-6)
-    with pytest.raises(ValueError, match=r"a base plan \(idm"):
-        corrects(hidden)
-    with pytest.raises(ValueError, match="base plan"):
-        corrects(hidden, base=base[..., :3, :])
-    with pytest.raises(ValueError, match="reads no base plan"):
-        model.plan_head(hidden, base=base)
-    corrects.out2.kernel[...] = 0.1 * jax.random.normal(jax.random.key(4), corrects.out2.kernel[...].shape)
-    moved = corrects(hidden, base=base)
-    correction = corrects(hidden, base=jnp.zeros_like(base))
-    _close(moved[..., :2], base[..., :2] + correction[..., :2], 1e-5)
-    assert float(jnp.max(jnp.abs(correction[..., :2]))) > 1e-3
+    c.plan_head.candidates, c.plan_head.idm_speeds = "idm", (4.0, 8.0, 12.0)
+    chooses = build_model(c).plan_head
+    one = jnp.stack([jnp.linspace(1.0, 8.0, 4), jnp.linspace(0.0, 0.6, 4), jnp.linspace(0.0, 0.3, 4)], -1)
+    cands = jnp.broadcast_to(jnp.stack([one, 2 * one, 3 * one]), (2, 3, 3, 4, 3))
+    logits = chooses.scores(hidden, None, cands)
+    assert logits.shape == (2, 3, 3)
+    best = jnp.take_along_axis(cands, jnp.argmax(logits, -1)[..., None, None, None], -3)[..., 0, :, :]
+    np.testing.assert_array_equal(np.asarray(chooses(hidden, candidates=cands)), np.asarray(best))
+    assert float(jnp.max(jnp.abs(chooses.scores(hidden, None, cands[..., ::-1, :, :]) - logits[..., ::-1]))) < 1e-5
+    with pytest.raises(ValueError, match=r"3 candidate plans \(idm"):
+        chooses(hidden)
+    with pytest.raises(ValueError, match="candidate plans"):
+        chooses(hidden, candidates=cands[..., :2, :, :])
+    with pytest.raises(ValueError, match="reads no candidate plans"):
+        model.plan_head(hidden, candidates=cands)
+    c.plan_head.idm_speeds = (4.0,)
+    with pytest.raises(ValueError, match="at least 2"):
+        build_model(c)
 
 
 def test_targets_in_each_frames_ego_frame():
@@ -300,7 +303,7 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
         k.train.backbone_lr_scale, k.train.cache_features = 0.0, True
         k.plan_head.closed_loop_rounds, k.plan_head.closed_loop_scenes = 1, 3
         k.plan_head.route_points = 4                                            # the head reads the route
-        k.plan_head.base = "idm"                                                # and corrects IDM's plan
+        k.plan_head.candidates = "idm"                                          # and chooses among IDM's plans
         return k
 
     assert closed_loop_steps(cfg()) == [2]
@@ -309,7 +312,9 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
     with np.load(os.path.join(wd, "closed_loop", "round_1.npz")) as z:
         assert z["hidden"].shape[0] == 3 and z["mask"].any() and np.isfinite(z["target"]).all()
         assert z["route"].shape == z["target"].shape[:2] + (4, 2) and np.isfinite(z["route"]).all()
-        assert z["base"].shape == z["target"].shape and np.isfinite(z["base"]).all()
+        c = len(cfg().plan_head.idm_speeds)
+        assert z["candidates"].shape == z["target"].shape[:2] + (c,) + z["target"].shape[2:]
+        assert np.isfinite(z["candidates"]).all()
     out = train_and_evaluate(cfg(), wd, quiet=True)
     assert out["step"] == 4 and np.isfinite(out["eval"]["plan_ade_current"])
     train_and_evaluate(cfg(), full, quiet=True)
@@ -320,28 +325,33 @@ def test_cached_features_give_the_scene_loss_and_resume_exactly(head_config, sto
     with pytest.raises(ValueError, match="route_points.*cache_features"):
         train_and_evaluate(bad, str(tmp_path / "bad"), quiet=True)
     bad.plan_head.route_points = 0
+    with pytest.raises(ValueError, match="candidates.*cache_features"):
+        train_and_evaluate(bad, str(tmp_path / "bad"), quiet=True)
+    bad.plan_head.candidates = ""
     with pytest.raises(ValueError, match="closed_loop_rounds.*cache_features"):
         train_and_evaluate(bad, str(tmp_path / "bad"), quiet=True)
 
 
-def test_the_base_plan_is_the_simulators_idm_plan(store_dir):
-    """A head that corrects IDM's plan reads the same base plan in training (`plan_inputs`, from the stored scene)
-    as in the simulator (the `idm` planner's plan from the observation), and, untrained, plans exactly that."""
+def test_the_candidates_are_the_simulators_idm_plans(store_dir):
+    """A head that chooses among IDM's plans reads the same candidates in training (`plan_inputs`, from the stored
+    scene) as in the simulator (at the idm planner's target speed, the `idm` planner's plan from the observation),
+    and plans one of them; its training loss is the cross-entropy of the candidate closest to the log."""
     from gpd_jax import sim
     from gpd_jax.checkpoint import Model, build_model, resolve_tokenizer_path
     from gpd_jax.data import loader
     from gpd_jax.map_tokenizer import load_tokenizer
     from gpd_jax.model import to_scene_frame
-    from gpd_jax.training.planning import plan_inputs
+    from gpd_jax.training.planning import plan_inputs, plan_terms, plan_targets
 
     k = _loop_config(store_dir)
     k.model.map_tokenizer, k.model.codebook_size = "map_tokenizer", 128
-    k.plan_head.base, k.plan_head.route_points = "idm", 4
+    k.plan_head.candidates, k.plan_head.route_points, k.plan_head.idm_speeds = "idm", 4, (5.0, 13.89)
     world = Model.from_module(build_model(k), k, tokenizer=load_tokenizer(resolve_tokenizer_path("map_tokenizer")))
     stored = loader.load_split(store_dir, "train", with_polylines=True, indices=range(2))[0]
     spec, h = world.spec, world.spec.num_history
-    route, base = plan_inputs(stored, spec.view(stored), spec, k)
-    assert route.shape == (2, spec.num_frames - 1, 4, 2) and base.shape == (2, spec.num_frames - 1, 4, 3)
+    view = spec.view(stored)
+    route, cands = plan_inputs(stored, view, spec, k)
+    assert route.shape == (2, spec.num_frames - 1, 4, 2) and cands.shape == (2, spec.num_frames - 1, 2, 4, 3)
     sims = sim.make_sim_scenes(world, stored)
     head, idm = sim.make_policy("gpd_head", world), sim.make_policy("idm", world)
     key = jax.random.key(0)
@@ -349,8 +359,29 @@ def test_the_base_plan_is_the_simulators_idm_plan(store_dir):
         obs = sim.observe(world, sim.reset(world, jax.tree.map(lambda a: a[i], sims), agents="log", with_model=False))
         want = idm.plan(None, obs, key)
         assert float(jnp.linalg.norm(want[-1, :2] - want[0, :2])) > 1.0          # it goes somewhere
-        _close(to_scene_frame(jnp.asarray(base[i, h - 1]), obs.ego_pose)[:len(want)], want, 1e-4)  # F >= frames
-        _close(head.plan(world.params, obs, key), want, 1e-4)
+        plans = [to_scene_frame(jnp.asarray(cands[i, h - 1, c]), obs.ego_pose)[:len(want)] for c in (0, 1)]
+        _close(plans[1], want, 1e-4)                                                # F >= the model's frames
+        gone = [float(jnp.linalg.norm(p[-1, :2] - obs.ego_pose[:2])) for p in plans]
+        assert gone[0] < gone[1]                                                    # 5 m/s goes less far
+        got = head.plan(world.params, obs, key)                                     # one of them, unchanged
+        assert min(float(jnp.max(jnp.abs(got - p))) for p in plans) < 1e-3
+
+    # The loss: the cross-entropy of the candidate closest to the logged future (here the log is made to drive
+    # one of them exactly), and the ADE of the one the head chooses.
+    target, mask = plan_targets(jax.tree.map(lambda a: jnp.asarray(a[0]), view), 4, h - 1)
+    hidden = jax.random.normal(jax.random.key(1), (target.shape[0], spec.num_map_tokens + spec.num_agents,
+                                                     k.model.d_model))
+    c0 = jnp.asarray(cands[0])
+    for label in (0, 1):
+        terms = plan_terms(world.module.plan_head, hidden, c0[:, label], jnp.ones_like(mask), h - 1, jnp.asarray(
+            route[0]), c0)
+        logits = world.module.plan_head.scores(hidden, jnp.asarray(route[0]), c0)
+        ce = jax.nn.logsumexp(logits, -1) - logits[:, label]
+        _close(terms["select_sum"], jnp.sum(ce), 1e-5)
+        pick = jnp.argmax(logits, -1)
+        assert float(terms["select_hits"]) == float(jnp.sum(pick == label))
+        ade = jnp.mean(jnp.linalg.norm(c0[h - 1, pick[h - 1], :, :2] - c0[h - 1, label, :, :2], axis=-1))
+        _close(terms["ade_sum"] / terms["ade_count"], ade, 1e-5)
 
 
 def test_closed_loop_targets_lead_back_to_the_log():

@@ -13,11 +13,12 @@ whose hidden states already carry the history through the backbone's causal atte
 displacement from the previous waypoint (scaled by `position_scale` metres) and the heading as a unit vector.
 Waypoint k is the running sum of the displacements, so positions start at the ego and grow smoothly.
 
-With `base` ("idm"), the head corrects a given base plan instead of planning from nothing (PDM-Hybrid's idea, Dauner
-et al. 2023: a learned offset on a rule-based planner's trajectory): the same outputs are added to the base plan's
-poses (the running sums to its positions, the heading to its headings), and the output layer starts at zero, so
-an untrained head returns the base plan. The caller computes the base plan (IDM along the route:
-`gpd_jax.sim.agents.idm_route_plan`) in the same ego frame.
+With `candidates` ("idm"), the head chooses its plan among C candidate plans given with every call instead of
+drawing it (PDM's idea, Dauner et al. 2023: a rule-based planner's candidates, here chosen by imitation): the same
+layer, then a score per candidate, an MLP of the candidate's poses (over `position_scale`) plus a projection of the
+mean of the waypoint queries; the plan is the best-scored candidate. The caller computes the candidates (IDM
+along the route at C target speeds: `gpd_jax.sim.agents.idm_route_plan`) in the same ego frame; training teaches
+the scores by the cross-entropy of the candidate closest to the log (`gpd_jax.training.planning`).
 
 Frames: the head's output is in the ego frame of the frame whose tokens it read (origin at the ego's box
 centre, x along its heading); `to_scene_frame` (or `plan_trajectory(..., ego_pose)`) turns it into the scene
@@ -33,7 +34,7 @@ from flax import nnx
 
 from gpd_jax.scene import wrap_angle
 
-BASES = ("", "idm")  # plan_head.base: what the head's outputs are added to (PlanningHead)
+CANDIDATES = ("", "idm")  # plan_head.candidates: "" the paper's head draws its plan; "idm": it chooses one
 
 
 def _attend(q, k, v):
@@ -56,13 +57,14 @@ class PlanningHead(nnx.Module):
       route_points: R > 0 reads the route (the ego's frame, f32[..., R, 2]: `gpd_jax.geometry.route_ahead`); 0 the
         paper's head, without one.
       route_spacing_m: metres of route between those points.
-      base: "" the paper's head (it plans the poses); "idm": it returns a correction to a base plan given with
-        every call (IDM along the route), which an untrained head returns unchanged.
+      candidates: "" the paper's head (it draws the poses); "idm": it chooses one of `num_candidates` candidate
+        plans given with every call (IDM along the route at several target speeds).
+      num_candidates: C >= 2, candidate plans per call (a choosing head only).
     """
 
     def __init__(self, d_model: int, num_future: int, num_heads: int, ffn_dim: int, ego_slot: int,
                  rngs: nnx.Rngs, position_scale: float = 10.0, route_points: int = 0, route_spacing_m: float = 5.0,
-                 base: str = ""):
+                 candidates: str = "", num_candidates: int = 0):
         d = int(d_model)
         if d % int(num_heads):
             raise ValueError(f"plan_head: d_model {d} is not divisible by num_heads {num_heads}")
@@ -74,9 +76,13 @@ class PlanningHead(nnx.Module):
         self.position_scale = float(position_scale)
         self.route_points = int(route_points)
         self.route_spacing_m = float(route_spacing_m)
-        if base not in BASES:
-            raise ValueError(f"plan_head.base {base!r} is not one of {BASES}")
-        self.base = str(base)
+        if candidates not in CANDIDATES:
+            raise ValueError(f"plan_head.candidates {candidates!r} is not one of {CANDIDATES}")
+        self.candidates = str(candidates)
+        self.num_candidates = int(num_candidates) if self.candidates else 0
+        if self.candidates and self.num_candidates < 2:
+            raise ValueError(f"plan_head: a head that chooses among candidate plans needs at least 2, got "
+                             f"{num_candidates}")
         if self.route_points:
             self.route_in = nnx.Linear(2 * self.route_points, d, rngs=rngs)
             self.route_out = nnx.Linear(d, d, kernel_init=nnx.initializers.zeros, rngs=rngs)  # starts as no route
@@ -94,9 +100,13 @@ class PlanningHead(nnx.Module):
         self.ff1 = nnx.Linear(d, int(ffn_dim), rngs=rngs)
         self.ff2 = nnx.Linear(int(ffn_dim), d, rngs=rngs)
         self.ln_out = nnx.LayerNorm(d, rngs=rngs)
-        self.out1 = nnx.Linear(d, d, rngs=rngs)
-        zero = {"kernel_init": nnx.initializers.zeros} if self.base else {}  # a correction starts as none
-        self.out2 = nnx.Linear(d, 4, rngs=rngs, **zero)
+        if self.candidates:
+            self.cand_in = nnx.Linear(3 * self.num_future, d, rngs=rngs)
+            self.cand_ctx = nnx.Linear(d, d, rngs=rngs)
+            self.cand_out = nnx.Linear(d, 1, rngs=rngs)
+        else:
+            self.out1 = nnx.Linear(d, d, rngs=rngs)
+            self.out2 = nnx.Linear(d, 4, rngs=rngs)
 
     @classmethod
     def from_config(cls, head_cfg, model_cfg, rngs: nnx.Rngs) -> "PlanningHead":
@@ -105,16 +115,35 @@ class PlanningHead(nnx.Module):
                    num_heads=int(head_cfg.num_heads), ffn_dim=int(head_cfg.ffn_dim),
                    ego_slot=int(model_cfg.num_map_tokens), rngs=rngs,
                    position_scale=float(head_cfg.position_scale), route_points=int(head_cfg.route_points),
-                   route_spacing_m=float(head_cfg.route_spacing_m), base=str(head_cfg.get("base", "")))
+                   route_spacing_m=float(head_cfg.route_spacing_m), candidates=str(head_cfg.get("candidates", "")),
+                   num_candidates=len(head_cfg.get("idm_speeds", ())))
 
     def _split(self, x):
         return x.reshape(x.shape[:-1] + (self.num_heads, x.shape[-1] // self.num_heads))
 
-    def __call__(self, hidden, route=None, base=None):
+    def __call__(self, hidden, route=None, candidates=None):
         """hidden f32[..., N, d] (one frame's backbone outputs, before the backbone's final LayerNorm), route
-        f32[..., R, 2] (a route head only: where the route goes, in that frame's ego frame), base f32[..., F, 3] (a
-        head with a base only: the base plan in that frame's ego frame) -> f32[..., F, 3] (x, y, heading) in the
-        ego frame of that frame."""
+        f32[..., R, 2] (a route head only: where the route goes, in that frame's ego frame), candidates f32[..., C,
+        F, 3] (a choosing head only: the candidate plans in that frame's ego frame) -> f32[..., F, 3] (x, y,
+        heading) in the ego frame of that frame: the drawn plan, or the best-scored candidate."""
+        if candidates is None:
+            self._check(hidden, route, candidates)
+            out = self.out2(jax.nn.gelu(self.out1(self._decode(hidden, route))))        # [..., F, 4]
+            xy = jnp.cumsum(out[..., :2] * self.position_scale, axis=-2)
+            heading = jnp.arctan2(out[..., 3], out[..., 2] + 1.0)  # +1: heading 0 (straight on) at initialisation
+            return jnp.concatenate([xy, heading[..., None]], axis=-1)
+        pick = jnp.argmax(self.scores(hidden, route, candidates), axis=-1)
+        return jnp.take_along_axis(candidates, pick[..., None, None, None], axis=-3)[..., 0, :, :]
+
+    def scores(self, hidden, route, candidates):
+        """A choosing head's score (logit) of each candidate plan: arguments as `__call__` -> f32[..., C]."""
+        self._check(hidden, route, candidates)
+        q = self._decode(hidden, route)                                                   # [..., F, d]
+        cand = candidates.reshape(candidates.shape[:-2] + (3 * self.num_future,)) / self.position_scale
+        ctx = self.cand_ctx(jnp.mean(q, axis=-2))[..., None, :]                          # [..., 1, d]
+        return self.cand_out(jax.nn.gelu(self.cand_in(cand) + ctx))[..., 0]
+
+    def _check(self, hidden, route, candidates):
         if hidden.ndim < 2 or hidden.shape[-2] <= self.ego_slot:
             raise ValueError(f"plan_head: hidden must be f32[..., N, d] with N > ego slot {self.ego_slot}, "
                              f"got shape {hidden.shape}")
@@ -123,11 +152,17 @@ class PlanningHead(nnx.Module):
             wants = (f"a route of {self.route_points} points (f32[..., {self.route_points}, 2])"
                      if self.route_points else "no route (plan_head.route_points is 0)")
             raise ValueError(f"plan_head: reads {wants}; got {None if route is None else tuple(route.shape)}")
-        if (base is None) != (not self.base) or (
-                base is not None and tuple(base.shape[-2:]) != (self.num_future, 3)):
-            wants = (f"a base plan ({self.base}, f32[..., {self.num_future}, 3])" if self.base
-                     else "no base plan (plan_head.base is empty)")
-            raise ValueError(f"plan_head: reads {wants}; got {None if base is None else tuple(base.shape)}")
+        want = (self.num_candidates, self.num_future, 3)
+        if (candidates is None) != (not self.candidates) or (
+                candidates is not None and tuple(candidates.shape[-3:]) != want):
+            wants = (f"{self.num_candidates} candidate plans ({self.candidates}, f32[..., "
+                     f"{', '.join(map(str, want))}])" if self.candidates
+                     else "no candidate plans (plan_head.candidates is empty)")
+            raise ValueError(f"plan_head: reads {wants}; got "
+                             f"{None if candidates is None else tuple(candidates.shape)}")
+
+    def _decode(self, hidden, route):
+        """The decoder layer: the F waypoint queries after it, layer-normed: f32[..., F, d]."""
         mem = self.ln_mem(hidden)
         ego = mem[..., self.ego_slot, :]
         q = self.queries[...] + self.ego_in(ego)[..., None, :]                    # [..., F, d]
@@ -141,13 +176,7 @@ class PlanningHead(nnx.Module):
         ck, cv = (self._split(a) for a in jnp.split(self.cross_kv(mem), 2, axis=-1))
         q = q + self.cross_out(_attend(cq, ck, cv).reshape(q.shape))
         q = q + self.ff2(jax.nn.gelu(self.ff1(self.ln_ff(q))))
-        out = self.out2(jax.nn.gelu(self.out1(self.ln_out(q))))                  # [..., F, 4]
-        xy = jnp.cumsum(out[..., :2] * self.position_scale, axis=-2)
-        heading = jnp.arctan2(out[..., 3], out[..., 2] + 1.0)  # +1: heading 0 (straight on) at initialisation
-        plan = jnp.concatenate([xy, heading[..., None]], axis=-1)
-        if base is None:
-            return plan
-        return jnp.concatenate([base[..., :2] + xy, wrap_angle(base[..., 2:] + plan[..., 2:])], axis=-1)
+        return self.ln_out(q)
 
 
 def to_scene_frame(plan, ego_pose):
@@ -168,7 +197,7 @@ def to_ego_frame(xy, heading, ego_pose):
     return jnp.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(heading - ego_pose[..., 2:3])], axis=-1)
 
 
-def plan_trajectory(head, hidden, ego_pose=None, route=None, base=None):
+def plan_trajectory(head, hidden, ego_pose=None, route=None, candidates=None):
     """The planned ego trajectory from one frame's backbone output tokens.
 
     Args:
@@ -179,7 +208,8 @@ def plan_trajectory(head, hidden, ego_pose=None, route=None, base=None):
       ego_pose: optional f32[..., 3] the ego's (x, y, heading) at that frame in the scene frame.
       route: f32[..., R, 2] for a head that reads the route (`PlanningHead.route_points` = R): where it goes, in
         the ego frame (`gpd_jax.geometry.route_ahead`).
-      base: f32[..., F, 3] for a head with a base plan (`PlanningHead.base`): that plan in the ego frame.
+      candidates: f32[..., C, F, 3] for a head that chooses among candidate plans (`PlanningHead.candidates`):
+        those plans in the ego frame.
     Returns:
       f32[..., F, 3] (x, y, heading) of the ego at the next F model frames: in the ego's frame at the read
       frame, or in the scene frame when `ego_pose` is given.
@@ -188,5 +218,5 @@ def plan_trajectory(head, hidden, ego_pose=None, route=None, base=None):
     if not isinstance(head, PlanningHead):
         raise TypeError(f"plan_trajectory needs a PlanningHead or a model with one (.plan_head), got "
                         f"{type(head).__name__}")
-    plan = head(hidden, route, base)
+    plan = head(hidden, route, candidates)
     return plan if ego_pose is None else to_scene_frame(plan, ego_pose)

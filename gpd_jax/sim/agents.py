@@ -193,10 +193,10 @@ def idm_along_route(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.
 
 def idm_route_plan(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.Array, ego_pose: jax.Array,
                    cur_xy: jax.Array, cur_velocity: jax.Array, cur_valid: jax.Array, size: jax.Array,
-                   num_future: int, stride: int, dt: float) -> jax.Array:
+                   num_future: int, stride: int, dt: float, target_speed=ROUTE_SPEED) -> jax.Array:
     """`idm_along_route` at the model's frames: the ego's poses f32[num_future, 3] (scene frame) at the next
-    `num_future` model frames of `stride` steps of `dt` seconds (the `idm` planner's plan, and the base plan of a
-    planning head with `plan_head.base = "idm"`)."""
+    `num_future` model frames of `stride` steps of `dt` seconds (the `idm` planner's plan, and the candidate plans
+    of a planning head with `plan_head.candidates = "idm"`, one per target speed f32[] of `plan_head.idm_speeds`)."""
     poses = idm_along_route(route_xy, route_heading, route_s, ego_pose, cur_xy, cur_velocity, cur_valid, size,
-                            stride * num_future, dt)
+                            stride * num_future, dt, target_speed)
     return poses[stride - 1:: stride]

@@ -13,8 +13,8 @@ shape compiles once):
 * ``gpd_head``: the paper's fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the
   current frame, run by its own backbone (a KV cache in the policy state): its 8 s plan, a `Plan` the tracker
   follows (without a tracker, the ego is placed on the plan's first second); a head that reads the route gets it
-  from the observation (`route_xy`), and a head with `plan_head.base = "idm"` corrects the ``idm`` planner's plan
-  (`idm_route_plan` from the same observation); its open-loop plan is the same trajectory at the current frame;
+  from the observation (`route_xy`), and a head with `plan_head.candidates = "idm"` chooses among IDM's plans at
+  the target speeds `plan_head.idm_speeds` (`idm_route_plan` from the same observation); its open-loop plan is the same trajectory at the current frame;
   ``gpd_head_scratch`` is the same head trained without pre-training (the paper's ablation).
 """
 
@@ -29,7 +29,7 @@ from flax import nnx
 from gpd_jax.checkpoint import Model
 from gpd_jax.decoding import Frame, advance, prefill
 from gpd_jax.geometry import route_ahead
-from gpd_jax.sim.agents import idm_along_route, idm_route_plan
+from gpd_jax.sim.agents import ROUTE_SPEED, idm_along_route, idm_route_plan
 from gpd_jax.sim.core import Observation, Policy, SimError
 from gpd_jax.sim.tracker import Plan, extend
 from gpd_jax.spec import ModelSpec
@@ -85,10 +85,10 @@ def idm_policy(spec: ModelSpec) -> Policy:
     return Policy(name="idm", select=select, plan=plan)
 
 
-def _idm_plan(obs: Observation, spec: ModelSpec, num_future: int) -> jax.Array:
+def _idm_plan(obs: Observation, spec: ModelSpec, num_future: int, target_speed=ROUTE_SPEED) -> jax.Array:
     """IDM's plan along the observation's route at the next `num_future` model frames: f32[num_future, 3]."""
     return idm_route_plan(obs.route_xy, obs.route_heading, obs.route_s, obs.ego_pose, obs.cur_xy, obs.cur_velocity,
-                          obs.cur_valid, obs.size, num_future, spec.frame_stride, spec.stored_period_s)
+                          obs.cur_valid, obs.size, num_future, spec.frame_stride, spec.stored_period_s, target_speed)
 
 
 def gpd_policy(spec: ModelSpec) -> Policy:
@@ -123,11 +123,12 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
             return None
         return route_ahead(obs.route_xy, obs.route_s, obs.ego_pose, head.route_points, head.route_spacing_m)
 
-    def base(module, obs):
-        if not module.plan_head.base:
+    def candidates(module, obs):
+        if not module.plan_head.candidates:
             return None
-        idm = _idm_plan(obs, spec, module.plan_head.num_future)
-        return to_ego_frame(idm[:, :2], idm[:, 2], obs.ego_pose)
+        speeds = jnp.asarray(head_model.config.plan_head.idm_speeds, jnp.float32)
+        idm = jax.vmap(lambda v: _idm_plan(obs, spec, module.plan_head.num_future, v))(speeds)   # [C, F, 3]
+        return to_ego_frame(idm[..., :2], idm[..., 2], obs.ego_pose[None])
 
     def init(params, obs):
         module = nnx.merge(graphdef, params, rest)
@@ -138,13 +139,13 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
         f = frames(module, obs)
         cur = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, obs.t, 0, keepdims=False), f)
         state = advance(module, state, cur, obs.t)
-        plan = plan_trajectory(module, state.hidden, obs.ego_pose, route(module, obs), base(module, obs))
+        plan = plan_trajectory(module, state.hidden, obs.ego_pose, route(module, obs), candidates(module, obs))
         return Plan(poses=plan[: spec.num_future]), state
 
     def plan(params, obs, key):
         module = nnx.merge(graphdef, params, rest)
         st = prefill(module, frames(module, obs), h, t_total)
-        return plan_trajectory(module, st.hidden, obs.ego_pose, route(module, obs), base(module, obs))[
+        return plan_trajectory(module, st.hidden, obs.ego_pose, route(module, obs), candidates(module, obs))[
             : spec.num_future]
 
     return Policy(name=name, select=select, init=init, plan=plan, needs_map=True, params=head_model.params)

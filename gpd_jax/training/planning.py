@@ -23,8 +23,10 @@ A config with a `plan_head` section (configs/gpd_planner.py) builds the GPD with
   empty trains everything from scratch (the paper's "without pre-training" ablation,
   configs/gpd_planner.py:scratch).
 * Route (`plan_head.route_points` > 0, cached features): the head also reads where the logged ego's path goes
-  from each source frame, and a head with `plan_head.base = "idm"` corrects IDM's plan along the route from it
-  (`plan_inputs`, as the simulator's observation gives them).
+  from each source frame, and a head with `plan_head.candidates = "idm"` chooses among IDM's plans along the route
+  from it (`plan_inputs`, as the simulator's observation gives them): its loss is then the cross-entropy of its
+  scores against the candidate closest to the log's future (the position and heading losses, and the ADE, are
+  reported for the candidate it chooses itself).
 * Closed-loop rounds (`plan_head.closed_loop_rounds`, cached features): DAgger; the head drives the simulator on
   training scenes, and the states it reached, labelled with the log's future, join the training scenes
   (`closed_loop_rounds`, `closed_loop_features`; configs/gpd_planner.py:closed_loop).
@@ -117,21 +119,36 @@ def backbone_hidden(model, scene: Scene):
 
 
 def plan_terms(head: PlanningHead, hidden: jax.Array, target: jax.Array, mask: jax.Array,
-               current: int, route: jax.Array | None = None, base: jax.Array | None = None) -> dict[str, jax.Array]:
+               current: int, route: jax.Array | None = None,
+               candidates: jax.Array | None = None) -> dict[str, jax.Array]:
     """Sums and counts of the planning loss of one scene's plans, and the current frame's ADE.
 
     hidden f32[K, N, d] output tokens of K source frames; target f32[K, F, 3] and mask bool[K, F] their logged
     ego futures (`plan_targets`); `current`: the index among the K frames of the scene's current frame; route
-    f32[K, R, 2] where the route goes from each and base f32[K, F, 3] the base plan from each (a route head / a
-    head with a base only: `plan_inputs`)."""
-    plan = head(hidden, route, base)                                        # [K, F, 3]
+    f32[K, R, 2] where the route goes from each and candidates f32[K, C, F, 3] the candidate plans from each (a
+    route head / a choosing head only: `plan_inputs`). A choosing head's terms add the cross-entropy of its
+    scores against the candidate closest to the target (mean distance over the valid waypoints) and how often it
+    chose that one; its plan is the candidate it chooses."""
     m = mask.astype(jnp.float32)
+    extra = {}
+    if candidates is None:
+        plan = head(hidden, route)                                                       # [K, F, 3]
+    else:
+        logits = head.scores(hidden, route, candidates)                                  # [K, C]
+        dist = jnp.linalg.norm(candidates[..., :2] - target[:, None, :, :2], axis=-1)    # [K, C, F]
+        label = jnp.argmin(jnp.sum(dist * m[:, None], -1), axis=-1)                      # [K]
+        pick = jnp.argmax(logits, -1)
+        plan = jnp.take_along_axis(candidates, pick[:, None, None, None], axis=1)[:, 0]
+        frames = jnp.any(mask, -1).astype(jnp.float32)                                   # frames with a target
+        ce = jax.nn.logsumexp(logits, -1) - jnp.take_along_axis(logits, label[:, None], -1)[:, 0]
+        extra = {"select_sum": jnp.sum(ce * frames), "select_hits": jnp.sum((pick == label) * frames),
+                 "select_count": jnp.sum(frames)}
     pos = jnp.sum(_smooth_l1(plan[..., :2] - target[..., :2]), axis=-1)
     hd = _smooth_l1(wrap_angle(plan[..., 2] - target[..., 2]))
     err = jnp.linalg.norm(plan[..., :2] - target[..., :2], axis=-1)
     cur = m[current]
     return {"position_sum": jnp.sum(pos * m), "heading_sum": jnp.sum(hd * m), "count": jnp.sum(m),
-            "ade_sum": jnp.sum(err[current] * cur), "ade_count": jnp.sum(cur)}
+            "ade_sum": jnp.sum(err[current] * cur), "ade_count": jnp.sum(cur), **extra}
 
 
 def plan_loss_terms(model, scene: Scene, first_frame: int) -> dict[str, jax.Array]:
@@ -146,6 +163,10 @@ def _weighted(terms: dict[str, jax.Array], config) -> tuple[jax.Array, dict[str,
     n = jnp.maximum(terms["count"], 1.0)
     parts = {"plan_position": terms["position_sum"] / n, "plan_heading": terms["heading_sum"] / n,
              "plan_ade_current": terms["ade_sum"] / jnp.maximum(terms["ade_count"], 1.0)}
+    if "select_sum" in terms:  # a choosing head: its plan is a candidate, its loss the choice's cross-entropy
+        k = jnp.maximum(terms["select_count"], 1.0)
+        parts["plan_select"], parts["plan_select_accuracy"] = terms["select_sum"] / k, terms["select_hits"] / k
+        return parts["plan_select"], parts
     total = float(ph.position_weight) * parts["plan_position"] + float(ph.heading_weight) * parts["plan_heading"]
     return total, parts
 
@@ -175,20 +196,21 @@ class PlanFeatures:
       target: f32[..., K, F, 3] the logged ego's next F poses in each source frame's ego frame.
       mask: bool[..., K, F] valid targets (`plan_targets`).
       route: f32[..., K, R, 2] where the route goes from each source frame (`plan_inputs`; a route head only).
-      base: f32[..., K, F, 3] the base plan from each source frame (`plan_inputs`; a head with a base only).
+      candidates: f32[..., K, C, F, 3] the candidate plans from each source frame (`plan_inputs`; a choosing head
+        only).
     """
 
     hidden: jax.Array
     target: jax.Array
     mask: jax.Array
     route: jax.Array | None = None
-    base: jax.Array | None = None
+    candidates: jax.Array | None = None
 
 
 def feature_batch_loss(model, feats: PlanFeatures, config) -> tuple[jax.Array, dict[str, jax.Array]]:
     """`plan_batch_loss` of cached features (leading dim B): the head alone runs."""
     terms = jax.tree.map(jnp.sum, jax.vmap(lambda h, t, m, r, b: plan_terms(model.plan_head, h, t, m, 0, r, b))(
-        feats.hidden, feats.target, feats.mask, feats.route, feats.base))
+        feats.hidden, feats.target, feats.mask, feats.route, feats.candidates))
     total, parts = _weighted(terms, config)
     parts["loss"] = total
     return total, parts
@@ -208,10 +230,11 @@ def _features_jit(graphdef, params, rest, scenes: Scene, expert: Scene | None = 
     return jax.vmap(one)(scenes, scenes if expert is None else expert)
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "num_points", "spacing_m", "base", "num_future"))
-def _inputs_jit(stored: Scene, view: Scene, spec, num_points: int, spacing_m: float, base: str, num_future: int):
+@functools.partial(jax.jit, static_argnames=("spec", "num_points", "spacing_m", "speeds", "num_future"))
+def _inputs_jit(stored: Scene, view: Scene, spec, num_points: int, spacing_m: float, speeds: tuple,
+                num_future: int):
     """`plan_inputs` of a batch (stored Scene [B, Ts, ...], view Scene [B, T, ...]): (route f32[B, T-1, R, 2] or
-    None, base f32[B, T-1, F, 3] or None)."""
+    None, candidates f32[B, T-1, C, F, 3] or None; C = len(speeds), none without speeds)."""
     from gpd_jax.sim.agents import idm_route_plan, make_paths
 
     c = spec.full_history - 1
@@ -222,12 +245,12 @@ def _inputs_jit(stored: Scene, view: Scene, spec, num_points: int, spacing_m: fl
         poses = jnp.concatenate([x[:-1, 0], h[:-1, 0, None]], -1)                       # [T-1, 3]
         route = (jax.vmap(lambda q: route_ahead(rxy, rs, q, num_points, spacing_m))(poses)
                  if num_points else None)
-        if not base:
+        if not speeds:
             return route, None
-        plan = jax.vmap(lambda q, cx, cvel, cv: idm_route_plan(rxy, rh, rs, q, cx, cvel, cv, size, num_future,
-                                                               spec.frame_stride, spec.stored_period_s))(
-            poses, x[:-1], vel[:-1], v[:-1])                                              # [T-1, F, 3]
-        return route, to_ego_frame(plan[..., :2], plan[..., 2], poses)
+        plan = jax.vmap(lambda q, cx, cvel, cv: jax.vmap(lambda sp: idm_route_plan(
+            rxy, rh, rs, q, cx, cvel, cv, size, num_future, spec.frame_stride, spec.stored_period_s, sp))(
+            jnp.asarray(speeds, jnp.float32)))(poses, x[:-1], vel[:-1], v[:-1])         # [T-1, C, F, 3]
+        return route, to_ego_frame(plan[..., :2], plan[..., 2], poses[:, None])
 
     return jax.vmap(one)(stored.xy, stored.heading, stored.valid, view.xy, view.heading, view.valid, view.velocity,
                          view.size)
@@ -241,18 +264,19 @@ def plan_inputs(stored: Scene, view: Scene, spec, config) -> tuple[np.ndarray | 
 
     * route f32[B, T-1, R, 2]: where the route goes from each frame's ego pose, in its frame
       (`gpd_jax.geometry.route_ahead`), or None for a head without a route (`plan_head.route_points` = 0);
-    * base f32[B, T-1, F, 3]: IDM's plan along the route from each frame (`gpd_jax.sim.agents.idm_route_plan`,
-      leaders the view's slots at that frame) in the ego's frame, or None for a head without a base
-      (`plan_head.base` empty)."""
+    * candidates f32[B, T-1, C, F, 3]: IDM's plans along the route from each frame at the C target speeds
+      `plan_head.idm_speeds` (`gpd_jax.sim.agents.idm_route_plan`, leaders the view's slots at that frame) in the
+      ego's frame, or None for a head that draws its plan (`plan_head.candidates` empty)."""
     ph = config.plan_head
-    r, base = int(ph.route_points), str(ph.get("base", ""))
-    if r == 0 and not base:
+    r, choose = int(ph.route_points), str(ph.get("candidates", ""))
+    if r == 0 and not choose:
         return None, None
-    if base and view.velocity is None:
-        raise ValueError("plan_head.base: IDM's plan starts from the ego's velocity; the model reads none "
+    if choose and view.velocity is None:
+        raise ValueError("plan_head.candidates: IDM's plans start from the ego's velocity; the model reads none "
                          "(model.velocity_inputs = False)")
     arrays = lambda sc: jax.tree.map(jnp.asarray, sc.replace(polylines=None, polyline_valid=None))
-    route, b = _inputs_jit(arrays(stored), arrays(view), spec, r, float(ph.route_spacing_m), base,
+    speeds = tuple(float(v) for v in ph.get("idm_speeds", ())) if choose else ()
+    route, b = _inputs_jit(arrays(stored), arrays(view), spec, r, float(ph.route_spacing_m), speeds,
                            int(ph.num_future))
     return (None if route is None else np.asarray(route)), (None if b is None else np.asarray(b))
 
@@ -280,8 +304,8 @@ def cache_features(model, config, data_dir: str, split: str, batch_size: int = 3
                             f"them: python -m gpd_jax.map_tokenizer encode --data {data_dir} --frame-stride "
                             f"{config.data.frame_stride}")
         h, t, m = jax.device_get(_features_jit(graphdef, params, rest, jax.tree.map(jnp.asarray, view)))
-        route, base = plan_inputs(stored, view, spec, config)
-        out.append(PlanFeatures(h[:, first:], t[:, first:], m[:, first:], *_from(first, route, base)))
+        out.append(PlanFeatures(h[:, first:], t[:, first:], m[:, first:],
+                                *_from(first, *plan_inputs(stored, view, spec, config))))
         bar.update(view.xy.shape[0])
     bar.close()
     return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
@@ -316,9 +340,9 @@ def closed_loop_features(world: Model, policy, params, scenes: Scene, key: jax.A
                                     map_tokens=run.map_tokens)
         h, t, m = jax.device_get(_features_jit(graphdef, params, rest, reached, sims.view))
         k = hi - lo
-        route, base = plan_inputs(sub, reached, world.spec, world.config)
+        inputs = plan_inputs(sub, reached, world.spec, world.config)
         out.append(PlanFeatures(h[:k, first:], t[:k, first:], m[:k, first:],
-                                *_from(first, *(None if x is None else x[:k] for x in (route, base)))))
+                                *_from(first, *(None if x is None else x[:k] for x in inputs))))
     return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
 
 
@@ -410,16 +434,18 @@ def _plan_steps(graphdef, config, tx, frozen: bool, features: bool, donate: bool
 def pretrained_params(path: str, config, template):
     """`template` (a GPD-with-head params tree) with every backbone leaf taken from the GPD at `path` (exported or
     a workdir; same `model` config, map tokenizer path aside). The head keeps its initialisation, unless `path` is
-    a planning-head model of the same head shape and base plan (`plan_head.base`: a head that corrects a base plan
-    means something else by its outputs than one that plans): then its head goes on training (closed-loop rounds
-    on a trained head), a route input it lacks starting from its initialisation."""
+    a planning-head model of the same head shape (a head that chooses among candidate plans, `plan_head.candidates`,
+    and one that draws its plan are different heads): then its head goes on training (closed-loop rounds on a
+    trained head), a route input it lacks starting from its initialisation."""
     src = load_model(path)
     diff = config_differences(config.model, src.config.model, ignore=("map_tokenizer",))
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
     shape_keys = ("num_future", "num_heads", "ffn_dim", "position_scale")
+    choosing = lambda h: (str(h.get("candidates", "")),
+                          tuple(map(float, h.get("idm_speeds", ()))) if h.get("candidates", "") else ())
     with_head = HEAD in src.config and all(src.config[HEAD][k] == config[HEAD][k] for k in shape_keys) and (
-        str(src.config[HEAD].get("base", "")) == str(config[HEAD].get("base", "")))
+        choosing(src.config[HEAD]) == choosing(config[HEAD]))
     new_route = with_head and int(src.config[HEAD].get("route_points", 0)) != int(config[HEAD].route_points)
 
     def fresh(p) -> bool:  # leaves that keep their initialisation
@@ -578,6 +604,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if int(config.plan_head.route_points) > 0 and not use_features:
         raise ValueError("plan_head.route_points: the route is read from the stored-rate log when the backbone's "
                          "outputs are cached: set train.cache_features = True (and train.backbone_lr_scale = 0)")
+    if config.plan_head.get("candidates", "") and not use_features:
+        raise ValueError("plan_head.candidates: the candidate plans are computed from the stored-rate log when the "
+                         "backbone's outputs are cached: set train.cache_features = True (and "
+                         "train.backbone_lr_scale = 0)")
     if int(config.plan_head.closed_loop_rounds) > 0 and not use_features:
         raise ValueError("plan_head.closed_loop_rounds trains the head on states it reaches itself over a frozen "
                          "backbone: it needs train.cache_features = True (and train.backbone_lr_scale = 0)")
@@ -655,25 +685,25 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
 
 
 # ----------------------------------------------------------------------------------------------- evaluation
-def current_frame_plans(model: Model, view: Scene, params=None, route=None, base=None) -> jax.Array:
+def current_frame_plans(model: Model, view: Scene, params=None, route=None, candidates=None) -> jax.Array:
     """The head's plan from the current frame of scenes in the model's view (only history frames are read):
-    Scene [S, ...] -> f32[S, F, 3] in the scene frame (the current ego frame). route f32[S, R, 2], base f32[S, F,
-    3]: where the route goes and the base plan from the current frame (a route head / a head with a base only:
-    `plan_inputs`)."""
+    Scene [S, ...] -> f32[S, F, 3] in the scene frame (the current ego frame). route f32[S, R, 2], candidates
+    f32[S, C, F, 3]: where the route goes and the candidate plans from the current frame (a route head / a
+    choosing head only: `plan_inputs`)."""
     h = model.spec.num_history
     params = model.params if params is None else params
     as_j = lambda x: None if x is None else jnp.asarray(x)
     return _plans_jit(model.graphdef, params, model.rest, jax.tree.map(jnp.asarray, view.slice_frames(0, h + 1)),
-                      as_j(route), as_j(base))
+                      as_j(route), as_j(candidates))
 
 
 @jax.jit
-def _plans_jit(graphdef, params, rest, scenes: Scene, route=None, base=None):
+def _plans_jit(graphdef, params, rest, scenes: Scene, route=None, candidates=None):
     module = nnx.merge(graphdef, params, rest)
     h = scenes.xy.shape[-3] - 1
     # Frames [0, H) are pushed through; the extra frame only gives backbone_hidden its T - 1 = H frames.
     hidden = jax.vmap(lambda s: backbone_hidden(module, s))(scenes)[:, h - 1]
-    return module.plan_head(hidden, route, base)
+    return module.plan_head(hidden, route, candidates)
 
 
 def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Model | None = None,
@@ -708,8 +738,8 @@ def evaluate_planning(head_model: Model, view: Scene, full: Scene, baseline: Mod
         sl = lambda x: x[lo:lo + batch_size]
         v = jax.tree.map(lambda x: jnp.asarray(sl(x)), view.replace(polylines=None, polyline_valid=None))
         fb = jax.tree.map(sl, full)
-        route, base = (None if x is None else x[:, h - 1] for x in plan_inputs(fb, v, spec, head_model.config))
-        plan = np.asarray(current_frame_plans(head_model, v, route=route, base=base))[:, :f]
+        route, cands = (None if x is None else x[:, h - 1] for x in plan_inputs(fb, v, spec, head_model.config))
+        plan = np.asarray(current_frame_plans(head_model, v, route=route, candidates=cands))[:, :f]
         xy, heading = np.array(v.xy), np.array(v.heading)
         xy[:, h:h + plan.shape[1], 0] = plan[..., :2]
         heading[:, h:h + plan.shape[1], 0] = plan[..., 2]
