@@ -67,17 +67,19 @@ MODELS: tuple[ModelCard, ...] = (
                 "0.68-0.69); traffic simulation a little behind gpd_traffic on real roads"),
     ModelCard(
         name="gpd_planner", kind="gpd",
-        purpose="motion planning: the paper's planning head on a frozen GPD, reading the route, trained in closed "
-                "loop (DAgger); the simulator's gpd_head policy",
+        purpose="motion planning: a planning head on the frozen default model that chooses its plan among IDM's "
+                "plans along the route at seven target speeds, reading the route, trained in closed loop "
+                "(DAgger); the simulator's gpd_head policy",
         tokenizer="map_tokenizer",
-        data="SUMO traffic (eclipse-sumo, EPL-2.0) on generated networks and real OpenStreetMap road tiles (ODbL 1.0: "
-             "(c) OpenStreetMap contributors)",
-        figures="closed loop, plan tracker, 40 scenes: NR-CLS / R-CLS-idm / R-CLS-gpd 24.4 / 32.1 / 34.6 on the "
-                "real-road dev tiles (the head before it 12.9 / 10.4 / 10.4; IDM 68.6 / 66.0 / 63.3); held-out "
-                "generated networks 26.5 / 27.0 / 28.0 (IDM 71.0 / 71.0 / 67.0)"),
+        data="SUMO traffic (eclipse-sumo, EPL-2.0) on real OpenStreetMap road tiles (ODbL 1.0: (c) OpenStreetMap "
+             "contributors)",
+        figures="closed loop, plan tracker, NR-CLS / R-CLS-idm / R-CLS-gpd: real-road dev tiles (150) 74.0 / 73.1 / "
+                "71.1 (IDM 68.9 / 67.2 / 65.3); held-out real test networks (99) 73.1 / 72.0 / 72.7 (IDM 71.2 / "
+                "68.4 / 68.7); held-out generated networks (120) 68.8 / 68.9 / 65.7 (IDM 72.7 / 71.2 / 67.2)"),
     ModelCard(
         name="map_tokenizer", kind="map_tokenizer",
-        purpose="the map VQ-VAE of gpd_traffic and gpd_planner: 256 x 256 binary lane rasters -> 64 of 128 codes",
+        purpose="the map VQ-VAE of gpd_traffic, gpd_sampling and gpd_planner: 256 x 256 binary lane rasters -> 64 "
+                "of 128 codes",
         tokenizer=None, data=_SUMO_DATA,
         figures="paper F1 0.60-0.73 on held-out generated networks, 0.13 on SUMO's real networks (cut-free 0.74)"),
     ModelCard(

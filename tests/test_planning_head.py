@@ -240,17 +240,20 @@ def test_scratch_config_does_not_load_pretrained(store_dir, tmp_path):
     from gpd_jax.config import config_differences, config_from_json, load_config
     from gpd_jax.training.planning import train_and_evaluate
 
-    ft = load_config(os.path.join(ROOT, "configs", "gpd_planner.py:finetune"))
-    scratch = load_config(os.path.join(ROOT, "configs", "gpd_planner.py:scratch"))
+    recipe = lambda v: load_config(os.path.join(ROOT, "configs", f"gpd_planner.py:{v}"))
+    ft, scratch, choice, choice_scratch = (recipe(v) for v in ("finetune", "scratch", "idm_choice",
+                                                               "idm_choice_scratch"))
     shipped = config_from_json(os.path.join(ROOT, "checkpoints", "gpd_planner", "config.json"))
     assert ft.train.init_from == "runs/gpd_sumo" and ft.train.backbone_lr_scale > 0
-    assert config_differences(ft.model, shipped.model) == ""
+    assert choice.train.init_from == "gpd_traffic" and config_differences(choice.model, shipped.model) == ""
     assert scratch.train.init_from == "" and scratch.train.gpd_loss_weight == 0
-    # Same head, data and budget; only the backbone's start (and its learning rate) differ.
+    assert choice_scratch.train.init_from == "" and choice_scratch.train.backbone_lr_scale == 0
+    # Same head, data and budget; only the backbone's start (and, for the paper's, its learning rate) differ.
     same = lambda a, b: json.loads(a.to_json()) == json.loads(b.to_json())
-    assert same(ft.plan_head, scratch.plan_head) and same(ft.model, scratch.model) and same(ft.data, scratch.data)
-    for k in ("steps", "batch_size", "learning_rate", "warmup_steps"):
-        assert ft.train[k] == scratch.train[k]
+    for a, b in ((ft, scratch), (choice, choice_scratch)):
+        assert same(a.plan_head, b.plan_head) and same(a.model, b.model) and same(a.data, b.data)
+        for k in ("steps", "batch_size", "learning_rate", "warmup_steps"):
+            assert a.train[k] == b.train[k]
 
     # The loop with the scratch setting starts from the random initialisation of its own config.
     cfg = _loop_config(store_dir, "")

@@ -29,7 +29,7 @@ A config with a `plan_head` section (configs/gpd_planner.py) builds the GPD with
   reported for the candidate it chooses itself).
 * Closed-loop rounds (`plan_head.closed_loop_rounds`, cached features): DAgger; the head drives the simulator on
   training scenes, and the states it reached, labelled with the log's future, join the training scenes
-  (`closed_loop_rounds`, `closed_loop_features`; configs/gpd_planner.py:closed_loop).
+  (`closed_loop_rounds`, `closed_loop_features`; configs/gpd_planner.py:idm_choice).
 * Checkpoints, resume, SIGTERM, metrics.jsonl and the export to WORKDIR/export work as in the stage-2 loop
   (`gpd_jax.training.loop`); validation every `train.eval_every` steps over `train.eval_batches` batches of
   `data.val_dir` (default: the first store of `data.dir`) / `data.val_split`: the loss and the ego ADE / FDE of
