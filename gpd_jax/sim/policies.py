@@ -5,17 +5,18 @@ shape compiles once):
 * ``cv``: constant velocity and heading from the ego's current velocity;
 * ``idm``: IDM lane following along the logged ego's route (the route has no timing: nuPlan gives its planners
   the route, not the expert's speeds), target speed `sim.agents.ROUTE_SPEED` (the stores carry no speed limits:
-  13.89 m/s, SUMO's default lane speed), leaders = the agents of the current frame projected on the route and moved at
-  constant velocity through the step;
+  13.89 m/s, SUMO's default lane speed), leaders = the agents of the current frame projected on the route and
+  moved at constant velocity through the step;
 * ``gpd``: the GPD zero-shot: the model's own prediction of the ego's next frame (pose and velocity), as in the
   motion-planning task (no open-loop plan of its own: its open-loop score reads the run with GPD agents, the
   model's imagined future);
-* ``gpd_head``: the paper's fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the
-  current frame, run by its own backbone (a KV cache in the policy state): its 8 s plan, a `Plan` the tracker
-  follows (without a tracker, the ego is placed on the plan's first second); a head that reads the route gets it
-  from the observation (`route_xy`), and a head with `plan_head.candidates = "idm"` chooses among IDM's plans at
-  the target speeds `plan_head.idm_speeds` (`idm_route_plan` from the same observation); its open-loop plan is the same trajectory at the current frame;
-  ``gpd_head_scratch`` is the same head trained without pre-training (the paper's ablation).
+* ``gpd_head``: a fine-tuned planning head (`gpd_jax.model.planning_head`) on the ego token of the current frame,
+  run by its own backbone (a KV cache in the policy state): its 8 s plan, a `Plan` the tracker follows (without a
+  tracker, the ego is placed on the plan's first second); a head that reads the route gets it from the
+  observation (`route_xy`), and a head with `plan_head.candidates = "idm"` chooses among IDM's plans at the target
+  speeds `plan_head.idm_speeds` (`idm_route_plan` from the same observation); its open-loop plan is the same
+  trajectory at the current frame; ``gpd_head_scratch`` is the same head trained without pre-training (the
+  paper's ablation).
 """
 
 from __future__ import annotations

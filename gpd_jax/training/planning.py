@@ -276,9 +276,9 @@ def plan_inputs(stored: Scene, view: Scene, spec, config) -> tuple[np.ndarray | 
                          "(model.velocity_inputs = False)")
     arrays = lambda sc: jax.tree.map(jnp.asarray, sc.replace(polylines=None, polyline_valid=None))
     speeds = tuple(float(v) for v in ph.get("idm_speeds", ())) if choose else ()
-    route, b = _inputs_jit(arrays(stored), arrays(view), spec, r, float(ph.route_spacing_m), speeds,
-                           int(ph.num_future))
-    return (None if route is None else np.asarray(route)), (None if b is None else np.asarray(b))
+    route, cands = _inputs_jit(arrays(stored), arrays(view), spec, r, float(ph.route_spacing_m), speeds,
+                               int(ph.num_future))
+    return (None if route is None else np.asarray(route)), (None if cands is None else np.asarray(cands))
 
 
 def _from(first: int, *arrays):
