@@ -75,7 +75,8 @@ MODELS: tuple[ModelCard, ...] = (
              "contributors)",
         figures="closed loop, plan tracker, NR-CLS / R-CLS-idm / R-CLS-gpd: real-road dev tiles (150) 74.0 / 73.1 / "
                 "71.1 (IDM 68.9 / 67.2 / 65.3); held-out real test networks (99) 73.1 / 72.0 / 72.7 (IDM 71.2 / "
-                "68.4 / 68.7); held-out generated networks (120) 68.8 / 68.9 / 65.7 (IDM 72.7 / 71.2 / 67.2)"),
+                "68.4 / 68.7); held-out recorded INTERACTION sites (108) 63.0 / 59.3 / 60.4 (IDM 55.7 / 50.1 / "
+                "56.3); held-out generated networks (120) 68.8 / 68.9 / 65.7 (IDM 72.7 / 71.2 / 67.2)"),
     ModelCard(
         name="map_tokenizer", kind="map_tokenizer",
         purpose="the map VQ-VAE of gpd_traffic, gpd_sampling and gpd_planner: 256 x 256 binary lane rasters -> 64 "
