@@ -159,44 +159,48 @@ def idm_poses(paths: Paths, st: IDMState):
 
 def idm_along_route(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.Array, ego_pose: jax.Array,
                     cur_xy: jax.Array, cur_velocity: jax.Array, cur_valid: jax.Array, size: jax.Array,
-                    num_steps: int, dt: float, target_speed: float = ROUTE_SPEED,
-                    p: IDMParams = IDMParams()) -> jax.Array:
+                    num_steps: int, dt: float, target_speed=ROUTE_SPEED, p: IDMParams = IDMParams()) -> jax.Array:
     """The ego driven by IDM along a route for `num_steps` steps of `dt` seconds: f32[num_steps, 3] poses (scene
     frame). It starts at the ego's projection on the route at its current speed; its leaders are the other slots
     of the current frame whose box overlaps the route ahead, moved at constant velocity through the steps.
 
     route_xy f32[R, 2], route_heading f32[R], route_s f32[R]: the route (a path, `Paths`' slot 0); ego_pose f32[3];
     cur_xy f32[A, 2], cur_velocity f32[A, 2], cur_valid bool[A], size f32[A, 2]: the frame's slots, the ego at 0
-    (its speed is |cur_velocity[0]|)."""
+    (its speed is |cur_velocity[0]|). target_speed f32[] or f32[C]: several target speeds drive C egos at once
+    over one projection of the leaders per step -> f32[C, num_steps, 3]."""
+    speeds = jnp.atleast_1d(jnp.asarray(target_speed, jnp.float32))                   # [C]
     s0, _, _ = project_on_path(route_xy, route_s, ego_pose[None, :2])
-    v = jnp.linalg.norm(cur_velocity[0])
     length, width = size[0, 0], size[0, 1]
     others = cur_valid.at[0].set(False)
+    pose_at = jax.vmap(pose_on_path, in_axes=(None, None, None, 0))
 
     def sub(carry, k):
-        s, v = carry
+        s, v = carry                                                                    # [C]
         q = cur_xy + cur_velocity * (k * dt)
-        arc, lat, tan = project_on_path(route_xy, route_s, q)
-        cand = others & (lat < 0.5 * (width + size[:, 1])) & (arc > s)
-        gap = jnp.where(cand, arc - s - 0.5 * (length + size[:, 0]), jnp.inf)
-        j = jnp.argmin(gap)
-        lead_v = jnp.sum(cur_velocity[j] * tan[j])
-        a = idm_accel(v, target_speed, gap[j], v - lead_v, p)
+        arc, lat, tan = project_on_path(route_xy, route_s, q)                           # [A]
+        cand = (others & (lat < 0.5 * (width + size[:, 1])))[None] & (arc[None] > s[:, None])     # [C, A]
+        gap = jnp.where(cand, arc[None] - s[:, None] - 0.5 * (length + size[:, 0])[None], jnp.inf)
+        j = jnp.argmin(gap, axis=1)
+        lead_v = jnp.sum(cur_velocity[j] * tan[j], -1)
+        a = idm_accel(v, speeds, jnp.take_along_axis(gap, j[:, None], 1)[:, 0], v - lead_v, p)
         v = jnp.maximum(v + a * dt, 0.0)
         s = s + v * dt
-        xy, h = pose_on_path(route_xy, route_heading, route_s, s)
-        return (s, v), jnp.concatenate([xy, h[None]])
+        xy, h = pose_at(route_xy, route_heading, route_s, s)
+        return (s, v), jnp.concatenate([xy, h[:, None]], -1)                            # [C, 3]
 
-    _, poses = jax.lax.scan(sub, (s0[0], v), jnp.arange(num_steps, dtype=jnp.float32))
-    return poses
+    start = (jnp.full_like(speeds, s0[0]), jnp.full_like(speeds, jnp.linalg.norm(cur_velocity[0])))
+    _, poses = jax.lax.scan(sub, start, jnp.arange(num_steps, dtype=jnp.float32))
+    poses = jnp.moveaxis(poses, 0, 1)                                                   # [C, num_steps, 3]
+    return poses if jnp.ndim(target_speed) else poses[0]
 
 
 def idm_route_plan(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.Array, ego_pose: jax.Array,
                    cur_xy: jax.Array, cur_velocity: jax.Array, cur_valid: jax.Array, size: jax.Array,
                    num_future: int, stride: int, dt: float, target_speed=ROUTE_SPEED) -> jax.Array:
     """`idm_along_route` at the model's frames: the ego's poses f32[num_future, 3] (scene frame) at the next
-    `num_future` model frames of `stride` steps of `dt` seconds (the `idm` planner's plan, and the candidate plans
-    of a planning head with `plan_head.candidates = "idm"`, one per target speed f32[] of `plan_head.idm_speeds`)."""
+    `num_future` model frames of `stride` steps of `dt` seconds (the `idm` planner's plan); with target speeds
+    f32[C] (`plan_head.idm_speeds`: the candidate plans of a planning head with `plan_head.candidates = "idm"`)
+    f32[C, num_future, 3]."""
     poses = idm_along_route(route_xy, route_heading, route_s, ego_pose, cur_xy, cur_velocity, cur_valid, size,
                             stride * num_future, dt, target_speed)
-    return poses[stride - 1:: stride]
+    return poses[..., stride - 1:: stride, :]

@@ -87,7 +87,8 @@ def idm_policy(spec: ModelSpec) -> Policy:
 
 
 def _idm_plan(obs: Observation, spec: ModelSpec, num_future: int, target_speed=ROUTE_SPEED) -> jax.Array:
-    """IDM's plan along the observation's route at the next `num_future` model frames: f32[num_future, 3]."""
+    """IDM's plan along the observation's route at the next `num_future` model frames: f32[num_future, 3] (f32[C,
+    num_future, 3] for C target speeds)."""
     return idm_route_plan(obs.route_xy, obs.route_heading, obs.route_s, obs.ego_pose, obs.cur_xy, obs.cur_velocity,
                           obs.cur_valid, obs.size, num_future, spec.frame_stride, spec.stored_period_s, target_speed)
 
@@ -128,7 +129,7 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
         if not module.plan_head.candidates:
             return None
         speeds = jnp.asarray(head_model.config.plan_head.idm_speeds, jnp.float32)
-        idm = jax.vmap(lambda v: _idm_plan(obs, spec, module.plan_head.num_future, v))(speeds)   # [C, F, 3]
+        idm = _idm_plan(obs, spec, module.plan_head.num_future, speeds)                  # [C, F, 3]
         return to_ego_frame(idm[..., :2], idm[..., 2], obs.ego_pose[None])
 
     def init(params, obs):

@@ -247,9 +247,9 @@ def _inputs_jit(stored: Scene, view: Scene, spec, num_points: int, spacing_m: fl
                  if num_points else None)
         if not speeds:
             return route, None
-        plan = jax.vmap(lambda q, cx, cvel, cv: jax.vmap(lambda sp: idm_route_plan(
-            rxy, rh, rs, q, cx, cvel, cv, size, num_future, spec.frame_stride, spec.stored_period_s, sp))(
-            jnp.asarray(speeds, jnp.float32)))(poses, x[:-1], vel[:-1], v[:-1])         # [T-1, C, F, 3]
+        plan = jax.vmap(lambda q, cx, cvel, cv: idm_route_plan(
+            rxy, rh, rs, q, cx, cvel, cv, size, num_future, spec.frame_stride, spec.stored_period_s,
+            jnp.asarray(speeds, jnp.float32)))(poses, x[:-1], vel[:-1], v[:-1])          # [T-1, C, F, 3]
         return route, to_ego_frame(plan[..., :2], plan[..., 2], poses[:, None])
 
     return jax.vmap(one)(stored.xy, stored.heading, stored.valid, view.xy, view.heading, view.valid, view.velocity,
