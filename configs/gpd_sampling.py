@@ -30,7 +30,14 @@ runs/sampling/best (its config.json and params.npz are the shipped folder):
 from gpd_jax.config import gpd_config
 
 
-def get_config():
+VARIANTS = ("", "categorical")
+
+
+def get_config(variant: str = ""):
+    """"": the shipped mixture head; "categorical": the same recipe with the categorical head it was measured
+    against (`model.agent_bins` = 0.5 m cells over +-8 m along and +-3 m across the regressed position)."""
+    if variant not in VARIANTS:
+        raise ValueError(f"configs/gpd_sampling.py: variant {variant!r} is not one of {VARIANTS}")
     c = gpd_config()
     c.data.dir = "data/legacy_train:0.65,data/mix_real_train:0.35"
     c.data.val_dir, c.data.frame_stride = "data/mix_real_dev", 10
@@ -40,6 +47,8 @@ def get_config():
     m.predict_delta = m.velocity_residual = m.velocity_inputs = m.agent_lane_residual = True
     m.map_tokenizer = "map_tokenizer"
     m.agent_modes = 6
+    if variant == "categorical":
+        m.agent_modes, m.agent_bins, m.agent_bin_extent = 0, 0.5, (8.0, 3.0)
     c.loss.agent_norm, c.loss.agent_norm_delta = "euclidean", 0.01
     t = c.train
     t.init_from, t.trainable = "gpd_traffic", "agent_modes"

@@ -79,6 +79,9 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         agent_modes=0,             # not in the paper: C > 0 adds a mixture head of C joint Laplace components over
                                    # each agent's next state, which a rollout samples at temperature > 0 (the
                                    # regression heads stay: temperature 0 is the paper's head)
+        agent_bins=0.0,            # not in the paper, instead of agent_modes: w > 0 makes the sampling head a
+                                   # categorical over a grid of w-metre cells of the next position's offset from the
+        agent_bin_extent=(8.0, 3.0),  # regressed one (along, across its heading, +- these metres)
         lane_context_stride=4,     # lanes read every this-many stored points (1 m apart): 4 m segments
         map_tokenizer="",          # the map tokenizer whose frozen codebook embeds map tokens: a model name
                                    # (gpd_jax.list_models) or a path; "" learns a token table instead

@@ -127,12 +127,14 @@ def test_temperature_zero_rolls_out_the_regression_heads_and_samples_differ_by_k
     assert np.abs(gen[:, :, 1:] - gen[:, :, :1]).max(axis=(2, 3, 4, 5)).min() > 1e-3  # every pair's samples differ
 
 
-def test_head_only_training_moves_the_mixture_head_alone_and_lowers_its_loss(setup):
+@pytest.mark.parametrize("head", [MODES, ["--config.model.agent_bins=0.5", "--config.model.predict_delta=True"]],
+                         ids=["mixture", "categorical"])
+def test_head_only_training_moves_the_sampling_head_alone_and_lowers_its_loss(setup, head):
     from gpd_jax.training.step import make_trainer
 
-    cfg, model, scenes, _ = setup
-    cfg = load_config("configs/gpd_tiny.py:test", MODES + ["--config.train.trainable=agent_modes",
-                                                           "--config.train.warmup_steps=1"])
+    _, _, scenes, _ = setup
+    cfg = load_config("configs/gpd_tiny.py:test", head + ["--config.train.trainable=agent_modes",
+                                                          "--config.train.warmup_steps=1"])
     trainer, state = make_trainer(GPD(cfg.model, nnx.Rngs(0)), cfg)
     before = jax.tree.map(np.array, state.params)
     first = None
@@ -166,6 +168,44 @@ def test_fine_tuning_adds_the_head_to_a_model_without_one(setup, monkeypatch):
     other = load_config("configs/gpd_tiny.py:test", MODES + ["--config.model.num_layers=1"])
     with pytest.raises(ValueError, match="num_layers"):
         loop.initial_params("somewhere", other, fresh)
+
+
+def test_categorical_head_is_a_mixture_fixed_to_the_grid_cells():
+    """`agent_bins` = w: one component per w-metre cell of the offset (along, across the agent's heading) from the
+    regressed position, each a Laplace kernel of the cell's spread; heading and velocity are the regressed ones with
+    one learned scale each. Near temperature 0 with top-k 1 a draw is the regressed position moved by the most
+    likely cell, turned into the agent's axes."""
+    from gpd_jax.model.transformer import bin_grid
+
+    grid = bin_grid(0.5, (1.0, 0.5))
+    np.testing.assert_allclose(grid[:3], [[-1.0, -0.5], [-1.0, 0.0], [-1.0, 0.5]])
+    assert grid.shape == (15, 2) and np.all(np.abs(grid).max(0) == [1.0, 0.5])
+    cfg = load_config("configs/gpd_tiny.py:test", ["--config.model.agent_bins=0.5", "--config.model.predict_delta=True",
+                                                   "--config.model.agent_bin_extent=(1.0, 0.5)"])
+    model = GPD(cfg.model, nnx.Rngs(0))
+    rng = np.random.default_rng(4)
+    f, a, d = 2, 3, cfg.model.d_model
+    ha = jnp.asarray(rng.normal(size=(f, a, d)), jnp.float32)
+    xy, heading = jnp.asarray(rng.normal(size=(f, a, 2)), jnp.float32), jnp.asarray(rng.uniform(-3, 3, (f, a)))
+    axes = jnp.asarray(rng.uniform(-3, 3, (f, a)), jnp.float32)
+    modes = model.modes(ha, xy, heading, None, axes)
+    chex.assert_shape((modes.logits, modes.xy, modes.heading, modes.scale), [(f, a, 15), (f, a, 15, 2), (f, a, 15),
+                                                                              (f, a, 15, 3)])
+    th = np.asarray(axes)[..., None]
+    want = np.asarray(xy)[..., None, :] + np.stack([np.cos(th) * grid[:, 0] - np.sin(th) * grid[:, 1],
+                                                    np.sin(th) * grid[:, 0] + np.cos(th) * grid[:, 1]], -1)
+    np.testing.assert_allclose(modes.xy, want, atol=1e-5)
+    np.testing.assert_allclose(modes.heading, np.broadcast_to(np.asarray(heading)[..., None], (f, a, 15)))
+    np.testing.assert_allclose(modes.scale[..., :2], 0.5 / math.sqrt(24.0), rtol=1e-6)
+    assert np.ptp(np.asarray(modes.scale[..., 2]), axis=-1).max() == 0  # one heading scale per agent
+    one = jax.tree.map(lambda x: x[0], modes)
+    got, _, _ = sample_agents(one, jax.random.key(0), Sampling(1e-6, top_k=1))
+    best = np.argmax(np.asarray(one.logits), -1)
+    np.testing.assert_allclose(got, np.asarray(one.xy)[np.arange(a), best], atol=1e-4)
+    for bad, match in ((["--config.model.agent_bins=-1.0"], "agent_bins"),
+                       (["--config.model.agent_bins=0.5", "--config.model.agent_modes=2"], "one of them")):
+        with pytest.raises(ValueError, match=match):
+            GPD(load_config("configs/gpd_tiny.py:test", bad).model, nnx.Rngs(0))
 
 
 def test_options_check_the_sampling_fields():

@@ -5,7 +5,8 @@ Public names (pure functions of an NNX module; `gpd_jax.checkpoint.build_model` 
 * `GPD`: the NNX module (parameters, embeddings, heads).
 * `forward(model, tokens)`: teacher-forced pass over whole frames, memory-linear attention.
 * `forward_cached(model, tokens, cache, start_frame)`: a block of frames appended to a KV cache.
-* `reads_lanes(model_config)`: whether such a model reads vector lanes (its scenes then carry polylines).
+* `reads_lanes(model_config)`: whether such a model reads vector lanes (its scenes then carry polylines);
+  `samples_agents(model_config)`: whether it has a sampling agent head (`agent_modes` or `agent_bins`).
 * `Prediction`, `Modes`, `KVCache`: what the heads return (`Modes`: a mixture head's distribution over the agents'
   next states) and what the cache holds.
 * `PlanningHead`, `plan_trajectory(head, hidden[, ego_pose])`: the paper's fine-tuned planner, one decoder layer
@@ -14,7 +15,7 @@ Public names (pure functions of an NNX module; `gpd_jax.checkpoint.build_model` 
 
 from gpd_jax.model.planning_head import PlanningHead, plan_trajectory, to_ego_frame, to_scene_frame
 from gpd_jax.model.transformer import (GPD, MODE_HEAD, KVCache, LaneContext, Modes, Prediction, count_params,
-                                      forward, forward_cached, reads_lanes)
+                                      forward, forward_cached, reads_lanes, samples_agents)
 
 __all__ = ["GPD", "MODE_HEAD", "KVCache", "LaneContext", "Modes", "PlanningHead", "Prediction", "count_params",
-           "forward", "forward_cached", "plan_trajectory", "reads_lanes", "to_ego_frame", "to_scene_frame"]
+           "forward", "forward_cached", "plan_trajectory", "reads_lanes", "samples_agents", "to_ego_frame", "to_scene_frame"]

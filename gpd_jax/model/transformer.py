@@ -32,7 +32,9 @@ heads (`Modes`): C components, each a mode logit and a product of Laplace densit
 whose centres are offsets from the regressed state and whose scales are learned, positions and velocities in the
 agent's own axes (along and across its heading). A rollout at temperature 0 keeps the regressed state; at
 temperature > 0 it samples a component and its noise (`gpd_jax.decoding`). Training adds the mixture's negative
-log-likelihood of the logged next state (`gpd_jax.training.step`).
+log-likelihood of the logged next state (`gpd_jax.training.step`). Option `agent_bins` = w > 0 instead makes that
+head a categorical over w-metre cells of the next position's offset from the regressed one (a mixture whose
+components are fixed to the cells: `GPD.modes`).
 """
 
 from __future__ import annotations
@@ -68,6 +70,14 @@ class LaneContext:
 
 class Frozen(nnx.Variable):
     """A non-trainable variable (the map codebook taken from the map tokenizer)."""
+
+
+def bin_grid(width: float, extent: tuple[float, float]) -> np.ndarray:
+    """f32[V, 2] the cell centres of an `agent_bins` head: offsets (along, across) from -extent to +extent metres in
+    steps of `width` (both axes centred on 0), along-major."""
+    along, across = (np.arange(-round(e / width), round(e / width) + 1) * width for e in extent)
+    a, c = np.meshgrid(along, across, indexing="ij")
+    return np.stack([a.ravel(), c.ravel()], -1).astype(np.float32)
 
 
 def grid_code(grid: int, dim: int) -> np.ndarray:
@@ -262,7 +272,17 @@ class GPD(nnx.Module):
         if self.num_modes < 0:
             raise ValueError(f"model.agent_modes must be >= 0, got {self.num_modes}")
         self.mode_dims = 5 if self.velocity_inputs else 3
-        self.mode_head = MLP((d, hh, self.num_modes * (1 + 2 * self.mode_dims)), rngs) if self.num_modes else None
+        self.bin_width = float(cfg.agent_bins)
+        self.bin_extent = tuple(float(e) for e in cfg.agent_bin_extent)
+        if self.bin_width < 0:
+            raise ValueError(f"model.agent_bins must be >= 0, got {self.bin_width}")
+        if self.bin_width and self.num_modes:
+            raise ValueError("model.agent_modes and model.agent_bins are two sampling heads: set one of them")
+        if self.bin_width:  # bin logits, then the shared Laplace scales of heading[, v along, v across]
+            width = len(bin_grid(self.bin_width, self.bin_extent)) + self.mode_dims - 2
+        else:
+            width = self.num_modes * (1 + 2 * self.mode_dims)
+        self.mode_head = MLP((d, hh, width), rngs) if samples_agents(cfg) else None
         self.grid = grid
         self.lane_stride = int(cfg.lane_context_stride)
 
@@ -351,8 +371,24 @@ class GPD(nnx.Module):
                           map_logits=self.map_head(hm), velocity=pv, modes=modes)
 
     def modes(self, ha, xy, heading, velocity, axes) -> Modes:
-        """The mixture head on agent hidden states ha f32[F, A, d], around the regressed next state (xy f32[F, A, 2],
-        heading f32[F, A], velocity f32[F, A, 2] or None), offsets and scales along / across `axes` f32[F, A]."""
+        """The sampling head on agent hidden states ha f32[F, A, d], around the regressed next state (xy f32[F, A, 2],
+        heading f32[F, A], velocity f32[F, A, 2] or None), offsets and scales along / across `axes` f32[F, A].
+
+        An `agent_bins` head is the same mixture with its components fixed: one per cell of the grid of position
+        offsets (`bin_grid`), a Laplace kernel of the cell's spread (scale w / sqrt(24): a w-wide uniform's
+        variance) in position, and the regressed heading and velocity with one learned scale each."""
+        if self.bin_width:
+            grid = jnp.asarray(bin_grid(self.bin_width, self.bin_extent))
+            out = self.mode_head(ha)
+            v = grid.shape[0]
+            logits, raw = out[..., :v], out[..., v:]
+            cell = jnp.full(raw.shape[:-1] + (2,), self.bin_width / math.sqrt(24.0))
+            scale = jnp.concatenate([cell, jnp.exp(jnp.clip(raw, -7.0, 5.0))], -1)
+            vel = None if velocity is None else jnp.broadcast_to(velocity[..., None, :], velocity.shape[:-1] + (v, 2))
+            return Modes(logits=logits, xy=xy[..., None, :] + rotate(grid, axes[..., None]),
+                         heading=jnp.broadcast_to(heading[..., None], heading.shape + (v,)), velocity=vel,
+                         scale=jnp.broadcast_to(scale[..., None, :], scale.shape[:-1] + (v, scale.shape[-1])),
+                         axes=axes)
         c, dims = self.num_modes, self.mode_dims
         out = self.mode_head(ha).reshape(ha.shape[:-1] + (c, 1 + 2 * dims))
         offset, raw = out[..., 1:1 + dims], out[..., 1 + dims:]
@@ -464,6 +500,11 @@ def forward_cached(model: GPD, tokens, cache: KVCache, start_frame):
 def reads_lanes(model_config) -> bool:
     """Whether a model of `model_config` reads vector lanes (`GPD.reads_lanes`, from the config alone)."""
     return bool(model_config.agent_lane_residual)
+
+
+def samples_agents(model_config) -> bool:
+    """Whether a model of `model_config` has a sampling agent head (`agent_modes` or `agent_bins`)."""
+    return int(model_config.agent_modes) > 0 or float(model_config.agent_bins) > 0
 
 
 def count_params(model: nnx.Module) -> int:

@@ -53,7 +53,7 @@ from gpd_jax.data.errors import DataError
 from gpd_jax.data.pack import check_packed
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import load_tokenizer
-from gpd_jax.model import MODE_HEAD, count_params, reads_lanes
+from gpd_jax.model import MODE_HEAD, count_params, reads_lanes, samples_agents
 from gpd_jax.parallel import data_mesh
 from gpd_jax.scene import Scene
 from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, restore_state,
@@ -153,20 +153,20 @@ def initial_params(path: str, config, fresh=None):
     """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its model
     config must equal `config.model`, except for the map tokenizer (a model moved onto re-fitted tokens of the
     same shape), `agent_lane_residual`, which adds no parameters (it moves the heads' base along the lanes) and
-    may be on here and off there, and `agent_modes` on here over a model without a mixture head, whose new head
-    keeps its initial parameters from `fresh` (this run's initial parameters)."""
+    may be on here and off there, and a sampling head (`agent_modes`, `agent_bins`) on here over a model without
+    one, whose new head keeps its initial parameters from `fresh` (this run's initial parameters)."""
     src = load_model(path)
     ignore = ("map_tokenizer",)
     if config.model.agent_lane_residual and not src.config.model.agent_lane_residual:
         ignore += ("agent_lane_residual",)
-    new_head = int(config.model.agent_modes) > 0 and int(src.config.model.agent_modes) == 0
-    ignore += ("agent_modes",) if new_head else ()
+    new_head = samples_agents(config.model) and not samples_agents(src.config.model)
+    ignore += ("agent_modes", "agent_bins", "agent_bin_extent") if new_head else ()
     diff = config_differences(config.model, src.config.model, ignore=ignore)
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
     if new_head:
         if fresh is None:
-            raise ValueError("initial_params: a model that adds a mixture head needs this run's initial parameters")
+            raise ValueError("initial_params: a model that adds a sampling head needs this run's initial parameters")
         return nnx.merge_state(src.params, nnx.split_state(fresh, MODE_HEAD, ...)[0])
     return src.params
 

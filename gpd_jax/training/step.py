@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
-from gpd_jax.model import GPD, MODE_HEAD, LaneContext, Prediction, forward
+from gpd_jax.model import GPD, MODE_HEAD, LaneContext, Prediction, forward, samples_agents
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.training.common import compiled_once, step_key
 
@@ -292,8 +292,9 @@ def _learned(config) -> bool:
     which = str(config.train.trainable)
     if which not in TRAINABLE:
         raise ValueError(f"train.trainable must be one of {TRAINABLE}, got {which!r}")
-    if which == "agent_modes" and int(config.model.agent_modes) <= 0:
-        raise ValueError("train.trainable = 'agent_modes' trains the mixture head: set model.agent_modes > 0")
+    if which == "agent_modes" and not samples_agents(config.model):
+        raise ValueError("train.trainable = 'agent_modes' trains the sampling head: set model.agent_modes or "
+                         "model.agent_bins > 0")
     return which == "agent_modes"
 
 
