@@ -24,12 +24,12 @@ import ml_collections
 
 STAGES = ("gpd", "map_tokenizer")
 
-# Fields of configs written by earlier versions, removed with the options they held (no shipped model used them),
+# Fields of configs written by earlier versions, removed with the options they held (no shipped model uses them),
 # and the value at which they did nothing: an old export holding that value loads; any other value is refused.
 RETIRED_FIELDS = {
     "gpd": {"rollout.temperature": 0.0, "loss.moving_weight": 1.0, "model.agent_map_context": False,
             "model.map_extent_m": None, "model.agent_lane_context": False, "model.lane_context_steps": None,
-            "model.lane_context_step_m": None, "model.lane_context_max_gap_m": None},
+            "model.lane_context_step_m": None, "model.lane_context_max_gap_m": None, "model.agent_modes": 0},
     "map_tokenizer": {"train.quantize": True, "train.init_decoder": True, "loss.every_layer": False},
 }
 
@@ -76,12 +76,10 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         velocity_code_dim=32,
         agent_lane_residual=False,  # not in the paper (needs velocity_residual): the base the heads add to is an
                                    # agent that keeps its lane (gpd_jax.geometry.lane_follow), where lanes are given
-        agent_modes=0,             # not in the paper: C > 0 adds a mixture head of C joint Laplace components over
-                                   # each agent's next state, which a rollout samples at temperature > 0 (the
-                                   # regression heads stay: temperature 0 is the paper's head)
-        agent_bins=0.0,            # not in the paper, instead of agent_modes: w > 0 makes the sampling head a
-                                   # categorical over a grid of w-metre cells of the next position's offset from the
-        agent_bin_extent=(8.0, 3.0),  # regressed one (along, across its heading, +- these metres)
+        agent_bins=0.0,            # not in the paper: w > 0 adds a sampling head, a categorical over w-metre cells
+                                   # of each agent's next position's offset from the regressed one, which a rollout
+                                   # samples at temperature > 0 (the regression heads stay: temperature 0 is the
+        agent_bin_extent=(8.0, 3.0),  # paper's head); the cells span +- these metres along, across its heading
         lane_context_stride=4,     # lanes read every this-many stored points (1 m apart): 4 m segments
         map_tokenizer="",          # the map tokenizer whose frozen codebook embeds map tokens: a model name
                                    # (gpd_jax.list_models) or a path; "" learns a token table instead
@@ -103,7 +101,7 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         agent_norm="smooth_l1",    # position / velocity loss: "smooth_l1" (official) or "euclidean" (the
                                    # pseudo-Huber of the error's length: gpd_jax.training.step)
         agent_norm_delta=0.05,     # the euclidean loss's pseudo-Huber width (m, m/s)
-        modes=1.0,                 # agent_modes models: the mixture's negative log-likelihood of the next state
+        modes=1.0,                 # agent_bins models: the sampling head's negative log-likelihood of the next state
     )
     c.train = _section(
         batch_size=16,
@@ -127,7 +125,7 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         map_feedback=0.0,          # with rollout_passes: share of each batch whose future map tokens are its own too
         lane_context_drop=0.0,     # share of each batch's scenes whose future frames get no lanes (agent_lane_residual)
         init_from="",              # an exported model or workdir whose parameters start this run (fine-tuning)
-        trainable="all",           # "all", or "agent_modes": only the mixture head learns (the rest stays as
+        trainable="all",           # "all", or "sampling_head": only the sampling head learns (the rest stays as
                                    # init_from left it, so temperature 0 rolls out exactly as that model)
     )
     if plan_head:
@@ -402,7 +400,7 @@ def config_from_json(path: str) -> ml_collections.ConfigDict:
             value = flat.pop(key)
             if neutral is not None and value != neutral:
                 raise ValueError(f"{path}: {key} = {value!r}: that option was removed from gpd_jax (no shipped "
-                                 "model used it); docs/model-lineage.md says which commit still has it")
+                                 "model uses it); docs/model-lineage.md says which commit still has it")
     unknown = sorted(set(flat) - set(ref))
     if unknown:
         raise ValueError(f"{path}: unknown config field {unknown[0]!r} (written by another version of gpd_jax?)")

@@ -10,9 +10,9 @@ frame's offset and attends only to the filled part of the cache (chunked; see at
 
 Feedback: predicted positions and headings (and velocities, for a `velocity_inputs` model) are re-tokenized as
 regressed; valid = logit > 0; a map token is the argmax of its logits (temperature 0, the default) or sampled at
-a temperature with an explicit key (`gpd_jax.options.Sampling`: temperature, top-k, top-p). A model with a mixture
-agent head (`model.agent_modes`) samples each agent's next state at temperature > 0 too (`sample_agents`: a
-component, then its Laplace noise times the temperature); at temperature 0 its agents are regressed as any model's.
+a temperature with an explicit key (`gpd_jax.options.Sampling`: temperature, top-k, top-p). A model with a sampling
+agent head (`model.agent_bins`) samples each agent's next state at temperature > 0 too (`sample_agents`: a cell,
+then its Laplace noise times the temperature); at temperature 0 its agents are regressed as any model's.
 `RolloutOptions.samples` = N draws N futures of every (scenario, task) pair in the same compiled rollout, each with
 its own key (a sample axis: outputs [S, K, N, ...]).
 
@@ -253,8 +253,9 @@ def sample_categorical(key: jax.Array, logits: jax.Array, sampling: Sampling) ->
 
 
 def sample_agents(modes: Modes, key: jax.Array, sampling: Sampling):
-    """One draw of every agent's next state from a mixture head's `Modes` of one frame (leading dims [A]): a
-    component from its logits (`sample_categorical`), then the component's Laplace noise times the temperature.
+    """One draw of every agent's next state from a sampling head's `Modes` of one frame (leading dims [A]): a
+    component (a cell) from its logits (`sample_categorical`), then the component's Laplace noise times the
+    temperature.
     Returns (xy f32[A, 2], heading f32[A], velocity f32[A, 2] or None)."""
     k_mode, k_noise = jax.random.split(key)
     pick = sample_categorical(k_mode, modes.logits, sampling)
@@ -337,7 +338,7 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
       task: a single task (from_log bool[M + A], hidden bool[A]) or prompt (from_log bool[T, M + A], ...).
       key: PRNG key (used only when the temperature is > 0).
       num_history: H, the number of given frames (21 in the paper).
-      sampling: how map tokens and a mixture head's agents are drawn (`Sampling`; a bare number is its temperature:
+      sampling: how map tokens and a sampling head's agents are drawn (`Sampling`; a bare number is its temperature:
         0 for greedy map tokens and regressed agents, > 0 to sample them).
       lanes, map_encoder: the scene's logged lanes and a tokenizer's pose encoder, to re-encode the logged map
         around a generated ego (see the module docstring); a prompt with its own lanes needs the encoder.

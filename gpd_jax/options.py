@@ -24,10 +24,10 @@ class Sampling:
     """How a rollout draws what the model predicts as a distribution (hashable: static in the compiled rollout).
 
     temperature: 0 takes the most likely map token and each agent's regressed next state (the paper's); > 0 samples
-      map tokens from their logits / temperature and, for a model with a mixture agent head (`model.agent_modes` >
-      0), each agent's next state: a component from its logits / temperature, then the component's Laplace noise
-      times the temperature (1: the model's own distribution).
-    top_k: > 0 keeps only the k most likely map tokens / agent components before sampling (0: all).
+      map tokens from their logits / temperature and, for a model with a sampling agent head (`model.agent_bins` >
+      0), each agent's next state: a cell from its logits / temperature, then the cell's Laplace noise times the
+      temperature (1: the model's own distribution).
+    top_k: > 0 keeps only the k most likely map tokens / agent cells before sampling (0: all).
     top_p: < 1 keeps the smallest set of most likely ones whose probability reaches top_p (nucleus sampling).
     """
 
@@ -57,7 +57,7 @@ class Sampling:
 class RolloutOptions:
     """The choices of a rollout (hashable: a static argument of the compiled rollout).
 
-    temperature, top_k, top_p: how map tokens and (with a mixture agent head) agents are sampled (`Sampling`:
+    temperature, top_k, top_p: how map tokens and (with a sampling agent head) agents are sampled (`Sampling`:
       temperature 0, the default, takes the most likely map token and the regressed agent state).
     samples: None (one future per scene and task: outputs [S, K, ...]) or N >= 1: N futures of each, drawn with
       their own keys in the same compiled rollout (outputs [S, K, N, ...]; identical at temperature 0).

@@ -1,4 +1,4 @@
-"""Many futures: the mixture agent head (`model.agent_modes`), its likelihood and sampling (temperature, top-k,
+"""Many futures: the sampling agent head (`model.agent_bins`), its likelihood and sampling (temperature, top-k,
 top-p), the rollout's sample axis (`RolloutOptions.samples`), head-only training, and the shipped sampling model."""
 
 import math
@@ -17,12 +17,12 @@ from gpd_jax.options import RolloutOptions, Sampling
 from gpd_jax.synthetic import synthetic_scenes
 from gpd_jax.tasks import make_tasks
 
-MODES = ["--config.model.agent_modes=3", "--config.model.predict_delta=True"]
+HEAD = ["--config.model.agent_bins=0.5", "--config.model.agent_bin_extent=(1.0, 0.5)", "--config.model.predict_delta=True"]
 
 
 @pytest.fixture(scope="module")
 def setup():
-    cfg = load_config("configs/gpd_tiny.py:test", MODES + ["--config.train.trainable=agent_modes"])
+    cfg = load_config("configs/gpd_tiny.py:test", HEAD + ["--config.train.trainable=sampling_head"])
     m = cfg.model
     scenes = synthetic_scenes(0, 2, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
     tasks = make_tasks(["traffic_simulation", "scene_generation"], m.num_map_tokens, m.num_agents)
@@ -101,7 +101,7 @@ def test_agent_samples_pick_a_component_and_its_noise_scaled_by_the_temperature(
 
 
 def test_temperature_zero_rolls_out_the_regression_heads_and_samples_differ_by_key(setup):
-    """The mixture head adds parameters after every other one: a model without it (same seed) is the same model
+    """The sampling head adds parameters after every other one: a model without it (same seed) is the same model
     and rolls out identically at temperature 0; at temperature 1 the rollout's sample axis gives N futures of
     every (scene, task), different from each other only after the history, in one compile."""
     cfg, model, scenes, tasks = setup
@@ -127,13 +127,11 @@ def test_temperature_zero_rolls_out_the_regression_heads_and_samples_differ_by_k
     assert np.abs(gen[:, :, 1:] - gen[:, :, :1]).max(axis=(2, 3, 4, 5)).min() > 1e-3  # every pair's samples differ
 
 
-@pytest.mark.parametrize("head", [MODES, ["--config.model.agent_bins=0.5", "--config.model.predict_delta=True"]],
-                         ids=["mixture", "categorical"])
-def test_head_only_training_moves_the_sampling_head_alone_and_lowers_its_loss(setup, head):
+def test_head_only_training_moves_the_sampling_head_alone_and_lowers_its_loss(setup):
     from gpd_jax.training.step import make_trainer
 
     _, _, scenes, _ = setup
-    cfg = load_config("configs/gpd_tiny.py:test", head + ["--config.train.trainable=agent_modes",
+    cfg = load_config("configs/gpd_tiny.py:test", HEAD + ["--config.train.trainable=sampling_head",
                                                           "--config.train.warmup_steps=1"])
     trainer, state = make_trainer(GPD(cfg.model, nnx.Rngs(0)), cfg)
     before = jax.tree.map(np.array, state.params)
@@ -145,13 +143,13 @@ def test_head_only_training_moves_the_sampling_head_alone_and_lowers_its_loss(se
     moved = {jax.tree_util.keystr(p): bool(np.any(np.asarray(a) != b))
              for (p, a), b in zip(jax.tree_util.tree_flatten_with_path(state.params)[0], jax.tree.leaves(before))}
     assert all(m == ("mode_head" in p) for p, m in moved.items()), moved
-    with pytest.raises(ValueError, match="agent_modes"):
+    with pytest.raises(ValueError, match="agent_bins"):
         make_trainer(GPD(cfg.model, nnx.Rngs(0)), load_config("configs/gpd_tiny.py:test",
-                                                               ["--config.train.trainable=agent_modes"]))
+                                                               ["--config.train.trainable=sampling_head"]))
 
 
 def test_fine_tuning_adds_the_head_to_a_model_without_one(setup, monkeypatch):
-    """init_from a model without a mixture head: its parameters, plus this run's fresh head."""
+    """init_from a model without a sampling head: its parameters, plus this run's fresh head."""
     import types
 
     from gpd_jax.training import loop
@@ -165,12 +163,12 @@ def test_fine_tuning_adds_the_head_to_a_model_without_one(setup, monkeypatch):
     head, rest = nnx.split_state(got, nnx.PathContains("mode_head"), ...)
     chex.assert_trees_all_equal(rest, src)
     chex.assert_trees_all_equal(head, nnx.split_state(fresh, nnx.PathContains("mode_head"), ...)[0])
-    other = load_config("configs/gpd_tiny.py:test", MODES + ["--config.model.num_layers=1"])
+    other = load_config("configs/gpd_tiny.py:test", HEAD + ["--config.model.num_layers=1"])
     with pytest.raises(ValueError, match="num_layers"):
         loop.initial_params("somewhere", other, fresh)
 
 
-def test_categorical_head_is_a_mixture_fixed_to_the_grid_cells():
+def test_sampling_head_is_a_mixture_fixed_to_the_grid_cells(setup):
     """`agent_bins` = w: one component per w-metre cell of the offset (along, across the agent's heading) from the
     regressed position, each a Laplace kernel of the cell's spread; heading and velocity are the regressed ones with
     one learned scale each. Near temperature 0 with top-k 1 a draw is the regressed position moved by the most
@@ -180,9 +178,7 @@ def test_categorical_head_is_a_mixture_fixed_to_the_grid_cells():
     grid = bin_grid(0.5, (1.0, 0.5))
     np.testing.assert_allclose(grid[:3], [[-1.0, -0.5], [-1.0, 0.0], [-1.0, 0.5]])
     assert grid.shape == (15, 2) and np.all(np.abs(grid).max(0) == [1.0, 0.5])
-    cfg = load_config("configs/gpd_tiny.py:test", ["--config.model.agent_bins=0.5", "--config.model.predict_delta=True",
-                                                   "--config.model.agent_bin_extent=(1.0, 0.5)"])
-    model = GPD(cfg.model, nnx.Rngs(0))
+    cfg, model, _, _ = setup  # agent_bins 0.5 m over +-1 m along, +-0.5 m across
     rng = np.random.default_rng(4)
     f, a, d = 2, 3, cfg.model.d_model
     ha = jnp.asarray(rng.normal(size=(f, a, d)), jnp.float32)
@@ -202,10 +198,8 @@ def test_categorical_head_is_a_mixture_fixed_to_the_grid_cells():
     got, _, _ = sample_agents(one, jax.random.key(0), Sampling(1e-6, top_k=1))
     best = np.argmax(np.asarray(one.logits), -1)
     np.testing.assert_allclose(got, np.asarray(one.xy)[np.arange(a), best], atol=1e-4)
-    for bad, match in ((["--config.model.agent_bins=-1.0"], "agent_bins"),
-                       (["--config.model.agent_bins=0.5", "--config.model.agent_modes=2"], "one of them")):
-        with pytest.raises(ValueError, match=match):
-            GPD(load_config("configs/gpd_tiny.py:test", bad).model, nnx.Rngs(0))
+    with pytest.raises(ValueError, match="agent_bins"):
+        GPD(load_config("configs/gpd_tiny.py:test", ["--config.model.agent_bins=-1.0"]).model, nnx.Rngs(0))
 
 
 def test_options_check_the_sampling_fields():
@@ -227,7 +221,7 @@ def shipped(tmp_path_factory):
 
 
 def test_the_shipped_sampling_model_is_the_default_at_temperature_zero_and_samples_in_one_call(shipped):
-    """gpd_sampling is gpd_traffic plus a mixture head: the same rollouts at temperature 0; with samples=N the
+    """gpd_sampling is gpd_traffic plus a sampling head: the same rollouts at temperature 0; with samples=N the
     public rollout gives N different futures of each scene, and evaluate(samples=K) scores them."""
     import gpd_jax
 

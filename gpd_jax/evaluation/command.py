@@ -47,13 +47,13 @@ def parser(prog: str = PROG) -> Parser:
                    help="metric variant of the main keys; the other is written with its name as a suffix")
     p.add_argument("--horizons", default="3,5,8", help="horizons in seconds (comma list)")
     p.add_argument("--temperature", type=float, default=0.0,
-                   help="sampling temperature of map tokens and, for a model with a mixture agent head "
+                   help="sampling temperature of map tokens and, for a model with a sampling agent head "
                         "(gpd_sampling), of the agents (0: the most likely token and the regressed agents, the "
                         "paper's)")
     p.add_argument("--top-k", type=int, default=0, help="sample among the k most likely map tokens / agent "
-                                                        "components only (0: all)")
+                                                        "cells only (0: all)")
     p.add_argument("--top-p", type=float, default=1.0, help="nucleus sampling: the smallest set of most likely "
-                                                            "tokens / components whose probability reaches p")
+                                                            "tokens / agent cells whose probability reaches p")
     p.add_argument("--log-map", default="tokens", choices=LOG_MAPS,
                    help="tasks that take the map from the log but generate the ego get the logged map tokens "
                         "(the paper's choice) or the log's lanes re-encoded around the generated ego every frame")

@@ -6,8 +6,8 @@ Public names (pure functions of an NNX module; `gpd_jax.checkpoint.build_model` 
 * `forward(model, tokens)`: teacher-forced pass over whole frames, memory-linear attention.
 * `forward_cached(model, tokens, cache, start_frame)`: a block of frames appended to a KV cache.
 * `reads_lanes(model_config)`: whether such a model reads vector lanes (its scenes then carry polylines);
-  `samples_agents(model_config)`: whether it has a sampling agent head (`agent_modes` or `agent_bins`).
-* `Prediction`, `Modes`, `KVCache`: what the heads return (`Modes`: a mixture head's distribution over the agents'
+  `samples_agents(model_config)`: whether it has a sampling agent head (`agent_bins`).
+* `Prediction`, `Modes`, `KVCache`: what the heads return (`Modes`: the sampling head's distribution over the agents'
   next states) and what the cache holds.
 * `PlanningHead`, `plan_trajectory(head, hidden[, ego_pose])`: the paper's fine-tuned planner, one decoder layer
   on a frame's ego token -> the ego's next F poses (gpd_jax/model/planning_head.py).

@@ -27,14 +27,12 @@ covering constant velocity's step along the lane it is on, keeping its offset fr
 (`gpd_jax.geometry.lane_follow`), and the base heading and velocity turn with the lane (`lane_base`). Agents
 farther than `gpd_jax.geometry.LANE_SNAP_M` from a lane, and frames without lanes, keep the constant-velocity base.
 
-Option `agent_modes` = C > 0 (not in the paper): a mixture head over each agent's next state beside the regression
-heads (`Modes`): C components, each a mode logit and a product of Laplace densities over (x, y, heading[, vx, vy])
-whose centres are offsets from the regressed state and whose scales are learned, positions and velocities in the
-agent's own axes (along and across its heading). A rollout at temperature 0 keeps the regressed state; at
-temperature > 0 it samples a component and its noise (`gpd_jax.decoding`). Training adds the mixture's negative
-log-likelihood of the logged next state (`gpd_jax.training.step`). Option `agent_bins` = w > 0 instead makes that
-head a categorical over w-metre cells of the next position's offset from the regressed one (a mixture whose
-components are fixed to the cells: `GPD.modes`).
+Option `agent_bins` = w > 0 (not in the paper): a sampling head over each agent's next state beside the regression
+heads (`Modes`): a categorical over the cells of a grid of w-metre cells of the next position's offset from the
+regressed one, along and across the agent's heading (`bin_grid`), each cell a Laplace kernel of its spread, with the
+regressed heading (and velocity) under one learned Laplace scale each: a mixture whose components are fixed to the
+cells. A rollout at temperature 0 keeps the regressed state; at temperature > 0 it samples a cell and its noise
+(`gpd_jax.decoding`). Training adds its negative log-likelihood of the logged next state (`gpd_jax.training.step`).
 """
 
 from __future__ import annotations
@@ -130,11 +128,12 @@ class Block(nnx.Module):
         return x + self.ff2(jax.nn.gelu(self.ff1(self.ln2(x))))
 
 
-MODE_HEAD = nnx.PathContains("mode_head")  # the parameters of the mixture head (`agent_modes`), as an NNX filter
+MODE_HEAD = nnx.PathContains("mode_head")  # the parameters of the sampling head (`agent_bins`), as an NNX filter
 
 
 class Modes(NamedTuple):
-    """A mixture of C components over each agent's next state (`agent_modes` models).
+    """A mixture of C components over each agent's next state (the sampling head of `agent_bins` models: a component
+    per cell).
 
     logits: f32[..., F, A, C] component logits; xy: f32[..., F, A, C, 2], heading: f32[..., F, A, C] and velocity
     f32[..., F, A, C, 2] (None without `velocity_inputs`) each component's centre; scale: f32[..., F, A, C, D] its
@@ -168,8 +167,8 @@ class Prediction(NamedTuple):
     """Next-frame prediction of every slot of a block of frames.
 
     xy: f32[..., F, A, 2], heading: f32[..., F, A], valid_logit: f32[..., F, A], map_logits: f32[..., F, M, K],
-    velocity: f32[..., F, A, 2] (m/s) for a `velocity_inputs` model, else None; modes: the mixture over the
-    agents' next states of an `agent_modes` model, else None.
+    velocity: f32[..., F, A, 2] (m/s) for a `velocity_inputs` model, else None; modes: the sampling head's
+    distribution over the agents' next states (`agent_bins` models), else None.
     """
 
     xy: jax.Array
@@ -268,21 +267,13 @@ class GPD(nnx.Module):
         self.valid_head = MLP((d, hh, 1), rngs)
         self.map_head = MLP((d, hh, k_codes), rngs)
         self.velocity_head = MLP((d, hh, 2), rngs) if self.velocity_inputs else None
-        self.num_modes = int(cfg.agent_modes)
-        if self.num_modes < 0:
-            raise ValueError(f"model.agent_modes must be >= 0, got {self.num_modes}")
-        self.mode_dims = 5 if self.velocity_inputs else 3
         self.bin_width = float(cfg.agent_bins)
         self.bin_extent = tuple(float(e) for e in cfg.agent_bin_extent)
         if self.bin_width < 0:
             raise ValueError(f"model.agent_bins must be >= 0, got {self.bin_width}")
-        if self.bin_width and self.num_modes:
-            raise ValueError("model.agent_modes and model.agent_bins are two sampling heads: set one of them")
-        if self.bin_width:  # bin logits, then the shared Laplace scales of heading[, v along, v across]
-            width = len(bin_grid(self.bin_width, self.bin_extent)) + self.mode_dims - 2
-        else:
-            width = self.num_modes * (1 + 2 * self.mode_dims)
-        self.mode_head = MLP((d, hh, width), rngs) if samples_agents(cfg) else None
+        # cell logits, then the Laplace scales of heading[, v along, v across]
+        outputs = (len(bin_grid(self.bin_width, self.bin_extent)) if self.bin_width else 0) + 1 + 2 * self.velocity_inputs
+        self.mode_head = MLP((d, hh, outputs), rngs) if self.bin_width else None
         self.grid = grid
         self.lane_stride = int(cfg.lane_context_stride)
 
@@ -372,33 +363,20 @@ class GPD(nnx.Module):
 
     def modes(self, ha, xy, heading, velocity, axes) -> Modes:
         """The sampling head on agent hidden states ha f32[F, A, d], around the regressed next state (xy f32[F, A, 2],
-        heading f32[F, A], velocity f32[F, A, 2] or None), offsets and scales along / across `axes` f32[F, A].
-
-        An `agent_bins` head is the same mixture with its components fixed: one per cell of the grid of position
-        offsets (`bin_grid`), a Laplace kernel of the cell's spread (scale w / sqrt(24): a w-wide uniform's
-        variance) in position, and the regressed heading and velocity with one learned scale each."""
-        if self.bin_width:
-            grid = jnp.asarray(bin_grid(self.bin_width, self.bin_extent))
-            out = self.mode_head(ha)
-            v = grid.shape[0]
-            logits, raw = out[..., :v], out[..., v:]
-            cell = jnp.full(raw.shape[:-1] + (2,), self.bin_width / math.sqrt(24.0))
-            scale = jnp.concatenate([cell, jnp.exp(jnp.clip(raw, -7.0, 5.0))], -1)
-            vel = None if velocity is None else jnp.broadcast_to(velocity[..., None, :], velocity.shape[:-1] + (v, 2))
-            return Modes(logits=logits, xy=xy[..., None, :] + rotate(grid, axes[..., None]),
-                         heading=jnp.broadcast_to(heading[..., None], heading.shape + (v,)), velocity=vel,
-                         scale=jnp.broadcast_to(scale[..., None, :], scale.shape[:-1] + (v, scale.shape[-1])),
-                         axes=axes)
-        c, dims = self.num_modes, self.mode_dims
-        out = self.mode_head(ha).reshape(ha.shape[:-1] + (c, 1 + 2 * dims))
-        offset, raw = out[..., 1:1 + dims], out[..., 1 + dims:]
-        turn = axes[..., None]
-        vel = None
-        if velocity is not None:
-            vel = velocity[..., None, :] + rotate(offset[..., 3:5], turn)
-        return Modes(logits=out[..., 0], xy=xy[..., None, :] + rotate(offset[..., 0:2], turn),
-                     heading=wrap_angle(heading[..., None] + offset[..., 2]), velocity=vel,
-                     scale=jnp.exp(jnp.clip(raw, -7.0, 5.0)), axes=axes)
+        heading f32[F, A], velocity f32[F, A, 2] or None): one component per cell of the grid of position offsets
+        along / across `axes` f32[F, A] (`bin_grid`), a Laplace kernel of the cell's spread in position (scale
+        w / sqrt(24): a w-wide uniform's variance), and the regressed heading and velocity with one learned scale
+        each (heading, v along, v across)."""
+        grid = jnp.asarray(bin_grid(self.bin_width, self.bin_extent))
+        out = self.mode_head(ha)
+        v = grid.shape[0]
+        logits, raw = out[..., :v], out[..., v:]
+        cell = jnp.full(raw.shape[:-1] + (2,), self.bin_width / math.sqrt(24.0))
+        scale = jnp.concatenate([cell, jnp.exp(jnp.clip(raw, -7.0, 5.0))], -1)
+        vel = None if velocity is None else jnp.broadcast_to(velocity[..., None, :], velocity.shape[:-1] + (v, 2))
+        return Modes(logits=logits, xy=xy[..., None, :] + rotate(grid, axes[..., None]),
+                     heading=jnp.broadcast_to(heading[..., None], heading.shape + (v,)), velocity=vel,
+                     scale=jnp.broadcast_to(scale[..., None, :], scale.shape[:-1] + (v, scale.shape[-1])), axes=axes)
 
     def lane_base(self, xy, heading, valid, step, lanes: LaneContext):
         """Where each agent lands keeping its lane (`agent_lane_residual`): it covers |step| (f32[F, A, 2],
@@ -503,8 +481,8 @@ def reads_lanes(model_config) -> bool:
 
 
 def samples_agents(model_config) -> bool:
-    """Whether a model of `model_config` has a sampling agent head (`agent_modes` or `agent_bins`)."""
-    return int(model_config.agent_modes) > 0 or float(model_config.agent_bins) > 0
+    """Whether a model of `model_config` has a sampling agent head (`agent_bins`)."""
+    return float(model_config.agent_bins) > 0
 
 
 def count_params(model: nnx.Module) -> int:

@@ -153,14 +153,14 @@ def initial_params(path: str, config, fresh=None):
     """Parameters of the model at `path` (exported or a workdir) to fine-tune from (`train.init_from`): its model
     config must equal `config.model`, except for the map tokenizer (a model moved onto re-fitted tokens of the
     same shape), `agent_lane_residual`, which adds no parameters (it moves the heads' base along the lanes) and
-    may be on here and off there, and a sampling head (`agent_modes`, `agent_bins`) on here over a model without
+    may be on here and off there, and a sampling head (`agent_bins`) on here over a model without
     one, whose new head keeps its initial parameters from `fresh` (this run's initial parameters)."""
     src = load_model(path)
     ignore = ("map_tokenizer",)
     if config.model.agent_lane_residual and not src.config.model.agent_lane_residual:
         ignore += ("agent_lane_residual",)
     new_head = samples_agents(config.model) and not samples_agents(src.config.model)
-    ignore += ("agent_modes", "agent_bins", "agent_bin_extent") if new_head else ()
+    ignore += ("agent_bins", "agent_bin_extent") if new_head else ()
     diff = config_differences(config.model, src.config.model, ignore=ignore)
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")

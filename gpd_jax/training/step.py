@@ -14,11 +14,11 @@ official values 5, 5.73, 1, 1):
 * map: cross-entropy of the K-way map logits over map tokens of frames whose map is known;
 * velocity (only for `velocity_inputs` models, weight `loss.velocity`): smooth-L1 (m/s) summed over vx and vy,
   averaged over agents valid at both frames;
-* modes (only for `agent_modes` models, weight `loss.modes`): the negative log-likelihood of the logged next state
-  under the mixture head (`gpd_jax.model.Modes.log_prob`; the velocity where the agent is valid at both frames),
+* modes (only for `agent_bins` models, weight `loss.modes`): the negative log-likelihood of the logged next state
+  under the sampling head (`gpd_jax.model.Modes.log_prob`; the velocity where the agent is valid at both frames),
   averaged over valid target agents.
 
-`train.trainable` = "agent_modes" trains the mixture head alone: the gradient is taken with respect to its
+`train.trainable` = "sampling_head" trains the sampling head alone: the gradient is taken with respect to its
 parameters only (no backward pass through the transformer) and every other parameter stays where `train.init_from`
 left it, so the model's temperature-0 rollouts stay that model's.
 
@@ -284,18 +284,17 @@ class Trainer(NamedTuple):
         return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=self.tx.init(params))
 
 
-TRAINABLE = ("all", "agent_modes")
+TRAINABLE = ("all", "sampling_head")
 
 
 def _learned(config) -> bool:
-    """Whether `train.trainable` trains the mixture head alone (checked: the model must have one)."""
+    """Whether `train.trainable` trains the sampling head alone (checked: the model must have one)."""
     which = str(config.train.trainable)
     if which not in TRAINABLE:
         raise ValueError(f"train.trainable must be one of {TRAINABLE}, got {which!r}")
-    if which == "agent_modes" and not samples_agents(config.model):
-        raise ValueError("train.trainable = 'agent_modes' trains the sampling head: set model.agent_modes or "
-                         "model.agent_bins > 0")
-    return which == "agent_modes"
+    if which == "sampling_head" and not samples_agents(config.model):
+        raise ValueError("train.trainable = 'sampling_head' trains the sampling head: set model.agent_bins > 0")
+    return which == "sampling_head"
 
 
 def _gpd_steps(graphdef, config, tx, donate: bool):
@@ -314,7 +313,7 @@ def _gpd_steps(graphdef, config, tx, donate: bool):
     head_only = _learned(config)
 
     def train_step(state: TrainState, scenes: Scene, rest):
-        if head_only:  # the gradient of the mixture head alone: no backward pass through the transformer
+        if head_only:  # the gradient of the sampling head alone: no backward pass through the transformer
             learn, keep = nnx.split_state(state.params, MODE_HEAD, ...)
             loss = lambda p: loss_of(nnx.merge_state(p, keep), rest, scenes)  # noqa: E731
             (_, parts), grads = jax.value_and_grad(loss, has_aux=True)(learn)
