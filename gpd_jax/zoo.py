@@ -53,12 +53,13 @@ MODELS: tuple[ModelCard, ...] = (
                 "3 / 5 / 8 s; held-out real networks (test) 0.722 / 0.697 / 0.692"),
     ModelCard(
         name="gpd_sampling", kind="gpd",
-        purpose="many futures: gpd_traffic plus a mixture agent head that rollouts sample (temperature 0.5; at "
-                "temperature 0 it is gpd_traffic)",
+        purpose="many futures: gpd_traffic plus a sampling agent head, a categorical over 0.5 m cells of each "
+                "agent's next position, that rollouts sample (temperature 0.5; at temperature 0 it is gpd_traffic)",
         tokenizer="map_tokenizer", data=_SUMO_DATA,
         figures="WOSAC-form realism meta-metric, 32 rollouts, traffic simulation: held-out generated networks "
-                "(test) 0.511 against gpd_traffic 0.423, constant velocity 0.312, along the lanes 0.418; real-road "
-                "dev tiles 0.641 (0.564, 0.578, 0.622)"),
+                "(test) 0.543 against gpd_traffic 0.423, constant velocity 0.312, along the lanes 0.418; held-out "
+                "recorded INTERACTION sites 0.601 (0.466, 0.417, 0.500); real-road dev tiles 0.681 (0.564, 0.578, "
+                "0.622)"),
     ModelCard(
         name="gpd_maps", kind="gpd",
         purpose="scene generation and map prediction: the best generated maps, on direction-aware map tokens",

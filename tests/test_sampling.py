@@ -17,7 +17,8 @@ from gpd_jax.options import RolloutOptions, Sampling
 from gpd_jax.synthetic import synthetic_scenes
 from gpd_jax.tasks import make_tasks
 
-HEAD = ["--config.model.agent_bins=0.5", "--config.model.agent_bin_extent=(1.0, 0.5)", "--config.model.predict_delta=True"]
+HEAD = ["--config.model.agent_bins=0.5", "--config.model.agent_bin_extent=(1.0, 0.5)",
+        "--config.model.predict_delta=True"]
 
 
 @pytest.fixture(scope="module")

@@ -18,4 +18,5 @@ from gpd_jax.model.transformer import (GPD, MODE_HEAD, KVCache, LaneContext, Mod
                                       forward, forward_cached, reads_lanes, samples_agents)
 
 __all__ = ["GPD", "MODE_HEAD", "KVCache", "LaneContext", "Modes", "PlanningHead", "Prediction", "count_params",
-           "forward", "forward_cached", "plan_trajectory", "reads_lanes", "samples_agents", "to_ego_frame", "to_scene_frame"]
+           "forward", "forward_cached", "plan_trajectory", "reads_lanes", "samples_agents", "to_ego_frame",
+           "to_scene_frame"]

@@ -271,9 +271,9 @@ class GPD(nnx.Module):
         self.bin_extent = tuple(float(e) for e in cfg.agent_bin_extent)
         if self.bin_width < 0:
             raise ValueError(f"model.agent_bins must be >= 0, got {self.bin_width}")
+        cells = len(bin_grid(self.bin_width, self.bin_extent)) if self.bin_width else 0
         # cell logits, then the Laplace scales of heading[, v along, v across]
-        outputs = (len(bin_grid(self.bin_width, self.bin_extent)) if self.bin_width else 0) + 1 + 2 * self.velocity_inputs
-        self.mode_head = MLP((d, hh, outputs), rngs) if self.bin_width else None
+        self.mode_head = MLP((d, hh, cells + 1 + 2 * self.velocity_inputs), rngs) if cells else None
         self.grid = grid
         self.lane_stride = int(cfg.lane_context_stride)
 
