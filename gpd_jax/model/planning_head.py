@@ -115,8 +115,8 @@ class PlanningHead(nnx.Module):
                    num_heads=int(head_cfg.num_heads), ffn_dim=int(head_cfg.ffn_dim),
                    ego_slot=int(model_cfg.num_map_tokens), rngs=rngs,
                    position_scale=float(head_cfg.position_scale), route_points=int(head_cfg.route_points),
-                   route_spacing_m=float(head_cfg.route_spacing_m), candidates=str(head_cfg.get("candidates", "")),
-                   num_candidates=len(head_cfg.get("idm_speeds", ())))
+                   route_spacing_m=float(head_cfg.route_spacing_m), candidates=str(head_cfg.candidates),
+                   num_candidates=len(head_cfg.idm_speeds))
 
     def _split(self, x):
         return x.reshape(x.shape[:-1] + (self.num_heads, x.shape[-1] // self.num_heads))

@@ -268,14 +268,14 @@ def plan_inputs(stored: Scene, view: Scene, spec, config) -> tuple[np.ndarray | 
       `plan_head.idm_speeds` (`gpd_jax.sim.agents.idm_route_plan`, leaders the view's slots at that frame) in the
       ego's frame, or None for a head that draws its plan (`plan_head.candidates` empty)."""
     ph = config.plan_head
-    r, choose = int(ph.route_points), str(ph.get("candidates", ""))
+    r, choose = int(ph.route_points), str(ph.candidates)
     if r == 0 and not choose:
         return None, None
     if choose and view.velocity is None:
         raise ValueError("plan_head.candidates: IDM's plans start from the ego's velocity; the model reads none "
                          "(model.velocity_inputs = False)")
     arrays = lambda sc: jax.tree.map(jnp.asarray, sc.replace(polylines=None, polyline_valid=None))
-    speeds = tuple(float(v) for v in ph.get("idm_speeds", ())) if choose else ()
+    speeds = tuple(float(v) for v in ph.idm_speeds) if choose else ()
     route, cands = _inputs_jit(arrays(stored), arrays(view), spec, r, float(ph.route_spacing_m), speeds,
                                int(ph.num_future))
     return (None if route is None else np.asarray(route)), (None if cands is None else np.asarray(cands))
@@ -442,8 +442,7 @@ def pretrained_params(path: str, config, template):
     if diff:
         raise ValueError(f"train.init_from {path}: its model config differs in {diff}")
     shape_keys = ("num_future", "num_heads", "ffn_dim", "position_scale")
-    choosing = lambda h: (str(h.get("candidates", "")),
-                          tuple(map(float, h.get("idm_speeds", ()))) if h.get("candidates", "") else ())
+    choosing = lambda h: (str(h.candidates), tuple(map(float, h.idm_speeds)) if h.candidates else ())
     with_head = HEAD in src.config and all(src.config[HEAD][k] == config[HEAD][k] for k in shape_keys) and (
         choosing(src.config[HEAD]) == choosing(config[HEAD]))
     new_route = with_head and int(src.config[HEAD].get("route_points", 0)) != int(config[HEAD].route_points)
@@ -604,7 +603,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     if int(config.plan_head.route_points) > 0 and not use_features:
         raise ValueError("plan_head.route_points: the route is read from the stored-rate log when the backbone's "
                          "outputs are cached: set train.cache_features = True (and train.backbone_lr_scale = 0)")
-    if config.plan_head.get("candidates", "") and not use_features:
+    if config.plan_head.candidates and not use_features:
         raise ValueError("plan_head.candidates: the candidate plans are computed from the stored-rate log when the "
                          "backbone's outputs are cached: set train.cache_features = True (and "
                          "train.backbone_lr_scale = 0)")
