@@ -1,11 +1,14 @@
-"""The recipe of gpd_maps: gpd_traffic moved onto direction-aware map tokens, for the best generated maps.
+"""The recipe of gpd_maps: gpd_traffic's architecture moved onto direction-aware map tokens, for the best generated
+maps.
 
-Two stages from gpd_traffic (`configs/gpd_maps.py:STAGE`), each on copies of gpd_traffic's training stores whose
+Two stages from the default model of the time, before its INTERACTION fine-tune (runs/soup_legacy2_avg: the
+recipe configs/gpd_traffic.py up to its `soup_legacy2` average, or `git show ab4875a:checkpoints/gpd_traffic/
+params.npz` and its config.json), each on copies of gpd_traffic's SUMO training stores whose
 map tokens were encoded by the stage's tokenizer (a store holds one tokenizer's tokens):
 
 1. `refit`: onto the tokens of map_tokenizer_refit (configs/map_tokenizer.py:refit; the shipped tokenizer
    fine-tuned whole on the wider map data), batch 32 and 8 rollout passes with map feedback on an accelerator
-   (one H200; its lease stopped the run at step 1,922 of 2,400), then averaged 0.5 / 0.5 with gpd_traffic (the
+   (one H200; its lease stopped the run at step 1,922 of 2,400), then averaged 0.5 / 0.5 with where it started (the
    average reads the refit tokens: --mixed-tokenizers).
 2. `directional`: from that average onto the tokens of map_tokenizer_directional (configs/map_tokenizer.py:
    directional: the refit tokenizer with SLEDGE's lane-heading raster channels) at a 2-core CPU's scale: batch 8,
@@ -18,7 +21,7 @@ map tokens were encoded by the stage's tokenizer (a store holds one tokenizer's 
     done; done
     python train.py --config configs/gpd_maps.py:refit --workdir runs/maps_refit --stop-after 1922     # a GPU
     python -m gpd_jax.checkpoint export runs/maps_refit runs/maps_refit_1922 --step 1922
-    python -m gpd_jax.checkpoint average runs/maps_refit_1922 gpd_traffic --weights 0.5 0.5 --config-from 0 \
+    python -m gpd_jax.checkpoint average runs/maps_refit_1922 runs/soup_legacy2_avg --weights 0.5 0.5 --config-from 0 \
         --mixed-tokenizers --out runs/maps_refit_avg
     python train.py --config configs/gpd_maps.py:directional --workdir runs/maps_directional
     python -m gpd_jax.checkpoint export runs/maps_directional gpd_maps --tokenizer-ref map_tokenizer_directional
@@ -53,7 +56,7 @@ def get_config(stage: str = "directional"):
     c.data.dir = ",".join(f"data/{tokens}/{s}:{w}" for s, w in
                           (("gen_curved_train", 0.2), ("legacy_train", 0.4), ("mix_real_train", 0.4)))
     m.map_tokenizer = f"runs/tok_{tokens}/export"
-    t.init_from = "gpd_traffic"
+    t.init_from = "runs/soup_legacy2_avg"
     if stage == "directional":
         m.map_tokenizer = "map_tokenizer_directional"
         t.init_from = "runs/maps_refit_avg"

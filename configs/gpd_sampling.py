@@ -10,18 +10,21 @@ each, fitted by the negative log-likelihood of the logged next state on the logg
 checkpoint kept is the best validation likelihood (`train.best_metric = "modes"`: step 800 of 800); the rollout
 temperature was chosen on the development store's realism (docs/results.md, "Many futures"). It replaced a mixture
 of six learned Laplace components (`model.agent_modes`, same recipe otherwise; `git show 3201a87:configs/
-gpd_sampling.py`), which it beats on the development store's realism (0.681 against 0.641).
+gpd_sampling.py`), which it beats on the development store's realism (0.681 against 0.641, both on the SUMO-only
+gpd_traffic of the time). Retrained by this recipe on the current gpd_traffic (fine-tuned on recorded traffic) it
+reads 0.673 there.
 
-Data (`python -m gpd_jax.data ...`; where each source comes from and its terms: docs/data.md):
+Data (`python -m gpd_jax.data ...`; where each source comes from and its terms: docs/data.md; `legacy_small` and
+`mix_real_small` are smaller builds than configs/gpd_traffic.py's `legacy_train` and `mix_real_train`):
 
     python -m gpd_jax.data build --source sumo --traffic legacy --split train --scenarios 480 --per-job 20 --seed 11 \
-        --out data/legacy_train
+        --out data/legacy_small
     python -m gpd_jax.data realnets --cache data/realnets
     python -m gpd_jax.data build --source sumo --net data/realnets/train/{drt_nw,drt_se,drt_sw,fin_se_east,fin_se_west,helsinki_south}.net.xml.gz \
-        --net-layout real --split train --scenarios 240 --per-job 10 --seed 71 --out data/mix_real_train
+        --net-layout real --split train --scenarios 240 --per-job 10 --seed 71 --out data/mix_real_small
     python -m gpd_jax.data build --source sumo --net data/realnets/dev/*.net.xml.gz --net-layout real --split val \
         --scenarios 150 --per-job 10 --seed 73 --out data/mix_real_dev
-    for d in legacy_train mix_real_train mix_real_dev; do
+    for d in legacy_small mix_real_small mix_real_dev; do
         python -m gpd_jax.map_tokenizer encode --checkpoint map_tokenizer --data data/$d --frame-stride 10; done
 
 Training (5 min on 2 CPU cores; resumes where it stopped); the best validation is exported to
@@ -35,7 +38,7 @@ from gpd_jax.config import gpd_config
 
 def get_config():
     c = gpd_config()
-    c.data.dir = "data/legacy_train:0.65,data/mix_real_train:0.35"
+    c.data.dir = "data/legacy_small:0.65,data/mix_real_small:0.35"
     c.data.val_dir, c.data.frame_stride = "data/mix_real_dev", 10
     m = c.model  # gpd_traffic's architecture (checkpoints/gpd_traffic/config.json), plus the sampling head
     m.num_frames, m.num_history, m.num_agents = 11, 3, 17

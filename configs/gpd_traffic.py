@@ -1,7 +1,8 @@
-"""The recipe of gpd_traffic, the default model: a 1 Hz GPD on SUMO traffic whose agents step along the lanes.
+"""The recipe of gpd_traffic, the default model: a 1 Hz GPD whose agents step along the lanes, trained on SUMO
+traffic and fine-tuned on recorded drone traffic (INTERACTION).
 
 Stages run in order (`configs/gpd_traffic.py:STAGE`); each starts from the previous one's export and changes only
-what its entry in `STAGES` says. Three times the recipe averages models in weight space (`python -m
+what its entry in `STAGES` says. Four times the recipe averages models in weight space (`python -m
 gpd_jax.checkpoint average`: a fine-tune towards one distribution averaged back with where it started, as
 WiSE-FT and model soups do). What each stage bought, and the alternatives tried, is in docs/results.md; the
 retired intermediate models are in docs/model-lineage.md.
@@ -23,6 +24,13 @@ Data (`python -m gpd_jax.data ...`; where each source comes from and its terms: 
         --out data/legacy_train
     (dev stores of generated networks, for the stages that validate on three stores: data/gen_dev_curved and
      data/gen_dev_legacy, built like the two above with --split val and other seeds)
+    (for the last stage: recorded drone traffic, INTERACTION, and a smaller legacy store; INTERACTION_ROOT holds
+     recorded_trackfiles/ and maps/; its non-commercial terms and the split by site: docs/data.md)
+    python -m gpd_jax.data build --source interaction --db INTERACTION_ROOT --split train --max-per-log 20 --workers 2 \
+        --out data/interaction_train_small
+    python -m gpd_jax.data build --source interaction --db INTERACTION_ROOT --split val --out data/interaction_dev
+    python -m gpd_jax.data build --source sumo --traffic legacy --split train --scenarios 480 --per-job 20 --seed 11 \
+        --out data/legacy_small
     for d in data/*/; do python -m gpd_jax.map_tokenizer encode --checkpoint map_tokenizer --data $d --frame-stride 10; done
 
 Training (2-core CPU times from the original runs; every stage resumes where it stopped):
@@ -45,7 +53,16 @@ Training (2-core CPU times from the original runs; every stage resumes where it 
         --out runs/soup_legacy_avg
     python train.py --config configs/gpd_traffic.py:soup_legacy2 --workdir runs/soup_legacy2       # 34 min
     python -m gpd_jax.checkpoint average runs/soup_legacy2/export runs/soup_legacy_avg --weights 0.5 0.5 \
-        --config-from 1 --tokenizer-ref map_tokenizer --out gpd_traffic
+        --config-from 1 --tokenizer-ref map_tokenizer --out runs/soup_legacy2_avg
+    python train.py --config configs/gpd_traffic.py:interaction --workdir runs/interaction  # best at step 50: 3 min
+    python -m gpd_jax.checkpoint average runs/interaction/best runs/soup_legacy2_avg --weights 0.5 0.5 \
+        --config-from 0 --tokenizer-ref map_tokenizer --out gpd_traffic
+
+runs/soup_legacy2_avg was the default until 2026-11-29 (`git show ab4875a:checkpoints/gpd_traffic/params.npz`; its
+config.json is the `soup_legacy2` stage's). The last stage validates on 96 windows of INTERACTION's development site
+every 50 steps and keeps the best; on a 2-core CPU a step takes about 3 s, and the run may be stopped once step 50's
+validation has written runs/interaction/best (the best of the shipped run; `--stop-after 50` does it). Retrained
+from this recipe, the average equals the shipped params bit for bit.
 
 (The shipped model's first three stages took a longer route, through an earlier tokenizer's tokens; the commit
 that shipped each stage is in docs/model-lineage.md.)
@@ -105,10 +122,19 @@ STAGES = {
     "soup_legacy2": ("soup_legacy", {
         "data.dir": f"data/gen_curved_train:0.10,data/legacy_train:0.65,{_REAL}:0.125,data/real2_train:0.125",
         "train.init_from": "runs/soup_legacy_avg"}),
+    # From that average (runs/soup_legacy2_avg, the default until 2026-11-29) onto recorded drone traffic: INTERACTION's
+    # five train sites with legacy SUMO traffic; validates on the development site every 50 steps and exports the
+    # best (step 50 of 300) to runs/interaction/best, averaged 0.5 / 0.5 with where it started: gpd_traffic.
+    "interaction": ("soup_legacy2", {
+        "data.dir": "data/interaction_train_small:0.7,data/legacy_small:0.3", "data.val_dir": "data/interaction_dev",
+        "train.init_from": "runs/soup_legacy2_avg", "train.steps": 300, "train.learning_rate": 1e-4,
+        "train.warmup_steps": 30, "train.map_feedback": 0.0, "train.eval_every": 50, "train.eval_at_start": True,
+        "train.eval_rollout_scenarios": 96, "train.checkpoint_every": 1_000, "train.keep_checkpoints": 4,
+        "train.loader_threads": 2}),
 }
 
 
-def get_config(stage: str = "soup_legacy2"):
+def get_config(stage: str = "interaction"):
     c = gpd_config()
     for _, parent, changes in recipe_stages(STAGES, stage, "configs/gpd_traffic.py"):
         c.train.init_from = "" if parent is None else f"runs/{parent}/export"

@@ -43,22 +43,25 @@ class ModelCard:
 
 _SUMO_DATA = ("SUMO traffic (eclipse-sumo, EPL-2.0) on generated networks and on real OpenStreetMap road tiles "
               "(ODbL 1.0: (c) OpenStreetMap contributors)")
+_RECORDED_DATA = (_SUMO_DATA + "; recorded drone traffic at INTERACTION's five training sites (the INTERACTION "
+                  "dataset's terms: non-commercial research only, so these weights are for non-commercial research)")
 
 MODELS: tuple[ModelCard, ...] = (
     ModelCard(
         name="gpd_traffic", kind="gpd",
         purpose="the default: traffic simulation on real roads; its agents step along the scene's vector lanes",
-        tokenizer="map_tokenizer", data=_SUMO_DATA,
-        figures="real-road dev tiles, traffic simulation agent ADE / constant velocity 0.780 / 0.747 / 0.740 at "
-                "3 / 5 / 8 s; held-out real networks (test) 0.722 / 0.697 / 0.692"),
+        tokenizer="map_tokenizer", data=_RECORDED_DATA,
+        figures="traffic simulation agent ADE / constant velocity at 3 / 5 / 8 s: recorded INTERACTION dev site "
+                "0.953 / 0.858 / 0.814, real-road dev tiles 0.770 / 0.741 / 0.734; held-out recorded INTERACTION "
+                "sites (test) 0.811 / 0.791 / 0.816, held-out real networks (test) 0.731 / 0.716 / 0.708"),
     ModelCard(
         name="gpd_sampling", kind="gpd",
         purpose="many futures: gpd_traffic plus a sampling agent head, a categorical over 0.5 m cells of each "
                 "agent's next position, that rollouts sample (temperature 0.5; at temperature 0 it is gpd_traffic)",
-        tokenizer="map_tokenizer", data=_SUMO_DATA,
+        tokenizer="map_tokenizer", data=_RECORDED_DATA,
         figures="WOSAC-form realism meta-metric, 32 rollouts, traffic simulation: held-out generated networks "
-                "(test) 0.543 against gpd_traffic 0.423, constant velocity 0.312, along the lanes 0.418; held-out "
-                "recorded INTERACTION sites 0.601 (0.466, 0.417, 0.500); real-road dev tiles 0.681 (0.564, 0.578, "
+                "(test) 0.542 against gpd_traffic 0.420, constant velocity 0.312, along the lanes 0.418; held-out "
+                "recorded INTERACTION sites 0.618 (0.493, 0.417, 0.500); real-road dev tiles 0.673 (0.567, 0.578, "
                 "0.622)"),
     ModelCard(
         name="gpd_maps", kind="gpd",
@@ -72,12 +75,13 @@ MODELS: tuple[ModelCard, ...] = (
                 "plans along the route at seven target speeds, reading the route, trained in closed loop "
                 "(DAgger); the simulator's gpd_head policy",
         tokenizer="map_tokenizer",
-        data="SUMO traffic (eclipse-sumo, EPL-2.0) on real OpenStreetMap road tiles (ODbL 1.0: (c) OpenStreetMap "
-             "contributors)",
-        figures="closed loop, plan tracker, NR-CLS / R-CLS-idm / R-CLS-gpd: real-road dev tiles (150) 74.0 / 73.1 / "
-                "71.1 (IDM 68.9 / 67.2 / 65.3); held-out real test networks (99) 73.1 / 72.0 / 72.7 (IDM 71.2 / "
-                "68.4 / 68.7); held-out recorded INTERACTION sites (108) 63.0 / 59.3 / 60.4 (IDM 55.7 / 50.1 / "
-                "56.3); held-out generated networks (120) 68.8 / 68.9 / 65.7 (IDM 72.7 / 71.2 / 67.2)"),
+        data="the head: SUMO traffic (eclipse-sumo, EPL-2.0) on real OpenStreetMap road tiles (ODbL 1.0: (c) "
+             "OpenStreetMap contributors); the backbone is gpd_traffic's, whose recorded INTERACTION traffic makes "
+             "these weights non-commercial research only",
+        figures="closed loop, plan tracker, NR-CLS / R-CLS-idm / R-CLS-gpd: real-road dev tiles (150) 73.6 / 73.1 / "
+                "70.9 (IDM 68.9 / 67.2 / 65.1); held-out recorded INTERACTION sites (108) 63.5 / 62.5 / 63.5 (IDM "
+                "55.7 / 50.1 / 58.3); held-out real test networks (99) 71.0 / 70.9 / 69.8 (IDM 71.2 / 68.4 / 69.9); "
+                "held-out generated networks (120) 67.9 / 68.7 / 63.3 (IDM 72.7 / 71.2 / 67.9)"),
     ModelCard(
         name="map_tokenizer", kind="map_tokenizer",
         purpose="the map VQ-VAE of gpd_traffic, gpd_sampling and gpd_planner: 256 x 256 binary lane rasters -> 64 "
