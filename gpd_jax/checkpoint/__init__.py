@@ -371,6 +371,3 @@ def _average_cli(args) -> int:
     print(f"averaged {len(args.models)} models -> {out}")
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
