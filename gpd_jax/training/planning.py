@@ -445,7 +445,7 @@ def pretrained_params(path: str, config, template):
     choosing = lambda h: (str(h.candidates), tuple(map(float, h.idm_speeds)) if h.candidates else ())
     with_head = HEAD in src.config and all(src.config[HEAD][k] == config[HEAD][k] for k in shape_keys) and (
         choosing(src.config[HEAD]) == choosing(config[HEAD]))
-    new_route = with_head and int(src.config[HEAD].get("route_points", 0)) != int(config[HEAD].route_points)
+    new_route = with_head and int(src.config[HEAD].route_points) != int(config[HEAD].route_points)
 
     def fresh(p) -> bool:  # leaves that keep their initialisation
         if not with_head:
