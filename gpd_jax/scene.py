@@ -50,8 +50,8 @@ class Scene:
         (SLEDGE processing: L=50 nearest lines, P=20 points each).
       lanes_valid: optional bool[..., T, L] which lane slots are present.
       velocity: optional f32[..., T, A, 2] instantaneous velocity (m/s, scene frame) of each agent, a finite
-        backward difference at the stored frame rate (see `with_velocity`); zero where the agent was not
-        valid in the previous frame, and at frame 0.
+        backward difference at the stored frame rate to its last valid frame (see `with_velocity`); zero where
+        the agent is not valid or has no earlier valid frame, and at frame 0.
       polylines: optional f32[..., L, P, 2] the log's lane centrelines in the scene frame (not per frame): what
         a map tokenizer rasterizes around any ego pose (map tokens made on the fly, lanes re-encoded around a
         generated ego, map metrics' ground truth).
@@ -152,17 +152,42 @@ class Scene:
     def with_velocity(self, period_s: float) -> "Scene":
         """The scene with `velocity` set from its own frames, `period_s` seconds apart (numpy or JAX leaves).
 
-        Frame t's velocity is the backward difference (xy[t] - xy[t-1]) / period_s where the agent is valid at
-        both frames, else zero (never a forward difference: that would show a model the future).
+        Frame t's velocity is the backward difference to the agent's last valid frame t' < t, (xy[t] - xy[t'])
+        / ((t - t') period_s), where the agent is valid at t (`backward_difference`): a track missing for a few
+        frames, as sensor logs have, keeps its speed, by the same rule `constant_velocity` extrapolates with.
+        Zero where the agent has no earlier valid frame (first seen at t), is not valid at t, and at frame 0;
+        never a forward difference (that would show a model the future).
         """
         if period_s <= 0:
             raise ValueError(f"velocity period must be positive, got {period_s}")
-        xp = jnp if isinstance(self.xy, jax.Array) else np
-        xy, valid = self.xy, self.valid
-        diff = (xy[..., 1:, :, :] - xy[..., :-1, :, :]) / period_s  # frame t-1 -> t, for t >= 1
-        ok = (valid[..., 1:, :] & valid[..., :-1, :])[..., None]
-        vel = xp.concatenate([xp.zeros_like(diff[..., :1, :, :]), xp.where(ok, diff, 0.0)], -3).astype(xy.dtype)
-        return self.replace(velocity=vel)
+        step, frames, known = backward_difference(self.xy, self.valid)
+        vel = step / (frames * period_s)[..., None]
+        xp = jnp if isinstance(vel, jax.Array) else np
+        return self.replace(velocity=xp.where(known[..., None], vel, 0.0).astype(self.xy.dtype))
+
+
+def backward_difference(xy, valid):
+    """Each agent's displacement from its last valid frame before t to t (numpy or JAX leaves).
+
+    Args:
+      xy: f32[..., T, A, 2]; valid: bool[..., T, A].
+
+    Returns:
+      (step f32[..., T, A, 2] = xy[t] - xy[t'], frames f32[..., T, A] = t - t' (1 where unknown),
+      known bool[..., T, A]: valid at t with an earlier valid frame t'). `step` is zero where not known.
+    """
+    xp = jnp if isinstance(xy, jax.Array) or isinstance(valid, jax.Array) else np
+    t = valid.shape[-2]
+    index = xp.arange(t).reshape((t, 1))
+    marked = xp.where(valid, index, -1)
+    upto = (jax.lax.cummax(marked, axis=marked.ndim - 2) if xp is jnp
+            else np.maximum.accumulate(marked, axis=-2))            # last valid frame <= t
+    prev = xp.concatenate([xp.full_like(upto[..., :1, :], -1), upto[..., :-1, :]], -2)  # last valid frame < t
+    known = valid & (prev >= 0)
+    earlier = xp.take_along_axis(xy, xp.maximum(prev, 0)[..., None], axis=-3)
+    step = xp.where(known[..., None], xy - earlier, 0.0)
+    frames = xp.where(known, index - prev, 1).astype(xy.dtype)
+    return step, frames, known
 
 
 def _scene_spec(scene: Scene) -> dict[str, tuple[tuple[Any, ...], Any]]:

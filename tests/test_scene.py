@@ -56,3 +56,30 @@ def test_with_velocity_and_subsample_keep_the_stored_rate_velocity():
     np.testing.assert_allclose(npv, v, atol=1e-5)
     with pytest.raises(ValueError, match="positive"):
         s.with_velocity(0.0)
+
+
+def test_velocity_over_a_tracking_gap_is_the_constant_velocity_baselines():
+    """A track missing for a few frames (occlusion, sensor range) keeps its speed: the backward difference spans
+    the gap, as `constant_velocity` extrapolates, instead of falling to zero, which a velocity-input model reads as
+    standing. Zero where the agent was never seen before."""
+    from gpd_jax.evaluation.baselines import constant_velocity
+    t, a, h = 21, 3, 21
+    s = empty_scene(t, a, 4)
+    time = np.arange(t, dtype=np.float32) * 0.1
+    xy = np.zeros((t, a, 2), np.float32)
+    xy[:, 1, 0] = 8.0 * time                     # agent 1: 8 m/s, missing at frames 17-19
+    xy[:, 2, 1] = -3.0 * time                    # agent 2: first seen at the last frame
+    valid = np.ones((t, a), bool)
+    valid[17:20, 1] = False
+    valid[:20, 2] = False
+    s = s.replace(xy=jnp.asarray(xy), valid=jnp.asarray(valid))
+    v = np.asarray(s.with_velocity(0.1).velocity)
+    np.testing.assert_allclose(v[20, 1], [8.0, 0.0], rtol=1e-4)
+    np.testing.assert_allclose(v[17:20, 1], 0.0)
+    np.testing.assert_allclose(v[20, 2], 0.0)
+    np.testing.assert_allclose(s.replace(xy=xy, valid=valid).with_velocity(0.1).velocity, v, atol=1e-5)
+    # the baseline's step per frame, from the same two frames
+    future = s.replace(xy=jnp.concatenate([s.xy, s.xy[:2]]), valid=jnp.concatenate([s.valid, s.valid[:2]]),
+                       heading=jnp.zeros((t + 2, a)))
+    cv = constant_velocity(future, h)
+    np.testing.assert_allclose((np.asarray(cv.xy[h, 1]) - xy[20, 1]) / 0.1, v[20, 1], rtol=1e-4)

@@ -18,7 +18,7 @@ from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow
 from gpd_jax.evaluation.keys import LANE_BASELINE, MAP_PERSISTENCE, TOKENIZER_CEILING
 from gpd_jax.metrics import VARIANTS, map_metric_sums
 from gpd_jax.metrics.agents import agent_sum_rows, agent_sum_table, name_agent_sums
-from gpd_jax.scene import Scene
+from gpd_jax.scene import Scene, backward_difference
 from gpd_jax.spec import ModelSpec
 from gpd_jax.tasks import map_task_names
 
@@ -32,11 +32,11 @@ def scored_mask(scene: Scene, spec: ModelSpec, weight) -> jax.Array:
 def current_speed(full: Scene, spec: ModelSpec) -> jax.Array:
     """f32[..., A] each model slot's speed (m/s) at the current frame, NaN where it is unknown.
 
-    The stored-rate backward difference |xy[c] - xy[c-1]| / stored period at the current stored frame c (the
-    model's last history frame), where the slot is valid at both frames: the velocity a `velocity_inputs` model
-    is given (`Scene.with_velocity` at the stored rate) and the one `constant_velocity` extrapolates. Slots not
-    valid at c - 1 (first seen at the current frame) have no measured speed (NaN); with one history frame, none
-    does.
+    The stored-rate backward difference at the current stored frame c (the model's last history frame) to the
+    slot's last valid frame before it (`gpd_jax.scene.backward_difference`): the velocity a `velocity_inputs`
+    model is given (`Scene.with_velocity` at the stored rate) and the one `constant_velocity` extrapolates.
+    Slots with no valid frame before c (first seen at the current frame) have no measured speed (NaN); with one
+    history frame, none does.
     """
     return current_motion(full, spec)[0]
 
@@ -48,12 +48,11 @@ def current_motion(full: Scene, spec: ModelSpec) -> tuple[jax.Array, jax.Array]:
     if c < 1:
         shape = full.valid.shape[:-2] + (a,)
         return jnp.full(shape, jnp.nan, jnp.float32), jnp.zeros(shape + (2,), jnp.float32)
-    xy, v = full.xy[..., c - 1:c + 1, :a, :], full.valid[..., c - 1:c + 1, :a]
-    step = xy[..., 1, :, :] - xy[..., 0, :, :]
+    steps, frames, known = backward_difference(full.xy[..., :c + 1, :a, :], full.valid[..., :c + 1, :a])
+    step, frames, known = steps[..., c, :, :], frames[..., c, :], known[..., c, :]
     length = jnp.linalg.norm(step, axis=-1)
-    known = v[..., 0, :] & v[..., 1, :]
     direction = jnp.where((known & (length > 0))[..., None], step / jnp.maximum(length, 1e-12)[..., None], 0.0)
-    return (jnp.where(known, length / spec.stored_period_s, jnp.nan).astype(jnp.float32),
+    return (jnp.where(known, length / (frames * spec.stored_period_s), jnp.nan).astype(jnp.float32),
             direction.astype(jnp.float32))
 
 
