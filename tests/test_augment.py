@@ -90,3 +90,94 @@ def test_mirror_refuses_its_source_and_resumes(tmp_path):
     man = augment.mirror_store(src, dst)  # rewrites only the missing shard
     assert man["num_samples"] == 4 and os.path.getmtime(os.path.join(first, "meta.json")) == stamp
     assert json.load(open(os.path.join(dst, "dataset.json")))["splits"]["train"]["num_shards"] == 2
+
+
+def test_sensor_view_drifts_ranges_and_loses_tracks_of_the_other_agents_only():
+    """`sensor_arrays` on 8 scenes of 32 tracked agents: slot 0 (the ego) and the maps are the log's; others are
+    unseen beyond the range and in gaps of `gap_frames`, and seen ones carry errors with the asked standard
+    deviation and frame-to-frame correlation."""
+    rng = np.random.default_rng(0)
+    n, t, a = 8, 101, 33
+    ego = np.zeros((n, t, 3), np.float32)
+    ego[:, :, 0] = np.arange(t) * 1.0
+    xy = (ego[:, :, None, :2] + rng.uniform(-80, 80, (n, 1, a, 2))).astype(np.float32)
+    xy[:, :, 0] = ego[:, :, :2]
+    heading = rng.uniform(-np.pi, np.pi, (n, t, a)).astype(np.float32)
+    heading[:, :, 0] = 0.0
+    arrays = {"xy": xy, "heading": heading, "valid": np.ones((n, t, a), bool), "ego_pose": ego,
+              "polylines": rng.normal(size=(n, 4, 8, 2)).astype(np.float32)}
+    view = augment.SensorView(position_sigma_m=0.5, heading_sigma_deg=3.0, correlation=0.9, range_m=50.0,
+                              gap_rate=0.02, gap_frames=4)
+    out = augment.sensor_arrays(arrays, view, np.random.default_rng(1))
+    for k in ("ego_pose", "polylines"):
+        np.testing.assert_array_equal(out[k], arrays[k])
+    np.testing.assert_array_equal(out["xy"][:, :, 0], xy[:, :, 0])
+    assert out["valid"][:, :, 0].all()
+    dist = np.linalg.norm(xy - ego[:, :, None, :2], axis=-1)
+    v = out["valid"][:, :, 1:]
+    assert not (v & (dist[:, :, 1:] > 50.0)).any()
+    inside = dist[:, :, 1:] <= 50.0
+    lost = inside & ~v
+    assert 0.04 < lost.sum() / inside.sum() < 0.12          # 1 - (1 - 0.02)^4 = 7.8 % of the frames in range
+    runs = np.diff(np.concatenate([np.zeros((n, 1, a - 1), bool), lost, np.zeros((n, 1, a - 1), bool)], 1)
+                   .astype(np.int8), axis=1)
+    assert (np.argwhere(runs.transpose(0, 2, 1) == -1)[:, 2] - np.argwhere(runs.transpose(0, 2, 1) == 1)[:, 2]
+            >= 4).mean() > 0.6                               # lost for gap_frames or longer (runs merge, edges cut)
+    err = (out["xy"] - xy)[:, :, 1:][v]
+    np.testing.assert_allclose(err.std(0), 0.5, rtol=0.1)
+    dh = np.angle(np.exp(1j * (out["heading"] - heading)))[:, :, 1:]
+    np.testing.assert_allclose(np.rad2deg(dh[v].std()), 3.0, rtol=0.1)
+    e = (out["xy"] - xy)[..., 0][:, :, 1:]
+    both = v[:, 1:] & v[:, :-1]
+    corr = np.corrcoef(e[:, 1:][both], e[:, :-1][both])[0, 1]
+    assert abs(corr - 0.9) < 0.05
+    with pytest.raises(ValueError, match="correlation"):
+        augment.SensorView(correlation=1.0)
+    with pytest.raises(ValueError, match="range_m"):
+        augment.SensorView(range_m=-1.0)
+
+
+def test_sensor_store_keeps_tokens_is_deterministic_and_resumes(tmp_path):
+    src, dst, again = (str(tmp_path / x) for x in ("src", "sensor", "again"))
+    write_small_store(src, n_shards=2, per_shard=2)
+    for j in store.shard_indices(src, "train"):
+        sh = store.Shard(store.shard_dir(src, "train", j))
+        tokens = np.full((2, sh.arrays["xy"].shape[1], store.NUM_MAP_TOKENS), 7, np.uint8)
+        store.save_map_tokens(src, "train", j, tokens, tokenizer="abc", frame_stride=10)
+    view = augment.SensorView(range_m=20.0, gap_rate=0.05)
+    with pytest.raises(DataError, match="new directory"):
+        augment.sensor_store(src, src, view)
+    man = augment.sensor_store(src, dst, view)
+    assert man["num_samples"] == 4 and man["sensor_view"]["range_m"] == 20.0
+    augment.sensor_store(src, again, view)
+    changed = 0
+    for a, b, c in zip(_arrays(src), _arrays(dst), _arrays(again)):
+        for k in b.arrays:
+            np.testing.assert_array_equal(b.arrays[k], c.arrays[k])
+        np.testing.assert_array_equal(b.map_tokens, a.map_tokens)
+        assert store.map_tokens_record(dst, "train", int(os.path.basename(b.path)[6:]))["tokenizer"] == "abc"
+        assert all(s.endswith("/sensor") for s in b.meta["scenario_ids"])
+        changed += int((b.arrays["valid"] != a.arrays["valid"]).sum())
+        np.testing.assert_array_equal(b.arrays["xy"][:, :, 0], a.arrays["xy"][:, :, 0])
+    assert changed > 0
+    last = store.shard_dir(dst, "train", store.shard_indices(dst, "train")[-1])
+    kept = {k: np.array(v) for k, v in store.Shard(last).arrays.items()}
+    import shutil
+
+    shutil.rmtree(last)
+    augment.sensor_store(src, dst, view)  # rewrites the missing shard, the same as before
+    for k, v in store.Shard(last).arrays.items():
+        np.testing.assert_array_equal(v, kept[k])
+    assert len(SplitSource(dst, "train")) == 4
+
+
+def test_sensor_command_reports_a_bad_view(tmp_path, capsys):
+    from gpd_jax.data.__main__ import main
+
+    src = str(tmp_path / "src")
+    write_small_store(src, n_shards=1, per_shard=2)
+    assert main(["sensor", src, "--out", str(tmp_path / "out"), "--gap-rate", "2"]) == 2
+    assert "SensorView.gap_rate" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "out")
+    assert main(["sensor", src, "--out", str(tmp_path / "out")]) == 0
+    assert '"num_samples": 2' in capsys.readouterr().out

@@ -1,4 +1,4 @@
-"""Command line: `python -m gpd_jax.data {build,inspect,bench-loader,near-duplicates,mirror,pack,realnets} ...`.
+"""Command line: `python -m gpd_jax.data {build,inspect,bench-loader,near-duplicates,mirror,sensor,pack,realnets} ...`.
 
   build --source sumo --out DIR --scenarios N --seed S [--net FILE.net.xml ...] [--workers W] [--split SPLIT]
         [--real-networks] [--keep-overlaps] [--allow-near-duplicates] [--against STORE ...]
@@ -14,6 +14,10 @@
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
   near-duplicates --eval STORE_OR_NET ... --reference STORE_OR_NET ... [--tol METRES]
   mirror DIR --out DIR2 [--split NAME ...]     (the mirror image of every scene: gpd_jax.data.augment)
+  sensor DIR --out DIR2 [--split NAME ...] [--position-sigma M] [--heading-sigma DEG] [--correlation R]
+        [--range M] [--gap-rate P] [--gap-frames K] [--seed S]
+                                               (the scenes as a vehicle's tracker sees the other agents: drifting
+                                               errors, a range, lost tracks; gpd_jax.data.augment.SensorView)
   pack DIR [DIR ...] --out FOLDER [--splits train ...] [--frame-stride S] [--agents A] [--drop-road]
                                                (one .tar.xz per store, only what a model reads: gpd_jax.data.pack)
   realnets --cache DIR [--splits train dev] [--tiles NAME ...]
@@ -30,7 +34,8 @@ import json
 import logging
 import sys
 
-from gpd_jax.cliargs import ArgumentParser, count, run_command, share
+from gpd_jax.cliargs import ArgumentParser, UsageError, count, run_command, share
+from gpd_jax.data.augment import SensorView
 
 PROG = "python -m gpd_jax.data"
 SPLITS = ("train", "val", "test")  # what `build --split` accepts
@@ -139,6 +144,19 @@ def main(argv=None) -> int:
     mi.add_argument("dir")
     mi.add_argument("--out", required=True)
     mi.add_argument("--split", nargs="+", default=None, help="default: every split")
+    se = sub.add_parser("sensor", help="a new store of the scenes as an on-board tracker sees the agents other than "
+                                       "the ego: drifting position and heading errors, a range, lost tracks")
+    se.add_argument("dir")
+    se.add_argument("--out", required=True)
+    se.add_argument("--split", nargs="+", default=None, help="default: every split")
+    _view = SensorView()
+    se.add_argument("--position-sigma", type=float, default=_view.position_sigma_m, help="metres")
+    se.add_argument("--heading-sigma", type=float, default=_view.heading_sigma_deg, help="degrees")
+    se.add_argument("--correlation", type=float, default=_view.correlation, help="AR(1) per stored frame")
+    se.add_argument("--range", type=float, default=_view.range_m, help="metres from the ego")
+    se.add_argument("--gap-rate", type=float, default=_view.gap_rate, help="per agent and stored frame")
+    se.add_argument("--gap-frames", type=int, default=_view.gap_frames)
+    se.add_argument("--seed", type=int, default=_view.seed)
     pk = sub.add_parser("pack", help="one .tar.xz per store with only what a model reads, to carry it elsewhere "
                                      "(gpd_jax.data.pack); tar xf it there")
     pk.add_argument("dirs", nargs="+", metavar="DIR")
@@ -232,6 +250,17 @@ def _run(p: ArgumentParser, args) -> int:
         from gpd_jax.data.augment import mirror_store
 
         man = mirror_store(args.dir, args.out, args.split)
+        print(json.dumps({"num_samples": man["num_samples"],
+                          "splits": {k: v["num_samples"] for k, v in man["splits"].items()}}))
+    elif args.cmd == "sensor":
+        from gpd_jax.data.augment import sensor_store
+
+        try:
+            view = SensorView(args.position_sigma, args.heading_sigma, args.correlation, args.range, args.gap_rate,
+                              args.gap_frames, args.seed)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        man = sensor_store(args.dir, args.out, view, args.split)
         print(json.dumps({"num_samples": man["num_samples"],
                           "splits": {k: v["num_samples"] for k, v in man["splits"].items()}}))
     elif args.cmd == "pack":
