@@ -81,7 +81,8 @@ def _transform_store(src: str, dst: str, splits: list[str] | None, fn, suffix: s
                 extra.update(meta_fn(meta))
                 extra[f"{made}_from"] = os.path.join(os.path.abspath(src), split, store.shard_name(j))
                 store.write_shard(dst, split, j, arrays, ids, locations, extra=extra)
-            if keep_tokens and sh.map_tokens is not None and store.Shard(store.shard_dir(dst, split, j)).map_tokens is None:
+            done = store.Shard(store.shard_dir(dst, split, j))
+            if keep_tokens and sh.map_tokens is not None and done.map_tokens is None:
                 rec = store.map_tokens_record(src, split, j) or {}
                 store.save_map_tokens(dst, split, j, np.asarray(sh.map_tokens), rec.get("tokenizer"),
                                       rec.get("frame_stride", 1))
