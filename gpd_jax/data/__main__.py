@@ -256,8 +256,9 @@ def _run(p: ArgumentParser, args) -> int:
         from gpd_jax.data.augment import sensor_store
 
         try:
-            view = SensorView(args.position_sigma, args.heading_sigma, args.correlation, args.range, args.gap_rate,
-                              args.gap_frames, args.seed)
+            view = SensorView(position_sigma_m=args.position_sigma, heading_sigma_deg=args.heading_sigma,
+                              correlation=args.correlation, range_m=args.range, gap_rate=args.gap_rate,
+                              gap_frames=args.gap_frames, seed=args.seed)
         except ValueError as e:
             raise UsageError(str(e)) from None
         man = sensor_store(args.dir, args.out, view, args.split)

@@ -69,8 +69,12 @@ def _transform_store(src: str, dst: str, splits: list[str] | None, fn, suffix: s
         if not indices:
             raise DataError(os.path.join(src, split), f"no complete shards in split {split!r} to read")
         for j in indices:
+            out = store.shard_dir(dst, split, j)
+            written = os.path.isdir(out)  # by an earlier run
+            if written and not keep_tokens:
+                continue
             sh = store.Shard(store.shard_dir(src, split, j))
-            if not os.path.isdir(store.shard_dir(dst, split, j)):
+            if not written:
                 keys = [k for k in sh.arrays if k not in ROAD_KEYS or sh.has_road]
                 arrays = fn({k: np.asarray(sh.arrays[k]) for k in keys}, split, j)
                 meta = dict(sh.meta)
@@ -81,8 +85,7 @@ def _transform_store(src: str, dst: str, splits: list[str] | None, fn, suffix: s
                 extra.update(meta_fn(meta))
                 extra[f"{made}_from"] = os.path.join(os.path.abspath(src), split, store.shard_name(j))
                 store.write_shard(dst, split, j, arrays, ids, locations, extra=extra)
-            done = store.Shard(store.shard_dir(dst, split, j))
-            if keep_tokens and sh.map_tokens is not None and done.map_tokens is None:
+            if keep_tokens and sh.map_tokens is not None and store.Shard(out).map_tokens is None:
                 rec = store.map_tokens_record(src, split, j) or {}
                 store.save_map_tokens(dst, split, j, np.asarray(sh.map_tokens), rec.get("tokenizer"),
                                       rec.get("frame_stride", 1))
