@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from gpd_jax.geometry import lane_follow
-from gpd_jax.scene import Scene
+from gpd_jax.scene import Scene, backward_difference
 
 
 @flax.struct.dataclass
@@ -63,19 +63,17 @@ def constant_velocity(scene: Scene, num_history: int) -> Trajectories:
     t_total = xy.shape[-3]
     h = num_history
     hv = valid[..., :h, :]  # [..., H, A]
-    frames = jnp.arange(h)[:, None]
-    t2 = jnp.max(jnp.where(hv, frames, -1), axis=-2)  # [..., A] last valid history frame
-    t1 = jnp.max(jnp.where(hv & (frames < t2[..., None, :]), frames, -1), axis=-2)  # the one before it
-    has2, has1 = t2 >= 0, t1 >= 0
+    t2 = jnp.max(jnp.where(hv, jnp.arange(h)[:, None], -1), axis=-2)  # [..., A] last valid history frame
+    has2 = t2 >= 0
 
-    def xy_at(t):  # [..., A] frame per agent -> f32[..., A, 2]
-        return jnp.take_along_axis(xy[..., :h, :, :], jnp.maximum(t, 0)[..., None, :, None], axis=-3)[..., 0, :, :]
+    def at_t2(a):  # f32[..., H, A, C] -> f32[..., A, C] at each agent's frame t2
+        return jnp.take_along_axis(a, jnp.maximum(t2, 0)[..., None, :, None], axis=-3)[..., 0, :, :]
 
-    p2 = jnp.where(has2[..., None], xy_at(t2), 0.0)  # [..., A, 2]
-    p1 = xy_at(t1)
-    vel = jnp.where((has1 & has2)[..., None], (p2 - p1) / jnp.maximum(t2 - t1, 1)[..., None], 0.0)
-    hd = jnp.take_along_axis(heading[..., :h, :], jnp.maximum(t2, 0)[..., None, :], axis=-2)[..., 0, :]
-    hd = jnp.where(has2, hd, 0.0)  # [..., A]
+    # the step from the valid frame before t2 (t1): `backward_difference`, what a velocity-input model reads
+    step, gap, known = backward_difference(xy[..., :h, :, :], hv)
+    p2 = jnp.where(has2[..., None], at_t2(xy[..., :h, :, :]), 0.0)  # [..., A, 2]
+    vel = jnp.where(at_t2(known[..., None]), at_t2(step / gap[..., None]), 0.0)  # per frame
+    hd = jnp.where(has2, at_t2(heading[..., :h, :, None])[..., 0], 0.0)  # [..., A]
 
     fut = jnp.arange(h, t_total)  # [F]
     dt = (fut[:, None] - t2[..., None, :]).astype(xy.dtype)  # [..., F, A]
