@@ -14,19 +14,25 @@ The layers, bottom to top (nothing imports upward; `tests/test_layers.py` enforc
 `map_tokenizer/` | `checkpoint` | `decoding` | `evaluation/`, `sim/` | `training/`, `api` | command lines.
 """
 
-from gpd_jax import metrics, sim
-from gpd_jax.api import (build_scenes, evaluate, load_scenes, make_prompt, make_rollout_fn, make_tasks, render,
-                         rollout, stack_prompts, task_prompt)
-from gpd_jax.checkpoint import Model, load_model
-from gpd_jax.decoding import RolloutOutput
-from gpd_jax.geometry import RoadGeometry, lane_direction, on_road, signed_distance_to_edge
-from gpd_jax.model import PlanningHead, plan_trajectory
-from gpd_jax.options import RolloutOptions
-from gpd_jax.prompts import Prompt, PromptError
-from gpd_jax.scene import AGENT_TYPES, TYPE_ID, Scene, empty_scene, wrap_angle
-from gpd_jax.spec import EvalError, ModelSpec
-from gpd_jax.tasks import TASK_NAMES, Task
-from gpd_jax.zoo import DEFAULT_MODEL, ModelCard, list_models
+from gpd_jax.lazy import lazy_names
+
+# imported on first use, so that `import gpd_jax.cliargs` (every command line starts there) does not import JAX
+# and a bad flag is refused at once
+__getattr__, __dir__ = lazy_names(__name__, {
+    "gpd_jax.api": ("build_scenes", "evaluate", "load_scenes", "make_prompt", "make_rollout_fn", "make_tasks",
+                    "render", "rollout", "stack_prompts", "task_prompt"),
+    "gpd_jax.checkpoint": ("Model", "load_model"),
+    "gpd_jax.decoding": ("RolloutOutput",),
+    "gpd_jax.geometry": ("RoadGeometry", "lane_direction", "on_road", "signed_distance_to_edge"),
+    "gpd_jax.model": ("PlanningHead", "plan_trajectory"),
+    "gpd_jax.options": ("RolloutOptions",),
+    "gpd_jax.prompts": ("Prompt", "PromptError"),
+    "gpd_jax.scene": ("AGENT_TYPES", "TYPE_ID", "Scene", "empty_scene", "wrap_angle"),
+    "gpd_jax.spec": ("EvalError", "ModelSpec"),
+    "gpd_jax.tasks": ("TASK_NAMES", "Task"),
+    "gpd_jax.zoo": ("DEFAULT_MODEL", "ModelCard", "list_models"),
+}, submodules=("metrics", "sim"))
+
 
 __all__ = [
     "AGENT_TYPES",

@@ -73,7 +73,7 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax import parallel
-from gpd_jax.cliargs import ArgumentParser, UsageError, run_command
+from gpd_jax.cliargs import ArgumentParser, UsageError, program, run_command
 from gpd_jax.model import autotune, native
 from gpd_jax.model.attention import KERNELS
 from gpd_jax.fsutil import atomic_write_json
@@ -578,7 +578,7 @@ def _print_table(out: dict) -> None:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     overrides, rest = split_config_args(argv)
-    p = ArgumentParser(prog="python -m gpd_jax.bench", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog=program("python -m gpd_jax.bench"), description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="what", required=True)
     r = sub.add_parser("rollout", help="cached vs recompute rollout speed")
     r.add_argument("--config", default="configs/gpd_paper.py")

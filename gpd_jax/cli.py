@@ -64,6 +64,10 @@ def main(argv: list[str] | None = None) -> int:
     if name == "models":
         return models(rest)
     module, prog, _ = COMMANDS[name]
+    from gpd_jax.cliargs import set_program
+
+    # usage lines and errors name the program typed (`gpd-jax plan evaluate`), not `python -m gpd_jax.plan`
+    set_program("gpd-jax" if name == "compare" else f"gpd-jax {name}")
     run = importlib.import_module(module).main
     if name == "compare":
         rest = ["compare"] + rest
@@ -71,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         return int((run(rest, prog) if prog else run(rest)) or 0)
     except SystemExit as e:  # --help of a command
         return e.code if isinstance(e.code, int) else 0
+    finally:
+        set_program(None)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ import tempfile
 from collections.abc import Iterator
 from typing import Any
 
-import jax
 import numpy as np
 
 
@@ -121,12 +120,16 @@ def _path_key(path) -> str:
 
 def flatten_params(params) -> dict[str, np.ndarray]:
     """{path: array} of a params pytree (the keys of `params.npz`, for GPD and map-tokenizer exports)."""
+    import jax  # here, not at the top: the command lines import this module before they check their arguments
+
     return {_path_key(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(params)}
 
 
 def unflatten_params(template, flat: dict[str, np.ndarray], where: str = "params"):
     """Fills `template` (a params pytree; leaves may be abstract) from `flatten_params` output, checking names
     and shapes and casting to the template's dtypes (float16 exports come back as float32)."""
+    import jax
+
     missing, bad = [], []
 
     def fill(path, x):

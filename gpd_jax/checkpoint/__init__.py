@@ -305,9 +305,9 @@ def main(argv=None) -> int:
     """`python -m gpd_jax.checkpoint export WORKDIR OUT [--step N] [--tokenizer-ref PATH] [--float16]`;
     `python -m gpd_jax.checkpoint average MODEL MODEL [...] --out OUT [--weights W W ...] [--config-from I]
     [--tokenizer-ref PATH]` (a weight-space average, `average_models`; OUT/soup.json records the sources)."""
-    from gpd_jax.cliargs import ArgumentParser, run_command
+    from gpd_jax.cliargs import ArgumentParser, program, run_command
 
-    p = ArgumentParser(prog="python -m gpd_jax.checkpoint", description="export a trained GPD model")
+    p = ArgumentParser(prog=program("python -m gpd_jax.checkpoint"), description="export a trained GPD model")
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("export", help="a train.py workdir's checkpoint -> config.json + params.npz")
     e.add_argument("workdir")

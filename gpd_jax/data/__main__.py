@@ -34,8 +34,9 @@ import json
 import logging
 import sys
 
-from gpd_jax.cliargs import ArgumentParser, UsageError, count, run_command, share
-from gpd_jax.data.augment import SensorView
+from gpd_jax import interrupt
+from gpd_jax.cliargs import (ArgumentParser, UsageError, count, count0, nonnegative, output_dir, output_file, positive,
+                             program, run_command, share)
 
 PROG = "python -m gpd_jax.data"
 SPLITS = ("train", "val", "test")  # what `build --split` accepts
@@ -68,12 +69,12 @@ def traffic_options(args) -> dict:
 
 
 def main(argv=None) -> int:
-    p = ArgumentParser(prog=PROG, description=__doc__,
+    p = ArgumentParser(prog=program(PROG), description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     b = sub.add_parser("build", help="build a dataset of samples")
     b.add_argument("--source", choices=("sumo", "nuplan", "scenarionet", "interaction"), default="sumo")
-    b.add_argument("--out", required=True)
+    b.add_argument("--out", type=output_dir, required=True)
     b.add_argument("--scenarios", type=count, default=1000, help="SUMO: number of scenarios")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--net", nargs="+", default=None, help="SUMO: use these networks instead of generating")
@@ -100,7 +101,7 @@ def main(argv=None) -> int:
                         "(default); --no-refuse-near-duplicates / --allow-near-duplicates only record and warn")
     b.add_argument("--allow-near-duplicates", dest="refuse_near_duplicates", action="store_false",
                    help=argparse.SUPPRESS)
-    b.add_argument("--near-duplicate-tol", type=float, default=None,
+    b.add_argument("--near-duplicate-tol", type=positive, default=None,
                    help="SUMO: metres of mean lane distance below which two networks are near-duplicates (2.5)")
     b.add_argument("--against", nargs="+", default=(), metavar="STORE",
                    help="SUMO: also check this build's networks against these stores' networks")
@@ -130,37 +131,37 @@ def main(argv=None) -> int:
                    help="generated networks: share with curved streets, bulges and S-bends (0: straight streets)")
     i = sub.add_parser("inspect", help="summary statistics of a dataset")
     i.add_argument("dir")
-    i.add_argument("--json", default=None, help="also write the statistics to this JSON file")
+    i.add_argument("--json", type=output_file, default=None, help="also write the statistics to this JSON file")
     i.add_argument("--no-lanes", action="store_true", help="skip the (slower) vector-lane statistics")
     bl = sub.add_parser("bench-loader", help="loader throughput and memory")
     bl.add_argument("dir")
     bl.add_argument("--split", default="train")
-    bl.add_argument("--batch-size", type=int, default=32)
-    bl.add_argument("--batches", type=int, default=200)
-    bl.add_argument("--threads", type=int, default=4)
+    bl.add_argument("--batch-size", type=count, default=32)
+    bl.add_argument("--batches", type=count, default=200)
+    bl.add_argument("--threads", type=count, default=4)
     bl.add_argument("--with-lanes", action="store_true")
     mi = sub.add_parser("mirror", help="a new store of the mirror images of a store's scenes (y -> -y: left-hand "
                                        "traffic on mirrored roads); encode its map tokens afterwards")
     mi.add_argument("dir")
-    mi.add_argument("--out", required=True)
+    mi.add_argument("--out", type=output_dir, required=True)
     mi.add_argument("--split", nargs="+", default=None, help="default: every split")
     se = sub.add_parser("sensor", help="a new store of the scenes as an on-board tracker sees the agents other than "
                                        "the ego: drifting position and heading errors, a range, lost tracks")
     se.add_argument("dir")
-    se.add_argument("--out", required=True)
+    se.add_argument("--out", type=output_dir, required=True)
     se.add_argument("--split", nargs="+", default=None, help="default: every split")
-    _view = SensorView()
-    se.add_argument("--position-sigma", type=float, default=_view.position_sigma_m, help="metres")
-    se.add_argument("--heading-sigma", type=float, default=_view.heading_sigma_deg, help="degrees")
-    se.add_argument("--correlation", type=float, default=_view.correlation, help="AR(1) per stored frame")
-    se.add_argument("--range", type=float, default=_view.range_m, help="metres from the ego")
-    se.add_argument("--gap-rate", type=float, default=_view.gap_rate, help="per agent and stored frame")
-    se.add_argument("--gap-frames", type=int, default=_view.gap_frames)
-    se.add_argument("--seed", type=int, default=_view.seed)
+    # unset: gpd_jax.data.augment.SensorView's defaults (that module imports JAX: it is read after the checks)
+    se.add_argument("--position-sigma", type=nonnegative, default=None, help="metres")
+    se.add_argument("--heading-sigma", type=nonnegative, default=None, help="degrees")
+    se.add_argument("--correlation", type=float, default=None, help="AR(1) per stored frame")
+    se.add_argument("--range", type=positive, default=None, help="metres from the ego")
+    se.add_argument("--gap-rate", type=share, default=None, help="per agent and stored frame")
+    se.add_argument("--gap-frames", type=count, default=None)
+    se.add_argument("--seed", type=int, default=None)
     pk = sub.add_parser("pack", help="one .tar.xz per store with only what a model reads, to carry it elsewhere "
                                      "(gpd_jax.data.pack); tar xf it there")
     pk.add_argument("dirs", nargs="+", metavar="DIR")
-    pk.add_argument("--out", required=True, help="folder of the archives (DIR's name + .tar.xz)")
+    pk.add_argument("--out", type=output_dir, required=True, help="folder of the archives (DIR's name + .tar.xz)")
     pk.add_argument("--splits", nargs="+", default=["train"])
     pk.add_argument("--frame-stride", type=count, default=None,
                     help="keep only the stored frames a model at this stride reads (k S and k S - 1)")
@@ -172,10 +173,10 @@ def main(argv=None) -> int:
     nd.add_argument("--reference", nargs="+", required=True, metavar="STORE_OR_NET",
                     help="SUMO stores (their networks of --reference-splits) or network files")
     nd.add_argument("--reference-splits", nargs="+", default=["train"])
-    nd.add_argument("--tol", type=float, default=None, help="metres (default 2.5)")
+    nd.add_argument("--tol", type=positive, default=None, help="metres (default 2.5)")
     rn = sub.add_parser("realnets", help="real road-network tiles for training and development, prepared offline "
                                          "(gpd_jax.data.sources.realnets); prints {split: [paths]} as JSON")
-    rn.add_argument("--cache", required=True, help="directory for sources, tiles and manifest.json")
+    rn.add_argument("--cache", type=output_dir, required=True, help="directory for sources, tiles and manifest.json")
     rn.add_argument("--splits", nargs="+", default=None, help="default: train dev")
     rn.add_argument("--tiles", nargs="+", default=None, help="only these tiles (names in TILES)")
     from gpd_jax.data.errors import DataError
@@ -196,6 +197,7 @@ def _run(p: ArgumentParser, args) -> int:
     handler.setFormatter(_Format("%(message)s"))
     logging.basicConfig(level=logging.INFO, handlers=[handler])
     if args.cmd == "build":
+        interrupt.keep(f"the shards of finished jobs are kept in {args.out}")
         if args.source != "sumo" and (args.real_networks is not None or args.keep_overlaps or args.against):
             p.error("--real-networks, --keep-overlaps and --against are for --source sumo")
         if args.source != "interaction" and args.sites:
@@ -253,12 +255,13 @@ def _run(p: ArgumentParser, args) -> int:
         print(json.dumps({"num_samples": man["num_samples"],
                           "splits": {k: v["num_samples"] for k, v in man["splits"].items()}}))
     elif args.cmd == "sensor":
-        from gpd_jax.data.augment import sensor_store
+        from gpd_jax.data.augment import SensorView, sensor_store
 
+        given = dict(position_sigma_m=args.position_sigma, heading_sigma_deg=args.heading_sigma,
+                     correlation=args.correlation, range_m=args.range, gap_rate=args.gap_rate,
+                     gap_frames=args.gap_frames, seed=args.seed)
         try:
-            view = SensorView(position_sigma_m=args.position_sigma, heading_sigma_deg=args.heading_sigma,
-                              correlation=args.correlation, range_m=args.range, gap_rate=args.gap_rate,
-                              gap_frames=args.gap_frames, seed=args.seed)
+            view = SensorView(**{k: v for k, v in given.items() if v is not None})
         except ValueError as e:
             raise UsageError(str(e)) from None
         man = sensor_store(args.dir, args.out, view, args.split)

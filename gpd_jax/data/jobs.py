@@ -18,12 +18,12 @@ from __future__ import annotations
 import concurrent.futures as cf
 import json
 import logging
-import multiprocessing
 import os
 from collections import Counter
 
 import numpy as np
 
+from gpd_jax import interrupt
 from gpd_jax.data import preprocess, store
 from gpd_jax.data.errors import DataError
 
@@ -78,8 +78,10 @@ def existing_shard(out_dir: str, index: int) -> str | None:
 
 
 def worker_init():
-    """Initializer of the worker processes: warnings only."""
+    """Initializer of the worker processes: warnings only; Ctrl-C ends them quietly (the parent says what was
+    kept; `gpd_jax.interrupt.quiet_worker`)."""
     logging.basicConfig(level=logging.WARNING)
+    interrupt.quiet_worker()
 
 
 def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str) -> list[dict]:
@@ -105,8 +107,7 @@ def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str) -> list[dict]:
             results.append(r)
             bar.update(r["requested"])
     else:
-        ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=worker_init) as ex:
+        with interrupt.worker_pool(workers, initializer=worker_init) as ex:
             futs = {ex.submit(fn, j): j for j in todo}
             for fut in cf.as_completed(futs):
                 r = fut.result()

@@ -111,15 +111,20 @@ collision within the horizon; `*_collision_frames`: the per-frame rate of the of
 metres (corrected).
 """
 
-from gpd_jax.evaluation.baselines import constant_velocity, log_replay
-from gpd_jax.evaluation.bootstrap import SceneSums, compare_runs, load_scene_sums
-from gpd_jax.evaluation.driver import RenderItem, run_evaluation
-from gpd_jax.evaluation.preflight import SceneRecords, check_compatible, preflight
-from gpd_jax.evaluation.reduce import reduce_results
-from gpd_jax.evaluation.render import render_items, render_rollout
-from gpd_jax.evaluation.report import format_tables, to_json_compatible
-from gpd_jax.evaluation.scoring import add_sums, baseline_predictions, score_batch
-from gpd_jax.spec import EvalError
+from gpd_jax.lazy import lazy_names
+
+# imported on first use: the command lines import this package before they check their arguments (no JAX yet)
+__getattr__, __dir__ = lazy_names(__name__, {
+    "gpd_jax.evaluation.baselines": ("constant_velocity", "log_replay"),
+    "gpd_jax.evaluation.bootstrap": ("SceneSums", "compare_runs", "load_scene_sums"),
+    "gpd_jax.evaluation.driver": ("RenderItem", "run_evaluation"),
+    "gpd_jax.evaluation.preflight": ("SceneRecords", "check_compatible", "preflight"),
+    "gpd_jax.evaluation.reduce": ("reduce_results",),
+    "gpd_jax.evaluation.render": ("render_items", "render_rollout"),
+    "gpd_jax.evaluation.report": ("format_tables", "to_json_compatible"),
+    "gpd_jax.evaluation.scoring": ("add_sums", "baseline_predictions", "score_batch"),
+    "gpd_jax.spec": ("EvalError",),
+})
 
 __all__ = ["EvalError", "RenderItem", "SceneRecords", "SceneSums", "add_sums", "baseline_predictions",
            "check_compatible", "compare_runs", "constant_velocity", "format_tables", "load_scene_sums",

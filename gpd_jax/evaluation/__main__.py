@@ -18,7 +18,7 @@ import argparse
 import os
 import sys
 
-from gpd_jax.cliargs import ArgumentParser, run_command
+from gpd_jax.cliargs import ArgumentParser, program, run_command
 from gpd_jax.evaluation.bootstrap import compare_runs, format_comparison, load_scene_sums
 from gpd_jax.evaluation.report import to_json_compatible
 from gpd_jax.fsutil import atomic_write_json
@@ -29,7 +29,7 @@ PROG = "python -m gpd_jax.evaluation"
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog=program(PROG), description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("compare", help="scene-bootstrap intervals of runs' ratios, paired differences to the first")
     c.add_argument("runs", nargs="+", help="rollout.py output directories (or their scene_sums.npz)")

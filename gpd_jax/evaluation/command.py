@@ -1,7 +1,8 @@
 """What `rollout.py` runs: argument checks that need no model (cheap, first), then load, evaluate, print, write.
 
 Every problem with the input is a `UsageError` naming it, raised before the model loads and before anything is
-written (the command line turns it into exit status 2).
+written (the command line turns it into exit status 2). The flags and the output folder are checked before JAX is
+imported (this module imports it only in its functions), so a bad flag is refused at once.
 """
 
 from __future__ import annotations
@@ -11,18 +12,9 @@ import os
 import time
 
 from gpd_jax import zoo
-from gpd_jax.checkpoint import CONFIG_FILE, load_model, resolve_tokenizer_path
 from gpd_jax.cliargs import ArgumentParser as Parser
-from gpd_jax.cliargs import UsageError, run_command
-from gpd_jax.config import config_from_json
-from gpd_jax.evaluation.bootstrap import SCENE_SUMS_FILE, save_scene_sums
-from gpd_jax.evaluation.driver import run_evaluation
-from gpd_jax.evaluation.outputs import write_evaluation
-from gpd_jax.evaluation.preflight import preflight
-from gpd_jax.evaluation.report import format_tables, to_json_compatible
+from gpd_jax.cliargs import UsageError, check_output_dir, count, count0, nonnegative, run_command
 from gpd_jax.options import GEN_MAPS, LOG_MAPS, RolloutOptions
-from gpd_jax.spec import EvalError
-from gpd_jax.tasks import resolve_task_names
 
 PROG = "rollout.py"
 
@@ -38,19 +30,19 @@ def parser(prog: str = PROG) -> Parser:
     p.add_argument("--split", default="test")
     p.add_argument("--tasks", default="all", help="'all' or a comma list of task keys")
     p.add_argument("--out", required=True, help="output directory (metrics.json, tables.txt, render/)")
-    p.add_argument("--scenarios", type=int, default=None, help="first N scenarios of the split (default: all)")
-    p.add_argument("--batch", type=int, default=8, help="scenarios per compiled rollout call (every task each)")
-    p.add_argument("--render", type=int, default=0, metavar="K", help="GIF + PNG of every task for the first K")
-    p.add_argument("--render-size", type=int, default=320, help="pixels per rendered frame")
+    p.add_argument("--scenarios", type=count, default=None, help="first N scenarios of the split (default: all)")
+    p.add_argument("--batch", type=count, default=8, help="scenarios per compiled rollout call (every task each)")
+    p.add_argument("--render", type=count0, default=0, metavar="K", help="GIF + PNG of every task for the first K")
+    p.add_argument("--render-size", type=count, default=320, help="pixels per rendered frame")
     p.add_argument("--seed", type=int, default=0, help="rollout PRNG seed (used at temperature > 0)")
     p.add_argument("--variant", default="paper", choices=("paper", "corrected"),
                    help="metric variant of the main keys; the other is written with its name as a suffix")
     p.add_argument("--horizons", default="3,5,8", help="horizons in seconds (comma list)")
-    p.add_argument("--temperature", type=float, default=0.0,
+    p.add_argument("--temperature", type=nonnegative, default=0.0,
                    help="sampling temperature of map tokens and, for a model with a sampling agent head "
                         "(gpd_sampling), of the agents (0: the most likely token and the regressed agents, the "
                         "paper's)")
-    p.add_argument("--top-k", type=int, default=0, help="sample among the k most likely map tokens / agent "
+    p.add_argument("--top-k", type=count0, default=0, help="sample among the k most likely map tokens / agent "
                                                         "cells only (0: all)")
     p.add_argument("--top-p", type=float, default=1.0, help="nucleus sampling: the smallest set of most likely "
                                                             "tokens / agent cells whose probability reaches p")
@@ -63,7 +55,7 @@ def parser(prog: str = PROG) -> Parser:
     p.add_argument("--prompt", default=None, metavar="FILE[,FILE]",
                    help="JSON prompt file(s) (examples/prompt_*.json): roll out every scenario under each prompt "
                         "and score how the conditions are respected (OUT/conditions.json) instead of the tasks")
-    p.add_argument("--samples", type=int, default=0, metavar="K",
+    p.add_argument("--samples", type=count0, default=0, metavar="K",
                    help="also score the realism of K rollouts per scenario in the form of the Waymo sim-agents "
                         "challenge (a realism table and 'realism' in metrics.json; docs/evaluation.md)")
     p.add_argument("--realism-config", default="2025", choices=("2024", "2025"),
@@ -74,30 +66,23 @@ def parser(prog: str = PROG) -> Parser:
 
 def main(argv: list[str], prog: str = PROG) -> int:
     """Runs the evaluation command line: exit 0, or 2 with one line naming the problem."""
-    return run_command(prog, lambda: run(check_arguments(parser(prog), argv)))
+    return run_command(prog, lambda: run(check_arguments(parser(prog), argv)),
+                       kept="nothing was written (the outputs are written at the end)")
 
 
-def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
-    """Parses `argv` and checks everything that needs only the arguments, the config and the data. Returns the
-    args with `task_names`, `horizons`, `options`, `config` and `tokenizer_path` added."""
+def check_flags(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """Parses `argv` and checks what needs only the arguments (numbers, lists, the output folder), before JAX is
+    imported."""
     args = parser.parse_args(argv)
     try:
         args.horizons = tuple(float(x) for x in args.horizons.split(",") if x.strip())
     except ValueError:
         raise UsageError(f"--horizons {args.horizons!r}: expected seconds, e.g. 3,5,8") from None
-    for name in ("batch", "render", "samples"):
-        low = 1 if name == "batch" else 0
-        if getattr(args, name) < low:
-            raise UsageError(f"--{name} must be >= {low}, got {getattr(args, name)}")
+    if not args.horizons or any(not 0 < h < float("inf") for h in args.horizons):
+        raise UsageError(f"--horizons {args.horizons}: expected positive seconds, e.g. 3,5,8")
     listed = [t for t in args.tasks.split(",") if t]
     if "all" in listed and len(listed) > 1:
         raise UsageError(f"--tasks {args.tasks}: 'all' cannot be combined with other task names")
-    try:
-        args.task_names = resolve_task_names(args.tasks)
-    except KeyError as e:
-        raise UsageError(f"--tasks: {e.args[0]}") from None
-    if not args.task_names:
-        raise UsageError("--tasks: no task given")
     try:
         args.options = RolloutOptions(temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
                                       log_map=args.log_map, gen_map=args.gen_map)
@@ -108,9 +93,33 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> argpars
         ckpt = args.checkpoint = zoo.resolve(args.checkpoint)
     except FileNotFoundError as e:
         raise UsageError(f"--checkpoint: {e}") from None
-    args.data, args.out = os.path.abspath(args.data), os.path.abspath(args.out)
-    if os.path.exists(args.out) and not os.path.isdir(args.out):
-        raise UsageError(f"--out {args.out} exists and is not a directory")
+    args.data = os.path.abspath(args.data)
+    args.out = check_output_dir(args.out, "--out")
+    if args.render and os.path.exists(os.path.join(args.out, "render")):
+        check_output_dir(os.path.join(args.out, "render"), "--out (its render folder)")
+    for path in args.prompt.split(",") if args.prompt else ():
+        if not os.path.isfile(path):
+            raise UsageError(f"--prompt {path}: file not found")
+    return args
+
+
+def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """Parses `argv` and checks everything that needs only the arguments, the config and the data. Returns the
+    args with `task_names`, `horizons`, `options`, `config` and `tokenizer_path` added."""
+    args = check_flags(parser, argv)
+    ckpt = args.checkpoint
+    from gpd_jax.checkpoint import CONFIG_FILE, resolve_tokenizer_path
+    from gpd_jax.config import config_from_json
+    from gpd_jax.evaluation.preflight import preflight
+    from gpd_jax.spec import EvalError
+    from gpd_jax.tasks import resolve_task_names
+
+    try:
+        args.task_names = resolve_task_names(args.tasks)
+    except KeyError as e:
+        raise UsageError(f"--tasks: {e.args[0]}") from None
+    if not args.task_names:
+        raise UsageError("--tasks: no task given")
     try:
         config = config_from_json(os.path.join(ckpt, CONFIG_FILE))
         if config.stage != "gpd":
@@ -173,6 +182,8 @@ def _read_prompts(spec: str | None, has_tokenizer: bool, config) -> dict:
 
 
 def _load(checkpoint: str):
+    from gpd_jax.checkpoint import load_model
+
     try:
         return load_model(checkpoint)
     except (FileNotFoundError, ValueError, KeyError) as e:
@@ -183,8 +194,10 @@ def run_prompts(args: argparse.Namespace) -> int:
     """`rollout.py --prompt FILE[,FILE...]`: every scenario under every prompt (and the unconditioned traffic
     simulation), condition-respect scores to OUT/conditions.json, pictures with --render K."""
     from gpd_jax.evaluation.conditions import evaluate_prompts
+    from gpd_jax.evaluation.report import to_json_compatible
     from gpd_jax.fsutil import atomic_write_json
     from gpd_jax.prompts import PromptError
+    from gpd_jax.spec import EvalError
 
     model = _load(args.checkpoint)
     render_dir = os.path.join(args.out, "render") if args.render else None
@@ -213,6 +226,12 @@ def run(args: argparse.Namespace) -> int:
     """Loads the model, evaluates, prints the tables and writes the outputs (see `rollout.py`)."""
     if getattr(args, "prompts", None):
         return run_prompts(args)
+    from gpd_jax.evaluation.bootstrap import SCENE_SUMS_FILE, save_scene_sums
+    from gpd_jax.evaluation.driver import run_evaluation
+    from gpd_jax.evaluation.outputs import write_evaluation
+    from gpd_jax.evaluation.report import format_tables
+    from gpd_jax.spec import EvalError
+
     t0 = time.perf_counter()
     model = _load(args.checkpoint)
     m = model.config.model

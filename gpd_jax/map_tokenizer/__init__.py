@@ -10,7 +10,12 @@ Stage-1 training is `gpd_jax.training.map_tokenizer` (`python train.py --config 
 CLI: gpd-jax tokenizer {evaluate,diagnose,encode,export,bench,netframes,pack-netframes}   (__main__.py)
 """
 
-from gpd_jax.map_tokenizer.raster import rasterize
-from gpd_jax.map_tokenizer.tokenizer import MapTokenizer, export_tokenizer, load_tokenizer
+from gpd_jax.lazy import lazy_names
+
+# imported on first use: `gpd-jax tokenizer` imports this package before it checks its arguments (no JAX yet)
+__getattr__, __dir__ = lazy_names(__name__, {
+    "gpd_jax.map_tokenizer.raster": ("rasterize",),
+    "gpd_jax.map_tokenizer.tokenizer": ("MapTokenizer", "export_tokenizer", "load_tokenizer"),
+})
 
 __all__ = ["MapTokenizer", "export_tokenizer", "load_tokenizer", "rasterize"]

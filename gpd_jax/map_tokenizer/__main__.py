@@ -41,9 +41,10 @@ import os
 import sys
 import time
 
-from gpd_jax.cliargs import ArgumentParser, UsageError, run_command
+from gpd_jax import interrupt
+from gpd_jax.cliargs import (ArgumentParser, UsageError, count, count0, output_dir, output_file, program, run_command,
+                             share)
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.lanes import RECUT_MODES
 
 PROG = "python -m gpd_jax.map_tokenizer"
 DEFAULT_CHECKPOINT = "map_tokenizer"
@@ -59,6 +60,10 @@ def _tokenizer(ref: str):
 def cmd_evaluate(args) -> dict:
     import jax
 
+    from gpd_jax.data.lanes import RECUT_MODES
+
+    if args.gt_recut is not None and args.gt_recut not in RECUT_MODES:
+        raise UsageError(f"--gt-recut {args.gt_recut}: one of {', '.join(RECUT_MODES)}")
     from gpd_jax.map_tokenizer.store import frame_batches
     from gpd_jax.map_tokenizer.evaluation import make_eval_step, tokenizer_metrics
 
@@ -104,13 +109,15 @@ def cmd_encode(args) -> None:
     tok = _tokenizer(args.checkpoint)
     fingerprint = tok.fingerprint()
     stride = int(args.frame_stride)
-    if stride < 1:
-        raise UsageError(f"--frame-stride must be >= 1, got {stride}")
     if int(tok.codebook.shape[0]) > MISSING_MAP_TOKEN:
         raise UsageError(f"{args.checkpoint}: {tok.codebook.shape[0]} codes do not fit the store's uint8 map "
                          f"tokens (at most {MISSING_MAP_TOKEN})")
 
+    from tqdm import tqdm
+
+    interrupt.keep(f"the shards encoded so far are kept in {args.data} (a rerun skips them)")
     splits = args.splits or list_splits(args.data)
+    bar = tqdm(desc="encode (compiles on the first sample)", unit="sample", dynamic_ncols=True)
     for split in splits:
         for j in shard_indices(args.data, split):
             rec = map_tokens_record(args.data, split, j)
@@ -127,8 +134,11 @@ def cmd_encode(args) -> None:
                 tokens[i, ::stride] = np.asarray(tok.encode_frames(a["polylines"][i:i + 1],
                                                                    a["polyline_valid"][i:i + 1],
                                                                    a["ego_pose"][i:i + 1, ::stride]))[0]
+                bar.set_description(f"encode {split} shard {j}")
+                bar.update(1)
             path = save_map_tokens(args.data, split, j, tokens, tokenizer=fingerprint, frame_stride=stride)
-            print(f"{split} shard {j}: {n} samples x {len(range(0, t, stride))} of {t} frames -> {path}")
+            bar.write(f"{split} shard {j}: {n} samples x {len(range(0, t, stride))} of {t} frames -> {path}")
+    bar.close()
 
 
 def cmd_export(args) -> None:
@@ -170,22 +180,22 @@ def cmd_pack_netframes(args) -> None:
 
 
 def main(argv=None) -> int:
-    p = ArgumentParser(prog=PROG, description=__doc__,
+    p = ArgumentParser(prog=program(PROG), description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
 
     def split_args(q):  # the store, split and batching that evaluate and diagnose both read
         q.add_argument("--data", required=True)
         q.add_argument("--split", default="test")
-        q.add_argument("--json", default=None)
-        q.add_argument("--batch-size", type=int, default=32)
-        q.add_argument("--frame-stride", type=int, default=10)
-        q.add_argument("--max-batches", type=int, default=None)
+        q.add_argument("--json", type=output_file, default=None)
+        q.add_argument("--batch-size", type=count, default=32)
+        q.add_argument("--frame-stride", type=count, default=10)
+        q.add_argument("--max-batches", type=count, default=None)
 
     e = sub.add_parser("evaluate", help="reconstruction metrics of a checkpoint on a data split")
     e.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     split_args(e)
-    e.add_argument("--gt-recut", default=None, choices=RECUT_MODES,
+    e.add_argument("--gt-recut", default=None, metavar="MODE",  # one of gpd_jax.data.lanes.RECUT_MODES (checked first)
                    help="score against the GT of the polylines re-cut this way (the raster stays as stored): a "
                         "probe of how much the GT's cut costs, or the figure of a tokenizer trained on that cut "
                         "(config data.gt_recut); beside the stored cut's, never instead of it")
@@ -194,7 +204,7 @@ def main(argv=None) -> int:
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
     c.add_argument("--data", required=True)
     c.add_argument("--splits", nargs="*", default=None)
-    c.add_argument("--frame-stride", type=int, default=1,
+    c.add_argument("--frame-stride", type=count, default=1,
                    help="encode frames 0, S, 2S, ... only (enough for models with data.frame_stride a multiple "
                         "of S)")
     c.add_argument("--force", action="store_true",
@@ -202,22 +212,22 @@ def main(argv=None) -> int:
                         "interrupted encode resumes)")
     x = sub.add_parser("export", help="write a training workdir's latest params as a compact checkpoint")
     x.add_argument("--workdir", required=True)
-    x.add_argument("--out", required=True, help="the export's folder")
+    x.add_argument("--out", type=output_dir, required=True, help="the export's folder")
     b = sub.add_parser("bench", help="rasterizer and matching throughput")
-    b.add_argument("--batch", type=int, default=64)
+    b.add_argument("--batch", type=count, default=64)
     n = sub.add_parser("netframes", help="map-only training frames: many networks, poses on their lanes")
-    n.add_argument("--out", required=True)
-    n.add_argument("--generated", type=int, default=0, help="generated networks (sumo_networks.random_net_spec)")
+    n.add_argument("--out", type=output_dir, required=True)
+    n.add_argument("--generated", type=count0, default=0, help="generated networks (sumo_networks.random_net_spec)")
     n.add_argument("--seed", type=int, default=0)
     n.add_argument("--real", nargs="*", default=[], help="real map files used as they are: SUMO .net.xml[.gz], Lanelet2 .osm, CommonRoad .xml, Apollo .bin")
     n.add_argument("--real-lefthand", action="store_true", help="also a left-hand copy of each --real map")
-    n.add_argument("--lefthand-share", type=float, default=0.25)
-    n.add_argument("--curved-share", type=float, default=0.5)
+    n.add_argument("--lefthand-share", type=share, default=0.25)
+    n.add_argument("--curved-share", type=share, default=0.5)
     n.add_argument("--ignore-turnarounds", action="store_true")
     k = sub.add_parser("pack-netframes", help="netframes directories as .tar.xz archives to carry elsewhere")
     k.add_argument("dirs", nargs="+", metavar="DIR")
-    k.add_argument("--out", required=True, help="folder of the archives (DIR's name + .tar.xz)")
-    k.add_argument("--networks", type=int, default=None, help="only the first N networks of each")
+    k.add_argument("--out", type=output_dir, required=True, help="folder of the archives (DIR's name + .tar.xz)")
+    k.add_argument("--networks", type=count, default=None, help="only the first N networks of each")
     commands = {"evaluate": cmd_evaluate, "diagnose": cmd_diagnose, "encode": cmd_encode, "export": cmd_export,
                 "bench": cmd_bench, "netframes": cmd_netframes, "pack-netframes": cmd_pack_netframes}
 

@@ -35,7 +35,7 @@ import time
 import numpy as np
 
 from gpd_jax.cliargs import ArgumentParser as Parser
-from gpd_jax.cliargs import UsageError, count, count0, run_command
+from gpd_jax.cliargs import UsageError, count, count0, program, run_command
 
 PROG = "python -m gpd_jax.plan"
 NUPLAN_S_PER_SCENARIO = 60.0      # nuPlan devkit: about a minute of wall time per closed-loop scenario
@@ -297,7 +297,7 @@ def cmd_bench(args) -> int:
 
 
 def build_parser() -> Parser:
-    p = Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p = Parser(prog=program(PROG), description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     planners_help = ("comma list of shipped planners (log, cv, idm, gpd, gpd_head, gpd_head_scratch) and your own "
                      "policies as FILE.py:NAME or MODULE:NAME (a gpd_jax.sim.Policy, a callable (params, obs, state, "

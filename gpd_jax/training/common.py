@@ -16,10 +16,8 @@ import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import jax
 import ml_collections
 import numpy as np
-import orbax.checkpoint as ocp
 
 from gpd_jax.config import load_config
 from gpd_jax.fsutil import orbax_manager
@@ -29,6 +27,8 @@ def graft_params(template, source, fresh) -> tuple[Any, list[str]]:
     """`template` (a params tree) with every leaf taken from `source` (a params tree of another model) at the same
     path and shape, except where `fresh(path)` (a jax key path) says the leaf stays as initialised. Returns (tree, the key
     strings of the other leaves `source` lacks)."""
+    import jax  # JAX and orbax are imported where used: `train.py` loads and checks its config without them
+
     flat = {jax.tree_util.keystr(p): x for p, x in jax.tree_util.tree_leaves_with_path(source)}
     missing = []
 
@@ -51,12 +51,17 @@ def checkpoint_manager(workdir: str, keep: int = 2) -> ocp.CheckpointManager:
 
 def save_state(mgr: ocp.CheckpointManager, step: int, tree: dict, force: bool = False) -> None:
     """Saves a train state (a dict tree) as step `step` (`force`: even off the manager's save interval)."""
+    import orbax.checkpoint as ocp
+
     mgr.save(step, args=ocp.args.StandardSave(tree), force=force)
 
 
 def restore_state(mgr: ocp.CheckpointManager, template: dict, step: int | None = None) -> dict:
     """The checkpoint at `step` (latest by default) in the structure of `template` (a dict tree of the train
     state; optax states are namedtuples there and plain dicts in the checkpoint)."""
+    import jax
+    import orbax.checkpoint as ocp
+
     step = mgr.latest_step() if step is None else step
     abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
     tree = mgr.restore(step, args=ocp.args.StandardRestore(abstract))
@@ -81,6 +86,8 @@ class MetricsLog:
 
     def record(self, rec: dict[str, Any]) -> dict[str, Any]:
         """Appends one record as it is (numbers as floats, non-finite as null); returns what was written."""
+        import jax
+
         out = {}
         for k, v in rec.items():
             if isinstance(v, (np.floating, np.integer, jax.Array)):
@@ -93,6 +100,8 @@ class MetricsLog:
 
     def write(self, step: int, split: str, values: dict[str, Any]) -> None:
         """A record of `values` at `step` for `split` (with the wall time), also sent to TensorBoard."""
+        import jax
+
         vals = {k: float(v) if isinstance(v, (int, float, np.number, jax.Array)) else v for k, v in values.items()}
         rec = self.record({"step": int(step), "split": split, "time": time.time(), **vals})
         if self.enabled and self.tb is not None:

@@ -375,6 +375,4 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     if step == total and lead:
         exported = export_model(jax.device_get(state.params), config, os.path.join(workdir, "export"),
                                 tokenizer_dir=tok_dir or None)
-    if stop.requested and lead:
-        print(f"stopped at step {step}; run the same command again to resume")
     return {"step": step, "train": last_train, "eval": last_eval, "export": exported}

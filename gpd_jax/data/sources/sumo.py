@@ -23,12 +23,10 @@ give the stores built before.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import dataclasses
 import json
 import logging
 import math
-import multiprocessing
 import os
 import shutil
 import time
@@ -36,6 +34,7 @@ from collections import Counter
 
 import numpy as np
 
+from gpd_jax import interrupt
 from gpd_jax.data import netgeom, preprocess, store
 from gpd_jax.data.boxes import sample_has_overlap
 from gpd_jax.data.errors import DataError
@@ -226,8 +225,7 @@ def prepare_networks(jobs: list[SumoJob], out_dir: str, workers: int = 1) -> dic
         first.setdefault(j.location, j)
     todo = [(out_dir, j) for j in first.values()]
     if workers > 1 and len(todo) > 4:
-        ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx, initializer=worker_init) as ex:
+        with interrupt.worker_pool(min(workers, len(todo)), initializer=worker_init) as ex:
             recs = list(ex.map(_prepare_network, todo))
     else:
         recs = [_prepare_network(t) for t in todo]
