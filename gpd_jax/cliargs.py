@@ -52,7 +52,8 @@ NOTHING_KEPT = "nothing half-written was kept"
 def run_command(prog: str, work: Callable[[], int | None], errors: tuple = (), kept: str = NOTHING_KEPT,
                 grace_s: float = 5.0) -> int:
     """Runs `work()`: its exit status (None: 0), or 2 with `prog: error: <one line>` on stderr for a UsageError or
-    any of `errors` (the library's own bad-input exceptions).
+    any of `errors` (the library's own bad-input exceptions: classes, or "module:Class" for those of modules that
+    import JAX, which the command imports only after its arguments are checked).
 
     Ctrl-C stops it within `grace_s` seconds with one line on stderr saying what was kept (`kept`, or what the
     work said since with `gpd_jax.interrupt.keep`) and the command that resumes, and exit status 130."""
@@ -75,7 +76,7 @@ def run_command(prog: str, work: Callable[[], int | None], errors: tuple = (), k
             rc = int(work() or 0)
         except KeyboardInterrupt:
             pass  # below, once the exception and the frames it holds are gone
-        except (UsageError, *errors) as e:
+        except (UsageError, *_classes(errors)) as e:
             if not interrupt.interrupted():  # else e.g. a worker pool broken by the interruption: below
                 msg = e.args[0] if isinstance(e, KeyError) and len(e.args) == 1 else str(e)
                 print(f"{prog}: error: {' '.join(str(msg).split())}", file=sys.stderr)
@@ -86,6 +87,20 @@ def run_command(prog: str, work: Callable[[], int | None], errors: tuple = (), k
             if not interrupt.interrupted():
                 raise
         return stopped() if rc is None or interrupt.interrupted() else rc
+
+
+def _classes(errors: tuple) -> tuple:
+    """The exception classes of `errors`; a "module:Class" entry counts once its module is imported (before that
+    nothing can have raised it)."""
+    out = []
+    for e in errors:
+        if isinstance(e, str):
+            module, name = e.split(":")
+            if module in sys.modules:
+                out.append(getattr(sys.modules[module], name))
+        else:
+            out.append(e)
+    return tuple(out)
 
 
 def _unwritable(path: str) -> str | None:
@@ -121,9 +136,10 @@ def check_output_file(path: str, flag: str) -> str:
         raise UsageError(f"{flag} {path}: is a directory, not a file")
     if os.path.exists(path) and not os.access(path, os.W_OK):
         raise UsageError(f"{flag} {path}: is not writable")
-    why = _unwritable(os.path.dirname(os.path.abspath(path)))
+    folder = os.path.dirname(os.path.abspath(path))
+    why = _unwritable(folder)
     if why:
-        raise UsageError(f"{flag} {path}: its folder {why}")
+        raise UsageError(f"{flag} {path}: its folder {folder} {why}")
     return os.path.abspath(path)
 
 

@@ -137,7 +137,7 @@ def watch(line: Callable[[], str], grace_s: float = 5.0) -> Iterator[None]:
         return
 
     def watchdog():
-        deadline = None
+        deadline = None  # set by the first Ctrl-C
         while True:
             r.settimeout(None if deadline is None else max(0.0, deadline - time.monotonic()))
             try:
@@ -150,7 +150,7 @@ def watch(line: Callable[[], str], grace_s: float = 5.0) -> Iterator[None]:
                 return
             if data and signal.SIGINT not in data:
                 continue
-            if data and not _state["interrupted"]:  # the first Ctrl-C: the main thread gets grace_s to unwind
+            if data and deadline is None:  # the first Ctrl-C: the main thread gets grace_s to unwind
                 _state["interrupted"] = True
                 deadline = time.monotonic() + grace_s
                 continue

@@ -451,6 +451,7 @@ def prompt_from_json(obj: Mapping[str, Any], scene: Scene, num_history: int, *, 
     if base not in TASKS:
         raise PromptError(f"{where}.base: unknown task {base!r}; known tasks: {', '.join(TASK_NAMES)}")
     paths: dict[int, dict[str, Any]] = {}
+    json_path: dict[str, str] = {}  # make_prompt's name of a path -> its JSON path, for the messages
     agents = obj.get("agents", [])
     if not isinstance(agents, list):
         raise PromptError(f"{where}.agents: expected a list of agent objects")
@@ -466,13 +467,16 @@ def prompt_from_json(obj: Mapping[str, Any], scene: Scene, num_history: int, *, 
         j = _slot(ag["slot"], a, f"{w}.slot")
         if j in paths:
             raise PromptError(f"{w}.slot: slot {j} given twice")
-        frames = ag.get("frames", "future")
+        if "frames" not in ag:  # no silent default: a path over the wrong frames looks like a model's failure
+            raise PromptError(f"{w}: no 'frames' (a list of frame indices, \"future\" or \"all\")")
+        frames = ag["frames"]
         if frames == "future":
             frames = list(range(num_history, t_total))
         elif frames == "all":
             frames = list(range(t_total))
         _frames(frames, t_total, f"{w}.frames")
         paths[j] = {k: v for k, v in ag.items() if k not in ("slot", "comment")} | {"frames": frames}
+        json_path[f"paths[{j}]"] = w
     lanes = pose = None
     if "lanes" in obj:
         ln = obj["lanes"]
@@ -509,4 +513,6 @@ def prompt_from_json(obj: Mapping[str, Any], scene: Scene, num_history: int, *, 
                            hidden=obj.get("hidden", []), lanes=lanes, lanes_pose=pose,
                            frame_period_s=frame_period_s)
     except PromptError as e:
-        raise PromptError(f"{where}: {e}") from None
+        msg = str(e)
+        named = next((k for k in json_path if msg.startswith(k + ".") or msg.startswith(k + ":")), None)
+        raise PromptError(json_path[named] + msg[len(named):] if named else f"{where}: {msg}") from None

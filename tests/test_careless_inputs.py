@@ -307,3 +307,161 @@ def test_help_says_when_the_configs_folder_is_absent(capsys, tmp_path, monkeypat
     monkeypatch.setattr(command, "CONFIGS_DIR", str(tmp_path / "configs"))
     rc, out, _ = run_train(capsys, "--help")
     assert rc == 0 and f"{tmp_path / 'configs'} does not exist" in out
+
+
+# ------------------------------------------------------------------------- every command line, before JAX
+POISON = "raise ImportError('jax was imported before the arguments were checked')\n"
+
+
+def run_cli(tmp_path, argv, cwd=None, **kw) -> subprocess.CompletedProcess:
+    """`gpd-jax ARGV` in a subprocess whose `import jax` fails: what refuses must refuse before importing it."""
+    poison = tmp_path / "poison"
+    (poison / "jax").mkdir(parents=True, exist_ok=True)
+    (poison / "jax" / "__init__.py").write_text(POISON)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(poison), ROOT]), "JAX_PLATFORMS": "cpu"}
+    return subprocess.run([sys.executable, "-m", "gpd_jax.cli", *argv], capture_output=True, text=True,
+                          cwd=str(cwd or tmp_path), env=env, timeout=60, **kw)
+
+
+# (argv with {tmp} for the test's folder, what the one line names); {tmp}/afile is a file, nothing else exists
+CARELESS = [
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/o", "--batch", "0"], ["gpd-jax eval: error:", "--batch"]),
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/afile/o"], ["--out", "{tmp}/afile is a file"]),
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/afile"], ["--out {tmp}/afile", "not a directory"]),
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/o", "--temperature", "-1"], ["--temperature"]),
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/o", "--top-p", "2"], ["--top-p"]),
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/o", "--horizons", "0"], ["--horizons"]),
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/o", "--render", "-1"], ["--render"]),
+    (["eval", "--data", "{tmp}/d", "--out", "{tmp}/o", "--prompt", "{tmp}/nope.json"], ["--prompt", "nope.json"]),
+    (["train", "--config", GPD_TINY, "--workdir", "{tmp}/afile"], ["--workdir {tmp}/afile", "not a directory"]),
+    (["train", "--config", GPD_TINY, "--workdir", "{tmp}/afile/w"], ["--workdir", "{tmp}/afile is a file"]),
+    (["train", "--config", GPD_TINY, "--workdir", "{tmp}/w", "--config.train.batch_size=0"],
+     ["--config.train.batch_size=0", ">= 1"]),
+    (["train", "--config", GPD_TINY, "--workdir", "{tmp}/w", "--config.train.log_every=-5"], ["train.log_every"]),
+    (["train", "--config", GPD_TINY, "--workdir", "{tmp}/w", "--stop-after", "0"], ["--stop-after"]),
+    (["train", "--config", GPD_TINY, "--workdir", "{tmp}/w", "--config.train.stpes=5"], ["train.stpes"]),
+    (["data", "build", "--out", "{tmp}/o", "--scenarios", "0"], ["gpd-jax data: error:", "--scenarios"]),
+    (["data", "build", "--out", "{tmp}/afile/o"], ["--out", "{tmp}/afile is a file"]),
+    (["data", "build", "--out", "{tmp}/o", "--workers", "0"], ["--workers"]),
+    (["data", "inspect", "{tmp}/d", "--json", "{tmp}/afile/s.json"], ["--json", "{tmp}/afile"]),
+    (["data", "sensor", "{tmp}/d", "--out", "{tmp}/o", "--gap-rate", "2"], ["--gap-rate"]),
+    (["data", "near-duplicates", "--eval", "a", "--reference", "b", "--tol", "-1"], ["--tol"]),
+    (["tokenizer", "encode", "--data", "{tmp}/d", "--frame-stride", "0"], ["gpd-jax tokenizer", "--frame-stride"]),
+    (["tokenizer", "export", "--workdir", "{tmp}/w", "--out", "{tmp}/afile/x"], ["--out", "{tmp}/afile is a file"]),
+    (["plan", "evaluate", "--data", "{tmp}/d", "--out", "{tmp}/afile/p"], ["gpd-jax plan", "--out"]),
+    (["plan", "bench", "--data", "{tmp}/d", "--batch", "0"], ["--batch"]),
+    (["compare", "{tmp}/a", "--resamples", "0"], ["gpd-jax: error:", "--resamples"]),
+    (["compare", "{tmp}/a", "--level", "2"], ["--level"]),
+    (["models", "extra"], ["gpd-jax models", "extra"]),
+    (["nonsense"], ["unknown command 'nonsense'"]),
+]
+
+
+@pytest.mark.parametrize("argv,named", CARELESS, ids=[" ".join(a[:2]) + f" #{i}" for i, (a, _) in enumerate(CARELESS)])
+def test_every_command_refuses_careless_input_in_one_line_before_jax_and_writes_nothing(tmp_path, argv, named):
+    (tmp_path / "afile").write_text("a file where a folder is expected\n")
+    before = sorted(os.listdir(tmp_path))
+    p = run_cli(tmp_path, [a.replace("{tmp}", str(tmp_path)) for a in argv])
+    assert p.returncode == 2, (p.returncode, p.stderr[-2000:])
+    assert "Traceback" not in p.stderr, p.stderr[-2000:]
+    lines = p.stderr.strip("\n").split("\n")
+    assert len(lines) == 1, p.stderr
+    for s in named:
+        assert s.replace("{tmp}", str(tmp_path)) in lines[0], (s, lines[0])
+    assert sorted(n for n in os.listdir(tmp_path) if n != "poison") == before  # nothing written
+    assert (tmp_path / "afile").is_file()
+
+
+@pytest.mark.parametrize("argv,usage", [(["plan", "evaluate", "--help"], "usage: gpd-jax plan evaluate "),
+                                        (["data", "build", "--help"], "usage: gpd-jax data build "),
+                                        (["tokenizer", "--help"], "usage: gpd-jax tokenizer "),
+                                        (["train", "--help"], "usage: gpd-jax train ")])
+def test_usage_names_the_program_typed(tmp_path, argv, usage):
+    p = run_cli(tmp_path, argv)
+    assert p.returncode == 0 and p.stdout.startswith(usage), p.stdout[:300] + p.stderr[-1000:]
+
+
+def test_train_errors_at_the_start_leave_no_workdir(capsys, tmp_path):
+    rc, _, err = run_train(capsys, "--config", GPD_TINY, "--workdir", str(tmp_path / "w"),
+                           f"--config.data.dir={tmp_path / 'no_data'}")
+    assert_one_line_error(rc, err, str(tmp_path / "no_data"))
+    assert not (tmp_path / "w").exists()
+
+
+def test_a_damaged_npy_header_is_named_without_numpy_pickle_advice(tmp_path):
+    from data_fixtures import write_small_store
+
+    from gpd_jax.data.errors import DataError
+    from gpd_jax.data.store import Shard, shard_dir
+
+    data = str(tmp_path / "store")
+    write_small_store(data, n_shards=1, per_shard=1, split="test")
+    shard = shard_dir(data, "test", 0)
+    f = os.path.join(shard, "xy.npy")
+    raw = open(f, "rb").read()
+    i = raw.index(b"'<f4'")
+    with open(f, "wb") as fh:  # the same size, a header that declares Python objects
+        fh.write(raw[:i] + b"'|O' " + raw[i + 5:])
+    with pytest.raises(DataError) as e:
+        Shard(shard)
+    msg = str(e.value)
+    assert f in msg and "Python objects" in msg and "allow_pickle" not in msg and "\n" not in msg
+
+
+# ------------------------------------------------------------------------------------------------ Ctrl-C
+def _interrupted_line(err: str, prog: str) -> str:
+    assert "Traceback" not in err, err[-3000:]
+    lines = [ln for ln in err.replace("\r", "\n").split("\n") if "interrupted" in ln]
+    assert len(lines) == 1 and lines[0].startswith(f"{prog}: interrupted; "), err[-3000:]
+    assert "run the same command again: " in lines[0], lines[0]
+    return lines[0]
+
+
+def test_ctrl_c_ends_a_command_stuck_past_its_grace_with_one_line_and_130(tmp_path):
+    """The watchdog: work that does not unwind on Ctrl-C (here it swallows KeyboardInterrupt, as native code
+    that holds the main thread would) still ends within the grace period, with the one line and status 130."""
+    import signal
+    import time
+
+    code = ("import sys, time\nfrom gpd_jax.cliargs import run_command\n"
+            "def work():\n    print('ready', flush=True)\n    while True:\n        try:\n            time.sleep(0.05)\n"
+            "        except KeyboardInterrupt:\n            pass\n"
+            "sys.exit(run_command('stuck', work, kept='nothing is kept', grace_s=1.0))\n")
+    p = subprocess.Popen([sys.executable, "-c", code, "--flag"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, cwd=ROOT)
+    assert p.stdout.readline().strip() == "ready"
+    t = time.monotonic()
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130 and time.monotonic() - t < 10, (p.returncode, err)
+    line = _interrupted_line(err, "stuck")
+    assert "nothing is kept" in line and line.endswith("-c --flag"), line
+
+
+def test_ctrl_c_in_a_data_build_stops_its_workers_says_what_is_kept_and_exits_130(tmp_path):
+    """A SUMO build with two worker processes: SIGINT to the command (as Ctrl-C sends it to the whole group)
+    stops it within seconds, with one line naming the store and the command that resumes, and no worker left."""
+    import signal
+    import time
+
+    out = tmp_path / "store"
+    argv = [sys.executable, "-m", "gpd_jax.cli", "data", "build", "--source", "sumo", "--traffic", "legacy",
+            "--out", str(out), "--scenarios", "4", "--per-job", "2", "--workers", "2", "--seed", "5"]
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(tmp_path),
+                         start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not (out / "_jobs" / "settings.json").exists() and time.monotonic() < deadline and p.poll() is None:
+        time.sleep(0.2)
+    assert p.poll() is None, p.communicate()[1][-3000:]
+    time.sleep(2.0)  # the workers are simulating
+    t = time.monotonic()
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    took = time.monotonic() - t
+    assert p.returncode == 130, err[-3000:]
+    assert took < 15, took
+    line = _interrupted_line(err, "gpd-jax data")
+    assert f"kept in {out}" in line and f"data build --source sumo --traffic legacy --out {out}" in line, line
+    assert "leaked semaphore" not in err
+    left = subprocess.run(["pgrep", "-s", str(p.pid)], capture_output=True, text=True).stdout.split()
+    assert not left, left  # no worker (or SUMO) of the session outlives the command

@@ -139,7 +139,8 @@ def test_task_prompt_shapes_and_conversion(setup):
     ({"max_agents": 0}, r"max_agents must be an integer"),
     ({"base": "planning"}, r"base: unknown task 'planning'"),
     ({"bogus": 1}, r"unknown keys \['bogus'\]"),
-    ({"agents": [{"slot": 1, "frames": [3, 4], "xy": [[0, 0]]}]}, r"paths\[1\]\.xy: expected 2 points"),
+    ({"agents": [{"slot": 1, "frames": [3, 4], "xy": [[0, 0]]}]}, r"^prompt\.agents\[0\]\.xy: expected 2 points"),
+    ({"agents": [{"slot": 1, "from": "log"}]}, r"^prompt\.agents\[0\]: no 'frames'"),
 ])
 def test_prompt_file_errors_name_the_field(setup, obj, match):
     _, _, m, scenes = setup

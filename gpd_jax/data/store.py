@@ -184,6 +184,16 @@ def _open_npy(path: str) -> np.ndarray:
         return np.load(path, mmap_mode="r", allow_pickle=False)
 
 
+def _npy_problem(e: BaseException) -> str:
+    """What is wrong with a .npy file numpy refused, in one line, without numpy's advice to allow pickles (a store
+    never holds Python objects, and a file that declares them is damaged or foreign: it is never unpickled)."""
+    msg = " ".join(str(e).split())
+    if "allow_pickle" in msg or "Python objects" in msg:
+        return ("its header declares Python objects (object dtype), which a store never holds: the file is damaged "
+                "or not from a store; rebuild this shard (rerun the build, which resumes)")
+    return f"{msg[:200]}; rebuild this shard (rerun the build, which resumes)"
+
+
 class Shard:
     """A complete shard, validated on open and read through memory maps.
 
@@ -232,7 +242,7 @@ class Shard:
             try:
                 a = _open_npy(f)
             except (ValueError, OSError, EOFError) as e:
-                raise DataError(f, f"unreadable .npy: {e}") from e
+                raise DataError(f, f"unreadable .npy: {_npy_problem(e)}") from e
             if a.shape != (n, *shape) or a.dtype != np.dtype(dtype):
                 raise DataError(f, f"shape {a.shape} dtype {a.dtype}, expected {(n, *shape)} {dtype}")
             self.arrays[k] = a
@@ -242,7 +252,7 @@ class Shard:
             try:
                 t = _open_npy(tp)
             except (ValueError, OSError, EOFError) as e:
-                raise DataError(tp, f"unreadable map tokens: {e}") from e
+                raise DataError(tp, f"unreadable map tokens: {_npy_problem(e)}") from e
             T = spec["xy"][0][0]
             if t.shape != (n, T, NUM_MAP_TOKENS):
                 raise DataError(tp, f"map tokens shape {t.shape}, expected {(n, T, NUM_MAP_TOKENS)}")

@@ -18,11 +18,7 @@ import argparse
 import os
 import sys
 
-from gpd_jax.cliargs import ArgumentParser, program, run_command
-from gpd_jax.evaluation.bootstrap import compare_runs, format_comparison, load_scene_sums
-from gpd_jax.evaluation.report import to_json_compatible
-from gpd_jax.fsutil import atomic_write_json
-from gpd_jax.spec import EvalError
+from gpd_jax.cliargs import ArgumentParser, count, output_file, program, run_command, share
 
 
 PROG = "python -m gpd_jax.evaluation"
@@ -40,18 +36,23 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--variant", default="paper", choices=("paper", "corrected"))
     c.add_argument("--unit", default="scene", choices=("scene", "location"),
                    help="what a bootstrap draw resamples: scenes, or whole road networks (the store's locations)")
-    c.add_argument("--resamples", type=int, default=2000)
-    c.add_argument("--level", type=float, default=0.95)
+    c.add_argument("--resamples", type=count, default=2000)
+    c.add_argument("--level", type=share, default=0.95)
     c.add_argument("--seed", type=int, default=0, help="seed of the bootstrap draws")
-    c.add_argument("--json", default=None, help="also write the result here (written to a temporary, renamed)")
+    c.add_argument("--json", type=output_file, default=None, help="also write the result here (written to a temporary, renamed)")
     return p
 
 
 def main(argv=None) -> int:
-    return run_command(PROG, lambda: _compare(_parser().parse_args(argv)), (EvalError,))
+    return run_command(PROG, lambda: _compare(_parser().parse_args(argv)), ("gpd_jax.spec:EvalError",))
 
 
 def _compare(args) -> int:
+    from gpd_jax.evaluation.bootstrap import compare_runs, format_comparison, load_scene_sums
+    from gpd_jax.evaluation.report import to_json_compatible
+    from gpd_jax.fsutil import atomic_write_json
+    from gpd_jax.spec import EvalError
+
     names = args.names.split(",") if args.names else [os.path.basename(os.path.normpath(r)) for r in args.runs]
     if len(names) != len(args.runs):
         raise EvalError(f"--names has {len(names)} names for {len(args.runs)} runs")

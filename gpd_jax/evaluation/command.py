@@ -204,7 +204,8 @@ def run_prompts(args: argparse.Namespace) -> int:
     try:
         res = evaluate_prompts(model, args.data, args.split, args.prompts, num_scenarios=args.scenarios,
                                batch_size=args.batch, seed=args.seed, render_count=args.render,
-                               render_dir=render_dir, size_px=args.render_size, options=args.options)
+                               render_dir=render_dir, size_px=args.render_size, options=args.options,
+                               progress=not args.no_progress)
     except (PromptError, EvalError) as e:
         raise UsageError(str(e)) from None
     os.makedirs(args.out, exist_ok=True)

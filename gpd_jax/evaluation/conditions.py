@@ -262,7 +262,7 @@ def _aggregate(values, fn) -> float:
 
 def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict], *, num_scenarios: int | None,
                      batch_size: int = 8, seed: int = 0, render_count: int = 0, render_dir: str | None = None,
-                     size_px: int = 320, log=print, options=None) -> dict[str, Any]:
+                     size_px: int = 320, log=print, options=None, progress: bool = True) -> dict[str, Any]:
     """Rolls out every scenario of a split under every prompt (JSON content by name) plus the unconditioned
     `traffic_simulation` for reference, in one compiled rollout per batch (per-scenario prompts [B, K]), and
     scores each prompt's conditions (module docstring). `options`: a `gpd_jax.RolloutOptions` (default: the
@@ -291,6 +291,10 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
     acc: dict[str, dict[str, list]] = {k: {} for k in names}
     maps: dict[str, Any] = {k: None for k in names}
     rendered = []
+    from tqdm import tqdm
+
+    bar = tqdm(total=n, desc=f"compiling the rollout of {len(names)} prompts (the first batch)", unit="scenario",
+               dynamic_ncols=True, disable=not progress)
     for b in range(-(-n // bs)):
         idx = list(range(b * bs, min((b + 1) * bs, n)))
         real = len(idx)
@@ -355,7 +359,10 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
                         pred_valid=o.valid, log_xy=sc.xy, log_heading=sc.heading, log_valid=sc.valid, size=sc.size,
                         num_history=h, frame_period_s=spec.frame_period_s, title=f"#{idx[j]} {name}",
                         given=given_mask(p, h), size_px=size_px, **kw))
-        log(f"batch {b + 1}: {real} scenarios x {k} prompts")
+        if b == 0:
+            bar.set_description(f"rollout and scoring of {k} prompts", refresh=False)
+        bar.update(real)
+    bar.close()
     res = {}
     for name in names:
         a = acc[name]

@@ -125,7 +125,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     n_store = n_encoded = 0
     t_roll = t_score = t_data = 0.0
     t0 = time.perf_counter()
-    bar = tqdm(total=n, desc=f"rollout {len(names)} tasks", unit="scenario", disable=not progress)
+    bar = tqdm(total=n, desc=f"compiling the rollout of {len(names)} tasks (the first batch)", unit="scenario",
+               disable=not progress, dynamic_ncols=True)
     try:
         for b in range(num_batches):
             ta = time.perf_counter()
@@ -186,6 +187,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
             for j in range(real):
                 if idx[j] < render_count:
                     render_items.append(_render_item(idx[j], prep.scenario_ids, out, scene, j))
+            if b == 0:
+                bar.set_description(f"rollout {len(names)} tasks", refresh=False)
             bar.update(real)
     finally:
         bar.close()

@@ -35,7 +35,7 @@ import time
 import numpy as np
 
 from gpd_jax.cliargs import ArgumentParser as Parser
-from gpd_jax.cliargs import UsageError, count, count0, program, run_command
+from gpd_jax.cliargs import UsageError, count, count0, output_dir, output_file, program, run_command
 
 PROG = "python -m gpd_jax.plan"
 NUPLAN_S_PER_SCENARIO = 60.0      # nuPlan devkit: about a minute of wall time per closed-loop scenario
@@ -320,7 +320,7 @@ def build_parser() -> Parser:
         s.add_argument("--no-tracker", action="store_true",
                        help="place the ego on each planner's output instead of tracking it on the bicycle model")
     e = sub.choices["evaluate"]
-    e.add_argument("--out", required=True)
+    e.add_argument("--out", type=output_dir, required=True)
     e.add_argument("--render", type=count0, default=0, metavar="K", help="GIFs of the first K scenarios' runs")
     e.add_argument("--num-scenarios", type=count, default=None, metavar="N",
                    help="the first N scenarios (default all)")
@@ -329,19 +329,19 @@ def build_parser() -> Parser:
     bn = sub.choices["bench"]
     bn.add_argument("--batch", type=count, default=8, metavar="B", help="scenarios in the timed batch")
     bn.add_argument("--repeats", type=count, default=2, metavar="R", help="timed runs after the compiling one")
-    bn.add_argument("--out", default=None, help="write the figures as JSON here")
+    bn.add_argument("--out", type=output_file, default=None, help="write the figures as JSON here")
     return p
 
 
 def main(argv=None) -> int:
     from gpd_jax.data.errors import DataError
-    from gpd_jax.spec import EvalError
 
     def work():
         args = build_parser().parse_args(argv)
         return cmd_evaluate(args) if args.cmd == "evaluate" else cmd_bench(args)
 
-    return run_command(PROG, work, (EvalError, DataError, FileNotFoundError, ValueError, KeyError))
+    return run_command(PROG, work, ("gpd_jax.spec:EvalError", DataError, FileNotFoundError, ValueError, KeyError),
+                       kept="nothing was written (the scores are written at the end)")
 
 
 if __name__ == "__main__":
