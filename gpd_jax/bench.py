@@ -73,7 +73,7 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax import parallel
-from gpd_jax.cliargs import ArgumentParser, UsageError, program, run_command
+from gpd_jax.cliargs import ArgumentParser, UsageError, count, count0, nonnegative, output_file, program, run_command
 from gpd_jax.model import autotune, native
 from gpd_jax.model.attention import KERNELS
 from gpd_jax.fsutil import atomic_write_json
@@ -582,19 +582,19 @@ def main(argv=None) -> int:
     sub = p.add_subparsers(dest="what", required=True)
     r = sub.add_parser("rollout", help="cached vs recompute rollout speed")
     r.add_argument("--config", default="configs/gpd_paper.py")
-    r.add_argument("--batch", type=int, nargs="+", default=[1, 16])
-    r.add_argument("--future-frames", type=int, default=None, help="default: all (num_frames - num_history)")
-    r.add_argument("--recompute-points", type=int, default=5,
+    r.add_argument("--batch", type=count, nargs="+", default=[1, 16])
+    r.add_argument("--future-frames", type=count, default=None, help="default: all (num_frames - num_history)")
+    r.add_argument("--recompute-points", type=count0, default=5,
                    help="prefix lengths at which to time the recompute forward (0: time the whole rollout)")
-    r.add_argument("--repeats", type=int, default=3)
-    r.add_argument("--matmul-size", type=int, default=4096)
-    r.add_argument("--copy-mib", type=int, default=256, help="size of the copy that measures memory bandwidth")
+    r.add_argument("--repeats", type=count, default=3)
+    r.add_argument("--matmul-size", type=count, default=4096)
+    r.add_argument("--copy-mib", type=count, default=256, help="size of the copy that measures memory bandwidth")
     r.add_argument("--decode-dtype", nargs="+", choices=DECODE_DTYPES, default=None,
                    help="KV cache / decode attention dtype(s), each measured with every kernel and batch "
                         "(default: the config's model.decode_dtype)")
-    r.add_argument("--workload", type=int, default=None, metavar="SCENARIOS",
+    r.add_argument("--workload", type=count, default=None, metavar="SCENARIOS",
                    help="also time SCENARIOS scenarios x 6 tasks in calls of the largest batch (compile excluded)")
-    r.add_argument("--devices", type=int, default=None,
+    r.add_argument("--devices", type=count, default=None,
                    help="shard each batch over this many local devices (default: all; on a CPU one per core)")
     r.add_argument("--decode-attention", nargs="+", choices=KERNELS, default=None,
                    help="attention kernel(s) of the cached rollout, each measured at every batch size "
@@ -602,35 +602,35 @@ def main(argv=None) -> int:
     r.add_argument("--native-march", nargs="+", default=None,
                    help="build target(s) of the native kernel (gcc -march), each measured with native and auto "
                         "(default: $GPD_JAX_NATIVE_MARCH or native); e.g. native x86-64-v3")
-    r.add_argument("--json", default=None, help="write the results here")
+    r.add_argument("--json", type=output_file, default=None, help="write the results here")
     q = sub.add_parser("realism", help="seconds per scenario of the WOSAC-form realism metric")
     q.add_argument("--data", default=None, help="a store with road geometry (default: synthetic scenes and roads)")
     q.add_argument("--split", default="test")
-    q.add_argument("--rollouts", type=int, default=32)
-    q.add_argument("--agents", type=int, default=32)
-    q.add_argument("--scenarios", type=int, default=8, help="scenarios per compiled batch")
+    q.add_argument("--rollouts", type=count, default=32)
+    q.add_argument("--agents", type=count, default=32)
+    q.add_argument("--scenarios", type=count, default=8, help="scenarios per compiled batch")
     q.add_argument("--realism-config", choices=("2024", "2025"), default="2025")
-    q.add_argument("--repeats", type=int, default=3)
-    q.add_argument("--json", default=None, help="write the results here")
+    q.add_argument("--repeats", type=count, default=3)
+    q.add_argument("--json", type=output_file, default=None, help="write the results here")
 
     c = sub.add_parser("precision", help="a shipped model's rollouts with a bfloat16 vs a float32 KV cache")
     c.add_argument("--data", required=True, help="a store of held-out scenes")
     c.add_argument("--split", default="test")
     c.add_argument("--model", default=None, help="a shipped model's name or a folder (default: the default model)")
-    c.add_argument("--scenarios", type=int, default=None, help="the first N scenes (default: all)")
-    c.add_argument("--batch", type=int, default=40, help="scenes per rollout call")
-    c.add_argument("--json", default=None, help="write the results here")
+    c.add_argument("--scenarios", type=count, default=None, help="the first N scenes (default: all)")
+    c.add_argument("--batch", type=count, default=40, help="scenes per rollout call")
+    c.add_argument("--json", type=output_file, default=None, help="write the results here")
 
     g = sub.add_parser("samples", help="K sampled futures per scene in one compiled rollout: time and memory")
     g.add_argument("--model", default="gpd_sampling", help="a shipped model's name or a folder")
     g.add_argument("--data", required=True, help="a store of scenes")
     g.add_argument("--split", default="test")
-    g.add_argument("--samples", type=int, default=32)
-    g.add_argument("--scenarios", type=int, default=4, help="scenes in the one compiled call")
+    g.add_argument("--samples", type=count, default=32)
+    g.add_argument("--scenarios", type=count, default=4, help="scenes in the one compiled call")
     g.add_argument("--tasks", nargs="+", default=["traffic_simulation"], choices=TASK_NAMES)
-    g.add_argument("--temperature", type=float, default=1.0)
-    g.add_argument("--repeats", type=int, default=3)
-    g.add_argument("--json", default=None, help="write the results here")
+    g.add_argument("--temperature", type=nonnegative, default=1.0)
+    g.add_argument("--repeats", type=count, default=3)
+    g.add_argument("--json", type=output_file, default=None, help="write the results here")
 
     def work():
         args = p.parse_args(rest)

@@ -305,23 +305,23 @@ def main(argv=None) -> int:
     """`python -m gpd_jax.checkpoint export WORKDIR OUT [--step N] [--tokenizer-ref PATH] [--float16]`;
     `python -m gpd_jax.checkpoint average MODEL MODEL [...] --out OUT [--weights W W ...] [--config-from I]
     [--tokenizer-ref PATH]` (a weight-space average, `average_models`; OUT/soup.json records the sources)."""
-    from gpd_jax.cliargs import ArgumentParser, program, run_command
+    from gpd_jax.cliargs import ArgumentParser, count0, output_dir, program, run_command
 
     p = ArgumentParser(prog=program("python -m gpd_jax.checkpoint"), description="export a trained GPD model")
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("export", help="a train.py workdir's checkpoint -> config.json + params.npz")
     e.add_argument("workdir")
-    e.add_argument("out")
-    e.add_argument("--step", type=int, default=None, help="default: the latest checkpoint")
+    e.add_argument("out", type=output_dir)
+    e.add_argument("--step", type=count0, default=None, help="default: the latest checkpoint")
     e.add_argument("--tokenizer-ref", default=None,
                    help="name the map tokenizer in the exported config (a shipped tokenizer's name, or a path "
                         "resolved next to the export first) instead of copying the tokenizer into it")
     e.add_argument("--float16", action="store_true", help="store parameters as float16 (half the size)")
     a = sub.add_parser("average", help="a weight-space average of models fine-tuned from a common ancestor")
     a.add_argument("models", nargs="+")
-    a.add_argument("--out", required=True)
+    a.add_argument("--out", type=output_dir, required=True)
     a.add_argument("--weights", type=float, nargs="+", default=None, help="one per model, summing to 1 (equal)")
-    a.add_argument("--config-from", type=int, default=0, help="index of the model whose config is used (0)")
+    a.add_argument("--config-from", type=count0, default=0, help="index of the model whose config is used (0)")
     a.add_argument("--mixed-tokenizers", action="store_true",
                    help="allow models on different map tokenizers (a model fine-tuned onto new tokens averaged back "
                         "with its parent); the average reads the --config-from model's tokens")
