@@ -465,3 +465,18 @@ def test_ctrl_c_in_a_data_build_stops_its_workers_says_what_is_kept_and_exits_13
     assert "leaked semaphore" not in err
     left = subprocess.run(["pgrep", "-s", str(p.pid)], capture_output=True, text=True).stdout.split()
     assert not left, left  # no worker (or SUMO) of the session outlives the command
+
+
+def test_training_ends_by_saying_where_it_stopped_and_where_it_exported(capsys, tmp_path):
+    from gpd_jax.config import load_config
+    from gpd_jax.training.command import say_where_it_stopped
+
+    config = load_config(GPD_TINY)  # 300 steps
+    work = tmp_path / "w"
+    (work / "checkpoints" / "100").mkdir(parents=True)
+    say_where_it_stopped(config, str(work))
+    assert capsys.readouterr().out == "stopped at step 100 of 300; rerun the same command to resume\n"
+    (work / "checkpoints" / "300").mkdir()
+    (work / "export").mkdir()
+    say_where_it_stopped(config, str(work))
+    assert capsys.readouterr().out == f"finished at step 300; exported to {work / 'export'}\n"
