@@ -115,3 +115,47 @@ def test_store_without_geometry_reports_no_area_figure_and_names_the_rebuild():
     empty.valid[:] = False
     r = cond.lane_offroad(empty, PROMPT, H, lanes, ok)
     assert r["positions"] == 0 and np.isnan(r["offroad_share"]) and np.isnan(r["offroad_share_lane_distance"])
+
+
+class _FakeTokenizer:
+    """Decodes a frame's tokens to one of three fixed sets of 50 lines of 20 points (by its first token)."""
+
+    def __init__(self):
+        rng = np.random.default_rng(0)
+        x = np.linspace(-20.0, 20.0, 20)
+        self.lines = np.stack([np.stack([np.broadcast_to(x, (50, 20)), rng.normal(0, 6, (50, 1)) + 0 * x], -1)
+                               for _ in range(3)]).astype(np.float32)  # [3, 50, 20, 2]
+        self.logits = rng.normal(0, 2, (3, 50)).astype(np.float32)
+
+    def decode_tokens(self, tokens):
+        i = np.asarray(tokens)[..., 0] % 3
+        return self.lines[i], self.logits[i]
+
+
+def test_prompt_map_scores_of_a_batch_in_one_call_equal_the_per_scenario_sums(monkeypatch):
+    """The prompt evaluation scores the maps of every prompt and scenario of a batch in one compiled call (one
+    trace for equal shapes); its per-prompt sums are those of the scenarios one by one."""
+    import chex
+    import jax
+
+    from gpd_jax.metrics.map import map_metric_sums
+
+    monkeypatch.setattr(cond, "_map_metric_sums", jax.jit(chex.assert_max_traces(map_metric_sums, n=2),
+                                                          static_argnames=("step_axis",)))
+    tok, (lanes, valid) = _FakeTokenizer(), straight_lanes()
+    rng = np.random.default_rng(1)
+    K, R, F = 2, 3, 2  # prompts, scenarios, frames
+    tokens = rng.integers(0, 3, (K, R, F, 4))
+    poses = np.concatenate([rng.uniform(0, 100, (K, R, F, 1)), rng.uniform(-2, 5, (K, R, F, 1)),
+                            rng.uniform(-0.3, 0.3, (K, R, F, 1))], -1).astype(np.float32)
+    gts = [[cond.vector_lanes_frames(lanes, valid, poses[q, r]) for r in range(R)] for q in range(K)]
+    gt = np.stack([np.stack([g[0] for g in row]) for row in gts])
+    ok = np.stack([np.stack([g[1] for g in row]) for row in gts])
+    for _ in range(2):  # the second batch reuses the compiled call
+        batched = cond.decoded_map_sums(tok, tokens, gt, ok, step_axis=0)
+    for q in range(K):
+        one_by_one = [cond.lane_map_sums(tok, tokens[q, r], poses[q, r], lanes, valid) for r in range(R)]
+        for key, v in batched.items():
+            want = sum(s[key][0] for s in one_by_one)
+            np.testing.assert_allclose(v[q], want, rtol=1e-5, atol=1e-5 * (1 + abs(want)))
+    assert batched["tp"].shape == (K,) and batched["tp"].sum() > 0

@@ -223,15 +223,28 @@ def _within_extent(road: RoadGeometry, xy: np.ndarray) -> np.ndarray:
     return np.all((xy >= v.min(0)) & (xy <= v.max(0)), axis=-1)
 
 
+# compiled once per shape: called eagerly, its lax.map loops were traced and compiled again at every call (tens of
+# seconds each on a CPU: most of a prompt evaluation's time)
+_map_metric_sums = jax.jit(map_metric_sums, static_argnames=("step_axis",))
+
+
+def decoded_map_sums(tokenizer, tokens: np.ndarray, gt: np.ndarray, gt_ok: np.ndarray,
+                     step_axis: int | None = None) -> dict[str, np.ndarray]:
+    """Map-metric sums (`gpd_jax.metrics.map.map_metric_sums`) of tokens i32[..., F, M] decoded with `tokenizer`
+    against vector lanes gt f32[..., F, L, P, 2] / gt_ok bool[..., F, L] of the same frames, in one compiled call;
+    frames pooled, or kept apart along `step_axis` of the leading dims (as `map_metric_sums`)."""
+    pts, logits = tokenizer.decode_tokens(np.asarray(tokens))
+    sums = _map_metric_sums(pts, logits, jnp.asarray(gt, jnp.float32), jnp.asarray(gt_ok, bool), step_axis=step_axis)
+    return {k: np.asarray(v) for k, v in sums.items()}
+
+
 def lane_map_sums(tokenizer, out_map_tokens: np.ndarray, ego_poses: np.ndarray, lanes: np.ndarray,
                   lanes_valid: np.ndarray) -> dict[str, np.ndarray]:
     """Map-metric sums (`gpd_jax.metrics.map.map_metric_sums`, frames pooled) of tokens i32[F, M] decoded with
     `tokenizer` against the given lanes (scene frame) seen from the poses f32[F, 3] the tokens were made around.
     Reduce with `reduce_map_metrics` (after adding the sums of several scenarios)."""
-    pts, logits = tokenizer.decode_tokens(np.asarray(out_map_tokens))
     gt, gt_ok = vector_lanes_frames(np.asarray(lanes), np.asarray(lanes_valid, bool), np.asarray(ego_poses))
-    sums = map_metric_sums(pts, logits, gt, gt_ok)
-    return {k: np.asarray(v) for k, v in sums.items()}
+    return decoded_map_sums(tokenizer, out_map_tokens, gt, gt_ok)
 
 
 def add_sums(a: dict[str, np.ndarray] | None, b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -317,6 +330,7 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
         out = rollout_model(model, view.replace(road=None), prompts, jax.random.fold_in(jax.random.key(seed), b),
                             options)
         out = jax.tree.map(np.asarray, out)
+        map_inputs = []  # (tokens, gt lanes, gt valid) of every scenario j < real and prompt q, j-major
         for j in range(real):
             sc = jax.tree.map(lambda x: np.asarray(x)[j], view)
             for q, name in enumerate(names):
@@ -341,9 +355,9 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
                 off = lane_offroad(o, p, h, ln, lv, road, size=sc.size, source=source)
                 sources[name].add(off.pop("offroad_source"))
                 row.update({f"lanes_{k_}": v for k_, v in off.items()})
-                if tok is not None:
-                    maps[name] = add_sums(maps[name], lane_map_sums(tok, o.map_tokens[h:], rollout_poses(o)[h:],
-                                                                    ln, lv))
+                if tok is not None:  # scored below for the whole batch in one call
+                    gt, gt_ok = vector_lanes_frames(np.asarray(ln), np.asarray(lv, bool), rollout_poses(o)[h:])
+                    map_inputs.append((o.map_tokens[h:], gt, gt_ok))
                 for k_, v in row.items():
                     acc[name].setdefault(k_, []).append(v)
                 if render_dir and idx[j] < render_count:
@@ -359,6 +373,12 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
                         pred_valid=o.valid, log_xy=sc.xy, log_heading=sc.heading, log_valid=sc.valid, size=sc.size,
                         num_history=h, frame_period_s=spec.frame_period_s, title=f"#{idx[j]} {name}",
                         given=given_mask(p, h), size_px=size_px, **kw))
+        if map_inputs:  # one decode and one compiled scoring call per batch: [K prompts, real scenarios, ...]
+            stacked = [np.stack([x[i] for x in map_inputs]) for i in range(3)]
+            stacked = [x.reshape((real, k) + x.shape[1:]).swapaxes(0, 1) for x in stacked]
+            sums = decoded_map_sums(tok, *stacked, step_axis=0)
+            for q, name in enumerate(names):
+                maps[name] = add_sums(maps[name], {k_: v[q:q + 1] for k_, v in sums.items()})
         if b == 0:
             bar.set_description(f"rollout and scoring of {k} prompts", refresh=False)
         bar.update(real)
