@@ -176,8 +176,8 @@ def test_sensor_command_reports_a_bad_view(tmp_path, capsys):
 
     src = str(tmp_path / "src")
     write_small_store(src, n_shards=1, per_shard=2)
-    assert main(["sensor", src, "--out", str(tmp_path / "out"), "--gap-rate", "2"]) == 2
-    assert "SensorView.gap_rate" in capsys.readouterr().err
+    assert main(["sensor", src, "--out", str(tmp_path / "out"), "--correlation", "1"]) == 2
+    assert "SensorView.correlation" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "out")
     assert main(["sensor", src, "--out", str(tmp_path / "out")]) == 0
     assert '"num_samples": 2' in capsys.readouterr().out

@@ -27,8 +27,8 @@ def test_usage_and_unknown_commands(capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["data", "build", "--out", "x", "--split", "tset"], "python -m gpd_jax.data: error: argument --split"),
-    (["eval", "--data", "nowhere", "--out", "x", "--batch", "0"], "gpd-jax eval: error: --batch must be >= 1"),
+    (["data", "build", "--out", "x", "--split", "tset"], "gpd-jax data: error: argument --split"),
+    (["eval", "--data", "nowhere", "--out", "x", "--batch", "0"], "gpd-jax eval: error: argument --batch: must be an integer >= 1"),
     (["train", "--config", "configs/nope.py", "--workdir", "x"], "gpd-jax train: error: config file not found"),
     (["tokenizer", "encode", "--checkpoint", "nope", "--data", "x"], "model 'nope' not found"),
     (["plan", "evaluate", "--data", "x", "--batch-size", "0"], "argument --batch-size: must be an integer >= 1"),
