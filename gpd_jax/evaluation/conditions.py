@@ -37,7 +37,7 @@ import numpy as np
 from gpd_jax.data.lanes import vector_lanes_frames
 from gpd_jax.data.roadgeom import RoadIndex, clip_road, lane_area
 from gpd_jax.geometry import RoadGeometry, on_road, road_from_arrays
-from gpd_jax.metrics.agents import box_corners
+from gpd_jax.metrics.agents import box_corners, box_overlap_pairwise
 from gpd_jax.metrics.map import map_metric_sums, reduce_map_metrics
 from gpd_jax.prompts import Prompt
 
@@ -96,14 +96,12 @@ def agent_figures(out: Any, log_xy: np.ndarray, log_valid: np.ndarray, size: np.
     mean displacement from the log where both are valid ("ade_m", the log being one possible future), and the
     share of generated slots that overlap another valid box in some future frame ("collision_share", the
     paper's definition over the horizon)."""
-    from gpd_jax.metrics.agents import box_overlap_pairwise
-
     gen = ~given_mask(prompt, num_history)
     gen[:num_history] = False
     v = np.asarray(out.valid)
     both = gen & v & np.asarray(log_valid)
     d = np.linalg.norm(np.asarray(out.xy) - np.asarray(log_xy), axis=-1)
-    ov = np.asarray(box_overlap_pairwise(np.asarray(out.xy)[num_history:], np.asarray(out.heading)[num_history:],
+    ov = np.asarray(_box_overlap_pairwise(np.asarray(out.xy)[num_history:], np.asarray(out.heading)[num_history:],
                                          np.asarray(size)[None].repeat(v.shape[0] - num_history, 0),
                                          v[num_history:])).any(-1)  # [F, A]
     slots = (gen & v)[num_history:].any(0)
@@ -152,6 +150,9 @@ def road_from_lanes(lanes: np.ndarray, lanes_valid: np.ndarray, width: float = L
 
 
 _on_road = jax.jit(on_road)
+# compiled once per shape (eager, every call of the scores of each scenario and prompt dispatched each op)
+_box_corners = jax.jit(box_corners)
+_box_overlap_pairwise = jax.jit(box_overlap_pairwise)
 
 
 def lane_offroad(out: Any, prompt: Prompt, num_history: int, lanes: np.ndarray, lanes_valid: np.ndarray,
@@ -199,7 +200,7 @@ def lane_offroad(out: Any, prompt: Prompt, num_history: int, lanes: np.ndarray, 
     if road is None:
         road = road_from_lanes(lanes, lanes_valid, 2 * half_width)
     box = np.broadcast_to(np.asarray([4.5, 1.9] if size is None else size, np.float32), xy.shape)
-    corners = np.asarray(box_corners(jnp.asarray(xy), jnp.asarray(hd), jnp.asarray(box)))  # [T, A, 4, 2]
+    corners = np.asarray(_box_corners(xy, hd, box))  # [T, A, 4, 2]
     pts = np.concatenate([xy[..., None, :], corners], -2)  # [T, A, 5, 2]: centre and corners, every slot-frame
     inside = np.asarray(_on_road(jax.tree.map(jnp.asarray, road), jnp.asarray(pts)))[sel]  # [N, 5]
     judged = np.ones(len(inside), bool)
@@ -315,9 +316,10 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
         recs = [src[i] for i in idx]
         full = to_scene({k: np.stack([r[k] for r in recs]) for k in recs[0]})
         view = model.prepare(full)
+        host_view = jax.tree.map(np.asarray, view)  # on the host once per batch, not once per scenario and prompt
         singles = []
         for j in range(bs):
-            sc = jax.tree.map(lambda x: np.asarray(x)[j], view)
+            sc = jax.tree.map(lambda x: x[j], host_view)
             row = [prompt_from_task("traffic_simulation", spec.num_frames, spec.num_map_tokens, spec.num_agents)]
             for name, obj in prompt_files.items():
                 row.append(prompt_from_json(obj, sc, h, has_tokenizer=tok is not None,
@@ -330,11 +332,12 @@ def evaluate_prompts(model, data: str, split: str, prompt_files: dict[str, dict]
         out = rollout_model(model, view.replace(road=None), prompts, jax.random.fold_in(jax.random.key(seed), b),
                             options)
         out = jax.tree.map(np.asarray, out)
+        host_prompts = jax.tree.map(np.asarray, prompts)
         map_inputs = []  # (tokens, gt lanes, gt valid) of every scenario j < real and prompt q, j-major
         for j in range(real):
-            sc = jax.tree.map(lambda x: np.asarray(x)[j], view)
+            sc = jax.tree.map(lambda x: x[j], host_view)
             for q, name in enumerate(names):
-                p = jax.tree.map(lambda x: np.asarray(x)[j, q], prompts)
+                p = jax.tree.map(lambda x: x[j, q], host_prompts)
                 o = jax.tree.map(lambda x: x[j, q], out)
                 gxy = np.where(p.agent_given[..., None], p.xy, sc.xy) if p.agent_given is not None else sc.xy
                 ghd = np.where(p.agent_given, p.heading, sc.heading) if p.agent_given is not None else sc.heading
