@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from gpd_jax import distributed
 from gpd_jax.cliargs import ArgumentParser, UsageError, run_command
 from gpd_jax.config import split_config_args
 
@@ -51,8 +52,7 @@ def parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument("--workdir", required=True, help="checkpoints, metrics and logs go here")
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop (with a checkpoint) after this many steps of this invocation; run again to resume")
-    p.add_argument("--distributed", action="store_true",
-                   help="call jax.distributed.initialize() first (several hosts; coordinator from the environment)")
+    distributed.add_arguments(p)  # --coordinator HOST:PORT --num-processes N --process-id I | --distributed
     return p
 
 
@@ -65,10 +65,7 @@ def main(argv: list[str], prog: str = PROG) -> int:
 def run(args: argparse.Namespace, overrides: list[str]) -> int:
     from gpd_jax.training.common import ConfigLoadError, error_message, load_training_config
 
-    if args.distributed:
-        import jax
-
-        jax.distributed.initialize()
+    distributed.initialize(distributed.from_args(args))
     try:
         config = load_training_config(args.config, overrides)
     except ConfigLoadError as e:
