@@ -267,16 +267,22 @@ def _client():
     return client
 
 
+_GATHERS = 0
+
+
 def gather_to_lead(tag: str, tree: dict) -> list[dict] | None:
     """Every process's `tree` (nested dicts of arrays), in process order, on process 0; None on the others.
 
-    One process: `[tree]` without a round trip. Each call needs its own `tag` (the keys are not reused)."""
+    One process: `[tree]` without a round trip. Every process makes the same calls in the same order (`tag` names
+    the call in the key-value store, beside a running count)."""
     import jax
 
+    global _GATHERS
     if jax.process_count() == 1:
         return [tree]
+    _GATHERS += 1
     client, me = _client(), jax.process_index()
-    key = f"gpd_jax/gather/{tag}"
+    key = f"gpd_jax/gather/{_GATHERS}/{tag}"
     if me != 0:
         client.key_value_set_bytes(f"{key}/{me}", encode_tree(tree))
         return None

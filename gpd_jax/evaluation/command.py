@@ -10,7 +10,7 @@ import argparse
 import os
 import time
 
-from gpd_jax import zoo
+from gpd_jax import distributed, zoo
 from gpd_jax.checkpoint import CONFIG_FILE, load_model, resolve_tokenizer_path
 from gpd_jax.cliargs import ArgumentParser as Parser
 from gpd_jax.cliargs import UsageError, run_command
@@ -69,6 +69,7 @@ def parser(prog: str = PROG) -> Parser:
     p.add_argument("--realism-config", default="2025", choices=("2024", "2025"),
                    help="the challenge configuration of --samples (weights)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    distributed.add_arguments(p)  # the scenes sharded over processes / hosts; process 0 writes the outputs
     return p
 
 
@@ -81,6 +82,9 @@ def check_arguments(parser: argparse.ArgumentParser, argv: list[str]) -> argpars
     """Parses `argv` and checks everything that needs only the arguments, the config and the data. Returns the
     args with `task_names`, `horizons`, `options`, `config` and `tokenizer_path` added."""
     args = parser.parse_args(argv)
+    args.cluster = distributed.from_args(args)
+    if args.cluster.enabled and args.prompt:
+        raise UsageError("--prompt runs in one process; leave out --coordinator / --distributed")
     try:
         args.horizons = tuple(float(x) for x in args.horizons.split(",") if x.strip())
     except ValueError:
@@ -213,6 +217,7 @@ def run(args: argparse.Namespace) -> int:
     """Loads the model, evaluates, prints the tables and writes the outputs (see `rollout.py`)."""
     if getattr(args, "prompts", None):
         return run_prompts(args)
+    distributed.initialize(args.cluster)
     t0 = time.perf_counter()
     model = _load(args.checkpoint)
     m = model.config.model
@@ -227,6 +232,8 @@ def run(args: argparse.Namespace) -> int:
                                         samples=args.samples, realism_config=args.realism_config)
     except EvalError as e:
         raise UsageError(str(e)) from None
+    if results is None:  # another process than 0 of a multi-process run: process 0 writes the outputs
+        return 0
     if args.render > len(items):
         print(f"note: --render {args.render} but only {len(items)} scenarios evaluated", flush=True)
     results = {"checkpoint": args.checkpoint, **results}
