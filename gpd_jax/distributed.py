@@ -150,10 +150,7 @@ def initialize(cluster: Cluster) -> None:
                                        heartbeat_timeout_seconds=max(10, min(100, int(cluster.timeout_s))),
                                        shutdown_timeout_seconds=max(5, min(60, int(cluster.timeout_s))))
     except Exception as e:  # noqa: BLE001 - XlaRuntimeError (DEADLINE_EXCEEDED, UNAVAILABLE ...), ValueError, ...
-        try:
-            jax.distributed.shutdown()
-        except Exception:  # noqa: BLE001 - half started: nothing more to release
-            pass
+        _release()  # now, so that its last log lines come before the error line
         msg = " ".join(str(e).split())
         # jaxlib reports a connect time-out through the error callback, whose status it cannot hand to Python
         cause = "" if "bad_cast" in msg else f" ({type(e).__name__}: {msg[:300]}{'...' if len(msg) > 300 else ''})"
@@ -166,6 +163,21 @@ def initialize(cluster: Cluster) -> None:
 
 
 _STARTING = False
+
+
+def _release() -> None:
+    """Shuts down what a failed `jax.distributed.initialize` started (its client, and the coordination service on
+    process 0), each part on its own."""
+    from jax._src import distributed as jd
+
+    for part in ("preemption_sync_manager", "client", "service"):
+        obj = getattr(jd.global_state, part, None)
+        if obj is not None:
+            try:
+                obj.shutdown()
+            except Exception:  # noqa: BLE001 - half started: nothing more to release
+                pass
+            setattr(jd.global_state, part, None)
 
 
 def _on_runtime_error(status) -> None:

@@ -59,8 +59,10 @@ def shard_batch(tree, mesh: Mesh):
 
 
 def replicate(tree, mesh: Mesh):
-    """Places every leaf whole on every device of the mesh (parameters)."""
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+    """Places every leaf whole on every device of the mesh (parameters, a train state), from this process's copy
+    (each process of a multi-process mesh holds the same values): the leaves go through host memory, so arrays
+    already on one local device (a restored checkpoint) need no cross-host transfer."""
+    return jax.device_put(jax.device_get(tree), NamedSharding(mesh, PartitionSpec()))
 
 
 def data_parallel(fn, mesh: Mesh, num_replicated: int = 1):
