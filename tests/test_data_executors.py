@@ -14,7 +14,7 @@ from gpd_jax.data.executors import FAIL_ONCE_ENV, InjectedFailure, LocalExecutor
 from gpd_jax.data.sources import sumo, sumo_traffic
 
 SIM = sumo_traffic.SimConfig(warmup_s=60.0, record_s=30.0)
-BUILD = dict(num_scenarios=6, seed=5, per_job=2, sim_cfg=SIM)  # 3 jobs (2 samples each), 3 generated networks
+BUILD = dict(num_scenarios=4, seed=5, per_job=2, sim_cfg=SIM)  # 2 jobs (2 samples each) on 2 generated networks
 
 
 class Job:
