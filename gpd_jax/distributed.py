@@ -32,6 +32,7 @@ from gpd_jax.cliargs import UsageError
 
 DEFAULT_TIMEOUT_S = 300
 GATHER_TIMEOUT_MS = 7 * 24 * 3600 * 1000  # a worker still working is waited for (a dead one fails its heartbeat)
+GATHER_CHUNK = 1 << 20  # bytes per key-value entry of a gather
 
 
 class DistributedError(UsageError):
@@ -295,12 +296,20 @@ def gather_to_lead(tag: str, tree: dict) -> list[dict] | None:
     _GATHERS += 1
     client, me = _client(), jax.process_index()
     key = f"gpd_jax/gather/{_GATHERS}/{tag}"
-    if me != 0:
-        client.key_value_set_bytes(f"{key}/{me}", encode_tree(tree))
+    if me != 0:  # in chunks: the coordination service's messages are kept small
+        data = encode_tree(tree)
+        chunks = [data[i:i + GATHER_CHUNK] for i in range(0, len(data), GATHER_CHUNK)] or [b""]
+        for i, c in enumerate(chunks):
+            client.key_value_set_bytes(f"{key}/{me}/{i}", c)
+        client.key_value_set(f"{key}/{me}/chunks", str(len(chunks)))
         return None
     out = [tree]
     for p in range(1, jax.process_count()):
-        out.append(decode_tree(client.blocking_key_value_get_bytes(f"{key}/{p}", GATHER_TIMEOUT_MS)))
+        n = int(client.blocking_key_value_get(f"{key}/{p}/chunks", GATHER_TIMEOUT_MS))
+        parts = [client.blocking_key_value_get_bytes(f"{key}/{p}/{i}", GATHER_TIMEOUT_MS) for i in range(n)]
+        out.append(decode_tree(b"".join(parts)))
+        for i in range(n):
+            client.key_value_delete(f"{key}/{p}/{i}")
     return out
 
 

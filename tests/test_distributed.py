@@ -244,3 +244,18 @@ def test_unreachable_coordinator_and_wrong_count_time_out_with_one_line(setup, t
         line = _one_line_error(rc, err, "train.py")
         assert f"coordinator 127.0.0.1:{port}, 2 processes, {who}" in line and "--init-timeout 3 s" in line
     assert not os.path.exists(tmp_path / "w")
+
+
+def test_gathered_trees_round_trip_without_pickle():
+    from gpd_jax.distributed import decode_tree, encode_tree
+
+    tree = {"a": {"b": np.arange(6.0).reshape(2, 3), "empty": {}}, "n": np.int64(3), "s": np.str_("scene/7"),
+            "c": {"d": np.zeros((0, 4), np.float32)}}
+    back = decode_tree(encode_tree(tree))
+    assert back.keys() == tree.keys() and back["a"]["empty"] == {} and str(back["s"]) == "scene/7"
+    np.testing.assert_array_equal(back["a"]["b"], tree["a"]["b"])
+    assert back["c"]["d"].shape == (0, 4) and back["c"]["d"].dtype == np.float32 and int(back["n"]) == 3
+    with pytest.raises(ValueError, match="cannot be sent"):
+        encode_tree({"a/b": 1})
+    with pytest.raises(ValueError, match="Object arrays"):
+        decode_tree(encode_tree({"o": np.array([{"x": 1}], dtype=object)}))
