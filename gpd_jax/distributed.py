@@ -313,11 +313,5 @@ def gather_to_lead(tag: str, tree: dict) -> list[dict] | None:
     return out
 
 
-def note(message: str) -> None:
-    """Prints on process 0 only (a run's progress lines, once)."""
-    if is_lead():
-        print(message, file=sys.stdout, flush=True)
-
-
 __all__ = ["Cluster", "DistributedError", "add_arguments", "from_args", "initialize", "is_lead", "my_share",
-           "gather_to_lead", "encode_tree", "decode_tree", "parse_coordinator", "note"]
+           "gather_to_lead", "encode_tree", "decode_tree", "parse_coordinator"]
