@@ -72,7 +72,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from gpd_jax import parallel
+from gpd_jax import distributed, parallel
 from gpd_jax.cliargs import ArgumentParser, UsageError, count, count0, nonnegative, output_file, program, run_command
 from gpd_jax.model import autotune, native
 from gpd_jax.model.attention import KERNELS
@@ -250,6 +250,7 @@ def bench_rollout(args, overrides) -> dict:
                  f"({workload['calls']} calls of batch {batch})")
         runs.append({
             "config": config_name, "batch": batch, "future_frames": future, "devices": ndev,
+            "processes": jax.process_count(),
             "decode_attention": label, "decode_dtype": cache_dtype.name,
             "native_march": build["target"] if build else None,
             "native_vector_width": build["vector_width"] if build else None,
@@ -595,7 +596,8 @@ def main(argv=None) -> int:
     r.add_argument("--workload", type=count, default=None, metavar="SCENARIOS",
                    help="also time SCENARIOS scenarios x 6 tasks in calls of the largest batch (compile excluded)")
     r.add_argument("--devices", type=count, default=None,
-                   help="shard each batch over this many local devices (default: all; on a CPU one per core)")
+                   help="shard each batch over this many devices (default: all, of every process; on a CPU one per "
+                        "core)")
     r.add_argument("--decode-attention", nargs="+", choices=KERNELS, default=None,
                    help="attention kernel(s) of the cached rollout, each measured at every batch size "
                         "(default: the config's model.decode_attention)")
@@ -603,6 +605,7 @@ def main(argv=None) -> int:
                    help="build target(s) of the native kernel (gcc -march), each measured with native and auto "
                         "(default: $GPD_JAX_NATIVE_MARCH or native); e.g. native x86-64-v3")
     r.add_argument("--json", type=output_file, default=None, help="write the results here")
+    distributed.add_arguments(r)  # each batch over every process's devices; process 0 prints and writes
     q = sub.add_parser("realism", help="seconds per scenario of the WOSAC-form realism metric")
     q.add_argument("--data", default=None, help="a store with road geometry (default: synthetic scenes and roads)")
     q.add_argument("--split", default="test")
@@ -670,8 +673,12 @@ def main(argv=None) -> int:
                   f"{out['s_per_scenario']:.3f} s per scenario (compile {out['compile_s']:.1f} s); "
                   f"road-edge answers not proven exact: {out['road_edge_inexact_share']:.2%}")
         else:
+            cluster = distributed.from_args(args)
             parallel.use_host_cores()
+            distributed.initialize(cluster)
             out = bench_rollout(args, overrides)
+            if not distributed.is_lead():  # process 0 prints and writes the figures of the whole mesh
+                return
             _print_table(out)
         if args.json:
             atomic_write_json(args.json, out, indent=2)

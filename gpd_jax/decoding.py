@@ -604,7 +604,7 @@ def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key
     shared, own = (None, tasks) if per_scene else (tasks, None)
     ndev = parallel.devices_for_batch(s, jax.local_device_count())
     if ndev > 1:
-        run = parallel.data_parallel(run, parallel.data_mesh(ndev), num_replicated=4)
+        run = parallel.data_parallel(run, parallel.data_mesh(ndev, local=True), num_replicated=4)
     return run(params, rest, tok_params, shared, scenes, keys, own)
 
 

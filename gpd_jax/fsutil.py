@@ -197,11 +197,28 @@ def save_params_npz(path: str, params, cast=lambda key, a: a, compressed: bool =
 
 
 def orbax_manager(workdir: str, keep: int = 2, create: bool = True):
-    """The orbax CheckpointManager of a training workdir (`WORKDIR/checkpoints`), both training stages."""
+    """The orbax CheckpointManager of a training workdir (`WORKDIR/checkpoints`), both training stages. Several
+    processes (`gpd_jax.distributed`) each call it on the same (shared) folder: orbax writes each array once, from
+    the process holding its first replica, and process 0 commits the step."""
     import orbax.checkpoint as ocp
 
     return ocp.CheckpointManager(os.path.abspath(os.path.join(workdir, "checkpoints")),
+                                 item_handlers=ocp.StandardCheckpointHandler(),
                                  options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=create))
+
+
+def local_restore_target(metadata):
+    """Abstract arrays (shape, dtype) of an orbax checkpoint's tree metadata, each placed whole on this process's
+    first device: a checkpoint written by any number of processes (a multi-process run records its devices) reads
+    back in one process, or in each of another number of processes."""
+    import jax
+
+    sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+
+    def target(m):
+        return jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=sharding) if hasattr(m, "shape") else m
+
+    return jax.tree.map(target, metadata, is_leaf=lambda m: hasattr(m, "shape"))
 
 
 def restore_params(workdir: str, template, step: int | None = None):
@@ -217,5 +234,5 @@ def restore_params(workdir: str, template, step: int | None = None):
     step = mgr.latest_step() if step is None else step
     if step is None:
         raise FileNotFoundError(f"{workdir}: no orbax checkpoints")
-    tree = mgr.restore(step, args=ocp.args.StandardRestore())
+    tree = mgr.restore(step, args=ocp.args.StandardRestore(local_restore_target(mgr.item_metadata(step))))
     return unflatten_params(template, flatten_params(tree["params"]), where=f"{workdir} step {step}")

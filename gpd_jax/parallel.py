@@ -3,7 +3,9 @@
 On a CPU, XLA runs each fusion of one computation on one thread, so a memory-bound batched rollout uses a
 single core. Exposing the cores as separate XLA host devices (`--xla_force_host_platform_device_count`)
 and sharding the batch over a 1-D `data` mesh runs one slice of the batch per core. Several hosts:
-call `jax.distributed.initialize()` first; `data_mesh` then spans every process's devices.
+start JAX's multi-controller runtime first (`gpd_jax.distributed.initialize`); `data_mesh` then spans every
+process's devices (training: one global batch), `data_mesh(local=True)` this process's (evaluation: each process
+rolls out its own share of the scenes).
 """
 
 from __future__ import annotations
@@ -32,9 +34,10 @@ def use_host_cores(count: int | None = None) -> bool:
     return True
 
 
-def data_mesh(num_devices: int | None = None) -> Mesh:
-    """A 1-D mesh named `data` over the first `num_devices` devices (default: all, every process)."""
-    devices = jax.devices()
+def data_mesh(num_devices: int | None = None, local: bool = False) -> Mesh:
+    """A 1-D mesh named `data` over the first `num_devices` devices (default: all, every process's; `local`:
+    this process's own, for work that each process does alone, such as its share of an evaluation)."""
+    devices = jax.local_devices() if local else jax.devices()
     if num_devices is not None:
         if num_devices > len(devices):
             raise ValueError(f"asked for {num_devices} devices, only {len(devices)} available")
@@ -56,8 +59,10 @@ def shard_batch(tree, mesh: Mesh):
 
 
 def replicate(tree, mesh: Mesh):
-    """Places every leaf whole on every device of the mesh (parameters)."""
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+    """Places every leaf whole on every device of the mesh (parameters, a train state), from this process's copy
+    (each process of a multi-process mesh holds the same values): the leaves go through host memory, so arrays
+    already on one local device (a restored checkpoint) need no cross-host transfer."""
+    return jax.device_put(jax.device_get(tree), NamedSharding(mesh, PartitionSpec()))
 
 
 def data_parallel(fn, mesh: Mesh, num_replicated: int = 1):

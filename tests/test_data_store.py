@@ -127,10 +127,12 @@ def test_loader_determinism_resume_and_sharding(small_store):
     assert resumed == first[4:6]
     other = [_ids(b) for b in _take(loader.make_loader(d, "train", 4, seed=8), 3)]
     assert other != first[:3]
-    # two processes see disjoint halves of an epoch
-    p0 = sum([_ids(b) for b in _take(loader.make_loader(d, "train", 2, seed=7, process_index=0, process_count=2), 3)], [])
-    p1 = sum([_ids(b) for b in _take(loader.make_loader(d, "train", 2, seed=7, process_index=1, process_count=2), 3)], [])
-    assert not set(p0) & set(p1) and len(set(p0) | set(p1)) == 12
+    # two processes read disjoint halves of every global batch: together, in process order, exactly the batches
+    # of one process (the same rows in the same order), also from a resumed step
+    for start in (0, 4):
+        p0, p1 = ([_ids(b) for b in _take(loader.make_loader(d, "train", 2, seed=7, process_index=i, process_count=2,
+                                                              start_step=start), 6 - start)] for i in (0, 1))
+        assert [a + b for a, b in zip(p0, p1)] == first[start:6]
 
 
 def test_loader_mixture_of_stores_follows_the_weights_and_resumes(small_store, tmp_path):

@@ -5,11 +5,13 @@
         [--traffic realistic|legacy] [--parking-edge-share F] [--parking-occupancy F] [--parked-leave-share F]
         [--short-stop-share F] [--drivers heterogeneous|uniform] [--ego-rule mixed|travel]
         [--ego-stationary-share F] [--lefthand-share F] [--static-tls-share F]
-  build --source nuplan --out DIR --db PATH_OR_DIR --maps DIR [--max-per-log K] [--split SPLIT]
+  build --source nuplan --out DIR --db PATH_OR_DIR --maps DIR [--max-per-log K] [--split SPLIT] [--workers W]
   build --source scenarionet --out DIR --db DATASET_DIR_OR_PKL [--max-per-log K] [--split SPLIT] [--workers W]
   build --source interaction --out DIR --db INTERACTION_ROOT [--split SPLIT] [--sites SITE ...] [--max-per-log K]
         [--workers W]   (splits by site: gpd_jax.data.sources.interaction.SITE_SPLITS; --split S builds the sites of S)
         (--split SPLIT: train, val or test, everything into that one split; default: splits by location)
+        (every build: [--executor local|ray] [--address HOST:PORT]: its jobs on Ray tasks over a cluster, the
+        store identical to a local build; docs/distributed.md)
   inspect DIR [--json PATH] [--no-lanes]
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
   near-duplicates --eval STORE_OR_NET ... --reference STORE_OR_NET ... [--tol METRES]
@@ -37,6 +39,7 @@ import sys
 from gpd_jax import interrupt
 from gpd_jax.cliargs import (ArgumentParser, UsageError, count, count0, nonnegative, output_dir, output_file, positive,
                              program, run_command, share)
+from gpd_jax.data.executors import EXECUTORS, make_executor
 
 PROG = "python -m gpd_jax.data"
 SPLITS = ("train", "val", "test")  # what `build --split` accepts
@@ -78,7 +81,15 @@ def main(argv=None) -> int:
     b.add_argument("--scenarios", type=count, default=1000, help="SUMO: number of scenarios")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--net", nargs="+", default=None, help="SUMO: use these networks instead of generating")
-    b.add_argument("--workers", type=count, default=2, help="SUMO: processes (one SUMO each)")
+    b.add_argument("--workers", type=count, default=2,
+                   help="processes of this machine (one SUMO run, log or file chunk each); with --executor ray and "
+                        "no --address: the CPUs of the Ray instance started here")
+    b.add_argument("--executor", choices=EXECUTORS, default="local",
+                   help="where the jobs run: local processes, or Ray tasks (pip install -e '.[ray]'; "
+                        "docs/distributed.md); resumable either way")
+    b.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="--executor ray: the cluster to join (ray start --head prints it; 'auto': the one this "
+                        "machine is part of); default: a Ray instance started on this machine")
     b.add_argument("--per-job", type=count, default=50, help="SUMO: scenarios per simulation run")
     b.add_argument("--split", choices=SPLITS, default=None,
                    help="put everything into this one split (default: splits by location); INTERACTION: build the "
@@ -205,6 +216,7 @@ def _run(p: ArgumentParser, args) -> int:
         traffic_flags = [f"--{k.replace('_', '-')}" for k in TRAFFIC_FLAGS if getattr(args, k) is not None]
         if args.source != "sumo" and (traffic_flags or args.traffic != "realistic"):
             p.error(f"the SUMO traffic options ({', '.join(traffic_flags) or '--traffic'}) are for --source sumo")
+        executor = make_executor(args.executor, args.workers, args.address)
         if args.source == "sumo":
             from gpd_jax.data.sources import sumo
 
@@ -219,27 +231,28 @@ def _run(p: ArgumentParser, args) -> int:
                                   args.per_job, net_layout=layout, keep_overlaps=args.keep_overlaps,
                                   refuse_near_duplicates=args.refuse_near_duplicates,
                                   near_duplicate_tol=args.near_duplicate_tol, against=args.against,
-                                  **traffic_options(args))
+                                  executor=executor, **traffic_options(args))
         elif args.source == "interaction":
             if not args.db:
                 p.error("--source interaction needs --db (the INTERACTION dataset root: recorded_trackfiles/, maps/)")
             from gpd_jax.data.sources import interaction
 
             man = interaction.build_interaction(args.out, args.db, args.seed, args.split, args.sites,
-                                                args.max_per_log, workers=args.workers)
+                                                args.max_per_log, workers=args.workers, executor=executor)
         elif args.source == "scenarionet":
             if not args.db:
                 p.error("--source scenarionet needs --db (a ScenarioNet dataset directory or .pkl files)")
             from gpd_jax.data.sources import scenarionet
 
             man = scenarionet.build_scenarionet(args.out, args.db, args.seed, args.split, args.max_per_log,
-                                                workers=args.workers, per_job=args.per_job)
+                                                workers=args.workers, per_job=args.per_job, executor=executor)
         else:
             if not args.db or not args.maps:
                 p.error("--source nuplan needs --db and --maps")
             from gpd_jax.data.sources import nuplan
 
-            man = nuplan.build_nuplan(args.out, args.db, args.maps, args.seed, args.split, args.max_per_log)
+            man = nuplan.build_nuplan(args.out, args.db, args.maps, args.seed, args.split, args.max_per_log,
+                                      workers=args.workers, executor=executor)
         print(json.dumps({"num_samples": man["num_samples"],
                           "splits": {k: v["num_samples"] for k, v in man["splits"].items()},
                           "build_wall_s": round(man["build"]["build_wall_s"], 1)}))

@@ -2,7 +2,8 @@
 splits by location and the manifest.
 
 A build is a list of *jobs*; each job is one SUMO run, one nuPlan log or one chunk of ScenarioNet scenario files,
-and writes one shard. A job that finished leaves `DIR/_jobs/job_<j>.json` (`job_marker`), so a stopped build
+and writes one shard; an executor (`gpd_jax.data.executors`: local processes, or Ray tasks over a cluster) runs
+them. A job that finished leaves `DIR/_jobs/job_<j>.json` (`job_marker`), so a stopped build
 started again with the same arguments skips it and resumes where it left off (`run_jobs`). Splits are made by
 location (road network / map, `assign_splits`): every job of a location goes to the same split, so no test scene
 shares a road with training. Settings are recorded in `DIR/_jobs/settings.json` only once the inputs are
@@ -15,7 +16,6 @@ Nothing here knows a source: the importers (`gpd_jax.data.sources`) import this 
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import json
 import logging
 import os
@@ -23,9 +23,9 @@ from collections import Counter
 
 import numpy as np
 
-from gpd_jax import interrupt
 from gpd_jax.data import preprocess, store
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.executors import LocalExecutor, worker_init  # noqa: F401 - worker_init: the sources' pools
 
 log = logging.getLogger(__name__)
 
@@ -77,15 +77,9 @@ def existing_shard(out_dir: str, index: int) -> str | None:
     return None
 
 
-def worker_init():
-    """Initializer of the worker processes: warnings only; Ctrl-C ends them quietly (the parent says what was
-    kept; `gpd_jax.interrupt.quiet_worker`)."""
-    logging.basicConfig(level=logging.WARNING)
-    interrupt.quiet_worker()
-
-
-def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str) -> list[dict]:
-    """Runs jobs not yet done (resume), `workers` processes, with a tqdm bar over samples."""
+def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str, executor=None) -> list[dict]:
+    """Runs jobs not yet done (resume) with a tqdm bar over samples, on `executor` (`gpd_jax.data.executors`;
+    default: `workers` local processes)."""
     from tqdm import tqdm
 
     done, todo = [], []
@@ -101,18 +95,9 @@ def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str) -> list[dict]:
     if done:
         log.info("resuming: %d of %d jobs already done", len(done), len(jobs))
     results = list(done)
-    if workers <= 1:
-        for j in todo:
-            r = fn(j)
-            results.append(r)
-            bar.update(r["requested"])
-    else:
-        with interrupt.worker_pool(workers, initializer=worker_init) as ex:
-            futs = {ex.submit(fn, j): j for j in todo}
-            for fut in cf.as_completed(futs):
-                r = fut.result()
-                results.append(r)
-                bar.update(r["requested"])
+    for _, r in (executor or LocalExecutor(workers)).map(fn, todo):
+        results.append(r)
+        bar.update(r["requested"])
     bar.close()
     return sorted(results, key=lambda r: r["index"])
 

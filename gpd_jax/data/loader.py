@@ -4,7 +4,8 @@ Two APIs:
 
 * `make_loader(data_dir, split, batch_size, seed, ...)`: a grain pipeline. Records are shuffled
   deterministically by `seed` (a fresh permutation per epoch), optionally sharded across processes
-  (`process_index::process_count` of the global shuffled order, so processes see disjoint samples), batched,
+  (`process_blocks`: process p reads rows p*b .. (p+1)*b - 1 of every global batch of P*b samples, so the P
+  processes together read exactly the batches of one process with batch P*b, in the same order), batched,
   read by a thread pool and prefetched in a background thread. Everything is a pure function of
   (seed, step): `start_step=k` yields exactly the batches a fresh loader yields from its k-th on, which is
   how training resumes after a restart. Memory stays flat: shards are memory-mapped and at most
@@ -195,6 +196,23 @@ def parse_mixture(spec: str) -> tuple[tuple[str, float], ...]:
     return tuple((d, w / total) for d, w in out)
 
 
+def process_blocks(ds, block: int, index: int, count: int):
+    """Process `index`'s share of the sample order `ds` (a grain MapDataset) when `count` processes each read
+    `block` samples of every global batch of `count * block`: element i is `ds[(i // block * count + index) *
+    block + i % block]`. Batched by `block`, process p's batch k is rows p*block .. (p+1)*block - 1 of global
+    batch k; laid out over the processes' devices in process order, the global batch is the one a single process
+    reads with batch `count * block`."""
+    import grain
+
+    n = len(ds) // (block * count) * block
+
+    def read(i):
+        q, r = divmod(int(i), block)
+        return ds[(q * count + index) * block + r]
+
+    return grain.MapDataset.range(n).map(read)
+
+
 def make_dataset(data_dir: str, split: str, batch_size: int, seed: int = 0, *, shuffle: bool = True,
                  num_epochs: int | None = None, drop_remainder: bool = True, process_index: int = 0,
                  process_count: int = 1, start_step: int = 0, with_polylines: bool = False,
@@ -225,7 +243,7 @@ def make_dataset(data_dir: str, split: str, batch_size: int, seed: int = 0, *, s
     else:
         ds = parts[0]
     if process_count > 1:
-        ds = ds[process_index::process_count]
+        ds = process_blocks(ds, batch_size, process_index, process_count)
     if with_lanes:
         ds = ds.map(add_lanes)
     ds = ds.batch(batch_size, drop_remainder=drop_remainder)

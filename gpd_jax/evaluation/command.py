@@ -11,7 +11,7 @@ import argparse
 import os
 import time
 
-from gpd_jax import zoo
+from gpd_jax import distributed, zoo
 from gpd_jax.cliargs import ArgumentParser as Parser
 from gpd_jax.cliargs import UsageError, check_output_dir, count, count0, nonnegative, run_command
 from gpd_jax.options import GEN_MAPS, LOG_MAPS, RolloutOptions
@@ -61,6 +61,7 @@ def parser(prog: str = PROG) -> Parser:
     p.add_argument("--realism-config", default="2025", choices=("2024", "2025"),
                    help="the challenge configuration of --samples (weights)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    distributed.add_arguments(p)  # the scenes sharded over processes / hosts; process 0 writes the outputs
     return p
 
 
@@ -74,6 +75,9 @@ def check_flags(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Na
     """Parses `argv` and checks what needs only the arguments (numbers, lists, the output folder), before JAX is
     imported."""
     args = parser.parse_args(argv)
+    args.cluster = distributed.from_args(args)
+    if args.cluster.enabled and args.prompt:
+        raise UsageError("--prompt runs in one process; leave out --coordinator / --distributed")
     try:
         args.horizons = tuple(float(x) for x in args.horizons.split(",") if x.strip())
     except ValueError:
@@ -233,6 +237,7 @@ def run(args: argparse.Namespace) -> int:
     from gpd_jax.evaluation.report import format_tables
     from gpd_jax.spec import EvalError
 
+    distributed.initialize(args.cluster)
     t0 = time.perf_counter()
     model = _load(args.checkpoint)
     m = model.config.model
@@ -247,6 +252,8 @@ def run(args: argparse.Namespace) -> int:
                                         samples=args.samples, realism_config=args.realism_config)
     except EvalError as e:
         raise UsageError(str(e)) from None
+    if results is None:  # another process than 0 of a multi-process run: process 0 writes the outputs
+        return 0
     if args.render > len(items):
         print(f"note: --render {args.render} but only {len(items)} scenarios evaluated", flush=True)
     results = {"checkpoint": args.checkpoint, **results}

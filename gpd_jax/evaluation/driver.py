@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
+from gpd_jax import distributed
 from gpd_jax.checkpoint import Model
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import to_scene
@@ -79,7 +80,10 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
       realism_config: "2024" or "2025" (the challenge's weights).
 
     Returns:
-      (results dict as written to metrics.json, render items). Raises EvalError on bad input.
+      (results dict as written to metrics.json, render items). Raises EvalError on bad input. With several
+      processes (`gpd_jax.distributed`), every process calls it alike: each rolls out its share of the batches
+      and process 0 returns the results of all of them (the same figures as one process); the others return
+      (None, []).
     """
     config, tokenizer = model.config, model.tokenizer
     if samples < 0:
@@ -124,15 +128,50 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     render_items: list[RenderItem] = []
     n_store = n_encoded = 0
     t_roll = t_score = t_data = 0.0
+    # Several processes (`gpd_jax.distributed`): each rolls out its share of the batches (round-robin) on its own
+    # devices and keeps each scenario's sums; process 0 gathers them and folds every batch in batch order, exactly
+    # as one process folds its own, so the figures are those of one process.
+    several = jax.process_count() > 1
+    keep_scenes = per_layout or scene_sums or several
+    mine = distributed.my_share(num_batches)
+    kept: dict[str, dict[str, Any]] = {}
+
+    def batch_indices(b: int) -> tuple[list[int], int]:
+        idx = list(range(b * bs, min((b + 1) * bs, n)))
+        real = len(idx)
+        return idx + [idx[-1]] * (bs - real), real  # pad: same shapes, same compile
+
+    def fold(b: int, rec: dict[str, Any]) -> None:
+        """Adds batch `b`'s record (its scenarios' sums or their total, realism, pictures, counts)."""
+        nonlocal acc, has_road, n_store, n_encoded
+        idx, real = batch_indices(b)
+        if keep_scenes:  # each scenario's sums: the batch's total, each layout's part, each scene's
+            sums = rec["scenes"]
+            if scene_sums:
+                per_scene.append(sums)
+            if per_layout:
+                labels = np.array([layouts[i] for i in idx[:real]])
+                for g in sorted(set(labels)):
+                    layout_acc[g] = add_sums(layout_acc.get(g), jax.tree.map(lambda x: x[labels == g].sum(0), sums))
+            total = jax.tree.map(lambda x: x.sum(0), sums)
+        else:
+            total = rec["total"]
+        acc = add_sums(acc, total)
+        if samples:
+            realism_parts.append(rec["realism"])
+            has_road = has_road and bool(rec["has_road"])
+        n_store += int(rec["n_store"])
+        n_encoded += int(rec["n_encoded"])
+        render_items.extend(_render_item_from(r) for r in rec.get("render", {}).values())
+
     t0 = time.perf_counter()
-    bar = tqdm(total=n, desc=f"compiling the rollout of {len(names)} tasks (the first batch)", unit="scenario",
-               disable=not progress, dynamic_ncols=True)
+    bar = tqdm(total=sum(batch_indices(b)[1] for b in mine), unit="scenario", dynamic_ncols=True,
+               desc=f"compiling the rollout of {len(names)} tasks (the first batch)",
+               disable=not progress or not distributed.is_lead())
     try:
-        for b in range(num_batches):
+        for b in mine:
             ta = time.perf_counter()
-            idx = list(range(b * bs, min((b + 1) * bs, n)))
-            real = len(idx)
-            idx += [idx[-1]] * (bs - real)  # pad: same shapes, same compile
+            idx, real = batch_indices(b)
             weight = np.arange(bs) < real
             try:
                 recs = [src[i] for i in idx]
@@ -146,8 +185,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                 raise EvalError(f"{prep.where} has no map tokens for some scenarios and the model has no map "
                                 "tokenizer to encode them")
             view = model.prepare(full, options, reencode=reencode)
-            n_store += int(stored[:real].sum())
-            n_encoded += int((~stored[:real]).sum())
+            rec: dict[str, Any] = {"n_store": int(stored[:real].sum()), "n_encoded": int((~stored[:real]).sum())}
             gt_lanes = kept_lanes = None
             if maps:
                 gt_lanes = gt_future_lanes(polylines, poly_valid, full.ego_pose, spec)
@@ -166,32 +204,37 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                                           jnp.asarray(scene.map_tokens)[:, None, fut]], axis=1)
                 map_pred = tokenizer.decode_tokens(tokens)
             sums = score_batch(out, scene, _agents_only(full), weight, spec, names, map_pred, gt_lanes, kept_lanes,
-                               per_scenario=per_layout or scene_sums)
-            if per_layout or scene_sums:  # each scenario's sums: the batch's total, each layout's part, each scene's
-                sums = jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(sums))
-                if scene_sums:
-                    per_scene.append(jax.tree.map(lambda x: x[:real], sums))
-                if per_layout:
-                    labels = np.array([layouts[i] for i in idx])
-                    for g in sorted(set(labels[:real])):
-                        part = (labels == g) & weight
-                        layout_acc[g] = add_sums(layout_acc.get(g), jax.tree.map(lambda x: x[part].sum(0), sums))
-                sums = jax.tree.map(lambda x: x[weight].sum(0), sums)
-            acc = add_sums(acc, sums)
+                               per_scenario=keep_scenes)
+            sums = jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(sums))
+            if keep_scenes:
+                rec["scenes"] = jax.tree.map(lambda x: x[:real], sums)
+            else:
+                rec["total"] = sums
             if samples:
                 part, road_ok = _realism(model, view, full, tasks, names, out, samples,
                                          jax.random.fold_in(sample_key, b), options, realism_config)
-                realism_parts.append(jax.tree.map(lambda x: x[:real], part))
-                has_road = has_road and road_ok
+                rec["realism"] = jax.tree.map(lambda x: x[:real], part)
+                rec["has_road"] = road_ok
             t_score += time.perf_counter() - tc
-            for j in range(real):
-                if idx[j] < render_count:
-                    render_items.append(_render_item(idx[j], prep.scenario_ids, out, scene, j))
-            if b == 0:
+            rec["render"] = {str(j): _render_record(idx[j], prep.scenario_ids, out, scene, j)
+                             for j in range(real) if idx[j] < render_count}
+            if several:
+                kept[f"{b:09d}"] = rec
+            else:
+                fold(b, rec)
+            if b == mine[0]:
                 bar.set_description(f"rollout {len(names)} tasks", refresh=False)
             bar.update(real)
     finally:
         bar.close()
+    if several:
+        gathered = distributed.gather_to_lead(f"evaluation/{seed}/{n}", {
+            "batches": kept, "seconds": {"data": t_data, "rollout": t_roll, "score": t_score}})
+        if gathered is None:  # not process 0: it writes the results
+            return None, []
+        for b, rec in sorted((int(b), rec) for g in gathered for b, rec in g["batches"].items()):
+            fold(b, rec)
+        t_data, t_roll, t_score = (sum(float(g["seconds"][k]) for g in gathered) for k in ("data", "rollout", "score"))
     wall = time.perf_counter() - t0
     if foreign.any():
         log(f"map tokens: {foreign.sum()} of {foreign.size} shards hold tokens of another tokenizer; not used")
@@ -232,7 +275,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
         **({"by_layout": {g: {"scenarios": int(a["counts"]["scenarios"]), **reduce_results(a, spec, names, variant)}
                           for g, a in sorted(layout_acc.items())}} if per_layout else {}),
         "timing_s": {"total": round(wall, 2), "rollout": round(t_roll, 2), "scoring": round(t_score, 2),
-                     "data": round(t_data, 2), "batches": num_batches, "batch_size": bs},
+                     "data": round(t_data, 2), "batches": num_batches, "batch_size": bs,
+                     "processes": jax.process_count()},
     }
     if samples:
         by_group = {g: {m: np.concatenate([p[g][m] for p in realism_parts]) for m in realism_parts[0][g]}
@@ -278,8 +322,14 @@ def _agents_only(full: Scene) -> Scene:
                                                   road=None))
 
 
-def _render_item(i: int, ids: Sequence[str], out: RolloutOutput, scene: Scene, j: int) -> RenderItem:
+def _render_record(i: int, ids: Sequence[str], out: RolloutOutput, scene: Scene, j: int) -> dict[str, Any]:
+    """What `RenderItem` holds, as a nested dict of arrays (sent between processes as is)."""
     pred = {k: np.asarray(getattr(out, k)[j]) for k in ("xy", "heading", "valid", "map_tokens")}
     log = {k: np.asarray(getattr(scene, k)[j]) for k in ("xy", "heading", "valid", "size", "agent_type",
                                                          "map_tokens", "ego_pose")}
-    return RenderItem(index=i, scenario_id=ids[i] if i < len(ids) else "", pred=pred, log=log)
+    return {"index": np.int64(i), "scenario_id": np.str_(ids[i] if i < len(ids) else ""), "pred": pred, "log": log}
+
+
+def _render_item_from(rec: dict[str, Any]) -> RenderItem:
+    return RenderItem(index=int(rec["index"]), scenario_id=str(rec["scenario_id"]), pred=dict(rec["pred"]),
+                      log=dict(rec["log"]))

@@ -34,6 +34,7 @@ import time
 
 import numpy as np
 
+from gpd_jax import distributed
 from gpd_jax.cliargs import ArgumentParser as Parser
 from gpd_jax.cliargs import UsageError, count, count0, output_dir, output_file, program, run_command
 
@@ -218,12 +219,18 @@ def cmd_evaluate(args) -> int:
     parsed = _parse_planners(args.planners)
     agents = _agents(args.agents)
     tracker = _tracker(args)
+    cluster = distributed.from_args(args)
+    if cluster.enabled and args.render:
+        raise UsageError("--render runs in one process; leave out --coordinator / --distributed")
+    distributed.initialize(cluster)
     model, heads, scenes = _load(args, parsed)
     check_road(scenes, f"{args.data}/{args.split}")
     policies = _policies(parsed, model, heads)
     t0 = time.perf_counter()
     results = evaluate_planners(model, scenes, policies, agents, batch_size=args.batch_size, seed=args.seed,
                                 tracker=tracker, progress=not args.quiet, keep_runs=args.render)
+    if results is None:  # another process than 0 of a multi-process run: process 0 writes the outputs
+        return 0
     runs = results.pop("runs", {})
     results["seconds"] = round(time.perf_counter() - t0, 1)
     results["data"] = os.path.abspath(args.data)
@@ -326,6 +333,7 @@ def build_parser() -> Parser:
                    help="the first N scenarios (default all)")
     e.add_argument("--batch-size", type=count, default=8, metavar="B", help="scenarios per compiled batch")
     e.add_argument("--quiet", action="store_true")
+    distributed.add_arguments(e)  # the scenes' batches shared over processes / hosts; process 0 writes the outputs
     bn = sub.choices["bench"]
     bn.add_argument("--batch", type=count, default=8, metavar="B", help="scenarios in the timed batch")
     bn.add_argument("--repeats", type=count, default=2, metavar="R", help="timed runs after the compiling one")

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpd_jax import distributed
 from gpd_jax.checkpoint import Model
 from gpd_jax.geometry import ROAD_MISSING, project_on_path
 from gpd_jax.scene import Scene
@@ -173,7 +174,9 @@ def evaluate_planners(model: Model, scenes: Scene,
     "run_seconds": {"name/agents": wall seconds of the runs}}: scores are means x100 (subscores unscaled, in
     [0, 1]), only the agent columns asked for. With `per_scenario`, also "per_scenario": {name: {column: {term:
     numpy f32[n]}}}; with `keep_runs` = K > 0, also "runs": {(name, agents): SimResult of the first K scenarios
-    (numpy)}; these two are not JSON. `planning_table(results)` formats the table.
+    (numpy)}; these two are not JSON. `planning_table(results)` formats the table. With several processes
+    (`gpd_jax.distributed`), every process calls it alike: each runs its share of the batches, process 0 returns the
+    results of all (the same as one process), the others None.
     """
     if isinstance(scenes, SimScene):
         raise SimError("evaluate_planners takes the stored-rate scenes (gpd_jax.load_scenes: a Scene with road "
@@ -194,12 +197,22 @@ def evaluate_planners(model: Model, scenes: Scene,
     runs: dict = {}
     seconds: dict = {}
     batches = [(i, min(i + batch_size, n)) for i in range(0, n, batch_size)]
+    # Several processes (`gpd_jax.distributed`): each runs its share of the batches (round-robin); process 0 gathers
+    # every batch's per-scenario scores and puts them in batch order, so the means are those of one process.
+    several = jax.process_count() > 1
+    if several and keep_runs:
+        raise SimError("keep_runs (--render) keeps runs in one process; render without --coordinator / --distributed")
+    mine = distributed.my_share(len(batches))
+    kept: dict = {}
+    pairs = [(p, a) for p in policies for a in agents]
     bar = None
-    if progress:
+    if progress and distributed.is_lead():
         from tqdm import tqdm
-        bar = tqdm(total=len(batches) * len(policies) * len(agents), desc="closed loop", unit="run")
+        bar = tqdm(total=len(mine) * len(policies) * len(agents), desc="closed loop", unit="run")
     key = jax.random.key(seed)
-    for bi, (lo, hi) in enumerate(batches):
+    for bi in mine:
+        lo, hi = batches[bi]
+        rec: dict = {p: {} for p in policies}
         sub = jax.tree.map(lambda x: x[lo:hi], scenes)
         if hi - lo < batch_size:  # pad the last batch so every batch has one shape (one compile)
             pad = batch_size - (hi - lo)
@@ -214,7 +227,7 @@ def evaluate_planners(model: Model, scenes: Scene,
                 jax.block_until_ready(out.fine_xy)
                 seconds[(p, a)] = seconds.get((p, a), 0.0) + time.perf_counter() - t0
                 sc = _cls_batch(spec, sims, out.fine_xy, out.fine_heading, out.fine_valid)
-                _append(per[p], COLUMNS[a], sc, hi - lo)
+                _put(rec[p], COLUMNS[a], sc, hi - lo)
                 if out.plan is not None:
                     plan = out.plan if plan is None else plan
                 elif a == "gpd":
@@ -225,9 +238,22 @@ def evaluate_planners(model: Model, scenes: Scene,
                     bar.update(1)
             if plan is None:  # no plan of its own and no GPD-agent run: run one for its open-loop plan
                 plan = _model_rate_plan(spec, run(model, sims, policy, bkey, agents="gpd", tracker=tracker))
-            _append(per[p], "OLS", _ols_batch(spec, sims, plan), hi - lo)
+            _put(rec[p], "OLS", _ols_batch(spec, sims, plan), hi - lo)
+        if several:
+            kept[f"{bi:09d}"] = rec
+        else:
+            _fold(per, rec)
     if bar is not None:
         bar.close()
+    if several:
+        gathered = distributed.gather_to_lead("planning", {
+            "batches": kept, "seconds": np.array([seconds.get(pa, 0.0) for pa in pairs])})
+        if gathered is None:  # not process 0: it returns the results
+            return None
+        for _, rec in sorted((b, rec) for g in gathered for b, rec in g["batches"].items()):
+            _fold(per, rec)
+        total = sum(np.asarray(g["seconds"], np.float64) for g in gathered)
+        seconds = {pa: float(t) for pa, t in zip(pairs, total)}
     per = {p: {col: {k: np.concatenate(v) for k, v in d.items()} for col, d in cols.items()} for p, cols in per.items()}
     results: dict = {"scenarios": n, "planners": {}}
     for p in policies:
@@ -247,10 +273,17 @@ def evaluate_planners(model: Model, scenes: Scene,
     return results
 
 
-def _append(store: dict, col: str, scores: dict, count: int) -> None:
-    d = store.setdefault(col, {})
-    for k, v in scores.items():
-        d.setdefault(k, []).append(np.asarray(v)[:count])
+def _put(rec: dict, col: str, scores: dict, count: int) -> None:
+    """One batch's scores of one column: the first `count` scenarios (the rest is padding)."""
+    rec[col] = {k: np.asarray(v)[:count] for k, v in scores.items()}
+
+
+def _fold(per: dict, rec: dict) -> None:
+    """Appends one batch's scores {planner: {column: {term: f32[b]}}} to the run's lists (batch order)."""
+    for p, cols in rec.items():
+        for col, d in cols.items():
+            for k, v in d.items():
+                per[p].setdefault(col, {}).setdefault(k, []).append(np.asarray(v))
 
 
 def planning_table(results: dict) -> str:

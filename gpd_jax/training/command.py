@@ -17,7 +17,7 @@ import math
 import os
 import shutil
 
-from gpd_jax import interrupt
+from gpd_jax import distributed, interrupt
 from gpd_jax.cliargs import ArgumentParser, UsageError, check_output_dir, count, program, run_command
 from gpd_jax.config import split_config_args
 
@@ -55,8 +55,7 @@ def parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument("--workdir", required=True, help="checkpoints, metrics and logs go here")
     p.add_argument("--stop-after", type=count, default=None,
                    help="stop (with a checkpoint) after this many steps of this invocation; run again to resume")
-    p.add_argument("--distributed", action="store_true",
-                   help="call jax.distributed.initialize() first (several hosts; coordinator from the environment)")
+    distributed.add_arguments(p)  # --coordinator HOST:PORT --num-processes N --process-id I | --distributed
     return p
 
 
@@ -95,10 +94,7 @@ def run(args: argparse.Namespace, overrides: list[str]) -> int:
     check_output_dir(args.workdir, "--workdir")
     from gpd_jax.training.common import ConfigLoadError, error_message, load_training_config
 
-    if args.distributed:
-        import jax
-
-        jax.distributed.initialize()
+    distributed.initialize(distributed.from_args(args))
     try:
         config = load_training_config(args.config, overrides)
     except ConfigLoadError as e:

@@ -54,7 +54,7 @@ from gpd_jax.data.pack import check_packed
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import load_tokenizer
 from gpd_jax.model import MODE_HEAD, count_params, reads_lanes, samples_agents
-from gpd_jax.parallel import data_mesh
+from gpd_jax.parallel import data_mesh, replicate
 from gpd_jax.scene import Scene
 from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, restore_state,
                                      save_state)
@@ -216,8 +216,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
     elif tc.init_from:
         state = trainer.init_state(initial_params(str(tc.init_from), config, state.params))
     start = int(state.step)
-    replicated = NamedSharding(mesh, PartitionSpec())
-    state = jax.device_put(state, replicated)
+    state = replicate(state, mesh)
     log = MetricsLog(workdir, enabled=lead)
     if start and lead:
         print(f"resumed {workdir} at step {start}")

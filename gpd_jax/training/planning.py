@@ -58,7 +58,6 @@ import numpy as np
 import optax
 import tqdm
 from flax import nnx, struct
-from jax.sharding import NamedSharding, PartitionSpec
 
 from gpd_jax.checkpoint import Model, build_model, load_model, model_spec, resolve_tokenizer_path
 from gpd_jax.config import config_differences
@@ -69,6 +68,7 @@ from gpd_jax.geometry import route_ahead
 from gpd_jax.map_tokenizer import load_tokenizer
 from gpd_jax.model import count_params, forward
 from gpd_jax.model.planning_head import PlanningHead, to_ego_frame
+from gpd_jax.parallel import replicate
 from gpd_jax.scene import Scene, wrap_angle
 from gpd_jax.spec import EvalError
 from gpd_jax.training.common import (MetricsLog, checkpoint_manager, compiled_once, graft_params, restore_state,
@@ -663,7 +663,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
         if lead and not quiet:
             print(f"cached the frozen backbone's outputs in {time.perf_counter() - t0:.0f} s "
                   f"({feats.hidden.nbytes / 2**20:.0f} MiB for {feats.hidden.shape[0]} training scenes)")
-    state = jax.device_put(state, NamedSharding(mesh, PartitionSpec()))
+    state = replicate(state, mesh)
     log = MetricsLog(workdir, enabled=lead)
     if lead:
         head_n = count_params(model.plan_head)

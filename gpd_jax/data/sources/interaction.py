@@ -436,7 +436,7 @@ class _Bound:
 
 def build_interaction(out_dir: str, db: str, seed: int = 0, split: str | None = None, sites=None,
                       max_per_log: int | None = None, workers: int = 1,
-                      sample_cfg: preprocess.SampleConfig | None = None) -> dict:
+                      sample_cfg: preprocess.SampleConfig | None = None, executor=None) -> dict:
     """Builds (or resumes) a store from INTERACTION track files and maps (one job and shard per track file).
 
     Args:
@@ -447,6 +447,7 @@ def build_interaction(out_dir: str, db: str, seed: int = 0, split: str | None = 
       sites: site names (default: all with track files, or those of `split`).
       max_per_log: at most this many windows per track file (default: every `WINDOW_STRIDE` frames).
       workers: processes.
+      executor: where the jobs run (`gpd_jax.data.executors`; default: `workers` local processes).
     Raises `DataError` (naming the file) for a bad input file or an unknown site or map, and when `out_dir` holds a
     build with other settings.
     """
@@ -475,7 +476,7 @@ def build_interaction(out_dir: str, db: str, seed: int = 0, split: str | None = 
                 "sample_config": dataclasses.asdict(sample_cfg)}
     check_settings(out_dir, settings)
     jobs = [InteractionJob(i, split_of[f.site], f.site, f.path, map_path(db, f.site)) for i, f in enumerate(files)]
-    results = run_jobs(jobs, _Bound(out_dir, sample_cfg, seed, max_per_log), out_dir, workers, "interaction build")
+    results = run_jobs(jobs, _Bound(out_dir, sample_cfg, seed, max_per_log), out_dir, workers, "interaction build", executor)
     failed = [r for r in results if r.get("error")]
     if failed:
         raise DataError(*failed[0]["error"])

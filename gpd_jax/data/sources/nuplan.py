@@ -43,8 +43,9 @@ What is read, and the conventions:
   box (polygons whose bounds meet it, kept whole).
 * `RawLog.location` is the map name (e.g. "us-nv-las-vegas-strip"); `RawLog.name` is the file stem.
 * **Build** (`build_nuplan`): one job and one shard per log, split by map (`log.map_version` from the log headers,
-  read first) unless `split` is given; the logs are then streamed one at a time, a bad log is skipped, counted
-  (`logs_skipped_bad`) and named in the build's rejections.
+  read first) unless `split` is given; the jobs then run on the shared job runner (local processes or Ray, each
+  worker reading a map once for its logs); a bad log is skipped, counted (`logs_skipped_bad`) and named in the
+  build's rejections.
 
 Every problem with an input file raises `gpd_jax.data.errors.DataError` naming the file and the reason.
 """
@@ -67,7 +68,8 @@ import numpy as np
 
 from gpd_jax.data import preprocess, store
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.jobs import assign_splits, check_count, check_settings, existing_shard, finish, job_marker
+from gpd_jax.data.jobs import (assign_splits, check_count, check_settings, existing_shard, finish, job_marker,
+                               run_jobs)
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import Area
 from gpd_jax.data.sources import gpkg
@@ -775,6 +777,7 @@ def read_log(
     projection: str = "auto",
     max_step_error: float = 0.03,
     merge_lanes: bool = True,
+    map_cache: dict | None = None,
 ) -> RawLog:
     """Reads one nuPlan log database and its map into a 10 Hz `RawLog` (see the module docstring).
 
@@ -786,12 +789,14 @@ def read_log(
       max_step_error: largest tolerated deviation (s) of a kept-frame step from 0.1 s.
       merge_lanes: join lanes and lane connectors into unbranched chains as SLEDGE does (see
         `read_map_lanes`); False keeps one polyline per `baseline_paths` row.
+      map_cache: maps already read and projected (filled here), shared by the logs of one process.
     Returns:
       RawLog with F kept frames and N = 1 + vehicles tracks; track 0 is the ego (`ego_index == 0`).
     Raises:
       DataError: naming the `.db` or `.gpkg` file and the reason.
     """
-    return _read_log(Path(db_path), maps_root, map_margin, projection, max_step_error, merge_lanes, {})
+    return _read_log(Path(db_path), maps_root, map_margin, projection, max_step_error, merge_lanes,
+                     {} if map_cache is None else map_cache)
 
 
 def find_logs(db_path_or_dir: str | os.PathLike) -> list[Path]:
@@ -843,12 +848,67 @@ def iter_logs(
 
 
 # ----------------------------------------------------------------------------------------------- build
+@dataclasses.dataclass(frozen=True)
+class NuplanJob:
+    """One log of a nuPlan build: its shard index, its file and the split it goes to."""
+
+    index: int
+    path: str
+    split: str
+    num_samples: int = 1  # what run_jobs counts on its progress bar: logs
+
+
+_WORKER_MAPS: dict = {}  # the maps a worker process has read and projected, reused by its next logs (a few kept)
+_WORKER_MAPS_KEPT = 2
+
+
+def run_nuplan_job(job: NuplanJob, out_dir: str, maps_root: str, sample_cfg: preprocess.SampleConfig, seed: int,
+                   max_per_log: int | None) -> dict:
+    """Reads the job's log, cuts its windows and writes one shard. Returns the job summary; a bad log gives
+    `error` (its reason) and no job marker (it is skipped, counted, and read again by a resumed build)."""
+    t1 = time.time()
+    if len(_WORKER_MAPS) > _WORKER_MAPS_KEPT:
+        _WORKER_MAPS.clear()
+    try:
+        raw = read_log(job.path, maps_root, map_cache=_WORKER_MAPS)
+    except DataError as e:
+        log.warning("skipping nuPlan log: %s", e)
+        return {"index": job.index, "split": job.split, "num_samples": 0, "requested": 1, "stats": {},
+                "rejections": [], "error": str(e)}
+    stats: Counter = Counter()
+    pairs = list(preprocess.iter_samples(raw, sample_cfg, num=max_per_log, seed=seed, stats=stats))
+    if pairs:
+        arrays = store.stack_samples([q[1] for q in pairs], preprocess.sample_spec(sample_cfg))
+        existing = existing_shard(out_dir, job.index)
+        if existing:
+            shutil.rmtree(existing)
+        store.write_shard(out_dir, job.split, job.index, arrays, [q[0] for q in pairs], [raw.location] * len(pairs),
+                          extra={"source": "nuplan", "log": raw.name})
+    r = {"index": job.index, "split": job.split, "location": raw.location, "num_samples": len(pairs),
+         "requested": 1, "wall_s": time.time() - t1, "stats": dict(stats), "rejections": []}
+    store.atomic_write_json(job_marker(out_dir, job.index), r)
+    return r
+
+
+class _Bound:
+    """Picklable job runner bound to its settings."""
+
+    def __init__(self, out_dir, maps_root, sample_cfg, seed, max_per_log):
+        self.args = (out_dir, maps_root, sample_cfg, seed, max_per_log)
+
+    def __call__(self, job):
+        return run_nuplan_job(job, *self.args)
+
+
 def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: str | None = None,
-                 max_per_log: int | None = None, sample_cfg: preprocess.SampleConfig | None = None) -> dict:
-    """Builds a dataset from nuPlan logs (`iter_logs`), one shard per log."""
+                 max_per_log: int | None = None, sample_cfg: preprocess.SampleConfig | None = None,
+                 workers: int = 1, executor=None) -> dict:
+    """Builds (or resumes) a dataset from nuPlan logs (`find_logs`), one job and shard per log, on `executor`
+    (`gpd_jax.data.executors`; default: `workers` local processes, each reading a map once for its logs)."""
     t0 = time.time()
     sample_cfg = sample_cfg or preprocess.SampleConfig()
     check_count("max_per_log", max_per_log, allow_none=True)
+    check_count("workers", workers)
     # inputs first: a wrong --db or --maps must not leave settings behind that a corrected retry trips over
     paths = find_logs(db)
     if not os.path.isdir(maps_root):
@@ -858,7 +918,7 @@ def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: st
     settings = {"source": "nuplan", "db": os.path.abspath(db), "maps": os.path.abspath(maps_root), "seed": seed,
                 "split": split, "max_per_log": max_per_log, "sample_config": dataclasses.asdict(sample_cfg)}
     check_settings(out_dir, settings)
-    # Splits by map: read only the log headers first, then stream the logs one at a time (flat memory).
+    # Splits by map: read only the log headers first, then the logs one per job (flat memory).
     if split:
         split_of = {p: split for p in paths}
     else:
@@ -870,45 +930,13 @@ def build_nuplan(out_dir: str, db: str, maps_root: str, seed: int = 0, split: st
                 pass
         by_loc = assign_splits(list(key.values()), seed)
         split_of = {p: by_loc.get(key.get(p), "train") for p in paths}
-    results = []
-    errors: list = []
-    from tqdm import tqdm
-
-    bar = tqdm(total=len(paths), desc="nuplan build", unit="log")
-    done = {}
-    for i, p in enumerate(paths):
-        m = job_marker(out_dir, i)
-        if os.path.isfile(m):
-            with open(m) as f:
-                done[i] = json.load(f)
-    todo = [p for i, p in enumerate(paths) if i not in done]
-    results = list(done.values())
-    bar.update(len(done))
-    index_of = {p: i for i, p in enumerate(paths)}
-    raws = iter_logs(todo[0] if len(todo) == 1 else db, maps_root, skip_bad=True, errors=errors) if todo else []
-    for raw in raws:
-        i = next((index_of[p] for p in todo if os.path.splitext(os.path.basename(p))[0] == raw.name), None)
-        if i is None or i in done:
-            continue
-        t1 = time.time()
-        stats: Counter = Counter()
-        pairs = list(preprocess.iter_samples(raw, sample_cfg, num=max_per_log, seed=seed, stats=stats))
-        sp = split_of[paths[i]]
-        if pairs:
-            arrays = store.stack_samples([q[1] for q in pairs], preprocess.sample_spec(sample_cfg))
-            existing = existing_shard(out_dir, i)
-            if existing:
-                shutil.rmtree(existing)
-            store.write_shard(out_dir, sp, i, arrays, [q[0] for q in pairs], [raw.location] * len(pairs),
-                              extra={"source": "nuplan", "log": raw.name})
-        r = {"index": i, "split": sp, "location": raw.location, "num_samples": len(pairs),
-             "requested": len(pairs), "wall_s": time.time() - t1, "stats": dict(stats), "rejections": []}
-        store.atomic_write_json(job_marker(out_dir, i), r)
-        results.append(r)
-        bar.update(1)
-    bar.close()
+    jobs = [NuplanJob(i, os.path.abspath(str(p)), split_of[p]) for i, p in enumerate(paths)]
+    results = run_jobs(jobs, _Bound(out_dir, os.path.abspath(str(maps_root)), sample_cfg, seed, max_per_log),
+                       out_dir, workers, "nuplan build", executor)
+    errors = [r["error"] for r in results if r.get("error")]
+    results = [r for r in results if not r.get("error")]
     if errors:
-        log.warning("skipped %d bad nuPlan logs: %s", len(errors), "; ".join(map(str, errors[:5])))
+        log.warning("skipped %d bad nuPlan logs: %s", len(errors), "; ".join(errors[:5]))
         results.append({"index": -1, "num_samples": 0, "requested": 0, "stats": {"logs_skipped_bad": len(errors)},
-                        "rejections": [str(e) for e in errors]})
+                        "rejections": errors})
     return finish(out_dir, settings, results, time.time() - t0)

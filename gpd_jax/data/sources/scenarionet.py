@@ -647,7 +647,7 @@ class _ScenarioNetBound:
 
 def build_scenarionet(out_dir: str, db: str, seed: int = 0, split: str | None = None,
                       max_per_log: int | None = None, workers: int = 1, per_job: int = 50,
-                      skip_bad: bool = False, sample_cfg: preprocess.SampleConfig | None = None) -> dict:
+                      skip_bad: bool = False, sample_cfg: preprocess.SampleConfig | None = None, executor=None) -> dict:
     """Builds (or resumes) a dataset from ScenarioNet scenarios (`find_scenarios`, `read_scenario`).
 
     Args:
@@ -658,6 +658,7 @@ def build_scenarionet(out_dir: str, db: str, seed: int = 0, split: str | None = 
       max_per_log: at most this many windows per scenario (default: every `window_stride` frames).
       workers: processes; per_job: scenario files per job (one shard each, of one split and one dataset).
       skip_bad: skip (and count) files that raise `DataError` instead of stopping with that error.
+      executor: where the jobs run (`gpd_jax.data.executors`; default: `workers` local processes).
     Raises `DataError` (naming the file) for a bad input file unless `skip_bad`, and `ValueError` when `out_dir`
     holds a build with other settings or of another set of files.
     """
@@ -677,7 +678,7 @@ def build_scenarionet(out_dir: str, db: str, seed: int = 0, split: str | None = 
     index = _scenarionet_index(out_dir, files, h.hexdigest())
     jobs = _plan_scenarionet_jobs([f.path for f in files], index, seed, split, per_job)
     bound = _ScenarioNetBound(out_dir, sample_cfg, max_per_log, seed, skip_bad)
-    results = run_jobs(jobs, bound, out_dir, workers, "scenarionet build")
+    results = run_jobs(jobs, bound, out_dir, workers, "scenarionet build", executor)
     failed = [r for r in results if r.get("error")]
     if failed:
         raise DataError(*failed[0]["error"])

@@ -34,12 +34,12 @@ from collections import Counter
 
 import numpy as np
 
-from gpd_jax import interrupt
 from gpd_jax.data import netgeom, preprocess, store
 from gpd_jax.data.boxes import sample_has_overlap
 from gpd_jax.data.errors import DataError
+from gpd_jax.data.executors import LocalExecutor, run_all
 from gpd_jax.data.jobs import (assign_splits, check_count, check_settings, existing_shard, finish, job_marker,
-                               run_jobs, worker_init)
+                               run_jobs)
 from gpd_jax.data.sources import sumo_networks, sumo_traffic
 
 log = logging.getLogger(__name__)
@@ -216,19 +216,17 @@ def _lefthand_net(out_dir: str, job: SumoJob) -> str:
     return net
 
 
-def prepare_networks(jobs: list[SumoJob], out_dir: str, workers: int = 1) -> dict[str, dict]:
+def prepare_networks(jobs: list[SumoJob], out_dir: str, workers: int = 1, executor=None) -> dict[str, dict]:
     """Generates (or reuses) every job's network and fingerprint before any simulation, and writes
     `DIR/_networks/index.json`: location -> {"layout", "split", "net", "spec", "fingerprint", "lane_km"}
-    (see `gpd_jax.data.netgeom.read_network_index`). Returns that index."""
+    (see `gpd_jax.data.netgeom.read_network_index`). Returns that index. Runs on `executor` (default: `workers`
+    local processes when there are more than 4 networks)."""
     first = {}
     for j in jobs:
         first.setdefault(j.location, j)
     todo = [(out_dir, j) for j in first.values()]
-    if workers > 1 and len(todo) > 4:
-        with interrupt.worker_pool(min(workers, len(todo)), initializer=worker_init) as ex:
-            recs = list(ex.map(_prepare_network, todo))
-    else:
-        recs = [_prepare_network(t) for t in todo]
+    executor = executor or LocalExecutor(workers if len(todo) > 4 else 1)
+    recs = run_all(executor, _prepare_network, todo)
     index = dict(sorted(recs))
     store.atomic_write_json(os.path.join(netgeom.networks_dir(out_dir), netgeom.NETWORKS_INDEX), index)
     return index
@@ -483,7 +481,7 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                keep_overlaps: bool = False, refuse_near_duplicates: bool = True,
                near_duplicate_tol: float | None = None, against: list[str] | tuple = (),
                traffic: dict | None = None, ego: EgoChoice = EgoChoice(), lefthand_share: float | None = None,
-               static_tls_share: float = 0.5, curved_share: float = 0.0) -> dict:
+               static_tls_share: float = 0.5, curved_share: float = 0.0, executor=None) -> dict:
     """Builds (or resumes) a SUMO dataset in `out_dir`. Returns the manifest.
 
     Args:
@@ -509,6 +507,8 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
         `sumo_networks.NetSpec.bend`), drawn per network from its seed; 0 (default) = straight streets as in
         every store built before it.
     All of them are recorded in the settings (`build.traffic` in the manifest) and in every shard's meta.
+      executor: where the networks and the jobs run (`gpd_jax.data.executors`; default: `workers` local
+        processes); the store is the same whatever runs them.
     """
     t0 = time.time()
     check_count("num_scenarios", num_scenarios)
@@ -558,7 +558,7 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
         shutil.rmtree(netgeom.networks_dir(out_dir), ignore_errors=True)
     jobs = plan_sumo_jobs(num_scenarios, seed, nets, per_job, split, net_layout, lefthand_share,
                           0.0 if nets else static_tls_share, curved_share)
-    index = prepare_networks(jobs, out_dir, workers)
+    index = prepare_networks(jobs, out_dir, workers, executor)
     dups, dup_summary = check_near_duplicates(out_dir, index, against, near_duplicate_tol)
     if dups:
         lines = "; ".join(f"{d['evaluated']} ({d['evaluated_split']}) ~ {d['reference']} ({d['reference_split']}"
@@ -570,7 +570,7 @@ def build_sumo(out_dir: str, num_scenarios: int, seed: int = 0, nets: list[str] 
                                      f"networks, or build with --allow-near-duplicates to record them and go on")
         log.warning("%d evaluation network(s) nearly match training networks: %s", len(dups), lines)
     results = run_jobs(jobs, _Bound(out_dir, sample_cfg, sim_cfg, ego, traffic, settings.get("traffic")), out_dir,
-                       workers, "sumo build")
+                       workers, "sumo build", executor)
     extra = {"near_duplicates": dups, "near_duplicate_check": dup_summary,
              "networks": {loc: {k: r.get(k) for k in ("layout", "split", "lane_km", "lefthand")}
                           for loc, r in index.items()}}
