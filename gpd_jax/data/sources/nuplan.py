@@ -764,6 +764,7 @@ def _read_log(
         lanes=tuple(lanes),
         ego_index=0,
         areas=tuple(areas),
+        areas_outline="drivable_area",  # lanes, connectors, intersections, car parks, generic drivable: the road
     )
 
 
