@@ -37,6 +37,9 @@ def _road(sample):
                             jnp.asarray(sample["polyline_valid"]))
 
 
+_on_road = jax.jit(on_road)
+
+
 def drivable_left_share(sample, probe=0.5):
     """Share of the map-edge segments (by length) whose left side is drivable and right side is not."""
     pts, ok = sample["road_map_edges"], sample["road_map_edge_valid"]
@@ -48,20 +51,21 @@ def drivable_left_share(sample, probe=0.5):
     left = np.stack([-t[:, 1], t[:, 0]], -1) / n[:, None]
     mid = (a + b) / 2
     road = _road(sample)
-    lon = np.asarray(on_road(road, jnp.asarray(mid + probe * left)))
-    ron = np.asarray(on_road(road, jnp.asarray(mid - probe * left)))
+    lon = np.asarray(_on_road(road, jnp.asarray(mid + probe * left)))
+    ron = np.asarray(_on_road(road, jnp.asarray(mid - probe * left)))
     return float(np.sum(n * (lon & ~ron)) / np.sum(n))
+
+
+@jax.jit
+def _offroad(road, xy, hd, v, size):
+    feats = realism.realism_features(xy, hd, v, size, CFG.num_history, 0.1, realism.orient_edges(road))
+    return jnp.any(feats.offroad, 0)
 
 
 def log_offroad_share(sample):
     """The share of agents valid at the current frame whose box is off the map edges in some future frame."""
-    road = _road(sample)
-    edges = realism.orient_edges(road)
-    xy, hd, v = (jnp.asarray(sample[k]) for k in ("xy", "heading", "valid"))
-    feats = realism.realism_features(xy, hd, v, jnp.asarray(sample["size"]), CFG.num_history, 0.1, edges)
-    ev = np.asarray(v[CFG.current])
-    off = np.asarray(jnp.any(feats.offroad, 0))
-    return float(off[ev].mean())
+    off = np.asarray(_offroad(_road(sample), *(jnp.asarray(sample[k]) for k in ("xy", "heading", "valid", "size"))))
+    return float(off[sample["valid"][CFG.current]].mean())
 
 
 # ------------------------------------------------------------------------------------------------ road edges
@@ -240,9 +244,10 @@ def test_red_light_budget_counts_the_rest_as_violations():
     # agents 0 and 1 both cross the stop point's line (agent 1 on the next lane): two candidate crossings; with a
     # budget of one, agent 0's (first in frame-major order) is tested exactly, agent 1's is counted as a violation
     xy, valid, sig, lanes, lv = _signal_scene("stop")
-    red, beyond = red_light_violation(xy, valid, sig, lanes, lv, max_events=1)
+    fn = jax.jit(red_light_violation, static_argnames="max_events")
+    red, beyond = fn(xy, valid, sig, lanes, lv, max_events=1)
     assert int(beyond) == 1 and np.asarray(red)[:, :2].any(0).all() and not np.asarray(red)[:, 2].any()
-    red, beyond = red_light_violation(xy, valid, sig, lanes, lv, max_events=2)
+    red, beyond = fn(xy, valid, sig, lanes, lv, max_events=2)
     assert int(beyond) == 0 and np.asarray(red).any(0).tolist() == [True, False, False]
 
 
@@ -253,9 +258,10 @@ def test_realism_2025_scores_traffic_lights_only_with_signals():
     size = jnp.broadcast_to(jnp.array([4.5, 1.9]), (3, 2))
     sims = jnp.stack([xy, xy.at[:, 0, 0].set(jnp.minimum(xy[:, 0, 0], -1.0))])  # one run, one stop
     k = sims.shape[0]
-    common = (jnp.zeros((k, t_n, 3)), jnp.ones((k, t_n, 3), bool), xy, hd, valid, size, 3)
-    with_sig = realism.scenario_realism(sims, *common, signals=sig, lanes=lanes, lane_valid=lv)
-    without = realism.scenario_realism(sims, *common)
+    score = jax.jit(lambda *a, **kw: realism.scenario_realism(*a, num_history=3, **kw))
+    common = (jnp.zeros((k, t_n, 3)), jnp.ones((k, t_n, 3), bool), xy, hd, valid, size)
+    with_sig = score(sims, *common, signals=sig, lanes=lanes, lane_valid=lv)
+    without = score(sims, *common)
     assert "traffic_light_violation_likelihood" in with_sig and "traffic_light_violation_likelihood" not in without
     # the log runs the light; one of the two rollouts does: likelihood (1 + p) / (2 + 2p) on agent 0, 1 elsewhere
     assert float(with_sig["red_light_rate"]) == pytest.approx(0.5 / 3, rel=1e-5)
