@@ -97,6 +97,25 @@ def test_nuplan_drivable_area_outline(tmp_path):
     assert s["road_map_edge_valid"].any() and drivable_left_share(s) > 0.99
 
 
+def test_nuplan_traffic_light_status(tmp_path):
+    root = tmp_path / "maps"
+    nfx.write_maps_root(root)
+    (tmp_path / "logs").mkdir()
+    db = nfx.write_log_db(tmp_path / "logs" / "2021.05.12.22.00.38_veh-35_01008_01518.db",
+                          lights={3: lambda i: "red" if i < 30 else ("green" if i < 50 else None)})
+    raw = nuplan.read_log(db, root)
+    sig = raw.signals
+    assert sig is not None and sig.state.shape == (raw.num_frames, 1)
+    stop, go = SIGNAL_STATE_ID["stop"], SIGNAL_STATE_ID["go"]
+    # the connector turns left off lane 1 (fixture); its light: red, then green, then no record (unknown)
+    assert sig.state[:15, 0].tolist() == [stop] * 15 and sig.state[15:25, 0].tolist() == [go] * 10
+    assert (sig.state[25:, 0] == 0).all()  # no row: unknown
+    assert np.allclose(sig.stop[0], sig.lane[0][0]) and len(sig.lane[0]) >= 2
+    # no table rows: no signals
+    db2 = nfx.write_log_db(tmp_path / "logs" / "2021.05.12.22.00.38_veh-35_01008_01519.db")
+    assert nuplan.read_log(db2, root).signals is None
+
+
 def test_lanelet2_curbstones_are_the_road_edges(tmp_path):
     from test_interaction import SITE, write_csv, write_osm
 
