@@ -84,6 +84,40 @@ def test_scenarionet_road_edge_lines_oriented():
     assert int(s2["road_edge_source"]) == EDGE_SOURCE_ID["lane_union"] and drivable_left_share(s2) > 0.99
 
 
+def test_scenarionet_signals_and_a_logged_red_light_run():
+    sc = sfx.make_scenario()
+    T = sc["length"]
+    stop = np.zeros(3, np.float32)
+    stop[:2] = sfx.road_to_world(np.array([30.5]), np.array([0.0]))[0]  # on the ego's lane, 30.5 m ahead
+    sc["dynamic_map_states"]["tl1"].update(stop_point=stop, state={"object_state": ["LANE_STATE_STOP"] * T})
+    sc["dynamic_map_states"]["tl2"] = {"type": "TRAFFIC_LIGHT", "lane": "100", "stop_point": stop,
+                                       "state": {"object_state": ["TRAFFIC_LIGHT_GREEN"] * (T - 1) + [None]}}
+    sc["dynamic_map_states"]["tl3"] = {"type": "TRAFFIC_LIGHT", "lane": "999", "stop_point": stop,
+                                       "state": {"object_state": ["LANE_STATE_STOP"] * T}}  # no such lane
+    stats = Counter()
+    raw = scenarionet.scenario_to_rawlog(sc, "s0.pkl", stats=stats)
+    assert raw.signals.state.shape == (raw.num_frames, 2) and stats["signals_without_lane_or_stop"] == 1
+    assert set(raw.signals.state[:, 0]) == {SIGNAL_STATE_ID["stop"]}
+    assert raw.signals.state[-1, 1] == 0 and raw.signals.state[0, 1] == SIGNAL_STATE_ID["go"]
+    (_, s), *_ = list(preprocess.iter_samples(raw, CFG))
+    state = s["signal_state"]
+    assert (s["signal_lane_valid"].sum(-1) >= 2).sum() == 2 and (state[:, :2] != 0).all()
+    sig = TrafficSignals(state=jnp.asarray(state, jnp.int32), stop=jnp.asarray(s["signal_stop"]),
+                         lane=jnp.asarray(s["signal_lane"]), lane_valid=jnp.asarray(s["signal_lane_valid"]))
+    red, _ = jax.jit(red_light_violation)(jnp.asarray(s["xy"]), jnp.asarray(s["valid"]), sig,
+                                          jnp.asarray(s["polylines"]), jnp.asarray(s["polyline_valid"]))
+    red = np.asarray(red)
+    # the ego (10 m/s from 0) passes the stop 30.5 m ahead after 3 s, on its own lane: flagged once (a position
+    # exactly on the stop point is neither behind nor ahead of it, as in the official rule); so is the car 12 m
+    # ahead of it in the lane; the cars in the other lanes cross the same line but are on other lanes (the right
+    # lane's light is green, the left lane has none): not flagged
+    assert red[:, 0].sum() == 1
+    t, a = np.nonzero(red)
+    assert len(a) == 2 and (np.abs(s["xy"][t, a, 1]) < 0.5).all()
+    other_lanes = s["valid"] & (np.abs(s["xy"][..., 1]) > 2.0)
+    assert other_lanes.any() and not (red & other_lanes).any()
+
+
 def test_nuplan_drivable_area_outline(tmp_path):
     root = tmp_path / "maps"
     nfx.write_maps_root(root)
