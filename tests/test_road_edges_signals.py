@@ -27,7 +27,7 @@ from gpd_jax.data.sources import interaction, nuplan, scenarionet, sumo_networks
 from gpd_jax.geometry import (EDGE_SOURCE_ID, SIGNAL_STATE_ID, TrafficSignals, edge_source_names, on_road,
                               road_from_arrays)
 from gpd_jax.metrics import realism
-from gpd_jax.metrics.traffic_lights import red_light_violation
+from gpd_jax.metrics.traffic_lights import red_light_violation, signal_geometry
 
 CFG = preprocess.SampleConfig()
 
@@ -104,8 +104,8 @@ def test_scenarionet_signals_and_a_logged_red_light_run():
     assert (s["signal_lane_valid"].sum(-1) >= 2).sum() == 2 and (state[:, :2] != 0).all()
     sig = TrafficSignals(state=jnp.asarray(state, jnp.int32), stop=jnp.asarray(s["signal_stop"]),
                          lane=jnp.asarray(s["signal_lane"]), lane_valid=jnp.asarray(s["signal_lane_valid"]))
-    red, _ = jax.jit(red_light_violation)(jnp.asarray(s["xy"]), jnp.asarray(s["valid"]), sig,
-                                          jnp.asarray(s["polylines"]), jnp.asarray(s["polyline_valid"]))
+    geo = signal_geometry(sig, jnp.asarray(s["polylines"]), jnp.asarray(s["polyline_valid"]))
+    red, _ = jax.jit(red_light_violation)(jnp.asarray(s["xy"]), jnp.asarray(s["valid"]), geo)
     red = np.asarray(red)
     # the ego (10 m/s from 0) passes the stop 30.5 m ahead after 3 s, on its own lane: flagged once (a position
     # exactly on the stop point is neither behind nor ahead of it, as in the official rule); so is the car 12 m
@@ -279,7 +279,8 @@ def _signal_scene(state_name, t_n=12):
 
 
 def test_red_light_run_flagged_green_not():
-    fn = jax.jit(chex.assert_max_traces(red_light_violation, n=1))
+    fn = jax.jit(chex.assert_max_traces(
+        lambda xy, v, sig, lanes, lv: red_light_violation(xy, v, signal_geometry(sig, lanes, lv)), n=1))
     xy, valid, sig, lanes, lv = _signal_scene("stop")
     red, beyond = fn(xy, valid, sig, lanes, lv)
     red = np.asarray(red)
@@ -297,7 +298,8 @@ def test_red_light_budget_counts_the_rest_as_violations():
     # agents 0 and 1 both cross the stop point's line (agent 1 on the next lane): two candidate crossings; with a
     # budget of one, agent 0's (first in frame-major order) is tested exactly, agent 1's is counted as a violation
     xy, valid, sig, lanes, lv = _signal_scene("stop")
-    fn = jax.jit(red_light_violation, static_argnames="max_events")
+    fn = jax.jit(lambda xy, v, sig, lanes, lv, max_events: red_light_violation(
+        xy, v, signal_geometry(sig, lanes, lv), max_events), static_argnames="max_events")
     red, beyond = fn(xy, valid, sig, lanes, lv, max_events=1)
     assert int(beyond) == 1 and np.asarray(red)[:, :2].any(0).all() and not np.asarray(red)[:, 2].any()
     red, beyond = fn(xy, valid, sig, lanes, lv, max_events=2)

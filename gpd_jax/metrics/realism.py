@@ -73,7 +73,7 @@ import numpy as np
 
 from gpd_jax.geometry import RoadGeometry, TrafficSignals, on_road
 from gpd_jax.metrics.agents import box_corners
-from gpd_jax.metrics.traffic_lights import red_light_violation
+from gpd_jax.metrics.traffic_lights import SignalGeometry, red_light_violation, signal_geometry
 from gpd_jax.scene import wrap_angle
 
 # ------------------------------------------------------------------------------------------------ constants
@@ -509,8 +509,8 @@ def road_edge_distance(edges: OrientedEdges, corners, valid, num_candidates: int
 
 
 def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: jax.Array, num_history: int,
-                     dt: float = 0.1, edges: OrientedEdges | None = None, signals: TrafficSignals | None = None,
-                     lanes=None, lane_valid=None) -> RealismFeatures:
+                     dt: float = 0.1, edges: OrientedEdges | None = None,
+                     signals: SignalGeometry | None = None) -> RealismFeatures:
     """The realism features of one trajectory set's future frames.
 
     Args:
@@ -520,8 +520,8 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
       dt: seconds between frames.
       edges: `orient_edges(scene.road)` (computed once per scene, shared by the log and every rollout), or None
         for a scene without road geometry (then distance_to_road_edge is `FAR`, offroad False).
-      signals: the scene's `TrafficSignals` (unbatched, states on these frames) with its lane centrelines
-        `lanes f32[L, P, 2]`, `lane_valid bool[L, P]`, or None (no traffic-light feature).
+      signals: `signal_geometry` of the scene's signals (computed once per scene, states on these frames), or
+        None (no traffic-light feature).
     """
     speed, accel, w, dw, sv, av = kinematics(xy, heading, valid, dt)
     fut = slice(num_history, None)
@@ -539,7 +539,9 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
         angular_speed=w[fut], angular_acceleration=dw[fut], distance_to_nearest_object=dist,
         collision=(dist < 0) & v_f, time_to_collision=ttc, distance_to_road_edge=edge,
         offroad=(edge > 0) & v_f & (edge < FAR / 2), edge_inexact=inexact,
-        red_light=None if signals is None else red_light_violation(xy, valid, signals, lanes, lane_valid)[0][fut])
+        red_light=None if signals is None else red_light_violation(  # from the current frame: crossings into H..
+            xy[num_history - 1:], valid[num_history - 1:],
+            signals.replace(state=signals.state[num_history - 1:]))[0][1:])
 
 
 # ------------------------------------------------------------------------------------------------ likelihoods
@@ -669,7 +671,8 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
     edges = None if road is None else orient_edges(road, max_edge_segments)
     if evaluated is None:
         evaluated = log_valid[num_history - 1]
-    feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, signals, lanes, lane_valid)
+    geo = None if signals is None else signal_geometry(signals, lanes, lane_valid)
+    feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, geo)
     log = feats(log_xy, log_heading, log_valid)
     sim = jax.vmap(feats)(sim_xy, sim_heading, sim_valid)
     return realism_metrics(sim, log, sim_xy[:, num_history:], log_xy[num_history:], evaluated, config,
