@@ -222,6 +222,13 @@ def test_sumo_build_has_outline_and_signals(tmp_path):
     for k in a.arrays:
         np.testing.assert_array_equal(np.asarray(a.arrays[k]), np.asarray(b.arrays[k]), err_msg=k)
     assert (np.asarray(a.arrays["road_edge_source"]) == EDGE_SOURCE_ID["drivable_area"]).all()
+    # inspect --road-edges: where the edges come from and the log's own offroad rate on them (SUMO keeps to its road)
+    from gpd_jax.data import inspection
+
+    summary = inspection.road_edge_summary(outs[0])
+    for split, r in summary.items():
+        assert r["edge_sources"] == {"drivable_area": r["scenes"]} and r["agents"] > 0
+        assert r["log_offroad_rate"] <= 0.05
 
 
 def test_mirror_keeps_the_drivable_side_left():
