@@ -413,7 +413,7 @@ def bench_realism(args) -> dict:
         scenes = synthetic_scenes(0, args.scenarios, h + f, h, a, 64, 512)
         road = jax.tree.map(lambda x: np.broadcast_to(x, (args.scenarios,) + x.shape), _grid_road())
         source = "synthetic scenes on a synthetic 5 x 5 city grid"
-    budget = realism.edge_segment_budget(road.edge_valid)
+    budget = realism.edge_segment_budget(road)
     keys = jax.random.split(jax.random.key(0), args.scenarios)
 
     def one(xy, heading, valid, size, road, key):

@@ -11,6 +11,10 @@ holds three things, all fixed-shape with validity masks (never ragged):
 * **road edges**: open polylines along the boundary of the union of every drivable area (computed when the
   sample is built). Where the geometry was clipped to the sample's region, the clip box's sides are *not*
   edges. A closed edge repeats its first point at the end. Segments join consecutive valid points.
+* **map road edges** (optional, stores of format 2 on): the road edges the official realism metric reads,
+  *oriented with the drivable side on their left*, from the source map where it draws them (curbs, road
+  borders, the drivable area's outline) or the lane union's outline where it has none; `edge_source` says
+  which (`EDGE_SOURCES`). None for older stores (consumers then orient `edges` themselves).
 * **lane centrelines**, directed (points in driving order), the same arrays as `Scene.polylines` /
   `Scene.polyline_valid`; stores keep them only once (the loader fills them in from the polylines).
 
@@ -34,6 +38,18 @@ import numpy as np
 # Kinds of drivable area (index = `RoadGeometry.polygon_kind`).
 AREA_KINDS = ("lane", "junction", "other")
 AREA_KIND_ID = {name: i for i, name in enumerate(AREA_KINDS)}
+# Where a scene's map road edges come from (index = `RoadGeometry.edge_source`): "none" (no map geometry),
+# "lane_union" (the outline of the union of the lanes' areas: the source draws no road edge, e.g. ScenarioNet's
+# nuScenes conversions), "drivable_area" (the outline of the source's drivable area, which is the whole road:
+# nuPlan's drivable layers, SUMO's lanes and junctions), "map_lines" (the map's own road-edge lines: ScenarioNet
+# `ROAD_EDGE_*`, Lanelet2 bounds of type curbstone / road_border / guard_rail / wall / fence).
+EDGE_SOURCES = ("none", "lane_union", "drivable_area", "map_lines")
+EDGE_SOURCE_ID = {name: i for i, name in enumerate(EDGE_SOURCES)}
+# Traffic-signal lane states, WOSAC's enum in its order (index = `TrafficSignals.state`); 0 is also "no signal".
+SIGNAL_STATES = ("unknown", "arrow_stop", "arrow_caution", "arrow_go", "stop", "caution", "go", "flashing_stop",
+                 "flashing_caution")
+SIGNAL_STATE_ID = {name: i for i, name in enumerate(SIGNAL_STATES)}
+STOP_STATES = (SIGNAL_STATE_ID["arrow_stop"], SIGNAL_STATE_ID["stop"])  # what the violation feature calls stop
 
 # What a consumer that needs the geometry says when a scene has none (a store built before it existed).
 ROAD_MISSING = ("these scenes carry no road geometry (Scene.road is None): the data store was built before "
@@ -56,6 +72,10 @@ class RoadGeometry:
       edge_valid: bool[..., E, P] which edge points exist; a segment joins two consecutive valid points.
       lanes: f32[..., L, Q, 2] directed lane centrelines in the scene frame (= `Scene.polylines`).
       lane_valid: bool[..., L, Q] which centreline points exist (= `Scene.polyline_valid`).
+      map_edges: optional f32[..., Em, Pm, 2] the map's road edges, each with the drivable side on its left
+        (module docstring); None for stores built before them.
+      map_edge_valid: optional bool[..., Em, Pm] which map-edge points exist (a prefix of each row).
+      edge_source: optional i32[...] index into `EDGE_SOURCES` of the map edges (given with `map_edges`).
     """
 
     polygons: jax.Array
@@ -65,6 +85,9 @@ class RoadGeometry:
     edge_valid: jax.Array
     lanes: jax.Array
     lane_valid: jax.Array
+    map_edges: jax.Array | None = None
+    map_edge_valid: jax.Array | None = None
+    edge_source: jax.Array | None = None
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -80,6 +103,9 @@ class RoadGeometry:
             "edges": (("E", "P", 2), "f"), "edge_valid": (("E", "P"), "b"),
             "lanes": (("L", "Q", 2), "f"), "lane_valid": (("L", "Q"), "b"),
         }
+        if self.map_edges is not None or self.map_edge_valid is not None or self.edge_source is not None:
+            spec.update({"map_edges": (("Em", "Pm", 2), "f"), "map_edge_valid": (("Em", "Pm"), "b"),
+                         "edge_source": ((), "i")})
         problems: list[str] = []
         dims: dict[str, tuple[int, str]] = {}
         lead_seen: tuple[tuple[int, ...], str] | None = (
@@ -112,6 +138,35 @@ class RoadGeometry:
         if problems:
             raise ValueError(f"invalid {where}:\n  " + "\n  ".join(problems))
         return self
+
+
+@flax.struct.dataclass(frozen=True)
+class TrafficSignals:
+    """Traffic-light states of one scene (or a batch: leading dims `...`), per signal slot (a controlled lane).
+
+    Attributes:
+      state: i32[..., T, S] the state per frame (index into `SIGNAL_STATES`; 0: unknown or no signal in the slot),
+        on the scene's frames (`Scene.slice_frames` / `subsample` cut it with them).
+      stop: f32[..., S, 2] the stop point of each slot in the scene frame.
+      lane: f32[..., S, Q, 2] the controlled lane around the stop point, in driving order (scene frame).
+      lane_valid: bool[..., S, Q] which lane points exist (a prefix); a slot with fewer than 2 is empty.
+    """
+
+    state: jax.Array
+    stop: jax.Array
+    lane: jax.Array
+    lane_valid: jax.Array
+
+
+def edge_source_names(road: "RoadGeometry | None", batch_shape: tuple[int, ...] = ()) -> np.ndarray:
+    """Per scene (on the host), where the road edges a realism metric reads come from: an `EDGE_SOURCES` name,
+    "area_boundary_unoriented" (a store before format 2: the areas' boundary, oriented by the metric) or
+    "no_road" (`road` None; then `batch_shape` gives the scenes)."""
+    if road is None:
+        return np.full(batch_shape, "no_road", dtype=object)
+    if road.edge_source is None:
+        return np.full(road.batch_shape, "area_boundary_unoriented", dtype=object)
+    return np.asarray(EDGE_SOURCES, dtype=object)[np.asarray(road.edge_source)]
 
 
 def require_road(road: "RoadGeometry | None", where: str = "") -> "RoadGeometry":
@@ -408,7 +463,13 @@ def rotate(v: jax.Array, angle: jax.Array) -> jax.Array:
 
 
 def road_from_arrays(arrays: dict[str, Any], lanes: Any, lane_valid: Any, prefix: str = "road_") -> RoadGeometry:
-    """RoadGeometry from stored arrays named `<prefix>polygons`, ... (numpy or JAX leaves kept as they are)."""
+    """RoadGeometry from stored arrays named `<prefix>polygons`, ... (numpy or JAX leaves kept as they are); the
+    map edges (`<prefix>map_edges`, `<prefix>map_edge_valid`, `<prefix>edge_source`) where the arrays have them."""
+    has_map = prefix + "map_edges" in arrays
+    source = arrays.get(prefix + "edge_source")
     return RoadGeometry(polygons=arrays[prefix + "polygons"], polygon_valid=arrays[prefix + "polygon_valid"],
                         polygon_kind=arrays[prefix + "polygon_kind"], edges=arrays[prefix + "edges"],
-                        edge_valid=arrays[prefix + "edge_valid"], lanes=lanes, lane_valid=lane_valid)
+                        edge_valid=arrays[prefix + "edge_valid"], lanes=lanes, lane_valid=lane_valid,
+                        map_edges=arrays[prefix + "map_edges"] if has_map else None,
+                        map_edge_valid=arrays[prefix + "map_edge_valid"] if has_map else None,
+                        edge_source=None if source is None or not has_map else source.astype(np.int32))

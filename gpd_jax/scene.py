@@ -60,6 +60,9 @@ class Scene:
         directed lane centrelines in the scene frame, queried with `gpd_jax.geometry.on_road`,
         `signed_distance_to_edge` and `lane_direction`. Not per frame: `subsample` / `slice_frames` keep it.
         None for stores built before the geometry existed (rebuild with `python -m gpd_jax.data build ...`).
+      signals: optional `gpd_jax.geometry.TrafficSignals` (same leading dims): traffic-light states per frame
+        (`state i32[..., T, S]`, cut with the frames) at stop points on controlled lanes; None where the store
+        has none (sources without signals, stores before format 2).
     """
 
     xy: jax.Array
@@ -76,6 +79,7 @@ class Scene:
     polylines: jax.Array | None = None
     polyline_valid: jax.Array | None = None
     road: "RoadGeometry | None" = None  # noqa: F821 (gpd_jax.geometry, a sibling layer: not imported here)
+    signals: "TrafficSignals | None" = None  # noqa: F821 (gpd_jax.geometry)
 
     # ---------------------------------------------------------------- shapes
     @property
@@ -114,6 +118,9 @@ class Scene:
             v = getattr(self, name)
             if v is not None:
                 updates[name] = jax.lax.slice_in_dim(v, start, stop, axis=v.ndim + axis)
+        if self.signals is not None:
+            st = self.signals.state
+            updates["signals"] = self.signals.replace(state=jax.lax.slice_in_dim(st, start, stop, axis=st.ndim - 2))
         return self.replace(**updates)
 
     def subsample(self, stride: int = 1, num_frames: int | None = None, num_agents: int | None = None,
@@ -147,6 +154,8 @@ class Scene:
             upd["lanes_valid"] = self.lanes_valid[e + (fr, slice(None))]
         if self.velocity is not None:
             upd["velocity"] = self.velocity[e + (fr, slice(0, a), slice(None))]
+        if self.signals is not None:
+            upd["signals"] = self.signals.replace(state=self.signals.state[e + (fr, slice(None))])
         return self.replace(**upd)
 
     def with_velocity(self, period_s: float) -> "Scene":

@@ -134,7 +134,7 @@ LOG_DDL = {
 }
 
 # Token kinds.
-K_LOG, K_LIDAR, K_PC, K_EGO, K_BOX, K_TRACK, K_CAT, K_SCENE = range(1, 9)
+K_LOG, K_LIDAR, K_PC, K_EGO, K_BOX, K_TRACK, K_CAT, K_SCENE, K_TL = range(1, 10)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,6 +192,7 @@ def write_log_db(
     nan_ego_frame: int | None = None,
     nan_box: bool = False,
     skip_pc: tuple[int, ...] = (),
+    lights: dict | None = None,
 ) -> Path:
     """Writes a nuPlan log database (see the module docstring). Returns its path.
 
@@ -200,6 +201,8 @@ def write_log_db(
       nan_ego_frame: 20 Hz frame whose ego_pose x is NaN.
       nan_box: make one car box's x NaN.
       skip_pc: 20 Hz frames left out of lidar_pc (to make a timing gap).
+      lights: lane connector id -> function of the 20 Hz frame giving its traffic-light status ('red', 'green',
+        ...; None: no row), written to `traffic_light_status`.
     """
     path = Path(path)
     path.unlink(missing_ok=True)
@@ -231,6 +234,10 @@ def write_log_db(
             (token(K_PC, i), next_tok, prev_tok, token(K_EGO, 2 * i), token(K_LIDAR, 0), token(K_SCENE, 0),
              f"pc_{i}.pcd", T0_US + i * PC_STEP_US + (i % 3)),
         )
+    for lc, status_of in (lights or {}).items():
+        for i in frames:
+            if status_of(i) is not None:
+                ins("traffic_light_status", (token(K_TL, i * 100 + int(lc)), token(K_PC, i), int(lc), status_of(i)))
     # ego_pose has more rows than lidar_pc (odd tokens are poses no lidar_pc points at) and its own timestamps.
     for j in range(2 * num_pc):
         i = j / 2

@@ -12,7 +12,7 @@
         (--split SPLIT: train, val or test, everything into that one split; default: splits by location)
         (every build: [--executor local|ray] [--address HOST:PORT]: its jobs on Ray tasks over a cluster, the
         store identical to a local build; docs/distributed.md)
-  inspect DIR [--json PATH] [--no-lanes]
+  inspect DIR [--json PATH] [--no-lanes] [--road-edges]
   bench-loader DIR [--split train] [--batch-size 32] [--batches 200] [--threads 4] [--with-lanes]
   near-duplicates --eval STORE_OR_NET ... --reference STORE_OR_NET ... [--tol METRES]
   mirror DIR --out DIR2 [--split NAME ...]     (the mirror image of every scene: gpd_jax.data.augment)
@@ -144,6 +144,9 @@ def main(argv=None) -> int:
     i.add_argument("dir")
     i.add_argument("--json", type=output_file, default=None, help="also write the statistics to this JSON file")
     i.add_argument("--no-lanes", action="store_true", help="skip the (slower) vector-lane statistics")
+    i.add_argument("--road-edges", action="store_true",
+                   help="also the road edges' sources, the scenes with traffic lights and the log's own offroad rate "
+                        "by the realism metric's rule (JAX; slower)")
     bl = sub.add_parser("bench-loader", help="loader throughput and memory")
     bl.add_argument("dir")
     bl.add_argument("--split", default="train")
@@ -317,6 +320,8 @@ def _run(p: ArgumentParser, args) -> int:
         from gpd_jax.data import inspection
 
         s = inspection.inspect(args.dir, with_lanes=not args.no_lanes)
+        if args.road_edges:
+            s["road_edges"] = inspection.road_edge_summary(args.dir)
         print(inspection.format_summary(s))
         if args.json:
             from gpd_jax.data.store import atomic_write_json

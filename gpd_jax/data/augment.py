@@ -33,12 +33,21 @@ from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.roadgeom import ROAD_KEYS
 
-POINT_KEYS = ("xy", "polylines", "road_polygons", "road_edges")  # f32[..., 2] points in the scene frame
+# f32[..., 2] points in the scene frame
+POINT_KEYS = ("xy", "polylines", "road_polygons", "road_edges", "road_map_edges", "signal_stop", "signal_lane")
 SUFFIX = "/mirror"
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
     return ((a + np.pi) % (2 * np.pi) - np.pi).astype(a.dtype)
+
+
+def reverse_prefix(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`points f[..., P, 2]` with each row's valid prefix (`valid bool[..., P]`) in reverse order (padding kept)."""
+    n = valid.sum(-1, keepdims=True)
+    idx = np.arange(valid.shape[-1])
+    src = np.where(idx < n, n - 1 - idx, idx)
+    return np.take_along_axis(points, src[..., None], axis=-2)
 
 
 def mirror_arrays(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -48,6 +57,8 @@ def mirror_arrays(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     for k in POINT_KEYS:
         if k in out:
             out[k][..., 1] *= -1
+    if "road_map_edges" in out:  # a reflection turns the drivable side to the right: run each edge backwards
+        out["road_map_edges"] = reverse_prefix(out["road_map_edges"], out["road_map_edge_valid"])
     if "heading" in out:
         out["heading"] = _wrap(-out["heading"])
     if "ego_pose" in out:

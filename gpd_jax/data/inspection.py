@@ -25,6 +25,9 @@ followed by "/<dataset>" where the shard names one (ScenarioNet: "scenarionet/wa
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import numpy as np
 
 from gpd_jax.data import lanes as lanes_lib
@@ -278,6 +281,63 @@ def inspect(data_dir: str, with_lanes: bool = True) -> dict:
     return out
 
 
+def road_edge_summary(data_dir: str, batch: int = 32) -> dict:
+    """Per split (`inspect --road-edges`): the scenes per road-edge source (`gpd_jax.geometry.edge_source_names`),
+    the scenes with traffic-signal states, and the log's own offroad rate: the share of the agents valid at the
+    current frame whose box leaves the road in a future frame, by the realism metric's rule
+    (`gpd_jax.metrics.realism`), on the edges it reads ("log_offroad_rate") and, for comparison, on the areas'
+    boundary that stores of format 1 had ("log_offroad_rate_area_boundary")."""
+    import jax.numpy as jnp
+
+    from gpd_jax.data import loader
+    from gpd_jax.geometry import edge_source_names
+    from gpd_jax.metrics import realism
+
+    try:
+        h = int(store.read_manifest(data_dir).get("build", {}).get("sample_config", {}).get("num_history", 21))
+    except Exception:  # noqa: BLE001 - a dataset without manifest: the paper's configuration
+        h = 21
+    out = {}
+    for split in store.list_splits(data_dir):
+        src = loader.SplitSource(data_dir, split, with_polylines=True)
+        if not src.has_road:
+            out[split] = {"scenes": len(src), "edge_sources": {"no_road": len(src)}}
+            continue
+        sources, signals, off, off_old, n = [], 0, 0, 0, 0
+        for b0 in range(0, len(src), batch):
+            recs = [src[i] for i in range(b0, min(len(src), b0 + batch))]
+            scene = loader.to_scene({k: np.stack([r[k] for r in recs]) for k in recs[0]})
+            sources += list(edge_source_names(scene.road))
+            if scene.signals is not None:
+                signals += int(np.sum(np.any(np.asarray(scene.signals.state) != 0, axis=(-1, -2))))
+            road = jax.tree.map(jnp.asarray, scene.road)
+            args = [jnp.asarray(getattr(scene, k)) for k in ("xy", "heading", "valid", "size")]
+            budget = realism.edge_segment_budget(road)
+            o, e = (np.asarray(x) for x in _log_offroad(road, *args, num_history=h, budget=budget))
+            old = road.replace(map_edges=None, map_edge_valid=None, edge_source=None)
+            o2, _ = (np.asarray(x) for x in _log_offroad(old, *args, num_history=h,
+                                                         budget=realism.edge_segment_budget(old)))
+            off, off_old, n = off + int(o.sum()), off_old + int(o2.sum()), n + int(e.sum())
+        names, counts = np.unique(np.asarray(sources, str), return_counts=True)
+        out[split] = {"scenes": len(src), "edge_sources": {str(a): int(c) for a, c in zip(names, counts)},
+                      "scenes_with_signals": signals, "agents": n,
+                      "log_offroad_rate": off / max(n, 1), "log_offroad_rate_area_boundary": off_old / max(n, 1)}
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("num_history", "budget"))
+def _log_offroad(road, xy, heading, valid, size, num_history: int, budget: int):
+    """(offroad agents i32[B], agents valid at the current frame i32[B]) of the logs of a batch of scenes."""
+    from gpd_jax.metrics import realism
+
+    def one(road, xy, heading, valid, size):
+        f = realism.realism_features(xy, heading, valid, size, num_history, 0.1, realism.orient_edges(road, budget))
+        ev = valid[num_history - 1]
+        return (f.offroad.any(0) & ev).sum(), ev.sum()
+
+    return jax.vmap(one)(road, xy, heading, valid, size)
+
+
 def format_summary(s: dict) -> str:
     lines = [f"{s['scenarios']} scenarios {s['scenarios_per_split']}"]
     for k in ("agents_per_frame_mean", "agents_per_frame_max", "lanes_per_frame_mean", "lanes_per_frame_min",
@@ -302,6 +362,11 @@ def format_summary(s: dict) -> str:
                      f"({'removed' if g['enabled'] else 'kept'})")
     if s.get("near_duplicates") is not None:
         lines.append(f"  near-duplicate networks  {len(s['near_duplicates'])}")
+    for split, r in (s.get("road_edges") or {}).items():
+        lines.append(f"  road edges [{split}]      {r['edge_sources']}, scenes with signals {r.get('scenes_with_signals')}"
+                     + (f"; log offroad rate {r['log_offroad_rate']:.4f} (format-1 area boundary "
+                        f"{r['log_offroad_rate_area_boundary']:.4f}) over {r['agents']} agents"
+                        if "log_offroad_rate" in r else ""))
     for src, f in s.get("per_source", {}).items():
         lines.append(f"  [{src}] {f['scenarios']} scenarios")
         for k in ("agents_per_frame_mean", "agents_per_frame_max", "stationary_fraction", "agent_stationary_fraction",

@@ -42,8 +42,9 @@ import numpy as np
 from gpd_jax.data import lanes as lanes_lib
 from gpd_jax.data import store
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.roadgeom import ROAD_KEYS
-from gpd_jax.geometry import RoadGeometry
+from gpd_jax.data.roadgeom import MAP_EDGE_KEYS, ROAD_KEYS
+from gpd_jax.data.signals import SIGNAL_KEYS
+from gpd_jax.geometry import TrafficSignals, road_from_arrays
 from gpd_jax.scene import Scene
 
 SCENE_KEYS = ("xy", "heading", "valid", "size", "agent_type", "ego_pose")
@@ -63,16 +64,23 @@ class SplitSource:
         self.paths = store.list_shards(data_dir, split)
         if not self.paths:
             raise DataError(os.path.join(data_dir, split), "no complete shards in this split")
-        counts, road = [], []
+        counts, road, edges, signals = [], [], [], []
         for p in self.paths:
-            n, has_road = _read_count(p)
+            n, has = _read_count(p)
             counts.append(n)
-            road.append(has_road)
+            road.append(has["road"])
+            edges.append(has["map_edges"])
+            signals.append(has["signals"])
         self.counts = np.asarray(counts, np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)])
-        # the road geometry comes with the polylines (its lane centrelines), where every shard has it
+        # the road geometry comes with the polylines (its lane centrelines), where every shard has it; so do the
+        # map edges and the signals (stores of format 1 have neither: their scenes read as before)
         self.has_road = all(road)
-        self.keys = SCENE_KEYS + (POLY_KEYS + (ROAD_KEYS if self.has_road else ()) if with_polylines else ())
+        self.has_map_edges = self.has_road and all(edges)
+        self.has_signals = all(signals)
+        extra = ((ROAD_KEYS if self.has_road else ()) + (MAP_EDGE_KEYS if self.has_map_edges else ())
+                 + (SIGNAL_KEYS if self.has_signals else ()))
+        self.keys = SCENE_KEYS + (POLY_KEYS + extra if with_polylines else ())
         self.max_open = max_open_shards
         self._open: collections.OrderedDict[int, store.Shard] = collections.OrderedDict()
         self._lock = threading.Lock()
@@ -119,15 +127,18 @@ class SplitSource:
         return f"SplitSource({self.data_dir!r}, {self.split!r}, {len(self)} samples)"
 
 
-def _read_count(path: str) -> tuple[int, bool]:
-    """(sample count, whether the shard has the road geometry keys) from a shard's meta.json."""
+def _read_count(path: str) -> tuple[int, dict[str, bool]]:
+    """(sample count, {"road", "map_edges", "signals": whether the shard has those keys}) from its meta.json."""
     import json
 
     mp = os.path.join(path, "meta.json")
     try:
         with open(mp) as f:
             meta = json.load(f)
-        return int(meta["num_samples"]), all(k in meta.get("keys", {}) for k in ROAD_KEYS)
+        keys = meta.get("keys", {})
+        has = {name: all(k in keys for k in group)
+               for name, group in (("road", ROAD_KEYS), ("map_edges", MAP_EDGE_KEYS), ("signals", SIGNAL_KEYS))}
+        return int(meta["num_samples"]), has
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise DataError(mp, f"unreadable shard metadata: {e}") from e
 
@@ -142,18 +153,20 @@ def add_lanes(rec: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 def to_scene(batch: dict[str, np.ndarray]) -> Scene:
     """A dict of (batched) record arrays -> Scene (numpy leaves, agent_type as int32); with the road keys and the
-    polylines, `Scene.road` is their `RoadGeometry` (lane centrelines = the polylines), else None."""
-    road = None
+    polylines, `Scene.road` is their `RoadGeometry` (lane centrelines = the polylines; map edges where the batch
+    has them), else None; with the signal keys, `Scene.signals` is their `TrafficSignals`, else None."""
+    road = signals = None
     if all(k in batch for k in ROAD_KEYS) and "polylines" in batch:
-        road = RoadGeometry(polygons=batch["road_polygons"], polygon_valid=batch["road_polygon_valid"],
-                            polygon_kind=batch["road_polygon_kind"].astype(np.int32), edges=batch["road_edges"],
-                            edge_valid=batch["road_edge_valid"], lanes=batch["polylines"],
-                            lane_valid=batch["polyline_valid"])
+        road = road_from_arrays(batch, batch["polylines"], batch["polyline_valid"])
+        road = road.replace(polygon_kind=road.polygon_kind.astype(np.int32))
+    if all(k in batch for k in SIGNAL_KEYS):
+        signals = TrafficSignals(state=batch["signal_state"].astype(np.int32), stop=batch["signal_stop"],
+                                 lane=batch["signal_lane"], lane_valid=batch["signal_lane_valid"])
     return Scene(xy=batch["xy"], heading=batch["heading"], valid=batch["valid"], size=batch["size"],
                  agent_type=batch["agent_type"].astype(np.int32), map_tokens=batch["map_tokens"],
                  map_valid=batch["map_valid"], ego_pose=batch["ego_pose"], lanes=batch.get("lanes"),
                  lanes_valid=batch.get("lanes_valid"), polylines=batch.get("polylines"),
-                 polyline_valid=batch.get("polyline_valid"), road=road)
+                 polyline_valid=batch.get("polyline_valid"), road=road, signals=signals)
 
 
 def _split_output(with_polylines: bool):

@@ -32,7 +32,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.roadgeom import ROAD_KEYS
+from gpd_jax.data.roadgeom import MAP_EDGE_KEYS, ROAD_KEYS
 from gpd_jax.data.store import MANIFEST, list_shards, list_splits, read_manifest
 from gpd_jax.fsutil import atomic_path
 
@@ -90,7 +90,7 @@ def pack_store(data_dir: str, out_dir: str, *, splits: Sequence[str] = ("train",
     if os.path.exists(path):
         log(f"{path} exists; kept (delete it to pack {data_dir} again)")
         return path
-    dropped = list(ROAD_KEYS) if drop_road else []
+    dropped = list(ROAD_KEYS + MAP_EDGE_KEYS) if drop_road else []
     record = {"frame_stride": frame_stride, "num_agents": num_agents,
               "frames_kept": "k * frame_stride and k * frame_stride - 1" if frame_stride else "all",
               "dropped_keys": sorted(dropped), "splits": list(splits), "source": os.path.abspath(data_dir)}

@@ -38,6 +38,7 @@ from gpd_jax.data.errors import DataError
 from gpd_jax.data.boxes import sample_has_overlap
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import RoadIndex, clip_road
+from gpd_jax.data.signals import clip_signals, signal_spec
 from gpd_jax.scene import TYPE_ID
 
 
@@ -89,6 +90,10 @@ def sample_spec(cfg: SampleConfig = SampleConfig()) -> dict[str, tuple[tuple[int
         "road_polygon_kind": ((cfg.max_road_rings,), "int8"),
         "road_edges": ((cfg.max_road_edges, cfg.max_edge_points, 2), "float32"),
         "road_edge_valid": ((cfg.max_road_edges, cfg.max_edge_points), "bool"),
+        "road_map_edges": ((cfg.max_road_edges, cfg.max_edge_points, 2), "float32"),
+        "road_map_edge_valid": ((cfg.max_road_edges, cfg.max_edge_points), "bool"),
+        "road_edge_source": ((), "int8"),
+        **signal_spec(T),
     }
 
 
@@ -197,8 +202,10 @@ def clip_lanes(lp: LanePoints, scene_pose_world: np.ndarray, ego_pose: np.ndarra
 
 
 def road_index(log: RawLog, cfg: SampleConfig = SampleConfig()) -> RoadIndex | None:
-    """The log's drivable areas merged for `clip_road` (None when the log has none)."""
-    return RoadIndex(log.areas, cfg.road_tolerance) if log.areas else None
+    """The log's drivable areas and map road edges merged for `clip_road` (None when the log has neither)."""
+    if not log.areas and not log.road_edges:
+        return None
+    return RoadIndex(log.areas, cfg.road_tolerance, edge_lines=log.road_edges, edge_source=log.areas_outline)
 
 
 def make_sample(log: RawLog, start: int, ego: int, cfg: SampleConfig = SampleConfig(),
@@ -261,16 +268,21 @@ def make_sample(log: RawLog, start: int, ego: int, cfg: SampleConfig = SampleCon
     if lp is None:
         lp = lane_points(log.lanes, cfg.lane_spacing)
     poly, pvalid = clip_lanes(lp, origin, ego_pose.astype(np.float64), cfg, stats)
-    if road is None and log.areas:
+    if road is None and (log.areas or log.road_edges):
         road = road_index(log, cfg)
     geo = clip_road(road, origin, ego_pose.astype(np.float64), reach=(cfg.view_half + cfg.view_margin) * np.sqrt(2.0),
                     G=cfg.max_road_rings, V=cfg.max_ring_vertices, E=cfg.max_road_edges, P=cfg.max_edge_points,
                     tolerance=cfg.road_tolerance, stats=stats, agents_xy=xy[valid].astype(np.float64))
     if road is None:
         stats["samples_without_road_geometry"] += 1
+    agents = xy[valid].astype(np.float64)
+    sig = clip_signals(log.signals, w, lambda p: to_frame(p, origin), agents.min(0) - 10.0, agents.max(0) + 10.0,
+                       ego_pose[:, :2].astype(np.float64), stats)
+    if log.signals is not None and not (sig["signal_state"] != 0).any():
+        stats["samples_without_signal_states"] += 1
     stats["samples"] += 1
     return {"xy": xy, "heading": hd, "valid": valid, "size": size, "agent_type": atype, "ego_pose": ego_pose,
-            "polylines": poly, "polyline_valid": pvalid, **geo}
+            "polylines": poly, "polyline_valid": pvalid, **geo, **sig}
 
 
 def sample_windows(log: RawLog, cfg: SampleConfig, num: int | None, rng: np.random.Generator

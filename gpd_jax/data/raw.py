@@ -33,6 +33,11 @@ class RawLog:
       areas: tuple of `gpd_jax.data.roadgeom.Area` (kind, exterior ring f64[V, 2], holes) in the world frame:
         the drivable surface (lanes, junctions / intersections, other drivable areas); empty when the source
         has no geometry (samples then carry an all-invalid road geometry, counted in the build statistics).
+      road_edges: tuple of f64[P_i, 2] the map's own road-edge lines in the world frame (curbs, road borders;
+        any direction: `gpd_jax.data.roadgeom.orient_lines` turns them), empty where the map draws none.
+      areas_outline: what the outline of `areas` is where `road_edges` is empty: "drivable_area" (the areas are
+        the whole road surface: SUMO, nuPlan) or "lane_union" (only the lanes': a map without road edges).
+      signals: optional `gpd_jax.data.signals.RawSignals`, the traffic-light states per frame (None: no signals).
     """
 
     name: str
@@ -47,6 +52,9 @@ class RawLog:
     lanes: tuple[np.ndarray, ...]
     ego_index: int | None = None
     areas: tuple = ()
+    road_edges: tuple = ()
+    areas_outline: str = "lane_union"
+    signals: object = None
 
     @property
     def num_frames(self) -> int:

@@ -14,7 +14,13 @@ ScenarioNet lane polygons (or centrelines buffered by their width). `RoadIndex` 
   from the ego's path are dropped (counted: `road_rings_dropped`);
 * road edges: the boundary of the union of every area (unclipped, so the region's box is never an edge),
   simplified once per log, cut to the region, split into runs of at most P points sharing end points, the E
-  nearest to the ego's path kept (`road_edges_dropped` counts the rest).
+  nearest to the ego's path kept (`road_edges_dropped` counts the rest);
+* map road edges (`MAP_EDGE_KEYS`, what the realism metric reads): the source map's own road-edge lines where
+  it has them (`RawLog.road_edges`: ScenarioNet `ROAD_EDGE_*`, Lanelet2 curbs / road borders), each oriented with
+  the drivable side on its left by a vote against the areas' union (probes `ORIENT_PROBES_M` either side of
+  every segment, the side nearer the union wins, weighted by segment length); otherwise the outline of the
+  areas' union, oriented by construction (exteriors counter-clockwise, holes clockwise). Cut, split and kept
+  like the road edges (`map_edges_dropped`); `road_edge_source` names which (`gpd_jax.geometry.EDGE_SOURCES`).
 """
 
 from __future__ import annotations
@@ -26,9 +32,12 @@ import numpy as np
 import shapely
 from shapely.geometry import LineString, MultiPolygon, Point, Polygon
 
-from gpd_jax.geometry import AREA_KIND_ID, AREA_KINDS
+from gpd_jax.geometry import AREA_KIND_ID, AREA_KINDS, EDGE_SOURCE_ID
 
 ROAD_KEYS = ("road_polygons", "road_polygon_valid", "road_polygon_kind", "road_edges", "road_edge_valid")
+# Optional since store format 2 (older stores lack them and read as before).
+MAP_EDGE_KEYS = ("road_map_edges", "road_map_edge_valid", "road_edge_source")
+ORIENT_PROBES_M = (0.5, 2.0)  # metres either side of a map road-edge segment where its drivable side is probed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,7 +90,7 @@ class RoadIndex:
     """A log's drivable areas, merged once per log: the union of each kind's areas and the boundary of the union
     of all (the road edges), in the world frame. Samples then only cut their region out of them."""
 
-    def __init__(self, areas, tolerance: float = 0.1):
+    def __init__(self, areas, tolerance: float = 0.1, edge_lines=(), edge_source: str = "lane_union"):
         geoms: list[list] = [[] for _ in AREA_KINDS]
         for a in areas:
             p = _polygon(a)
@@ -94,14 +103,48 @@ class RoadIndex:
         unions = [None if g is None else shapely.union_all(g) for g in grown]
         present = [u for u in unions if u is not None]
         self.unions = [None if u is None else u.simplify(half, preserve_topology=True) for u in unions]
-        self.boundary = shapely.union_all(present).boundary.simplify(half) if present else None
+        whole = shapely.union_all(present) if present else None
+        self.boundary = whole.boundary.simplify(half) if present else None
         for g in [*self.unions, self.boundary]:
             if g is not None:
                 shapely.prepare(g)
+        lines = [np.asarray(ln, np.float64) for ln in edge_lines if len(ln) >= 2]
+        if lines:
+            self.map_edges = shapely.MultiLineString(orient_lines(lines, whole)).simplify(half)
+            self.edge_source = EDGE_SOURCE_ID["map_lines"]
+        elif whole is not None:
+            self.map_edges = shapely.orient_polygons(whole).boundary.simplify(half)
+            self.edge_source = EDGE_SOURCE_ID[edge_source]
+        else:
+            self.map_edges, self.edge_source = None, EDGE_SOURCE_ID["none"]
 
     @property
     def empty(self) -> bool:
-        return self.boundary is None
+        return self.boundary is None and self.map_edges is None
+
+
+def orient_lines(lines: list[np.ndarray], area) -> list[np.ndarray]:
+    """Each polyline f64[P, 2] turned so that `area` (a shapely geometry, or None: lines kept as they are) lies on
+    its left: per segment, the probe points `ORIENT_PROBES_M` to its left and right are compared by their distance
+    to `area` (0 inside); the length-weighted vote decides (a tie keeps the line)."""
+    if area is None:
+        return list(lines)
+    out = []
+    for ln in lines:
+        d = np.diff(ln, axis=0)
+        length = np.linalg.norm(d, axis=-1)
+        keep = length > 1e-9
+        if not keep.any():
+            continue
+        n = np.stack([-d[keep, 1], d[keep, 0]], -1) / length[keep, None]
+        mid = (ln[:-1][keep] + ln[1:][keep]) / 2
+        vote = 0.0
+        for r in ORIENT_PROBES_M:
+            left = shapely.distance(area, shapely.points(mid + r * n))
+            right = shapely.distance(area, shapely.points(mid - r * n))
+            vote += float(np.sum(length[keep] * np.sign(right - left)))
+        out.append(ln[::-1].copy() if vote < 0 else ln)
+    return out
 
 
 def _to_frame_fn(pose):
@@ -164,13 +207,40 @@ def _path_distance(xy: np.ndarray, path: np.ndarray) -> float:
 def empty_road_arrays(G: int, V: int, E: int, P: int) -> dict[str, np.ndarray]:
     return {"road_polygons": np.zeros((G, V, 2), np.float32), "road_polygon_valid": np.zeros((G, V), bool),
             "road_polygon_kind": np.zeros((G,), np.int8), "road_edges": np.zeros((E, P, 2), np.float32),
-            "road_edge_valid": np.zeros((E, P), bool)}
+            "road_edge_valid": np.zeros((E, P), bool), "road_map_edges": np.zeros((E, P, 2), np.float32),
+            "road_map_edge_valid": np.zeros((E, P), bool),
+            "road_edge_source": np.array(EDGE_SOURCE_ID["none"], np.int8)}
+
+
+def _clip_runs(lines_world, world_box, to_scene, region_box, path, E: int, P: int, stats: Counter, what: str):
+    """Polylines (a shapely geometry in the world) cut to the region in the scene frame, split into runs of at most
+    P points sharing end points (direction kept), the E nearest to the ego's `path`; f32[E, P, 2], bool[E, P]."""
+    pts, valid = np.zeros((E, P, 2), np.float32), np.zeros((E, P), bool)
+    if lines_world is None:
+        return pts, valid
+    lines = _lines(shapely.clip_by_rect(shapely.transform(shapely.clip_by_rect(lines_world, *world_box), to_scene),
+                                        *region_box))
+    runs = []
+    for ln in lines:
+        if len(ln) < 2:
+            continue
+        for a in range(0, len(ln) - 1, P - 1):
+            c = ln[a:a + P]
+            if len(c) >= 2:
+                runs.append(c)
+    if len(runs) > E:
+        stats[f"{what}_dropped"] += len(runs) - E
+        runs = [runs[i] for i in np.argsort([_path_distance(r, path) for r in runs], kind="stable")[:E]]
+    for i, r in enumerate(runs):
+        pts[i, :len(r)] = r
+        valid[i, :len(r)] = True
+    return pts, valid
 
 
 def clip_road(index: RoadIndex | None, scene_pose_world: np.ndarray, ego_pose: np.ndarray, *, reach: float,
               G: int, V: int, E: int, P: int, tolerance: float = 0.1, stats: Counter | None = None,
               agents_xy: np.ndarray | None = None, agent_margin: float = 10.0) -> dict[str, np.ndarray]:
-    """One sample's geometry arrays (`ROAD_KEYS`) in the scene frame.
+    """One sample's geometry arrays (`ROAD_KEYS` and `MAP_EDGE_KEYS`) in the scene frame.
 
     Args:
       index: the log's areas (None or empty: an all-invalid geometry).
@@ -224,21 +294,10 @@ def clip_road(index: RoadIndex | None, scene_pose_world: np.ndarray, ego_pose: n
             out["road_polygon_valid"][g, :len(r)] = True
             out["road_polygon_kind"][g] = kind
             g += 1
-    # road edges: boundary of the union of everything (unclipped), cut to the region
-    lines = _lines(shapely.clip_by_rect(shapely.transform(shapely.clip_by_rect(index.boundary, *world_box), to_scene),
-                                        *region_box))
-    runs = []
-    for ln in lines:
-        if len(ln) < 2:
-            continue
-        for a in range(0, len(ln) - 1, P - 1):
-            c = ln[a:a + P]
-            if len(c) >= 2:
-                runs.append(c)
-    if len(runs) > E:
-        stats["road_edges_dropped"] += len(runs) - E
-        runs = [runs[i] for i in np.argsort([_path_distance(r, path) for r in runs], kind="stable")[:E]]
-    for i, r in enumerate(runs):
-        out["road_edges"][i, :len(r)] = r
-        out["road_edge_valid"][i, :len(r)] = True
+    # road edges: boundary of the union of everything (unclipped), cut to the region; the map's edges alike
+    out["road_edges"], out["road_edge_valid"] = _clip_runs(index.boundary, world_box, to_scene, region_box, path,
+                                                           E, P, stats, "road_edges")
+    out["road_map_edges"], out["road_map_edge_valid"] = _clip_runs(index.map_edges, world_box, to_scene, region_box,
+                                                                   path, E, P, stats, "map_edges")
+    out["road_edge_source"] = np.array(index.edge_source, np.int8)
     return out

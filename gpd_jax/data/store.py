@@ -38,9 +38,21 @@ Sample keys (paper configuration T=101, A=33, L=96, P=128; see `gpd_jax.data.pre
     road_edges      f32[n, E, Pe, 2]  road edges (boundary of the union of all areas) in the scene frame,
                                       E=64 runs of Pe=32 points
     road_edge_valid bool[n, E, Pe]    which edge points exist (a prefix of each row)
+    road_map_edges  f32[n, E, Pe, 2]  (format 2) the map's road edges, drivable side on their left: the source's
+                                      own road-edge lines or its areas' outline (`gpd_jax.data.roadgeom`)
+    road_map_edge_valid bool[n, E, Pe] which map-edge points exist (a prefix of each row)
+    road_edge_source i8[n]            (format 2) index into gpd_jax.geometry.EDGE_SOURCES: where the map edges
+                                      come from (none, lane_union, drivable_area, map_lines)
+    signal_state    i8[n, T, S]       (format 2) traffic-light state per frame and signal slot (S=32), WOSAC's
+                                      lane-state enum gpd_jax.geometry.SIGNAL_STATES (0 unknown / no signal)
+    signal_stop     f32[n, S, 2]      stop point of each signal slot, scene frame
+    signal_lane     f32[n, S, Q, 2]   the controlled lane around the stop point (Q=16 points, 1 m apart)
+    signal_lane_valid bool[n, S, Q]   which lane points exist; see `gpd_jax.data.signals`
 
 The loader makes `Scene.road` (`gpd_jax.geometry.RoadGeometry`) from the road keys with the polylines as its
-lane centrelines. Stores built before the road geometry existed lack the five road keys: they stay readable
+lane centrelines, with the map edges where every shard has them, and `Scene.signals`
+(`gpd_jax.geometry.TrafficSignals`) from the signal keys where every shard has them (None otherwise: format-1
+stores, read as before). Stores built before the road geometry existed lack the five road keys: they stay readable
 (`Shard.has_road` False, `Scene.road` None) and consumers that need the geometry refuse with
 `gpd_jax.geometry.ROAD_MISSING` ("rebuild with python -m gpd_jax.data build ..."). A source without map
 geometry writes all-invalid road arrays (counted as `samples_without_road_geometry` in the build statistics).
@@ -64,11 +76,14 @@ import numpy as np
 
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.preprocess import SAMPLE_SPEC
-from gpd_jax.data.roadgeom import ROAD_KEYS
+from gpd_jax.data.roadgeom import MAP_EDGE_KEYS, ROAD_KEYS
+from gpd_jax.data.signals import SIGNAL_KEYS
 from gpd_jax import fsutil
 from gpd_jax.fsutil import umask_mode
 
-FORMAT_VERSION = 1
+# 2: map road edges (`MAP_EDGE_KEYS`) and traffic-light states (`SIGNAL_KEYS`) added; format-1 stores still read
+FORMAT_VERSION = 2
+OPTIONAL_GROUPS = (MAP_EDGE_KEYS, SIGNAL_KEYS)  # keys a shard may lack as a whole group (older formats)
 MANIFEST = "dataset.json"
 SPLITS = ("train", "val", "test")
 MAP_TOKENS = "map_tokens.npy"
@@ -221,12 +236,23 @@ class Shard:
         road_present = [k for k in ROAD_KEYS if k in present]
         if road_present and len(road_present) != len(ROAD_KEYS):
             raise DataError(mpath, f"road geometry keys incomplete: has {road_present}, needs all of {ROAD_KEYS}")
+        # stores of format 1 have neither the map edges nor the signals: readable, `has_map_edges` /
+        # `has_signals` False (the realism metric then orients the road edges itself and leaves out the
+        # traffic-light term)
+        optional = {}
+        for group in OPTIONAL_GROUPS:
+            got = [k for k in group if k in present]
+            if got and len(got) != len(group):
+                raise DataError(mpath, f"keys incomplete: has {got}, needs all of {group}")
+            optional.update({k: bool(got) for k in group})
+        self.has_map_edges = all(optional[k] for k in MAP_EDGE_KEYS)
+        self.has_signals = all(optional[k] for k in SIGNAL_KEYS)
         # stores built before the road geometry existed have none of its keys: readable, `has_road` False
         self.has_road = bool(road_present)
         for k, (shape, dtype) in spec.items():
             f = os.path.join(path, f"{k}.npy")
             info = meta.get("keys", {}).get(k)
-            if info is None and k in ROAD_KEYS and not self.has_road:
+            if info is None and (k in ROAD_KEYS and not self.has_road or k in optional and not optional[k]):
                 continue
             if info is None:
                 raise DataError(mpath, f"key {k!r} missing from the shard's meta.json")
@@ -263,7 +289,9 @@ class Shard:
         keys = self.arrays.keys() if keys is None else keys
         out = {k: np.array(self.arrays[k][i]) for k in keys}
         for k, vk in (("xy", "valid"), ("heading", "valid"), ("ego_pose", None), ("polylines", "polyline_valid"),
-                      ("road_polygons", "road_polygon_valid"), ("road_edges", "road_edge_valid")):
+                      ("road_polygons", "road_polygon_valid"), ("road_edges", "road_edge_valid"),
+                      ("road_map_edges", "road_map_edge_valid"), ("signal_stop", None),
+                      ("signal_lane", "signal_lane_valid")):
             if k in out:
                 a = out[k]
                 m = out.get(vk) if vk else None

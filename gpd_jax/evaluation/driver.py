@@ -30,6 +30,7 @@ from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
 from gpd_jax.metrics.realism import CONFIGS as REALISM_CONFIGS
 from gpd_jax.metrics.realism import edge_segment_budget
+from gpd_jax.geometry import edge_source_names
 from gpd_jax.scene import Scene
 from gpd_jax.spec import HORIZONS_S, EvalError
 from gpd_jax.tasks import generated, make_tasks, map_task_names
@@ -124,7 +125,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
 
     acc = None
     realism_parts: list[dict[str, dict[str, np.ndarray]]] = []
-    has_road = True
+    has_road = has_signals = True
+    edge_sources: list[str] = []
     render_items: list[RenderItem] = []
     n_store = n_encoded = 0
     t_roll = t_score = t_data = 0.0
@@ -143,7 +145,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
 
     def fold(b: int, rec: dict[str, Any]) -> None:
         """Adds batch `b`'s record (its scenarios' sums or their total, realism, pictures, counts)."""
-        nonlocal acc, has_road, n_store, n_encoded
+        nonlocal acc, has_road, has_signals, n_store, n_encoded
         idx, real = batch_indices(b)
         if keep_scenes:  # each scenario's sums: the batch's total, each layout's part, each scene's
             sums = rec["scenes"]
@@ -160,6 +162,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
         if samples:
             realism_parts.append(rec["realism"])
             has_road = has_road and bool(rec["has_road"])
+            has_signals = has_signals and bool(rec["has_signals"])
+            edge_sources.extend(str(x) for x in rec["edge_sources"])
         n_store += int(rec["n_store"])
         n_encoded += int(rec["n_encoded"])
         render_items.extend(_render_item_from(r) for r in rec.get("render", {}).values())
@@ -215,6 +219,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                                          jax.random.fold_in(sample_key, b), options, realism_config)
                 rec["realism"] = jax.tree.map(lambda x: x[:real], part)
                 rec["has_road"] = road_ok
+                rec["has_signals"] = full.signals is not None
+                rec["edge_sources"] = np.asarray(edge_source_names(full.road, full.xy.shape[:1])[:real], dtype=str)
             t_score += time.perf_counter() - tc
             rec["render"] = {str(j): _render_record(idx[j], prep.scenario_ids, out, scene, j)
                              for j in range(real) if idx[j] < render_count}
@@ -281,7 +287,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     if samples:
         by_group = {g: {m: np.concatenate([p[g][m] for p in realism_parts]) for m in realism_parts[0][g]}
                     for g in realism_parts[0]}
-        results["realism"] = reduce_groups(by_group, names, samples, realism_config, has_road)
+        results["realism"] = reduce_groups(by_group, names, samples, realism_config, has_road, has_signals,
+                                           edge_sources)
     if scene_sums:
         pad = lambda x: list(x[:n]) + [""] * max(0, n - len(x))  # noqa: E731
         results["scene_sums"] = scene_sums_from_batches(per_scene, pad(prep.scenario_ids), pad(prep.locations))
@@ -309,7 +316,7 @@ def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutO
     reps = samples // xy.shape[2]  # 1, or K copies of the one deterministic rollout
     xy, heading, valid = (jnp.swapaxes(jnp.repeat(a, reps, axis=2), 1, 2) for a in (xy, heading, valid))
     full = jax.tree.map(jnp.asarray, full.replace(map_tokens=full.map_tokens[..., :1], lanes=None, lanes_valid=None))
-    budget = None if full.road is None else edge_segment_budget(np.asarray(full.road.edge_valid))
+    budget = None if full.road is None else edge_segment_budget(full.road)
     part = realism_batch(xy, heading, valid, full, model.spec, tuple(names), config, budget,
                          full.polylines is not None)
     return jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(part)), full.road is not None

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow_lanes
-from gpd_jax.metrics.realism import reduce_realism, scenario_realism, upsample_frames
+from gpd_jax.metrics.realism import reduce_realism, rescore, scenario_realism, upsample_frames
 from gpd_jax.scene import Scene
 from gpd_jax.spec import ModelSpec
 from gpd_jax.tasks import generated
@@ -61,6 +61,10 @@ def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpe
     a, ts, h = spec.num_agents, spec.stored_frames_needed, spec.full_history
     log = Trajectories(full.xy[:, :ts, :a], full.heading[:, :ts, :a], full.valid[:, :ts, :a])
     size, road = full.size[:, :a], full.road
+    # traffic lights (stores of format 2 with signals): states on the stored frames scored, with the lanes
+    signals = None if full.signals is None else full.signals.replace(state=full.signals.state[:, :ts])
+    lanes = None if signals is None else (full.polylines, full.polyline_valid) if full.polylines is not None \
+        else (signals.lane, signals.lane_valid)
     valid_now = log.valid[:, h - 1]
 
     def stored_rate(xy, heading, valid):  # [B, K, T, A] at the model's frames -> [B, K, ts, A], log history
@@ -93,21 +97,49 @@ def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpe
             evaluated.append(agents)
     # every group (task or baseline) through one vmapped metric: one compiled copy of it, whatever the groups
     stacked = [jnp.stack([g[i] for g in sims], axis=1) for i in range(3)]  # [B, G, K, ts, A, ...]
-    fn = lambda sx, sh, sv, ev, lx, lh, lv, sz, rd: scenario_realism(  # noqa: E731
-        sx, sh, sv, lx, lh, lv, sz, h, rd, ev, spec.stored_period_s, config, max_edge_segments)
-    per_group = jax.vmap(fn, in_axes=(0, 0, 0, 0) + (None,) * 5)
-    res = jax.vmap(per_group)(*stacked, jnp.stack(evaluated, axis=1), log.xy, log.heading, log.valid, size, road)
+    fn = lambda sx, sh, sv, ev, lx, lh, lv, sz, rd, sg, ln: scenario_realism(  # noqa: E731
+        sx, sh, sv, lx, lh, lv, sz, h, rd, ev, spec.stored_period_s, config, max_edge_segments, sg,
+        *(ln if ln is not None else (None, None)))
+    per_group = jax.vmap(fn, in_axes=(0, 0, 0, 0) + (None,) * 7)
+    res = jax.vmap(per_group)(*stacked, jnp.stack(evaluated, axis=1), log.xy, log.heading, log.valid, size, road,
+                              signals, lanes)
     return {g: {m: v[:, i] for m, v in res.items()} for i, g in enumerate(groups)}
 
 
+MAX_LOG_OFFROAD = 0.05  # the most the log's own offroad rate may be on lane-union road edges for the map terms
+
+
 def reduce_groups(per_scene: dict[str, dict[str, np.ndarray]], task_names: Sequence[str], samples: int,
-                  config: str, has_road: bool) -> dict:
-    """metrics.json's "realism": {"config", "samples", "weights", "left_out", "tasks": {task: figures},
-    "baselines": {name: figures}} from each scenario's figures (`{group: {metric: f64[n]}}`)."""
-    groups = {g: reduce_realism(v, config, has_road=has_road) for g, v in per_scene.items()}
+                  config: str, has_road: bool, has_signals: bool = False,
+                  edge_sources: Sequence[str] | None = None) -> dict:
+    """metrics.json's "realism": {"config", "samples", "weights", "left_out", "road_edges", "tasks": {task:
+    figures}, "baselines": {name: figures}} from each scenario's figures (`{group: {metric: f64[n]}}`).
+
+    `edge_sources`: per scene, where its road edges come from (`gpd_jax.geometry.edge_source_names`), counted in
+    "road_edges". Where some scenes have only the lane union's outline ("lane_union": a map without road edges),
+    the map terms stay only if the log keeps to that outline: the log's own offroad rate over those scenes at most
+    `MAX_LOG_OFFROAD`; otherwise they are left out of every group (meta-metric renormalised, `rescore`) and
+    "left_out" says why. "road_edges" holds the counts, the log's offroad rate there and the decision."""
+    road_reason, edges = "no road geometry", {}
+    if edge_sources is not None:
+        src = np.asarray(edge_sources, dtype=object)
+        edges = {"scenes": {str(k): int(c) for k, c in zip(*np.unique(src.astype(str), return_counts=True))}}
+        lane_union = src == "lane_union"
+        if has_road and lane_union.any() and "log" in per_scene:
+            rate = float(np.nanmean(np.asarray(per_scene["log"]["offroad_rate"], np.float64)[lane_union]))
+            edges["log_offroad_rate_on_lane_union"] = rate
+            edges["map_terms"] = "kept" if rate <= MAX_LOG_OFFROAD else "left out"
+            if not rate <= MAX_LOG_OFFROAD:
+                has_road = False
+                road_reason = (f"road edges are the lane union's outline (the map has none) and the log itself is "
+                               f"off it for {rate:.1%} of agents (> {MAX_LOG_OFFROAD:.0%})")
+                per_scene = {g: rescore(v, config, has_road, has_signals) for g, v in per_scene.items()}
+    groups = {g: reduce_realism(v, config, has_road=has_road, has_signals=has_signals, road_reason=road_reason)
+              for g, v in per_scene.items()}
     first = next(iter(groups.values()))
     strip = lambda r: {k: v for k, v in r.items() if k not in ("config", "weights", "left_out")}
     return {"config": config, "samples": samples, "weights": first["weights"], "left_out": first["left_out"],
+            "road_edges": edges,
             "evaluated": "tasks: the slots each task generates, valid at the current frame; baselines: the agents "
                          "(slots 1..) valid at the current frame",
             "frame_rate": "rollouts at the model's frames are brought to the stored rate by cubic Hermite "

@@ -37,9 +37,10 @@ Likelihoods (`realism_metrics`, one scenario; `vmap` for many):
   log has the feature (log validity as above), and exponentiated (the official scene-level reduction);
 * collision and offroad: per agent "any over the frames where the log is valid", Bernoulli with pseudocount
   0.001, averaged over evaluated agents, exponentiated;
-* meta-metric: the weighted sum over the features present. The stores have no traffic-signal states, so the 2025
-  configuration's traffic-light violation term is always left out; scenes without road geometry leave out the
-  two map-based terms. The weights of what is left are renormalised to sum to 1 and `realism_weights` says which
+* meta-metric: the weighted sum over the features present. The 2025 configuration's traffic-light violation
+  term (`gpd_jax.metrics.traffic_lights`, a Bernoulli of "any red light run" like collision) is scored where the
+  store has traffic-signal states (`Scene.signals`, store format 2) and left out elsewhere; scenes without road
+  geometry leave out the two map-based terms. The weights of what is left are renormalised to sum to 1 and `realism_weights` says which
   terms were used (what `reduce_realism` reports as `left_out`).
 * minADE: the mean over evaluated agents of each rollout's average displacement error (over the frames the log
   has), minimum over the K rollouts; ADE: the same averaged over rollouts. Also the simulated collision and
@@ -70,8 +71,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpd_jax.geometry import RoadGeometry, on_road
+from gpd_jax.geometry import RoadGeometry, TrafficSignals, on_road
 from gpd_jax.metrics.agents import box_corners
+from gpd_jax.metrics.traffic_lights import SignalGeometry, red_light_violation, signal_geometry
 from gpd_jax.scene import wrap_angle
 
 # ------------------------------------------------------------------------------------------------ constants
@@ -143,7 +145,7 @@ def realism_config(name: str) -> Mapping[str, FeatureConfig]:
 def realism_weights(config: str, has_road: bool = True, has_signals: bool = False) -> dict[str, float]:
     """The meta-metric's weights of `config` over the terms that can be scored, renormalised to sum to 1.
 
-    Terms left out: traffic-light violation without signal states (no store here has them), the map-based terms
+    Terms left out: traffic-light violation without signal states (`Scene.signals` None), the map-based terms
     without road geometry. `left_out_terms` names them.
     """
     cfg = realism_config(config)
@@ -174,6 +176,8 @@ class RealismFeatures:
         where the scene has no road geometry).
       offroad: bool distance above 0.
       edge_inexact: bool where the road-edge candidate search could not prove its answer exact.
+      red_light: optional bool, where the agent runs a red light (`gpd_jax.metrics.traffic_lights`); None for
+        scenes without traffic-signal states.
     """
 
     valid: jax.Array
@@ -189,6 +193,7 @@ class RealismFeatures:
     distance_to_road_edge: jax.Array
     offroad: jax.Array
     edge_inexact: jax.Array
+    red_light: jax.Array | None = None
 
 
 def _central_diff(x):
@@ -334,27 +339,33 @@ def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: f
     `max_segments` (static): keep only that many segment slots, the existing ones first (stores pad their edge
     arrays heavily; `edge_segment_budget` picks a count that keeps them all) -- the distance search costs in
     proportion to it.
+    A road with map edges (`RoadGeometry.map_edges`, stores of format 2) gives them as they are: oriented by the
+    store, drivable side on their left (`gpd_jax.data.roadgeom`); nothing is probed or left out.
     """
-    pts = road.edges.astype(jnp.float32)
-    pv = road.edge_valid
+    oriented = road.map_edges is not None
+    pts = (road.map_edges if oriented else road.edges).astype(jnp.float32)
+    pv = road.map_edge_valid if oriented else road.edge_valid
     e, p = pv.shape
     a, b = pts[:, :-1], pts[:, 1:]
     ok = pv[:, :-1] & pv[:, 1:]
     t = b - a
     length = jnp.linalg.norm(t, axis=-1)
     ok = ok & (length > 1e-6)
-    n_left = jnp.stack([-t[..., 1], t[..., 0]], -1) / jnp.maximum(length, 1e-6)[..., None]
-    mid = (a + b) / 2
-    left = on_road(road, mid + probe_m * n_left)
-    right = on_road(road, mid - probe_m * n_left)
-    # a segment with the drivable area on both sides (or neither) bounds nothing: stores' edges include such
-    # interior lines on real-road tiles, and a distance to them is no distance to the road's edge
-    ok = ok & (left != right)
-    # so are slivers: polylines shorter than `min_length_m` (artifacts of the areas' union), whose open ends would
-    # lend their side to points far along their line
-    ok = ok & (jnp.sum(jnp.where(ok, length, 0.0), -1, keepdims=True) >= min_length_m)
-    vote = jnp.sum(jnp.where(ok, left.astype(jnp.int32) - right.astype(jnp.int32), 0), -1)
-    flip = vote < 0  # [E]
+    if oriented:
+        flip = jnp.zeros((e,), bool)
+    else:
+        n_left = jnp.stack([-t[..., 1], t[..., 0]], -1) / jnp.maximum(length, 1e-6)[..., None]
+        mid = (a + b) / 2
+        left = on_road(road, mid + probe_m * n_left)
+        right = on_road(road, mid - probe_m * n_left)
+        # a segment with the drivable area on both sides (or neither) bounds nothing: stores' edges include such
+        # interior lines on real-road tiles, and a distance to them is no distance to the road's edge
+        ok = ok & (left != right)
+        # so are slivers: polylines shorter than `min_length_m` (artifacts of the areas' union), whose open ends
+        # would lend their side to points far along their line
+        ok = ok & (jnp.sum(jnp.where(ok, length, 0.0), -1, keepdims=True) >= min_length_m)
+        vote = jnp.sum(jnp.where(ok, left.astype(jnp.int32) - right.astype(jnp.int32), 0), -1)
+        flip = vote < 0  # [E]
     # reversing a polyline: segment k becomes the reverse of segment S-1-k
     a_r, b_r, ok_r = b[:, ::-1], a[:, ::-1], ok[:, ::-1]
     a = jnp.where(flip[:, None, None], a_r, a)
@@ -402,8 +413,11 @@ def _compact(edges: OrientedEdges, max_segments: int) -> OrientedEdges:
 
 def edge_segment_budget(edge_valid) -> int:
     """A static segment count for `orient_edges(..., max_segments=)` that keeps every road-edge segment of a batch
-    of scenes (`edge_valid bool[..., E, P]`, on the host): the largest count rounded up to a power of two, at
-    least 64 (few distinct values: few compiles when batches differ)."""
+    of scenes (`edge_valid bool[..., E, P]`, on the host, or the batch's `RoadGeometry`: its map edges where it has
+    them, as `orient_edges` reads): the largest count rounded up to a power of two, at least 64 (few distinct
+    values: few compiles when batches differ)."""
+    if isinstance(edge_valid, RoadGeometry):
+        edge_valid = edge_valid.edge_valid if edge_valid.map_edges is None else edge_valid.map_edge_valid
     v = np.asarray(edge_valid)
     counts = np.sum(v[..., :-1] & v[..., 1:], axis=(-2, -1))
     return max(64, 1 << max(0, int(np.max(counts, initial=0)) - 1).bit_length())
@@ -495,7 +509,8 @@ def road_edge_distance(edges: OrientedEdges, corners, valid, num_candidates: int
 
 
 def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: jax.Array, num_history: int,
-                     dt: float = 0.1, edges: OrientedEdges | None = None) -> RealismFeatures:
+                     dt: float = 0.1, edges: OrientedEdges | None = None,
+                     signals: SignalGeometry | None = None) -> RealismFeatures:
     """The realism features of one trajectory set's future frames.
 
     Args:
@@ -505,6 +520,8 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
       dt: seconds between frames.
       edges: `orient_edges(scene.road)` (computed once per scene, shared by the log and every rollout), or None
         for a scene without road geometry (then distance_to_road_edge is `FAR`, offroad False).
+      signals: `signal_geometry` of the scene's signals (computed once per scene, states on these frames), or
+        None (no traffic-light feature).
     """
     speed, accel, w, dw, sv, av = kinematics(xy, heading, valid, dt)
     fut = slice(num_history, None)
@@ -521,7 +538,10 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
         valid=v_f, speed_valid=sv[fut], accel_valid=av[fut], linear_speed=speed_f, linear_acceleration=accel[fut],
         angular_speed=w[fut], angular_acceleration=dw[fut], distance_to_nearest_object=dist,
         collision=(dist < 0) & v_f, time_to_collision=ttc, distance_to_road_edge=edge,
-        offroad=(edge > 0) & v_f & (edge < FAR / 2), edge_inexact=inexact)
+        offroad=(edge > 0) & v_f & (edge < FAR / 2), edge_inexact=inexact,
+        red_light=None if signals is None else red_light_violation(  # from the current frame: crossings into H..
+            xy[num_history - 1:], valid[num_history - 1:],
+            signals.replace(state=signals.state[num_history - 1:]))[0][1:])
 
 
 # ------------------------------------------------------------------------------------------------ likelihoods
@@ -566,13 +586,14 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
       sim_xy: f32[K, F, A, 2] rollout positions of the future frames; log_xy: f32[F, A, 2].
       evaluated: bool[A] the agents scored (their rollouts are the model's; others only interact).
       config: "2024" or "2025"; has_road: whether the scene has road geometry (else the map terms are left out).
+        The traffic-light term is scored where the features carry it (`realism_features(..., signals=)`).
 
     Returns f32[] per key: "<feature>_likelihood" for each scored feature, "metametric", the bucket scores
     "kinematic", "interactive", "map_based", "min_ade", "ade", "collision_rate", "offroad_rate",
     "road_edge_inexact_share"; NaN where no evaluated agent has the feature.
     """
     cfg = realism_config(config)
-    weights = realism_weights(config, has_road=has_road)
+    weights = realism_weights(config, has_road=has_road, has_signals=log.red_light is not None)
     k = sim.valid.shape[0]
     ev = evaluated[None, :]  # [1, A] against [F, A]
     out = {}
@@ -597,7 +618,8 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
         pooled_m = jnp.transpose(sim_m, (2, 0, 1)).reshape(a, k * f)
         ll = histogram_log_likelihood(getattr(log, field).T, pooled, pooled_m, c)  # [A, F]
         out[f"{name}_likelihood"] = jnp.exp(_masked_mean(ll.T, getattr(log, mask) & ev))
-    for name, field in (("collision_indication", "collision"), ("offroad_indication", "offroad")):
+    for name, field in (("collision_indication", "collision"), ("offroad_indication", "offroad"),
+                        ("traffic_light_violation", "red_light")):
         if name not in weights:
             continue
         sim_any = jnp.any(getattr(sim, field) & log.valid[None], axis=1)  # [K, A]
@@ -627,7 +649,8 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
 
 def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_valid, size, num_history: int,
                      road: RoadGeometry | None = None, evaluated=None, dt: float = 0.1,
-                     config: str = "2025", max_edge_segments: int | None = None) -> dict[str, jax.Array]:
+                     config: str = "2025", max_edge_segments: int | None = None,
+                     signals: TrafficSignals | None = None, lanes=None, lane_valid=None) -> dict[str, jax.Array]:
     """The realism metrics of K rollouts of one scenario (pure; `jax.vmap` over scenarios, `jit` it whole).
 
     Args:
@@ -641,19 +664,41 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
       config: "2024" or "2025".
       max_edge_segments: static road-edge segment slots kept (`edge_segment_budget` of the batch); None keeps the
         store's padded arrays (same results, slower).
+      signals: the scene's `TrafficSignals` (unbatched, states on these frames) and its lane centrelines `lanes`,
+        `lane_valid` (`Scene.polylines`, `polyline_valid`): the 2025 traffic-light term is scored; None leaves it
+        out.
     """
     edges = None if road is None else orient_edges(road, max_edge_segments)
     if evaluated is None:
         evaluated = log_valid[num_history - 1]
-    feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges)
+    geo = None if signals is None else signal_geometry(signals, lanes, lane_valid)
+    feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, geo)
     log = feats(log_xy, log_heading, log_valid)
     sim = jax.vmap(feats)(sim_xy, sim_heading, sim_valid)
     return realism_metrics(sim, log, sim_xy[:, num_history:], log_xy[num_history:], evaluated, config,
                            has_road=road is not None)
 
 
+def rescore(per_scenario: Mapping[str, np.ndarray], config: str, has_road: bool,
+            has_signals: bool) -> dict[str, np.ndarray]:
+    """Per-scenario figures with the meta-metric and bucket scores made again from the likelihoods over the terms
+    `realism_weights(config, has_road, has_signals)` keeps (the likelihoods of terms left out are dropped): how a
+    term is left out after scoring (the map terms of a store whose road edges the log itself does not keep to)."""
+    weights = realism_weights(config, has_road=has_road, has_signals=has_signals)
+    out = {k: v for k, v in per_scenario.items()
+           if not (k.endswith("_likelihood") and k[:-len("_likelihood")] not in weights)}
+    lik = {n: np.asarray(per_scenario[f"{n}_likelihood"], np.float64) for n in weights}
+    out["metametric"] = sum(w * lik[n] for n, w in weights.items())
+    for bucket in ("kinematic", "interactive", "map_based"):
+        names = [n for n in weights if FEATURES[n] == bucket]
+        out.pop(bucket, None)
+        if names:
+            out[bucket] = sum(weights[n] * lik[n] for n in names) / sum(weights[n] for n in names)
+    return out
+
+
 def reduce_realism(per_scenario: Mapping[str, np.ndarray], config: str = "2025",
-                   has_road: bool = True) -> dict:
+                   has_road: bool = True, has_signals: bool = False, road_reason: str = "no road geometry") -> dict:
     """Dataset figures from per-scenario metrics (arrays with a leading scenario dim): the mean over scenarios
     with a finite value (the official aggregation), plus "scenarios", "scenarios_left_out" (no evaluated agent),
     "config", "weights" (renormalised) and "left_out" (terms not scored and why)."""
@@ -667,10 +712,10 @@ def reduce_realism(per_scenario: Mapping[str, np.ndarray], config: str = "2025",
     out["scenarios"] = int(keep.sum())
     out["scenarios_left_out"] = int((~keep).sum())
     out["config"] = config
-    out["weights"] = realism_weights(config, has_road=has_road)
+    out["weights"] = realism_weights(config, has_road=has_road, has_signals=has_signals)
     reasons = {"traffic_light_violation": "no traffic-signal states in the data",
-               "distance_to_road_edge": "no road geometry", "offroad_indication": "no road geometry"}
-    out["left_out"] = {k: reasons[k] for k in left_out_terms(config, has_road=has_road)}
+               "distance_to_road_edge": road_reason, "offroad_indication": road_reason}
+    out["left_out"] = {k: reasons[k] for k in left_out_terms(config, has_road=has_road, has_signals=has_signals)}
     return out
 
 

@@ -28,8 +28,11 @@ What is read, and the conventions:
   (UTM around lat = lon = 0, the frame the track files use). Lanes are the vehicle lanelets' centrelines (the
   average of the aligned left and right bounds, in the lanelet's direction); the drivable area is the union of
   the vehicle lanelets' polygons (kind "lane": the maps mark no junction areas; keep-out multipolygons are
-  counted, not used); road edges are that union's boundary (`gpd_jax.data.roadgeom`). A track file whose site
-  has no map is refused.
+  counted, not used); road edges are that union's boundary (`gpd_jax.data.roadgeom`); the map road edges (what
+  the realism metric reads) are the map's curbstone / road_border / guard_rail / wall / fence ways, oriented
+  against that union (`lanelet2.ROAD_BORDER_TYPES`; INTERACTION's maps draw curbstones and guard rails; a map
+  without any falls back to the union's outline, tagged "lane_union"). A track file whose site has no map is
+  refused.
 * **Ego** (`choose_windows`). A drone recording has no recording vehicle, so every window gets one: windows start
   every `WINDOW_STRIDE` frames (3 s; windows overlap, and most get a different ego); the candidates are the
   vehicles valid in all 101 frames of the window that move (their centre travels at least `MIN_EGO_TRAVEL`
@@ -290,9 +293,10 @@ def _check_heading(vx: np.ndarray, vy: np.ndarray, psi: np.ndarray, path: str) -
 
 
 # --------------------------------------------------------------------------------------------------------- map
-def map_features(path: str | os.PathLike, stats: Counter | None = None) -> tuple[tuple, tuple]:
-    """(lanes, areas) of a site's Lanelet2 map: the vehicle lanes' directed centrelines f64[R, 2] and their
-    polygons as `Area`s of kind "lane" (local frame of the track files)."""
+def map_features(path: str | os.PathLike, stats: Counter | None = None) -> tuple[tuple, tuple, tuple]:
+    """(lanes, areas, road edges) of a site's Lanelet2 map: the vehicle lanes' directed centrelines f64[R, 2],
+    their polygons as `Area`s of kind "lane", and its curbs, road borders and guard rails f64[P, 2]
+    (`lanelet2.ROAD_BORDER_TYPES`; local frame of the track files)."""
     from gpd_jax.data.sources import lanelet2
 
     m = lanelet2.read_lanelet2(path, MAP_ORIGIN)
@@ -302,18 +306,18 @@ def map_features(path: str | os.PathLike, stats: Counter | None = None) -> tuple
     if not m.vehicle_lanelets:
         raise DataError(path, f"holds no vehicle lanelet (subtypes {', '.join(lanelet2.VEHICLE_SUBTYPES)})")
     areas = tuple(Area(AREA_KIND_ID["lane"], ring) for ring in m.vehicle_rings())
-    return m.vehicle_centrelines(), areas
+    return m.vehicle_centrelines(), areas, m.road_borders
 
 
-def with_map(raw: RawLog, lanes: tuple, areas: tuple) -> RawLog:
-    """The log with its site's lanes and drivable areas."""
-    return dataclasses.replace(raw, lanes=tuple(lanes), areas=tuple(areas))
+def with_map(raw: RawLog, lanes: tuple, areas: tuple, road_edges: tuple = ()) -> RawLog:
+    """The log with its site's lanes, drivable areas and road edges."""
+    return dataclasses.replace(raw, lanes=tuple(lanes), areas=tuple(areas), road_edges=tuple(road_edges))
 
 
 def read_log(track_file: TrackFile, db: str, stats: Counter | None = None) -> RawLog:
     """A track file with its site's map -> RawLog (`read_tracks`, `map_features`)."""
-    lanes, areas = map_features(map_path(db, track_file.site), stats)
-    return with_map(read_tracks(track_file.path, track_file.site, stats), lanes, areas)
+    return with_map(read_tracks(track_file.path, track_file.site, stats), *map_features(
+        map_path(db, track_file.site), stats))
 
 
 # ----------------------------------------------------------------------------------------------------- windows
@@ -404,8 +408,7 @@ def run_interaction_job(job: InteractionJob, out_dir: str, sample_cfg: preproces
     t0 = time.time()
     stats: Counter = Counter()
     try:
-        lanes, areas = map_features(job.map, stats)
-        raw = with_map(read_tracks(job.path, job.site, stats), lanes, areas)
+        raw = with_map(read_tracks(job.path, job.site, stats), *map_features(job.map, stats))
         pairs = log_samples(raw, sample_cfg, seed, max_per_log, stats)
     except DataError as e:
         return {"index": job.index, "split": job.split, "num_samples": 0, "requested": 1, "stats": {},

@@ -53,6 +53,8 @@ from gpd_jax.data.sources.xmlmap import xml_root
 # lanes so.
 VEHICLE_SUBTYPES = ("road", "highway", "play_street", "bus_lane", "main_road")
 DEFAULT_SUBTYPE = "road"  # Lanelet2's default when a lanelet has no subtype tag
+# Way types that bound the road physically (Lanelet2's line-string types): the map's road edges.
+ROAD_BORDER_TYPES = ("curbstone", "road_border", "guard_rail", "wall", "fence")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,13 +90,16 @@ class Lanelet2Map:
       origin: (lat, lon) degrees of the projection's origin (the local frame's (0, 0)).
       lanelets: every lanelet, in file order.
       counts: what the file holds (`nodes`, `ways`, `lanelets`, `lanelet_<subtype>`, `relation_<type>_<subtype>`,
-        `bounds_reversed`), for build statistics.
+        `bounds_reversed`, `road_border_ways`), for build statistics.
+      road_borders: f64[P, 2] the ways whose `type` is in `ROAD_BORDER_TYPES` (curbs, road borders, guard
+        rails, walls, fences), in file order and their own direction: the map's road edges.
     """
 
     path: str
     origin: tuple[float, float]
     lanelets: tuple[Lanelet, ...]
     counts: dict
+    road_borders: tuple = ()
 
     @property
     def vehicle_lanelets(self) -> tuple[Lanelet, ...]:
@@ -225,9 +230,15 @@ def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] | None = 
     x, y = local_projector(*origin)(np.array(lats), np.array(lons))
     node_xy = {nid: (float(a), float(b)) for nid, a, b in zip(ids, x, y)}
     ways: dict[str, list[str]] = {}
+    borders = []
     for w in root.iter("way"):
         ways[w.get("id")] = [nd.get("ref") for nd in w.findall("nd")]
+        if _tags(w).get("type") in ROAD_BORDER_TYPES:
+            pts = np.array([node_xy[r] for r in ways[w.get("id")] if r in node_xy], np.float64).reshape(-1, 2)
+            if len(pts) >= 2:
+                borders.append(pts)
     counts["ways"] = len(ways)
+    counts["road_border_ways"] = len(borders)
 
     def chained_refs(wids: list[str], lanelet: str, role: str) -> list[str]:
         """The node refs of a bound made of one way or of several that meet end to end (the levelXData maps:
@@ -294,7 +305,7 @@ def read_lanelet2(path: str | os.PathLike, origin: tuple[float, float] | None = 
     counts["lanelets"] = len(lanelets)
     if not lanelets:
         raise DataError(path, "holds no lanelet (no relation tagged type=lanelet): not a Lanelet2 map")
-    return Lanelet2Map(path, (float(origin[0]), float(origin[1])), tuple(lanelets), dict(counts))
+    return Lanelet2Map(path, (float(origin[0]), float(origin[1])), tuple(lanelets), dict(counts), tuple(borders))
 
 
 def read_lanelet2_lanes(path: str | os.PathLike,

@@ -40,7 +40,11 @@ What is read, and the conventions:
 * **Drivable area** (`read_map_areas`, `RawLog.areas`): the polygons of the `AREA_LAYERS` the map has —
   `lanes_polygons` and `lane_groups_polygons` (kind "lane"), `intersections` ("junction"),
   `generic_drivable_areas` and `carpark_areas` ("other") — projected like the lanes and cropped to the same
-  box (polygons whose bounds meet it, kept whole).
+  box (polygons whose bounds meet it, kept whole). Their outline is the road's edge (`RawLog.areas_outline`
+  "drivable_area": the map road edges the realism metric reads).
+* **Traffic lights** (`RawLog.signals`): `traffic_light_status` rows of the kept frames (`LIGHT_STATUS`: red ->
+  stop, yellow -> caution, green -> go; a frame without a row is unknown) for every lane connector of the map
+  (`MapLanes.connectors`): stop point at the connector's start, the connector's centreline as the lane.
 * `RawLog.location` is the map name (e.g. "us-nv-las-vegas-strip"); `RawLog.name` is the file stem.
 * **Build** (`build_nuplan`): one job and one shard per log, split by map (`log.map_version` from the log headers,
   read first) unless `split` is given; the jobs then run on the shared job runner (local processes or Ray, each
@@ -72,8 +76,9 @@ from gpd_jax.data.jobs import (assign_splits, check_count, check_settings, exist
                                run_jobs)
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import Area
+from gpd_jax.data.signals import RawSignals
 from gpd_jax.data.sources import gpkg
-from gpd_jax.geometry import AREA_KIND_ID
+from gpd_jax.geometry import AREA_KIND_ID, SIGNAL_STATE_ID
 from gpd_jax.scene import TYPE_ID
 
 log = logging.getLogger(__name__)
@@ -435,6 +440,8 @@ class MapLanes:
       lanes: tuple of L f64[P_i, 2] centrelines (lanes and lane connectors, P_i >= 2).
       is_connector: bool[L] the polyline is a lane connector's (False: a lane's, or unknown).
       bounds: f64[L, 4] (xmin, ymin, xmax, ymax) of each centreline.
+      connectors: lane connector fid (str) -> its own centreline f64[P, 2] (before merging): what a traffic light
+        controls (`traffic_light_status.lane_connector_id`).
     """
 
     path: str
@@ -442,6 +449,7 @@ class MapLanes:
     lanes: tuple[np.ndarray, ...]
     is_connector: np.ndarray
     bounds: np.ndarray
+    connectors: dict = dataclasses.field(default_factory=dict)
 
     def crop(self, box: np.ndarray) -> tuple[np.ndarray, ...]:
         """The centrelines whose bounds meet the box f64[4] (xmin, ymin, xmax, ymax), kept whole."""
@@ -683,6 +691,7 @@ def read_map_lanes(
             raise DataError(gpkg_path, f"projecting '{BASELINE_LAYER}' to {str(crs)[:60]} gave non-finite points")
         pieces = np.split(flat, np.cumsum([len(p) for p in pieces])[:-1])
 
+    connectors = {key[1]: pieces[i] for i, key in enumerate(keys) if len(key) == 2 and key[0] == "connector"}
     if edges is not None and len(set(keys)) == len(keys):
         chains = merge_chains(keys, edges)
         at = {key: i for i, key in enumerate(keys)}
@@ -692,7 +701,7 @@ def read_map_lanes(
         lanes = list(pieces)
         connector = [key[0] == "connector" for key in keys]
     bounds = np.array([[*p.min(0), *p.max(0)] for p in lanes], np.float64).reshape(-1, 4)
-    return MapLanes(os.fspath(gpkg_path), str(crs), tuple(lanes), np.array(connector, bool), bounds)
+    return MapLanes(os.fspath(gpkg_path), str(crs), tuple(lanes), np.array(connector, bool), bounds, connectors)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -715,6 +724,7 @@ def _read_log(
         header = _read_header(conn, db_path)
         frames = _read_frames(conn, db_path, max_step_error)
         tracks = _read_vehicles(conn, db_path, frames)
+        lights = _read_lights(conn, db_path, frames)
     finally:
         conn.close()
 
@@ -766,7 +776,42 @@ def _read_log(
         lanes=tuple(lanes),
         ego_index=0,
         areas=tuple(areas),
+        areas_outline="drivable_area",  # lanes, connectors, intersections, car parks, generic drivable: the road
+        signals=_signals(lights, lanes_map),
     )
+
+
+# nuPlan's traffic-light status -> WOSAC lane states (`gpd_jax.geometry.SIGNAL_STATES`)
+LIGHT_STATUS = {"red": "stop", "yellow": "caution", "green": "go", "unknown": "unknown"}
+
+
+def _read_lights(conn: sqlite3.Connection, path, frames) -> dict[str, np.ndarray]:
+    """Lane connector id (str) -> i8[F] its light's state in each kept frame (0 where not recorded), from the
+    `traffic_light_status` table (empty where the log has none)."""
+    have = {r[0] for r in _query(conn, path, "SELECT name FROM sqlite_master WHERE type IN ('table', 'view')")}
+    if "traffic_light_status" not in have:
+        return {}
+    at = {bytes(t) if isinstance(t, (bytes, memoryview)) else t: f for f, t in enumerate(frames.tokens)}
+    out: dict[str, np.ndarray] = {}
+    rows = _query(conn, path, "SELECT lidar_pc_token, lane_connector_id, status FROM traffic_light_status")
+    for pc, lc, status in rows:
+        f = at.get(bytes(pc) if isinstance(pc, (bytes, memoryview)) else pc)
+        if f is None or lc is None:
+            continue
+        state = SIGNAL_STATE_ID[LIGHT_STATUS.get(str(status).lower(), "unknown")]
+        out.setdefault(str(_fid_key(lc)), np.zeros(len(frames.tokens), np.int8))[f] = state
+    return out
+
+
+def _signals(lights: dict[str, np.ndarray], lanes_map) -> RawSignals | None:
+    """The lights of lane connectors the map has: stop point at the connector's start, its centreline as the
+    lane; None without any."""
+    ids = [c for c in sorted(lights) if c in lanes_map.connectors]
+    if not ids:
+        return None
+    lanes = tuple(lanes_map.connectors[c] for c in ids)
+    return RawSignals(stop=np.stack([ln[0] for ln in lanes]), lane=lanes,
+                      state=np.stack([lights[c] for c in ids], -1))
 
 
 def read_log(

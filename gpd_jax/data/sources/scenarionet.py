@@ -49,14 +49,21 @@ What is read, and the conventions:
   `LANE_SURFACE_STREET`, `LANE_FREEWAY`, `LANE_SURFACE_UNSTRUCTURE`, `LANE_UNKNOWN` (`VEHICLE_LANE_TYPES`).
   `LANE_BIKE_LANE` is not a vehicle lane and is left out (counted). Road lines (`ROAD_LINE_*`), road edges
   (`ROAD_EDGE_*`), crosswalks, speed bumps and stop signs are counted by kind
-  (`map_<kind>` statistics) but not used; traffic-light states (`dynamic_map_states`) are not used.
+  (`map_<kind>` statistics); of them only the road edges are used (below).
+* **Traffic lights** (`RawLog.signals`): each `dynamic_map_states` entry of type `TRAFFIC_LIGHT` with a `lane`
+  that is a vehicle lane of the map and a `stop_point`: its states per frame (`state["object_state"]`, Waymo's
+  `LANE_STATE_*` or MetaDrive's `TRAFFIC_LIGHT_RED|YELLOW|GREEN|UNKNOWN`, `light_state`), resampled with the
+  frames. Others are counted (`signals_without_lane_or_stop`).
 * **Drivable area** (`RawLog.areas`): each vehicle lane's `polygon` where it encloses an area (nuPlan and
   nuScenes conversions), else its centreline buffered by its `width` ((P, 2): distances to the left and right
   boundaries; (P,) or a scalar: the full width), else by `DEFAULT_LANE_WIDTH` (counted:
   `lane_width_defaulted`); `DRIVEWAY` polygons as "other" drivable area. The road edges of a sample are the
-  boundary of that union (`gpd_jax.data.roadgeom`); the `ROAD_EDGE_*` lines are not used (they bound the road
-  including shoulders and kerbs the lanes do not cover, and are not closed). ScenarioNet has no junction
-  feature: junction areas are what the lanes crossing them cover (kind "lane").
+  boundary of that union (`gpd_jax.data.roadgeom`). ScenarioNet has no junction feature: junction areas are
+  what the lanes crossing them cover (kind "lane").
+* **Map road edges** (`RawLog.road_edges`, what the realism metric reads): the `ROAD_EDGE_*` polylines (Waymo's
+  conversions; they bound the road with shoulders and kerbs the lanes do not cover), oriented against the
+  areas' union; a scenario without them (nuScenes conversions: lanes and road lines only) gets the outline of
+  the lane union, tagged "lane_union" (`gpd_jax.geometry.EDGE_SOURCES`).
 * **Location** (`scenario_location`, the key splits are made by): the first of `metadata["map"]`,
   `["location"]`, `["city"]`, `["map_name"]` that is set (for nuScenes and nuPlan the map name, so the same road
   network gets the same key as from the nuPlan source). Waymo scenarios name no map: each is its own location
@@ -90,7 +97,8 @@ from gpd_jax.data.errors import DataError
 from gpd_jax.data.jobs import assign_splits, check_settings, finish, job_marker, run_jobs
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import Area, lane_area
-from gpd_jax.geometry import AREA_KIND_ID
+from gpd_jax.data.signals import RawSignals
+from gpd_jax.geometry import AREA_KIND_ID, SIGNAL_STATE_ID
 from gpd_jax.scene import TYPE_ID
 
 log = logging.getLogger(__name__)
@@ -368,7 +376,7 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
     size_arr[bad] = DEFAULT_SIZE
     stats["agent_size_defaulted"] += int(bad.sum())
     size_arr = size_arr.astype(np.float32)
-    lanes, areas = [], []
+    lanes, areas, edges, lane_lines = [], [], [], {}
     for fid in sorted(map_features, key=_track_order):
         feat = map_features[fid]
         ftype = str(_need(feat, "type", f"scenario['map_features'][{str(fid)!r}]", path)).upper()
@@ -379,6 +387,10 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
             ring = _polygon_of(feat, fw, path)
             if ring is not None:
                 areas.append(Area(AREA_KIND_ID["other"], ring))
+        if kind == "road_edge":
+            edge = _finite_points(_need(feat, "polyline", fw, path), "polyline", "P", fw, path)
+            if len(edge) >= 2:
+                edges.append(edge)
         if kind != "lane":
             continue
         if "polygon" in feat:
@@ -390,6 +402,7 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
             stats["lane_polylines_too_short"] += 1
             continue
         lanes.append(pl)
+        lane_lines[str(fid)] = pl
         area = _lane_area(feat, pl, fw, path, stats)
         if area is not None:
             areas.append(area)
@@ -402,7 +415,56 @@ def scenario_to_rawlog(scenario: Any, path: str, location: str | None = None,
     return RawLog(name=file_stem(path), location=location or scenario_location(md, file_stem(path)),
                   timestamps=tk - tk[0], agent_ids=tuple(names), agent_xy=xy, agent_heading=heading,
                   agent_valid=valid, agent_size=size_arr, agent_type=atype, lanes=tuple(lanes), ego_index=0,
-                  areas=tuple(areas))
+                  areas=tuple(areas), road_edges=tuple(edges),
+                  signals=_signals(scenario.get("dynamic_map_states"), lane_lines, T, keep, path, stats))
+
+
+# ScenarioNet's traffic-light state strings -> WOSAC lane states (`gpd_jax.geometry.SIGNAL_STATES`): Waymo's
+# `LANE_STATE_*` names as they are, MetaDrive's `TRAFFIC_LIGHT_*` (nuPlan and other conversions) by colour.
+_LIGHT_COLOURS = {"RED": "stop", "YELLOW": "caution", "GREEN": "go", "UNKNOWN": "unknown"}
+
+
+def light_state(value) -> int:
+    """One frame's traffic-light state string (or None) -> index into `SIGNAL_STATES` (0 for what is unknown)."""
+    if value is None:
+        return 0
+    v = str(value).upper()
+    if v.startswith("LANE_STATE_"):
+        return SIGNAL_STATE_ID.get(v[len("LANE_STATE_"):].lower(), 0)
+    if v.startswith("TRAFFIC_LIGHT_"):
+        return SIGNAL_STATE_ID[_LIGHT_COLOURS.get(v[len("TRAFFIC_LIGHT_"):], "unknown")]
+    return 0
+
+
+def _signals(states, lane_lines: dict, T: int, keep: slice, path: str, stats: Counter) -> RawSignals | None:
+    """`dynamic_map_states` -> `RawSignals` (None without traffic lights): per light its `stop_point`, the
+    centreline of its `lane` (a vehicle lane of the map) and its `state["object_state"]` per frame. A light
+    whose lane is not a vehicle lane of the map, or without a stop point, is left out (counted)."""
+    if not isinstance(states, dict) or not states:
+        return None
+    stops, lines, cols = [], [], []
+    for sid in sorted(states, key=_track_order):
+        st = states[sid]
+        where = f"scenario['dynamic_map_states'][{str(sid)!r}]"
+        if not isinstance(st, dict) or str(st.get("type", "TRAFFIC_LIGHT")).upper() != "TRAFFIC_LIGHT":
+            continue
+        lane, stop = lane_lines.get(str(st.get("lane"))), st.get("stop_point")
+        seq = (st.get("state") or {}).get("object_state") if isinstance(st.get("state"), dict) else None
+        if lane is None or stop is None or seq is None:
+            stats["signals_without_lane_or_stop"] += 1
+            continue
+        stop = np.asarray(stop, np.float64).reshape(-1)[:2]
+        if stop.shape != (2,) or not np.isfinite(stop).all():
+            raise DataError(path, f"{where}['stop_point'] is not a point: {st.get('stop_point')!r}")
+        if len(seq) != T:
+            raise DataError(path, f"{where}['state']['object_state'] has {len(seq)} entries, expected {T}")
+        stops.append(stop)
+        lines.append(lane)
+        cols.append([light_state(v) for v in list(seq)[keep]])
+    if not cols:
+        return None
+    stats["signals"] += len(cols)
+    return RawSignals(stop=np.stack(stops), lane=tuple(lines), state=np.asarray(cols, np.int8).T)
 
 
 def _finite_points(value, key: str, n: str, fw: str, path: str) -> np.ndarray:

@@ -357,6 +357,54 @@ def read_network_areas(net_path: str) -> tuple[Area, ...]:
     return tuple(areas)
 
 
+@dataclasses.dataclass(frozen=True)
+class SignalLink:
+    """One link a traffic light controls: `tl` (its id), `index` (the link's character in the light's state),
+    `stop` f64[2] (the end of the incoming lane, where a vehicle waits), `lane` f64[P, 2] (the incoming lane's
+    shape followed by the junction lane the link goes through, driving order)."""
+
+    tl: str
+    index: int
+    stop: np.ndarray
+    lane: np.ndarray
+
+
+# SUMO's link state characters -> WOSAC lane states (`gpd_jax.geometry.SIGNAL_STATES`): red and red-yellow are
+# stop, yellow caution, green (priority or not) go, 's' (stop, then go: right turn on red) a flashing stop, 'o'
+# (off, blinking) a flashing caution, 'O' (off, no signal) unknown.
+SUMO_LINK_STATES = {"r": "stop", "u": "stop", "y": "caution", "Y": "caution", "G": "go", "g": "go",
+                    "s": "flashing_stop", "o": "flashing_caution", "O": "unknown"}
+
+
+def read_network_signals(net_path: str) -> tuple[SignalLink, ...]:
+    """Every link of a SUMO network controlled by a traffic light (`connection` elements with `tl` and
+    `linkIndex` whose incoming lane passenger cars may use), in file order."""
+    shapes: dict[str, np.ndarray] = {}
+    conns: list[tuple[str, int, str, str]] = []
+    try:
+        with _open_xml(net_path) as f:
+            for _, el in ET.iterparse(f, events=("end",)):
+                if el.tag == "edge":
+                    for ln in el.findall("lane"):
+                        if _passenger_allowed(ln.attrib) and ln.get("shape"):
+                            shapes[ln.get("id")] = parse_shape(ln.get("shape"))
+                    el.clear()
+                elif el.tag == "connection":
+                    if el.get("tl") is not None and el.get("linkIndex") is not None:
+                        conns.append((el.get("tl"), int(el.get("linkIndex")),
+                                      f"{el.get('from')}_{el.get('fromLane')}", el.get("via") or ""))
+                    el.clear()
+    except (ET.ParseError, ValueError, OSError, EOFError) as e:
+        raise DataError(net_path, f"not a readable SUMO network: {e}") from e
+    out = []
+    for tl, index, a, via in conns:
+        if a not in shapes or len(shapes[a]) < 2:
+            continue
+        lane = shapes[a] if via not in shapes else np.concatenate([shapes[a], shapes[via]])
+        out.append(SignalLink(tl, index, shapes[a][-1].copy(), lane))
+    return tuple(out)
+
+
 def read_network_lanes(net_path: str, merge_chains: bool = True,
                        ignore_turnarounds: bool = False) -> tuple[np.ndarray, ...]:
     """Lane centrelines (normal and internal junction lanes open to passenger cars) of a SUMO network.

@@ -38,9 +38,11 @@ import numpy as np
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.raw import RawLog
 from gpd_jax.data.roadgeom import Area, lane_area
-from gpd_jax.data.sources.sumo_networks import (NetEdge, SumoRunRejected, read_network_areas, read_network_edges,
+from gpd_jax.data.signals import RawSignals
+from gpd_jax.data.sources.sumo_networks import (SUMO_LINK_STATES, NetEdge, SumoRunRejected, read_network_areas,
+                                                read_network_edges, read_network_signals,
                                                 read_network_lanes, run_sumo_tool, sumo_bin, sumo_home)
-from gpd_jax.geometry import AREA_KIND_ID
+from gpd_jax.geometry import AREA_KIND_ID, SIGNAL_STATE_ID
 from gpd_jax.scene import TYPE_ID
 
 log = logging.getLogger(__name__)
@@ -378,6 +380,11 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
             f.write(text)
         fcd, stats = os.path.join(wd, "fcd.csv"), os.path.join(wd, "stats.csv")
         stops = os.path.join(wd, "stops.csv")
+        # the traffic lights' states as simulated, every step (an output only: the run is the same without it)
+        tls_out, tls_add = os.path.join(wd, "tls.csv"), os.path.join(wd, "tls.add.xml")
+        with open(tls_add, "w") as f:
+            f.write(f'<additional><timedEvent type="SaveTLSStates" dest="{tls_out}"/></additional>\n')
+        adds.append(tls_add)
         run_sumo_tool([sumo_bin("sumo"), "-n", net_path, "-r", ",".join(route_files), "-a", ",".join(adds),
                        "--step-length", "0.1", "--lanechange.duration", "3", "--fcd-output", fcd,
                        "--output.format", "csv", "--fcd-output.attributes", "x,y,angle,speed",
@@ -397,6 +404,7 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
         raw = _fcd_to_rawlog(fcd, types, name, location, cfg, planned_stops=_read_planned_stops(stops), info=info)
         if teleports:  # a few isolated teleports (deadlocks at odd real junctions): drop those tracks
             raw = drop_discontinuous_tracks(raw)
+        signals = read_signal_states(tls_out, read_network_signals(net_path), raw.timestamps)
     finally:
         if own_tmp:
             import shutil
@@ -407,7 +415,47 @@ def simulate(net_path: str, name: str, location: str, seed: int, cfg: SimConfig 
         lanes = read_network_lanes(net_path)
     if areas is None:
         areas = read_network_areas(net_path)
-    return dataclasses.replace(raw, lanes=lanes, areas=tuple(areas) + extra_areas)
+    # SUMO's lanes, junctions and parking strips are the whole road: their outline is the road's edge
+    return dataclasses.replace(raw, lanes=lanes, areas=tuple(areas) + extra_areas, areas_outline="drivable_area",
+                               signals=signals)
+
+
+def read_signal_states(path: str, links, timestamps: np.ndarray) -> RawSignals | None:
+    """The states of `links` (`read_network_signals`) in each frame of a log (`timestamps` f64[F], simulation
+    seconds) from SUMO's `SaveTLSStates` output at `path`; None when the network has no traffic light. A frame
+    before a light's first record is unknown (0); a record holds until the next."""
+    if not links:
+        return None
+    F = len(timestamps)
+    col = {(ln.tl, ln.index): j for j, ln in enumerate(links)}
+    by_tl: dict[str, list[tuple[int, int]]] = {}
+    for (tl, index), j in col.items():
+        by_tl.setdefault(tl, []).append((index, j))
+    code = {c: SIGNAL_STATE_ID[v] for c, v in SUMO_LINK_STATES.items()}
+    state = np.zeros((F, len(links)), np.int8)
+    records = []  # SUMO writes its outputs as CSV here (--output.format csv): tlsState_time;..._id;..._state
+    try:
+        with open(path) as f:
+            rows = [ln.rstrip("\n").split(";") for ln in f if ln.strip()]
+        if rows:
+            col_of = {k.rsplit("_", 1)[-1]: i for i, k in enumerate(rows[0])}
+            i_t, i_id, i_st = col_of["time"], col_of["id"], col_of["state"]
+            records = [(float(r[i_t]), r[i_id], r[i_st]) for r in rows[1:]]
+    except (OSError, ValueError, KeyError, IndexError) as e:
+        raise DataError(path, f"unreadable traffic-light output: {e}") from e
+    seen = np.zeros((F, len(links)), bool)
+    for time, tl, st in sorted(records, key=lambda r: r[0]):
+        f = min(int(np.searchsorted(timestamps, time - 0.05)), F - 1)  # the first frame at or after the record
+        if time - 0.05 > timestamps[-1]:
+            continue
+        for index, j in by_tl.get(tl, ()):
+            if index < len(st):
+                state[f, j] = code.get(st[index], 0)
+                seen[f, j] = True
+    # a record holds until the next: carry each link's last recorded frame forward
+    last = np.maximum.accumulate(np.where(seen, np.arange(F)[:, None], -1), axis=0)
+    state = np.where(last >= 0, np.take_along_axis(state, np.maximum(last, 0), axis=0), 0).astype(np.int8)
+    return RawSignals(stop=np.stack([ln.stop for ln in links]), lane=tuple(ln.lane for ln in links), state=state)
 
 
 def drop_discontinuous_tracks(raw: RawLog, max_speed: float = 70.0) -> RawLog:
