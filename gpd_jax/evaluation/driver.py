@@ -24,7 +24,7 @@ from gpd_jax.evaluation.keys import RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
 from gpd_jax.options import RolloutOptions
 from gpd_jax.evaluation.preflight import preflight
-from gpd_jax.evaluation.realism import realism_batch, reduce_groups
+from gpd_jax.evaluation.realism import RESULT_KEYS, realism_batch, reduce_groups
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
 from gpd_jax.metrics.realism import CONFIGS as REALISM_CONFIGS
@@ -119,7 +119,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     per_scene: list[dict[str, Any]] = []
 
     acc = None
-    realism_parts: list[dict[str, dict[str, np.ndarray]]] = []
+    realism_parts: list[dict[str, dict[str, dict[str, np.ndarray]]]] = []
     has_road = True
     render_items: list[RenderItem] = []
     n_store = n_encoded = 0
@@ -232,9 +232,11 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                      "data": round(t_data, 2), "batches": num_batches, "batch_size": bs},
     }
     if samples:
-        by_group = {g: {m: np.concatenate([p[g][m] for p in realism_parts]) for m in realism_parts[0][g]}
-                    for g in realism_parts[0]}
-        results["realism"] = reduce_groups(by_group, names, samples, realism_config, has_road)
+        for rules, key in RESULT_KEYS.items():
+            first = realism_parts[0][rules]
+            by_group = {g: {m: np.concatenate([p[rules][g][m] for p in realism_parts]) for m in first[g]}
+                        for g in first}
+            results[key] = reduce_groups(by_group, names, samples, realism_config, has_road, rules)
     if scene_sums:
         pad = lambda x: list(x[:n]) + [""] * max(0, n - len(x))  # noqa: E731
         results["scene_sums"] = scene_sums_from_batches(per_scene, pad(prep.scenario_ids), pad(prep.locations))
@@ -245,8 +247,9 @@ SAMPLED_ROLLOUTS_PER_CALL = 512  # rollouts (scenes x tasks x samples) in one ca
 
 
 def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutOutput, samples: int, key,
-             options: RolloutOptions, config: str) -> tuple[dict[str, dict[str, np.ndarray]], bool]:
-    """Each scenario's realism figures of one batch (`gpd_jax.evaluation.realism`) and whether the scenes had road
+             options: RolloutOptions, config: str) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], bool]:
+    """Each scenario's realism figures of one batch under each counting rule (`gpd_jax.evaluation.realism`:
+    `{rules: {group: {metric: f64[b]}}}`) and whether the scenes had road
     geometry. The first of the K samples is the main rollout `out`; the others are drawn only where the rollout
     samples (temperature > 0), through the rollout's sample axis (`RolloutOptions.samples`), in calls of equal size
     (one compile) of at most `SAMPLED_ROLLOUTS_PER_CALL` rollouts."""

@@ -15,6 +15,11 @@ on the agents (slots 1..) valid at the current frame, the traffic-simulation set
 * `constant_velocity_lanes`: K copies of constant velocity along the lanes (where the scenes have lanes);
 * `log`: K copies of the log itself (what a perfect single-future model scores; not 1: the histograms of one
   future are not the spread of all the futures the scene allows).
+
+Both counting rules (`gpd_jax.metrics.realism.RULES`) are computed in the same compiled call: `metrics.json`
+carries `"realism"` (the corrected rules) and `"realism_official"` (the official code's rules), each saying which.
+Under the official rules an agent a rollout, a baseline or the log lacks at a future frame goes on at constant
+velocity from its last state (`continue_missing`), as the official format has every agent at every frame.
 """
 
 from __future__ import annotations
@@ -27,12 +32,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow_lanes
-from gpd_jax.metrics.realism import reduce_realism, scenario_realism, upsample_frames
+from gpd_jax.metrics.realism import RULES, reduce_realism, scenario_realism, upsample_frames
 from gpd_jax.scene import Scene
 from gpd_jax.spec import ModelSpec
 from gpd_jax.tasks import generated
 
 BASELINES = ("constant_velocity", "constant_velocity_lanes", "log")
+RULES_NOTE = {
+    "corrected": "counts only what a rollout has: simulated values where the rollout has the agent and the value "
+                 "is finite; speeds and accelerations from the history on (docs/evaluation.md)",
+    "official": "the official code's counting: agents valid at the current frame, every one present at every "
+                "future frame (constant velocity where a rollout or the log lacks it), the NaN padding of the "
+                "central differences in the top bin, the kinematic validity of the future frames alone, ADE over "
+                "the log's frames history included (docs/evaluation.md)",
+}
 
 
 def _evaluated(gen: Sequence[str], valid_now: jax.Array) -> jax.Array:
@@ -49,8 +62,10 @@ def _evaluated(gen: Sequence[str], valid_now: jax.Array) -> jax.Array:
 
 @partial(jax.jit, static_argnames=("spec", "task_names", "config", "max_edge_segments", "with_lanes"))
 def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpec, task_names: tuple[str, ...],
-                  config: str, max_edge_segments: int | None, with_lanes: bool) -> dict[str, dict[str, jax.Array]]:
-    """Per-scenario realism of a batch: `{group: {metric: f32[B]}}` for every task and baseline.
+                  config: str, max_edge_segments: int | None, with_lanes: bool
+                  ) -> dict[str, dict[str, dict[str, jax.Array]]]:
+    """Per-scenario realism of a batch under each counting rule: `{rules: {group: {metric: f32[B]}}}` for every
+    task and baseline.
 
     Args:
       pred_xy: f32[B, K, N, T, A, 2] K sampled rollouts of the N tasks at the model's frames (T, A: the model's);
@@ -93,21 +108,31 @@ def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpe
             evaluated.append(agents)
     # every group (task or baseline) through one vmapped metric: one compiled copy of it, whatever the groups
     stacked = [jnp.stack([g[i] for g in sims], axis=1) for i in range(3)]  # [B, G, K, ts, A, ...]
-    fn = lambda sx, sh, sv, ev, lx, lh, lv, sz, rd: scenario_realism(  # noqa: E731
-        sx, sh, sv, lx, lh, lv, sz, h, rd, ev, spec.stored_period_s, config, max_edge_segments)
-    per_group = jax.vmap(fn, in_axes=(0, 0, 0, 0) + (None,) * 5)
-    res = jax.vmap(per_group)(*stacked, jnp.stack(evaluated, axis=1), log.xy, log.heading, log.valid, size, road)
-    return {g: {m: v[:, i] for m, v in res.items()} for i, g in enumerate(groups)}
+    agent_type = full.agent_type[:, :a]
+    out = {}
+    for rules in RULES:
+        fn = lambda sx, sh, sv, ev, lx, lh, lv, sz, rd, at, r=rules: scenario_realism(  # noqa: E731
+            sx, sh, sv, lx, lh, lv, sz, h, rd, ev, spec.stored_period_s, config, max_edge_segments, r, at)
+        per_group = jax.vmap(fn, in_axes=(0, 0, 0, 0) + (None,) * 6)
+        res = jax.vmap(per_group)(*stacked, jnp.stack(evaluated, axis=1), log.xy, log.heading, log.valid, size,
+                                  road, agent_type)
+        out[rules] = {g: {m: v[:, i] for m, v in res.items()} for i, g in enumerate(groups)}
+    return out
+
+
+RESULT_KEYS = {"corrected": "realism", "official": "realism_official"}  # rules -> metrics.json's key
 
 
 def reduce_groups(per_scene: dict[str, dict[str, np.ndarray]], task_names: Sequence[str], samples: int,
-                  config: str, has_road: bool) -> dict:
-    """metrics.json's "realism": {"config", "samples", "weights", "left_out", "tasks": {task: figures},
-    "baselines": {name: figures}} from each scenario's figures (`{group: {metric: f64[n]}}`)."""
-    groups = {g: reduce_realism(v, config, has_road=has_road) for g, v in per_scene.items()}
+                  config: str, has_road: bool, rules: str = "corrected") -> dict:
+    """metrics.json's "realism" (or "realism_official"): {"config", "rules", "samples", "weights", "left_out",
+    "tasks": {task: figures}, "baselines": {name: figures}} from each scenario's figures
+    (`{group: {metric: f64[n]}}`) under `rules`."""
+    groups = {g: reduce_realism(v, config, has_road=has_road, rules=rules) for g, v in per_scene.items()}
     first = next(iter(groups.values()))
-    strip = lambda r: {k: v for k, v in r.items() if k not in ("config", "weights", "left_out")}
-    return {"config": config, "samples": samples, "weights": first["weights"], "left_out": first["left_out"],
+    strip = lambda r: {k: v for k, v in r.items() if k not in ("config", "rules", "weights", "left_out")}
+    return {"config": config, "rules": rules, "rules_note": RULES_NOTE[rules], "samples": samples,
+            "weights": first["weights"], "left_out": first["left_out"],
             "evaluated": "tasks: the slots each task generates, valid at the current frame; baselines: the agents "
                          "(slots 1..) valid at the current frame",
             "frame_rate": "rollouts at the model's frames are brought to the stored rate by cubic Hermite "
