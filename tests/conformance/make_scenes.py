@@ -176,10 +176,11 @@ def scene_pedestrians(rng):
     s = Scene("pedestrians_and_vehicles")
     straight_road(s, half=6.0)
     for i in range(A):
-        ped = i in (2, 4)
+        ped = i in (2, 4)  # two pedestrians on the verge, the second catching up with the first
         y = 4.8 if ped else (-1.75 if i % 2 else 1.75)
-        path = np.array([[-120, y], [420, y]], float) if i != 4 else np.array([[420, 1.75], [-120, 1.75]], float)
-        xy, h = drive(path, 20.0 + 10 * i if i != 4 else 440 - 120 - 70, 1.4 if ped else 6 + i, 0.0)
+        path = np.array([[-120, y], [420, y]], float)
+        s0 = {2: 40.3, 4: 33.1}.get(i, 20.0 + 10 * i)  # no distance lands on a bin edge (float noise would pick a bin)
+        xy, h = drive(path, s0, {2: 1.17, 4: 2.43}.get(i, 6 + i), 0.0)
         s.agent(i, xy, h)
         if ped:
             s.size[i], s.type[i] = (0.6, 0.6), TYPE_ID["other"]
