@@ -13,7 +13,7 @@ Features, per agent and future frame (`realism_features`; 10 Hz frames, `dt` = 0
   of the speed), angular speed (central difference of the heading, wrapped as the official code does: the
   two-step change is wrapped to [-pi, pi) before halving), angular acceleration. Computed over history and future
   together, so the first future frame has a difference; valid where both neighbours are valid (twice for
-  accelerations).
+  accelerations; the official rules judge validity on the future frames alone, below).
 * **distance to the nearest object**: signed distance between boxes with rounded corners (each box shrunk by
   `CORNER_ROUNDING_FACTOR` x half its smaller side, the distance between the shrunk "cores", minus both shrink
   radii; negative = overlap), against every other valid agent; **collision** where it is below 0.
@@ -45,10 +45,24 @@ Likelihoods (`realism_metrics`, one scenario; `vmap` for many):
   has), minimum over the K rollouts; ADE: the same averaged over rollouts. Also the simulated collision and
   offroad rates (share of (rollout, agent) pairs with at least one such frame).
 
-Differences from the official code, all where the official code assumes complete data: simulated values are
-counted in a histogram only where the rollout says the agent exists and the value is finite (the official code
-counts every simulated step, its padding NaNs included); a scenario with no evaluated agent gives NaN (left out by
-`reduce_realism`, which counts them).
+Counting rules (`rules=`, `RULES`), the same features and estimators under both:
+
+* **"official"** reproduces the official code (`waymo-open-dataset-tf-2-12-0==1.6.7`, checked scene by scene in
+  `tests/test_realism_conformance.py`): the simulated agents are those valid in the log at the current frame,
+  each present at every future frame of every rollout (the official format has no per-step validity; where a
+  rollout, a baseline or the log lacks one, `continue_missing` continues it at constant velocity from its last
+  state), with the log's history; every simulated value counts in the histograms, the NaN padding of the central
+  differences (the last future frame for speeds, the last two for accelerations) in the top bin, as
+  `tfp.stats.histogram` puts NaN; the log's kinematic validity is computed on the future frames alone, so the
+  first future frame is never scored for speeds nor the first two for accelerations; ADE averages each agent's
+  error over the log's valid frames with the history's (zero error) counted.
+* **"corrected"** counts only what a rollout has: simulated values where the rollout has the agent and the value
+  is finite; kinematic validity over history and future together (the first future frame has a speed); ADE over
+  the future frames both the log and the rollout have.
+
+Under both, time to collision is scored for vehicles only (the official rule; `agent_type`), and a scenario with
+no evaluated agent gives NaN (left out by `reduce_realism`, which counts them). Values within float rounding of a
+histogram bin edge may fall on either side of it in either implementation.
 
 Model frame rates other than 10 Hz: the features are defined on 10 Hz trajectories. A model that predicts a frame
 every `stride` stored frames is brought to 10 Hz by `upsample_frames` (cubic Hermite interpolation of the
