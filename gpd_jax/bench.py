@@ -442,24 +442,23 @@ def bench_realism(args) -> dict:
                        "metametric": red["metametric"], "road_edge_inexact_share": red["road_edge_inexact_share"]}
     if args.export_official:
         sim = jax.vmap(rollouts)(inputs[0], keys)
-        _export_official(args.export_official, scenes, sim[:, :, h:], realism.orient_edges, road, h)
+        _export_official(args.export_official, scenes, sim[:, :, h:], realism.edge_polylines, road, h)
     return {"machine": native.machine_info(), "source": source, "rollouts": k, "agents": a, "future_frames": f,
             "history_frames": h, "scenarios": args.scenarios, "edge_segment_slots": budget,
             "config": args.realism_config, "rules": runs}
 
 
-def _export_official(path, scenes, sim_xy, orient_edges, road, h):
+def _export_official(path, scenes, sim_xy, edge_polylines, road, h):
     """The benchmark's scenes and rollouts in the format `tests/conformance/run_official.py` reads (every agent
-    valid at the current frame evaluated; the rollouts keep the log's headings; each oriented road-edge segment a
-    polyline of its own, which the official code scores as the project does away from the segments' ends)."""
+    valid at the current frame evaluated; the rollouts keep the log's headings; the road edges as the metric
+    orients them, `edge_polylines`)."""
     n = scenes.xy.shape[0]
-    segs = [orient_edges(jax.tree.map(lambda x, i=i: jnp.asarray(x[i]), road)) for i in range(n)]
-    m = max(int(np.sum(np.asarray(e.ok))) for e in segs)
-    edges, edge_valid = np.zeros((n, m, 2, 2), np.float32), np.zeros((n, m, 2), bool)
-    for i, e in enumerate(segs):
-        ok = np.asarray(e.ok)
-        edges[i, :ok.sum(), 0], edges[i, :ok.sum(), 1] = np.asarray(e.a)[ok], np.asarray(e.b)[ok]
-        edge_valid[i, :ok.sum()] = True
+    lines = [edge_polylines(jax.tree.map(lambda x, i=i: np.asarray(x[i]), road)) for i in range(n)]
+    m, p = max(len(x) for x in lines), max(len(q) for x in lines for q in x)
+    edges, edge_valid = np.zeros((n, m, p, 2), np.float32), np.zeros((n, m, p), bool)
+    for i, x in enumerate(lines):
+        for j, q in enumerate(x):
+            edges[i, j, :len(q)], edge_valid[i, j, :len(q)] = q, True
     valid = np.asarray(scenes.valid)
     k = sim_xy.shape[1]
     np.savez_compressed(path, names=np.array([f"bench_{i}" for i in range(n)]), log_xy=np.asarray(scenes.xy),

@@ -417,6 +417,23 @@ def _compact(edges: OrientedEdges, max_segments: int) -> OrientedEdges:
                          dropped=jnp.sum(edges.ok, dtype=jnp.int32) - jnp.sum(edges.ok[order], dtype=jnp.int32))
 
 
+def edge_polylines(road: RoadGeometry) -> list[np.ndarray]:
+    """The unbatched `road`'s road edges as `orient_edges` keeps and orients them, as polylines `f64[n, 2]` (host
+    side): each run of consecutive kept segments of an edge row, the road on its left. What the official code is
+    handed (a `road_edge` map feature each) to score the same edges: it closes a polyline whose ends are within
+    1 m as `orient_edges` does, but does not continue one row into the next (`orient_edges` does where a row
+    starts where another ends), which can change a sign only at such a junction's vertex."""
+    e = jax.device_get(orient_edges(road))
+    rows, s = np.shape(road.edge_valid)[0], np.shape(road.edge_valid)[1] - 1
+    a, b, ok = (np.asarray(x).reshape((rows, s) + np.shape(x)[1:]) for x in (e.a, e.b, e.ok))
+    out = []
+    for r in range(rows):
+        k = np.flatnonzero(ok[r])
+        for run in np.split(k, np.flatnonzero(np.diff(k) > 1) + 1) if k.size else []:
+            out.append(np.concatenate([a[r, run[:1]], b[r, run]]).astype(np.float64))
+    return out
+
+
 def edge_segment_budget(edge_valid) -> int:
     """A static segment count for `orient_edges(..., max_segments=)` that keeps every road-edge segment of a batch
     of scenes (`edge_valid bool[..., E, P]`, on the host): the largest count rounded up to a power of two, at
