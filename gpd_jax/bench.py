@@ -440,18 +440,21 @@ def bench_realism(args) -> dict:
         red = realism.reduce_realism(jax.device_get(out), args.realism_config, rules=rules)
         runs[rules] = {"compile_s": compile_s, "s_per_scenario": wall / args.scenarios,
                        "metametric": red["metametric"], "road_edge_inexact_share": red["road_edge_inexact_share"]}
-    if args.export_official:
-        sim = jax.vmap(rollouts)(inputs[0], keys)
-        _export_official(args.export_official, scenes, sim[:, :, h:], realism.edge_polylines, road, h)
+    if args.export_official:  # what the official mode scores: agents that leave the log continued
+        sim_xy, sim_h = jax.vmap(lambda xy, hd, v, key: realism.continue_missing(
+            rollouts(xy, key), jnp.broadcast_to(hd, (k,) + hd.shape), jnp.broadcast_to(v, (k,) + v.shape), h))(
+            inputs[0], inputs[1], inputs[2], keys)
+        _export_official(args.export_official, scenes, sim_xy[:, :, h:], sim_h[:, :, h:], realism.edge_polylines,
+                         road, h)
     return {"machine": native.machine_info(), "source": source, "rollouts": k, "agents": a, "future_frames": f,
             "history_frames": h, "scenarios": args.scenarios, "edge_segment_slots": budget,
             "config": args.realism_config, "rules": runs}
 
 
-def _export_official(path, scenes, sim_xy, edge_polylines, road, h):
-    """The benchmark's scenes and rollouts in the format `tests/conformance/run_official.py` reads (every agent
-    valid at the current frame evaluated; the rollouts keep the log's headings; the road edges as the metric
-    orients them, `edge_polylines`)."""
+def _export_official(path, scenes, sim_xy, sim_heading, edge_polylines, road, h):
+    """The benchmark's scenes and rollouts (future frames, every agent present) in the format
+    `tests/conformance/run_official.py` reads (every agent valid at the current frame evaluated; the road edges
+    as the metric orients them, `edge_polylines`)."""
     n = scenes.xy.shape[0]
     lines = [edge_polylines(jax.tree.map(lambda x, i=i: np.asarray(x[i]), road)) for i in range(n)]
     m, p = max(len(x) for x in lines), max(len(q) for x in lines for q in x)
@@ -460,11 +463,10 @@ def _export_official(path, scenes, sim_xy, edge_polylines, road, h):
         for j, q in enumerate(x):
             edges[i, j, :len(q)], edge_valid[i, j, :len(q)] = q, True
     valid = np.asarray(scenes.valid)
-    k = sim_xy.shape[1]
     np.savez_compressed(path, names=np.array([f"bench_{i}" for i in range(n)]), log_xy=np.asarray(scenes.xy),
                         log_heading=np.asarray(scenes.heading), log_valid=valid, size=np.asarray(scenes.size),
                         is_vehicle=np.asarray(scenes.agent_type) != TYPE_ID["other"], evaluated=valid[:, h - 1],
-                        sub_xy=np.asarray(sim_xy), sub_heading=np.repeat(np.asarray(scenes.heading)[:, None, h:], k, 1),
+                        sub_xy=np.asarray(sim_xy), sub_heading=np.asarray(sim_heading),
                         edges=edges, edge_valid=edge_valid)
     print(f"wrote {path}: {n} scenes for tests/conformance/run_official.py")
 

@@ -575,8 +575,9 @@ def histogram_log_likelihood(log_values, sim_values, sim_valid, cfg: FeatureConf
       log_values: f32[N, L] (N independent populations); sim_values: f32[N, S]; sim_valid: bool[N, S] which
         simulated values count.
       cfg: range, bins and pseudocount; values are clipped into [min_val, max_val] (infinities into the end bins).
-      count_nan: False: NaN simulated values never count; True: they count in the top bin (what the official
-        code's `tfp.stats.histogram` does with them). A NaN logged value is scored as the top bin either way.
+      count_nan: False: only finite simulated values count; True: every one where `sim_valid`, NaN in the top
+        bin (what the official code's `tfp.stats.histogram` does with it). A NaN logged value is scored as the
+        top bin either way.
 
     Returns f32[N, L]: log((count of the logged value's bin + pseudocount) / (counted + bins * pseudocount)).
     """
