@@ -102,3 +102,37 @@ def test_the_submission_the_official_code_scored_is_the_official_modes_continuat
     np.testing.assert_allclose(np.where(present, np.asarray(h)[:, :, H:], 0), np.where(present, d["sub_heading"], 0),
                                atol=1e-6)
     assert (~d["sim_valid"] & present).any()  # the scenes do exercise it
+
+
+def test_the_evaluations_export_writes_what_the_official_script_reads(scenes, tmp_path):
+    """`write_official_scenes` (what `rollout.py --export-official` writes) holds every field `run_official.py`
+    reads, in its shapes: the conformance scenes written through it come back as they went in (the log cut to
+    the official 11 + 80 frames from a longer history)."""
+    from gpd_jax.evaluation.realism import write_official_scenes
+    from gpd_jax.metrics.realism import edge_polylines
+
+    d, _ = scenes
+    pad = 4  # a longer history than the official format's, as the shipped models' 21 frames
+    log = {k: np.concatenate([np.repeat(d[k][:, :1], pad, 1), d[k]], 1) for k in ("log_xy", "log_heading",
+                                                                                  "log_valid")}
+    n = len(d["names"])
+    lines = np.empty(n, object)
+    for i in range(n):
+        road = RoadGeometry(polygons=d["polygons"][i], polygon_valid=d["polygon_valid"][i],
+                            polygon_kind=np.zeros(d["polygons"].shape[1], np.int32), edges=d["edges"][i],
+                            edge_valid=d["edge_valid"][i], lanes=np.zeros((1, 2, 2), np.float32),
+                            lane_valid=np.zeros((1, 2), bool))
+        lines[i] = edge_polylines(road)
+    part = {**log, "size": d["size"], "agent_type": d["agent_type"], "edges": lines,
+            "sub_xy": d["sub_xy"][:, None], "sub_heading": d["sub_heading"][:, None],
+            "evaluated": d["evaluated"][:, None]}
+    halves = [{k: v[:3] for k, v in part.items()}, {k: v[3:] for k, v in part.items()}]  # two batches
+    (path,) = write_official_scenes(str(tmp_path), ["traffic_simulation"], list(d["names"]), halves, H + pad)
+    got = dict(np.load(path))
+    for key in ("log_xy", "log_heading", "log_valid", "size", "is_vehicle", "evaluated", "sub_xy", "sub_heading"):
+        np.testing.assert_array_equal(got[key], d[key], err_msg=key)
+    # the edges as polylines, each the same line as written (the conformance edges are kept whole)
+    for i in range(n):
+        want = [e[v] for e, v in zip(d["edges"][i], d["edge_valid"][i]) if v.any()]
+        have = [e[v] for e, v in zip(got["edges"][i], got["edge_valid"][i]) if v.any()]
+        assert len(have) == len(want) and all(np.allclose(a, b) for a, b in zip(have, want))

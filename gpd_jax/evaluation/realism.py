@@ -24,6 +24,7 @@ velocity from its last state (`continue_missing`), as the official format has ev
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from functools import partial
 
@@ -32,8 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpd_jax.evaluation.baselines import Trajectories, constant_velocity, follow_lanes
-from gpd_jax.metrics.realism import RULES, reduce_realism, scenario_realism, upsample_frames
-from gpd_jax.scene import Scene
+from gpd_jax.metrics.realism import (OFFICIAL_HISTORY_FRAMES, RULES, continue_missing, reduce_realism,
+                                     scenario_realism, upsample_frames)
+from gpd_jax.scene import TYPE_ID, Scene
 from gpd_jax.spec import ModelSpec
 from gpd_jax.tasks import generated
 
@@ -60,6 +62,52 @@ def _evaluated(gen: Sequence[str], valid_now: jax.Array) -> jax.Array:
     return valid_now & mask
 
 
+def group_names(task_names: Sequence[str], with_lanes: bool) -> list[str]:
+    """The groups scored, in order: the tasks that generate agents or the ego, then the baselines."""
+    tasks = [t for t in task_names if {"ego", "agent"} & set(generated(t))]
+    return tasks + [b for b in BASELINES if with_lanes or b != "constant_velocity_lanes"]
+
+
+def _groups(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpec, task_names: tuple[str, ...],
+            with_lanes: bool):
+    """Every group's K rollouts at the stored rate, stacked: `(xy f32[B, G, K, ts, A, 2], heading f32[B, G, K, ts,
+    A], valid bool[B, G, K, ts, A])`, the agents each scores `evaluated bool[B, G, A]`, and the log
+    (`Trajectories [B, ts, A]`); groups as `group_names` lists them."""
+    k = pred_xy.shape[1]
+    a, ts, h = spec.num_agents, spec.stored_frames_needed, spec.full_history
+    log = Trajectories(full.xy[:, :ts, :a], full.heading[:, :ts, :a], full.valid[:, :ts, :a])
+    valid_now = log.valid[:, h - 1]
+
+    def stored_rate(xy, heading, valid):  # [B, K, T, A] at the model's frames -> [B, K, ts, A], log history
+        xy, heading, valid = upsample_frames(xy, heading, valid, spec.frame_stride)
+        keep = (jnp.arange(ts) < h)[None, None, :, None]
+        return (jnp.where(keep[..., None], log.xy[:, None], xy), jnp.where(keep, log.heading[:, None], heading),
+                jnp.where(keep, log.valid[:, None], valid))
+
+    def copies(t: Trajectories):
+        return tuple(jnp.broadcast_to(x[:, None], (x.shape[0], k) + x.shape[1:]) for x in (t.xy, t.heading, t.valid))
+
+    sims, evaluated = [], []
+    for n, task in enumerate(task_names):
+        gen = generated(task)
+        if "ego" in gen or "agent" in gen:
+            sims.append(stored_rate(pred_xy[:, :, n], pred_heading[:, :, n], pred_valid[:, :, n]))
+            evaluated.append(_evaluated(gen, valid_now))
+    agents = _evaluated(("agent",), valid_now)
+    cv_full = constant_velocity(full, h)
+    cv = Trajectories(cv_full.xy[:, :ts, :a], cv_full.heading[:, :ts, :a], cv_full.valid[:, :ts, :a])
+    baselines = {"constant_velocity": cv, "log": log}
+    if with_lanes:
+        baselines["constant_velocity_lanes"] = jax.vmap(lambda c, p, v: follow_lanes(c, h, p, v))(
+            cv, full.polylines, full.polyline_valid)
+    for name in BASELINES:
+        if name in baselines:
+            sims.append(copies(baselines[name]))
+            evaluated.append(agents)
+    stacked = tuple(jnp.stack([g[i] for g in sims], axis=1) for i in range(3))  # [B, G, K, ts, A, ...]
+    return stacked, jnp.stack(evaluated, axis=1), log
+
+
 @partial(jax.jit, static_argnames=("spec", "task_names", "config", "max_edge_segments", "with_lanes"))
 def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpec, task_names: tuple[str, ...],
                   config: str, max_edge_segments: int | None, with_lanes: bool
@@ -72,52 +120,65 @@ def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpe
         pred_heading: f32[B, K, N, T, A]; pred_valid: bool[B, K, N, T, A].
       full: the stored-rate scenes (`Scene [B, ...]` with `road`, and `polylines` for the lane baseline).
     """
-    k = pred_xy.shape[1]
-    a, ts, h = spec.num_agents, spec.stored_frames_needed, spec.full_history
-    log = Trajectories(full.xy[:, :ts, :a], full.heading[:, :ts, :a], full.valid[:, :ts, :a])
-    size, road = full.size[:, :a], full.road
-    valid_now = log.valid[:, h - 1]
-
-    def stored_rate(xy, heading, valid):  # [B, K, T, A] at the model's frames -> [B, K, ts, A], log history
-        xy, heading, valid = upsample_frames(xy, heading, valid, spec.frame_stride)
-        keep = (jnp.arange(ts) < h)[None, None, :, None]
-        return (jnp.where(keep[..., None], log.xy[:, None], xy), jnp.where(keep, log.heading[:, None], heading),
-                jnp.where(keep, log.valid[:, None], valid))
-
-    def copies(t: Trajectories):
-        return tuple(jnp.broadcast_to(x[:, None], (x.shape[0], k) + x.shape[1:]) for x in (t.xy, t.heading, t.valid))
-
-    groups, sims, evaluated = [], [], []
-    for n, task in enumerate(task_names):
-        gen = generated(task)
-        if "ego" in gen or "agent" in gen:
-            groups.append(task)
-            sims.append(stored_rate(pred_xy[:, :, n], pred_heading[:, :, n], pred_valid[:, :, n]))
-            evaluated.append(_evaluated(gen, valid_now))
-    agents = _evaluated(("agent",), valid_now)
-    cv_full = constant_velocity(full, h)
-    cv = Trajectories(cv_full.xy[:, :ts, :a], cv_full.heading[:, :ts, :a], cv_full.valid[:, :ts, :a])
-    baselines = {"constant_velocity": cv, "log": log}
-    if with_lanes:
-        baselines["constant_velocity_lanes"] = jax.vmap(lambda c, p, v: follow_lanes(c, h, p, v))(
-            cv, full.polylines, full.polyline_valid)
-    for name in BASELINES:
-        if name in baselines:
-            groups.append(name)
-            sims.append(copies(baselines[name]))
-            evaluated.append(agents)
+    a, h = spec.num_agents, spec.full_history
+    stacked, evaluated, log = _groups(pred_xy, pred_heading, pred_valid, full, spec, task_names, with_lanes)
+    groups = group_names(task_names, with_lanes)
+    size, road, agent_type = full.size[:, :a], full.road, full.agent_type[:, :a]
     # every group (task or baseline) through one vmapped metric: one compiled copy of it, whatever the groups
-    stacked = [jnp.stack([g[i] for g in sims], axis=1) for i in range(3)]  # [B, G, K, ts, A, ...]
-    agent_type = full.agent_type[:, :a]
     out = {}
     for rules in RULES:
         fn = lambda sx, sh, sv, ev, lx, lh, lv, sz, rd, at, r=rules: scenario_realism(  # noqa: E731
             sx, sh, sv, lx, lh, lv, sz, h, rd, ev, spec.stored_period_s, config, max_edge_segments, r, at)
         per_group = jax.vmap(fn, in_axes=(0, 0, 0, 0) + (None,) * 6)
-        res = jax.vmap(per_group)(*stacked, jnp.stack(evaluated, axis=1), log.xy, log.heading, log.valid, size,
-                                  road, agent_type)
+        res = jax.vmap(per_group)(*stacked, evaluated, log.xy, log.heading, log.valid, size, road, agent_type)
         out[rules] = {g: {m: v[:, i] for m, v in res.items()} for i, g in enumerate(groups)}
     return out
+
+
+OFFICIAL_FUTURE_FRAMES = 80  # the official format: 11 history frames and 80 future frames at 10 Hz
+
+
+@partial(jax.jit, static_argnames=("spec", "task_names", "with_lanes"))
+def official_rollouts(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpec, task_names: tuple[str, ...],
+                      with_lanes: bool):
+    """Every group's rollouts as the official mode scores them, in the official format's frames: the future
+    frames with every agent present (`continue_missing`), `(xy f32[B, G, K, 80, A, 2], heading f32[B, G, K, 80,
+    A], evaluated bool[B, G, A])`, groups as `group_names`; what `write_official_scenes` hands the official code."""
+    h = spec.full_history
+    (xy, heading, valid), evaluated, _ = _groups(pred_xy, pred_heading, pred_valid, full, spec, task_names,
+                                                 with_lanes)
+    xy, heading = continue_missing(xy, heading, valid, h)
+    fut = slice(h, h + OFFICIAL_FUTURE_FRAMES)
+    return xy[:, :, :, fut], heading[:, :, :, fut], evaluated
+
+
+def write_official_scenes(directory: str, groups: Sequence[str], names: Sequence[str], parts: Sequence[dict],
+                          history: int) -> list[str]:
+    """One `.npz` per group in `directory` (`<group>.npz`), in the format `tests/conformance/run_official.py`
+    reads, from the batches' `parts` (host arrays: "sub_xy" [B, G, K, 80, A, 2], "sub_heading", "evaluated"
+    [B, G, A] from `official_rollouts`; "log_xy" [B, ts, A, 2], "log_heading", "log_valid", "size" [B, A, 2],
+    "agent_type" [B, A]; "edges": per scene the `edge_polylines`), the log cut to the official format's 11
+    history and 80 future frames. Returns the paths written."""
+    cat = lambda key: np.concatenate([p[key] for p in parts])  # noqa: E731
+    frames = slice(history - OFFICIAL_HISTORY_FRAMES, history + OFFICIAL_FUTURE_FRAMES)
+    lines = [q for p in parts for q in p["edges"]]
+    e, pts = max(1, max(len(x) for x in lines)), max([2] + [len(q) for x in lines for q in x])
+    edges, edge_valid = np.zeros((len(lines), e, pts, 2), np.float32), np.zeros((len(lines), e, pts), bool)
+    for i, x in enumerate(lines):
+        for j, q in enumerate(x):
+            edges[i, j, :len(q)], edge_valid[i, j, :len(q)] = q, True
+    os.makedirs(directory, exist_ok=True)
+    paths = []
+    for g, group in enumerate(groups):
+        path = os.path.join(directory, f"{group}.npz")
+        np.savez_compressed(
+            path, names=np.array(list(names)), log_xy=cat("log_xy")[:, frames],
+            log_heading=cat("log_heading")[:, frames], log_valid=cat("log_valid")[:, frames], size=cat("size"),
+            is_vehicle=cat("agent_type") != TYPE_ID["other"],
+            evaluated=cat("evaluated")[:, g], sub_xy=cat("sub_xy")[:, g], sub_heading=cat("sub_heading")[:, g],
+            edges=edges, edge_valid=edge_valid)
+        paths.append(path)
+    return paths
 
 
 RESULT_KEYS = {"corrected": "realism", "official": "realism_official"}  # rules -> metrics.json's key

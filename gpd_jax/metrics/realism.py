@@ -55,7 +55,8 @@ Counting rules (`rules=`, `RULES`), the same features and estimators under both:
   differences (the last future frame for speeds, the last two for accelerations) in the top bin, as
   `tfp.stats.histogram` puts NaN; the log's kinematic validity is computed on the future frames alone, so the
   first future frame is never scored for speeds nor the first two for accelerations; ADE averages each agent's
-  error over the log's valid frames with the history's (zero error) counted.
+  error over the log's valid frames with the history's (zero error) counted, the official format's 11 history
+  frames (`OFFICIAL_HISTORY_FRAMES`; the features reach back two frames only).
 * **"corrected"** counts only what a rollout has: simulated values where the rollout has the agent and the value
   is finite; kinematic validity over history and future together (the first future frame has a speed); ADE over
   the future frames both the log and the rollout have.
@@ -132,6 +133,7 @@ SIGNAL_FEATURES = ("traffic_light_violation",)
 # The counting rules (`scenario_realism(..., rules=)`): "official" reproduces the official code's, "corrected" counts
 # only what a rollout has (module docstring). Reports name the rules they used.
 RULES = ("official", "corrected")
+OFFICIAL_HISTORY_FRAMES = 11  # the official format's history (current index 10): what its ADE counts
 
 _COMMON = {
     "linear_speed": _hist(0.0, 25.0, 10, 0.05),
@@ -752,7 +754,8 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
         sim_xy, sim_heading = continue_missing(sim_xy, sim_heading, sim_valid, num_history)
         sim_valid = jnp.broadcast_to(jnp.where(hist, log_valid, present[None]), sim_valid.shape)
         log_valid = log_valid & present[None]
-        history_steps = jnp.sum(log_valid[:num_history], axis=0).astype(jnp.float32)
+        first = max(0, num_history - OFFICIAL_HISTORY_FRAMES)
+        history_steps = jnp.sum(log_valid[first:num_history], axis=0).astype(jnp.float32)
     is_vehicle = None if agent_type is None else agent_type != TYPE_ID["other"]
     feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, rules)  # noqa: E731
     log = feats(log_xy, log_heading, log_valid)

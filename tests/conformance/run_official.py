@@ -11,7 +11,13 @@ as the arrays hold them, the current index 10; the first evaluated agent is the 
 submission arrays (`sub_xy`, `sub_heading`: every agent valid at the current frame, every future frame), and runs
 `waymo_open_dataset.wdl_limited.sim_agents_metrics.metrics.compute_scenario_metrics_for_bundle` under the 2025
 sim-agents configuration and the 2024 one. It records every likelihood, the meta-metric, ADE, minADE and the
-simulated collision and offroad rates per scene and configuration, and the seconds each scene took.
+simulated collision and offroad rates per scene and configuration, the seconds each scene took, and their means
+over the scenes ("means", with "metametric_without_traffic_light": the meta-metric renormalised without the
+traffic-light term, what the project reports where the data has no signal states). Scenes with no evaluated
+agent or no road edge are skipped (the official code refuses them).
+
+The `.npz` may also come from `rollout.py --samples K --export-official DIR` (one per task and baseline: compare
+"means" with metrics.json's "realism_official") or `gpd-jax bench realism --export-official`.
 """
 
 from __future__ import annotations
@@ -98,6 +104,11 @@ def main():
     configs = {name: load_config(name) for name in args.configs}
     results, seconds = [], []
     for i in range(len(d["names"])):
+        if not d["evaluated"][i].any() or not d["edge_valid"][i].any():
+            # the official code needs an SDC among the evaluated agents and road edges; the project leaves such a
+            # scene out too (no evaluated agent) or leaves out the map terms (no edges)
+            results.append({"name": str(d["names"][i]), "skipped": "no evaluated agent or no road edge"})
+            continue
         sc = scenario_of(d, i)
         ro = rollouts_of(d, i, sc)
         scene = {"name": str(d["names"][i])}
@@ -111,10 +122,18 @@ def main():
         first = next(iter(configs))
         print(f"{scene['name']}: {first} meta-metric {scene[first]['metametric']:.6f} "
               f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    scored = [r for r in results if "skipped" not in r]
+    means = {name: {f: float(np.mean([r[name][f] for r in scored])) for f in FIELDS} for name in configs}
+    for name, m in means.items():  # the project's meta-metric where no store has signal states: that term left out
+        w = {f: getattr(configs[name], f).metametric_weight for f in FIELDS
+             if f.endswith("_likelihood") and f != "traffic_light_violation_likelihood"}
+        w = {f.removesuffix("_likelihood"): w[f] for f in w}
+        per_scene = [sum(wt * r[name][f"{f}_likelihood"] for f, wt in w.items()) / sum(w.values()) for r in scored]
+        m["metametric_without_traffic_light"] = float(np.mean(per_scene))
     out = {"package": "waymo-open-dataset-tf-2-12-0==1.6.7", "tensorflow": tf.__version__,
            "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
            "rollouts": int(d["sub_xy"].shape[1]), "agents": int(d["log_valid"].shape[2]),
-           "seconds_per_scene_2025": seconds, "scenes": results}
+           "seconds_per_scene_2025": seconds, "means": means, "scenes": results}
     pathlib.Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {args.out}" + (f": {np.mean(seconds):.2f} s per scene (2025 configuration)" if seconds else ""))
 
