@@ -125,9 +125,8 @@ def main():
     scored = [r for r in results if "skipped" not in r]
     means = {name: {f: float(np.mean([r[name][f] for r in scored])) for f in FIELDS} for name in configs}
     for name, m in means.items():  # the project's meta-metric where no store has signal states: that term left out
-        w = {f: getattr(configs[name], f).metametric_weight for f in FIELDS
-             if f.endswith("_likelihood") and f != "traffic_light_violation_likelihood"}
-        w = {f.removesuffix("_likelihood"): w[f] for f in w}
+        terms = [x.removesuffix("_likelihood") for x in FIELDS if x.endswith("_likelihood")]
+        w = {f: getattr(configs[name], f).metametric_weight for f in terms if f != "traffic_light_violation"}
         per_scene = [sum(wt * r[name][f"{f}_likelihood"] for f, wt in w.items()) / sum(w.values()) for r in scored]
         m["metametric_without_traffic_light"] = float(np.mean(per_scene))
     out = {"package": "waymo-open-dataset-tf-2-12-0==1.6.7", "tensorflow": tf.__version__,
