@@ -45,8 +45,8 @@ RULES_NOTE = {
                  "is finite; speeds and accelerations from the history on (docs/evaluation.md)",
     "official": "the official code's counting: agents valid at the current frame, every one present at every "
                 "future frame (constant velocity where a rollout or the log lacks it), the NaN padding of the "
-                "central differences in the top bin, the kinematic validity of the future frames alone, ADE over "
-                "the log's frames history included (docs/evaluation.md)",
+                "central differences in the top bin, the kinematic validity of the future frames alone, time to "
+                "collision of vehicles only, ADE over the log's frames history included (docs/evaluation.md)",
 }
 
 

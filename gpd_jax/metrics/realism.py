@@ -54,16 +54,17 @@ Counting rules (`rules=`, `RULES`), the same features and estimators under both:
   state), with the log's history; every simulated value counts in the histograms, the NaN padding of the central
   differences (the last future frame for speeds, the last two for accelerations) in the top bin, as
   `tfp.stats.histogram` puts NaN; the log's kinematic validity is computed on the future frames alone, so the
-  first future frame is never scored for speeds nor the first two for accelerations; ADE averages each agent's
-  error over the log's valid frames with the history's (zero error) counted, the official format's 11 history
-  frames (`OFFICIAL_HISTORY_FRAMES`; the features reach back two frames only).
-* **"corrected"** counts only what a rollout has: simulated values where the rollout has the agent and the value
-  is finite; kinematic validity over history and future together (the first future frame has a speed); ADE over
-  the future frames both the log and the rollout have.
+  first future frame is never scored for speeds nor the first two for accelerations; time to collision is
+  scored for vehicles only (`agent_type`); ADE averages each agent's error over the log's valid frames with the
+  history's (zero error) counted, the official format's 11 history frames (`OFFICIAL_HISTORY_FRAMES`; the
+  features reach back two frames only).
+* **"corrected"** (the metric as it was before the official mode) counts only what a rollout has: simulated
+  values where the rollout has the agent and the value is finite; kinematic validity over history and future
+  together (the first future frame has a speed); time to collision of every agent; ADE over the log's future
+  frames.
 
-Under both, time to collision is scored for vehicles only (the official rule; `agent_type`), and a scenario with
-no evaluated agent gives NaN (left out by `reduce_realism`, which counts them). Values within float rounding of a
-histogram bin edge may fall on either side of it in either implementation.
+Under both, a scenario with no evaluated agent gives NaN (left out by `reduce_realism`, which counts them).
+Values within float rounding of a histogram bin edge may fall on either side of it in either implementation.
 
 Model frame rates other than 10 Hz: the features are defined on 10 Hz trajectories. A model that predicts a frame
 every `stride` stored frames is brought to 10 Hz by `upsample_frames` (cubic Hermite interpolation of the
@@ -678,10 +679,10 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
         if names:
             total = sum(weights[n] for n in names)
             out[bucket] = sum(weights[n] * out[f"{n}_likelihood"] for n in names) / total
-    # displacement: per rollout, the mean over evaluated agents of each agent's mean error over the frames both the
-    # log and the rollout have (the official rules: every frame of the log's, the history's counted at zero)
+    # displacement: per rollout, the mean over evaluated agents of each agent's mean error over the log's frames
+    # (the official rules: the history's frames counted too, at zero error)
     err = jnp.linalg.norm(sim_xy - log_xy[None], axis=-1)  # [K, F, A]
-    m = log.valid[None] & ev[None] & sim.valid
+    m = log.valid[None] & ev[None]
     frames = jnp.sum(m, 1) + (0.0 if history_steps is None else history_steps[None])
     per_agent = jnp.sum(jnp.where(m, err, 0.0), 1) / jnp.maximum(frames, 1)  # [K, A]
     has = jnp.any(frames > 0, 0) & evaluated
@@ -735,8 +736,8 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
         valid in the log at the current frame (the others are in neither the rollouts nor the log), every one
         of them present at every future frame of every rollout (`continue_missing` where a rollout lacks it),
         the history the log's; evaluated agents are among them.
-      agent_type: i32[A] (`gpd_jax.scene.AGENT_TYPES`): time to collision is scored for vehicles only (all but
-        "other"), the official rule; None: every agent counts as a vehicle.
+      agent_type: i32[A] (`gpd_jax.scene.AGENT_TYPES`): under the official rules time to collision is scored for
+        vehicles only (all but "other"); None, or the corrected rules: for every agent.
     """
     if rules not in RULES:
         raise ValueError(f"realism rules {rules!r}: expected one of {RULES}")
@@ -756,7 +757,7 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
         log_valid = log_valid & present[None]
         first = max(0, num_history - OFFICIAL_HISTORY_FRAMES)
         history_steps = jnp.sum(log_valid[first:num_history], axis=0).astype(jnp.float32)
-    is_vehicle = None if agent_type is None else agent_type != TYPE_ID["other"]
+    is_vehicle = None if agent_type is None or rules != "official" else agent_type != TYPE_ID["other"]
     feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, rules)  # noqa: E731
     log = feats(log_xy, log_heading, log_valid)
     sim = jax.vmap(feats)(sim_xy, sim_heading, sim_valid)
