@@ -79,6 +79,22 @@ def test_samples_add_a_realism_table_beside_unchanged_metrics(model, scenes):
     assert "Realism, corrected rules (3 rollouts per scenario" in tables and "Realism, official rules" in tables
 
 
+def test_export_official_refuses_what_the_official_format_cannot_hold(model, scenes, tmp_path):
+    """--export-official needs K rollouts and the official 11 + 80 frames at 10 Hz; it says so before rolling
+    anything out and writes nothing."""
+    from gpd_jax.evaluation.driver import run_evaluation
+    from gpd_jax.spec import EvalError
+
+    out = tmp_path / "official"
+    with pytest.raises(EvalError, match="samples"):
+        run_evaluation(model, scenes, task_names=TASKS, export_official=str(out), progress=False)
+    spec = model.spec
+    if spec.full_history < 11 or spec.stored_frames_needed - spec.full_history < 80:  # the tiny test model
+        with pytest.raises(EvalError, match="11 history and 80 future frames"):
+            run_evaluation(model, scenes, task_names=TASKS, samples=2, export_official=str(out), progress=False)
+    assert not out.exists()
+
+
 def test_in_memory_scenes_score_as_the_store_does(model, scenes, store):
     from_scenes = gpd_jax.evaluate(model, scenes, tasks=TASKS)
     from_store = gpd_jax.evaluate(model, store, tasks=TASKS)

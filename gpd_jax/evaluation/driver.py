@@ -24,8 +24,8 @@ from gpd_jax.evaluation.keys import RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
 from gpd_jax.options import RolloutOptions
 from gpd_jax.evaluation.preflight import preflight
-from gpd_jax.evaluation.realism import (OFFICIAL_FUTURE_FRAMES, RESULT_KEYS, group_names, official_rollouts,
-                                       realism_batch, reduce_groups, write_official_scenes)
+from gpd_jax.evaluation.realism import (OFFICIAL_FUTURE_FRAMES, RESULT_KEYS, official_rollouts, realism_batch,
+                                       reduce_groups, write_official_scenes)
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
 from gpd_jax.metrics.realism import CONFIGS as REALISM_CONFIGS
@@ -256,7 +256,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
             results[key] = reduce_groups(by_group, names, samples, realism_config, has_road, rules)
         if export_official is not None:
             ids = [prep.scenario_ids[i] if i < len(prep.scenario_ids) else str(i) for i in range(n)]
-            groups = group_names(names, with_lanes=bool(export_parts[0]["with_lanes"][0]))
+            groups = list(realism_parts[0]["official"])  # in `group_names` order, as the batches stacked them
             paths = write_official_scenes(export_official, groups, ids, export_parts, spec.full_history)
             results["realism_official"]["exported"] = paths
     if scene_sums:
@@ -303,8 +303,7 @@ def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutO
                     **{k: np.asarray(getattr(full, f))[:, :, :a] for k, f in
                        (("log_xy", "xy"), ("log_heading", "heading"), ("log_valid", "valid"))},
                     "size": np.asarray(full.size)[:, :a], "agent_type": np.asarray(full.agent_type)[:, :a],
-                    "edges": np.empty(b, object),
-                    "with_lanes": np.full(b, with_lanes)}
+                    "edges": np.empty(b, object)}
         for i in range(b):  # the road edges as the metric orients them, one list of polylines per scene
             exported["edges"][i] = edge_polylines(jax.tree.map(lambda x, i=i: x[i], road))
     return (jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(part)), full.road is not None,
