@@ -24,8 +24,8 @@ from gpd_jax.evaluation.keys import RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
 from gpd_jax.options import RolloutOptions
 from gpd_jax.evaluation.preflight import preflight
-from gpd_jax.evaluation.realism import (OFFICIAL_FUTURE_FRAMES, RESULT_KEYS, official_rollouts, realism_batch,
-                                       reduce_groups, write_official_scenes)
+from gpd_jax.evaluation.realism import (OFFICIAL_FUTURE_FRAMES, RESULT_KEYS, group_names, official_rollouts,
+                                       realism_batch, reduce_groups, write_official_scenes)
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
 from gpd_jax.metrics.realism import CONFIGS as REALISM_CONFIGS
@@ -134,6 +134,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     acc = None
     realism_parts: list[dict[str, dict[str, dict[str, np.ndarray]]]] = []
     export_parts: list[dict[str, Any]] = []
+    export_groups: list[str] = []
     has_road = True
     render_items: list[RenderItem] = []
     n_store = n_encoded = 0
@@ -199,6 +200,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                 has_road = has_road and road_ok
                 if exported is not None:
                     export_parts.append({k: v[:real] for k, v in exported.items()})
+                    export_groups = group_names(names, full.polylines is not None)  # the order of their G axis
             t_score += time.perf_counter() - tc
             for j in range(real):
                 if idx[j] < render_count:
@@ -256,8 +258,7 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
             results[key] = reduce_groups(by_group, names, samples, realism_config, has_road, rules)
         if export_official is not None:
             ids = [prep.scenario_ids[i] if i < len(prep.scenario_ids) else str(i) for i in range(n)]
-            groups = list(realism_parts[0]["official"])  # in `group_names` order, as the batches stacked them
-            paths = write_official_scenes(export_official, groups, ids, export_parts, spec.full_history)
+            paths = write_official_scenes(export_official, export_groups, ids, export_parts, spec.full_history)
             results["realism_official"]["exported"] = paths
     if scene_sums:
         pad = lambda x: list(x[:n]) + [""] * max(0, n - len(x))  # noqa: E731
