@@ -1,12 +1,14 @@
 """Benchmarks that print figures (never timed tests).
 
     python -m gpd_jax.bench realism [--data DIR --split test] [--rollouts 32] [--agents 32] [--scenarios 8]
-        [--realism-config 2025] [--repeats 3] [--json PATH]
+        [--realism-config 2025] [--rules official corrected] [--repeats 3] [--json PATH] [--export-official NPZ]
 
     seconds per scenario of the WOSAC-form realism metric (`gpd_jax.metrics.realism.scenario_realism`, compiled
     once, `vmap`ped over a batch of scenarios): K rollouts x 8 s at 10 Hz (11 history frames) x A agents. Scenes
     from a store (its road geometry) or, without `--data`, synthetic scenes on a synthetic city grid of roads;
     rollouts are the log's future with a random walk added (the metric's cost does not depend on the values).
+    Each counting rule (`--rules`, default both) is compiled and timed on its own. `--export-official NPZ` writes
+    the same scenes and rollouts for `tests/conformance/run_official.py`, to time the official code on them.
 
     python -m gpd_jax.bench rollout --config configs/gpd_paper.py --batch 1 16 --json PATH
         [--future-frames F] [--recompute-points K] [--repeats R] [--decode-attention auto native xla cudnn]
@@ -81,7 +83,7 @@ from gpd_jax.config import load_config, split_config_args
 from gpd_jax.model import GPD, forward
 from gpd_jax.model.transformer import DECODE_DTYPES
 from gpd_jax.decoding import rollout_batch, rollout_recompute
-from gpd_jax.scene import wrap_angle
+from gpd_jax.scene import TYPE_ID, wrap_angle
 from gpd_jax.synthetic import synthetic_scenes
 from gpd_jax.tasks import TASK_NAMES, make_tasks
 
@@ -416,26 +418,58 @@ def bench_realism(args) -> dict:
     budget = realism.edge_segment_budget(road)
     keys = jax.random.split(jax.random.key(0), args.scenarios)
 
-    def one(xy, heading, valid, size, road, key):
+    def rollouts(xy, key):
         steps = jax.random.normal(key, (k,) + xy.shape) * 0.05
-        sim_xy = xy[None] + jnp.cumsum(steps.at[:, :h].set(0.0), axis=1)
-        rep = lambda x: jnp.broadcast_to(x, (k,) + x.shape)
-        return realism.scenario_realism(sim_xy, rep(heading), rep(valid), xy, heading, valid, size, h, road,
-                                        config=args.realism_config, max_edge_segments=budget)
+        return xy[None] + jnp.cumsum(steps.at[:, :h].set(0.0), axis=1)
 
-    fn = jax.jit(jax.vmap(one))
+    def one(xy, heading, valid, size, road, key, agent_type, rules):
+        rep = lambda x: jnp.broadcast_to(x, (k,) + x.shape)  # noqa: E731
+        return realism.scenario_realism(rollouts(xy, key), rep(heading), rep(valid), xy, heading, valid, size, h,
+                                        road, config=args.realism_config, max_edge_segments=budget, rules=rules,
+                                        agent_type=agent_type)
+
     inputs = (jnp.asarray(scenes.xy), jnp.asarray(scenes.heading), jnp.asarray(scenes.valid),
-              jnp.asarray(scenes.size), jax.tree.map(jnp.asarray, road), keys)
-    t0 = time.perf_counter()
-    compiled = fn.lower(*inputs).compile()
-    compile_s = time.perf_counter() - t0
-    out = jax.block_until_ready(compiled(*inputs))
-    wall = _time(lambda: jax.block_until_ready(compiled(*inputs)), args.repeats)
-    red = realism.reduce_realism(jax.device_get(out), args.realism_config)
+              jnp.asarray(scenes.size), jax.tree.map(jnp.asarray, road), keys, jnp.asarray(scenes.agent_type))
+    runs = {}
+    for rules in args.rules:
+        fn = jax.jit(jax.vmap(lambda *x, r=rules: one(*x, r)))
+        t0 = time.perf_counter()
+        compiled = fn.lower(*inputs).compile()
+        compile_s = time.perf_counter() - t0
+        out = jax.block_until_ready(compiled(*inputs))
+        wall = _time(lambda: jax.block_until_ready(compiled(*inputs)), args.repeats)
+        red = realism.reduce_realism(jax.device_get(out), args.realism_config, rules=rules)
+        runs[rules] = {"compile_s": compile_s, "s_per_scenario": wall / args.scenarios,
+                       "metametric": red["metametric"], "road_edge_inexact_share": red["road_edge_inexact_share"]}
+    if args.export_official:  # what the official mode scores: agents that leave the log continued
+        sim_xy, sim_h = jax.vmap(lambda xy, hd, v, key: realism.continue_missing(
+            rollouts(xy, key), jnp.broadcast_to(hd, (k,) + hd.shape), jnp.broadcast_to(v, (k,) + v.shape), h))(
+            inputs[0], inputs[1], inputs[2], keys)
+        _export_official(args.export_official, scenes, sim_xy[:, :, h:], sim_h[:, :, h:], realism.edge_polylines,
+                         road, h)
     return {"machine": native.machine_info(), "source": source, "rollouts": k, "agents": a, "future_frames": f,
             "history_frames": h, "scenarios": args.scenarios, "edge_segment_slots": budget,
-            "config": args.realism_config, "compile_s": compile_s, "s_per_scenario": wall / args.scenarios,
-            "metametric": red["metametric"], "road_edge_inexact_share": red["road_edge_inexact_share"]}
+            "config": args.realism_config, "rules": runs}
+
+
+def _export_official(path, scenes, sim_xy, sim_heading, edge_polylines, road, h):
+    """The benchmark's scenes and rollouts (future frames, every agent present) in the format
+    `tests/conformance/run_official.py` reads (every agent valid at the current frame evaluated; the road edges
+    as the metric orients them, `edge_polylines`)."""
+    n = scenes.xy.shape[0]
+    lines = [edge_polylines(jax.tree.map(lambda x, i=i: np.asarray(x[i]), road)) for i in range(n)]
+    m, p = max(len(x) for x in lines), max(len(q) for x in lines for q in x)
+    edges, edge_valid = np.zeros((n, m, p, 2), np.float32), np.zeros((n, m, p), bool)
+    for i, x in enumerate(lines):
+        for j, q in enumerate(x):
+            edges[i, j, :len(q)], edge_valid[i, j, :len(q)] = q, True
+    valid = np.asarray(scenes.valid)
+    np.savez_compressed(path, names=np.array([f"bench_{i}" for i in range(n)]), log_xy=np.asarray(scenes.xy),
+                        log_heading=np.asarray(scenes.heading), log_valid=valid, size=np.asarray(scenes.size),
+                        is_vehicle=np.asarray(scenes.agent_type) != TYPE_ID["other"], evaluated=valid[:, h - 1],
+                        sub_xy=np.asarray(sim_xy), sub_heading=np.asarray(sim_heading),
+                        edges=edges, edge_valid=edge_valid)
+    print(f"wrote {path}: {n} scenes for tests/conformance/run_official.py")
 
 
 def bench_samples(args) -> dict:
@@ -613,6 +647,10 @@ def main(argv=None) -> int:
     q.add_argument("--agents", type=count, default=32)
     q.add_argument("--scenarios", type=count, default=8, help="scenarios per compiled batch")
     q.add_argument("--realism-config", choices=("2024", "2025"), default="2025")
+    q.add_argument("--rules", nargs="+", choices=("official", "corrected"), default=["official", "corrected"],
+                   help="the counting rules to time, each compiled on its own (default: both)")
+    q.add_argument("--export-official", default=None, type=output_file, metavar="NPZ",
+                   help="also write the scenes and rollouts for tests/conformance/run_official.py")
     q.add_argument("--repeats", type=count, default=3)
     q.add_argument("--json", type=output_file, default=None, help="write the results here")
 
@@ -668,10 +706,11 @@ def main(argv=None) -> int:
             mc = out["machine"]
             print(f"machine: {mc.get('cpu')} ({mc.get('usable_cores')} cores), jax {mc.get('jax')}, "
                   f"backend {mc.get('backend')}; {out['source']}")
-            print(f"realism ({out['config']}): {out['rollouts']} rollouts x {out['future_frames']} frames x "
-                  f"{out['agents']} agents, {out['scenarios']} scenarios per call: "
-                  f"{out['s_per_scenario']:.3f} s per scenario (compile {out['compile_s']:.1f} s); "
-                  f"road-edge answers not proven exact: {out['road_edge_inexact_share']:.2%}")
+            for rules, r in out["rules"].items():
+                print(f"realism ({out['config']}, {rules} rules): {out['rollouts']} rollouts x "
+                      f"{out['future_frames']} frames x {out['agents']} agents, {out['scenarios']} scenarios per "
+                      f"call: {r['s_per_scenario']:.3f} s per scenario (compile {r['compile_s']:.1f} s); "
+                      f"road-edge answers not proven exact: {r['road_edge_inexact_share']:.2%}")
         else:
             cluster = distributed.from_args(args)
             parallel.use_host_cores()

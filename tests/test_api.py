@@ -69,7 +69,30 @@ def test_samples_add_a_realism_table_beside_unchanged_metrics(model, scenes):
     assert log["min_ade"] == 0 and log["collision_rate"] == 0 and log["collision_indication_likelihood"] > 0.99
     assert real["baselines"]["constant_velocity"]["min_ade"] > 0
     assert abs(sum(real["weights"].values()) - 1) < 1e-9
-    assert "Realism (3 rollouts per scenario" in gpd_jax.evaluation.format_tables(res)
+    # the official code's counting rules beside the corrected ones, on the same rollouts
+    off = res["realism_official"]
+    assert real["rules"] == "corrected" and off["rules"] == "official" and off["samples"] == 3
+    assert set(off["tasks"]) == set(TASKS) and set(off["baselines"]) == set(real["baselines"])
+    assert off["baselines"]["log"]["min_ade"] == 0 and 0 < off["tasks"][TASKS[0]]["metametric"] <= 1
+    assert off["tasks"] != real["tasks"]  # the kinematic terms count differently
+    tables = gpd_jax.evaluation.format_tables(res)
+    assert "Realism, corrected rules (3 rollouts per scenario" in tables and "Realism, official rules" in tables
+
+
+def test_export_official_refuses_what_the_official_format_cannot_hold(model, scenes, tmp_path):
+    """--export-official needs K rollouts and the official 11 + 80 frames at 10 Hz; it says so before rolling
+    anything out and writes nothing."""
+    from gpd_jax.evaluation.driver import run_evaluation
+    from gpd_jax.spec import EvalError
+
+    out = tmp_path / "official"
+    with pytest.raises(EvalError, match="samples"):
+        run_evaluation(model, scenes, task_names=TASKS, export_official=str(out), progress=False)
+    spec = model.spec
+    if spec.full_history < 11 or spec.stored_frames_needed - spec.full_history < 80:  # the tiny test model
+        with pytest.raises(EvalError, match="11 history and 80 future frames"):
+            run_evaluation(model, scenes, task_names=TASKS, samples=2, export_official=str(out), progress=False)
+    assert not out.exists()
 
 
 def test_in_memory_scenes_score_as_the_store_does(model, scenes, store):

@@ -67,9 +67,12 @@ def test_realism_bench_prints_and_records_seconds_per_scenario(tmp_path, capsys)
     assert bench.main(["realism", "--rollouts", "2", "--agents", "4", "--scenarios", "2", "--repeats", "1",
                        "--json", str(out)]) == 0
     rec = json.loads(out.read_text())
-    assert rec["s_per_scenario"] > 0 and rec["rollouts"] == 2 and rec["agents"] == 4 and rec["scenarios"] == 2
-    assert 0 < rec["metametric"] <= 1 and rec["road_edge_inexact_share"] == 0 and rec["machine"]["cpu"]
-    assert "s per scenario" in capsys.readouterr().out
+    assert rec["rollouts"] == 2 and rec["agents"] == 4 and rec["scenarios"] == 2 and rec["machine"]["cpu"]
+    assert set(rec["rules"]) == {"official", "corrected"}  # both counting rules, each timed
+    for r in rec["rules"].values():
+        assert r["s_per_scenario"] > 0 and 0 < r["metametric"] <= 1 and r["road_edge_inexact_share"] == 0
+    printed = capsys.readouterr().out
+    assert "official rules" in printed and "corrected rules" in printed and "s per scenario" in printed
 
 
 def test_precision_bench_keeps_bfloat16_rollouts_near_float32(tmp_path):

@@ -51,6 +51,37 @@ def test_histogram_likelihood_matches_an_independent_numpy_estimator():
     np.testing.assert_allclose(got_b[:, 0], want_b, rtol=1e-5)
 
 
+def test_official_counting_puts_nan_in_the_top_bin_and_corrected_counting_drops_it():
+    cfg = R.CONFIGS["2025"]["linear_speed"]  # [0, 25] m/s, 10 bins, pseudocount 0.1
+    sim = jnp.array([[1.0, 1.0, jnp.nan, jnp.nan]])
+    log = jnp.array([[1.0, 24.0, jnp.nan]])
+    ok = jnp.ones((1, 4), bool)
+    official = np.exp(np.asarray(R.histogram_log_likelihood(log, sim, ok, cfg, count_nan=True)))[0]
+    corrected = np.exp(np.asarray(R.histogram_log_likelihood(log, sim, ok, cfg)))[0]
+    np.testing.assert_allclose(official, [2.1 / 5.0, 2.1 / 5.0, 2.1 / 5.0], rtol=1e-6)  # NaN: the top bin
+    np.testing.assert_allclose(corrected, [2.1 / 3.0, 0.1 / 3.0, 0.1 / 3.0], rtol=1e-6)
+
+
+def test_continue_missing_goes_on_at_the_last_velocity_and_leaves_the_rest():
+    """Future frames where an agent is missing continue it from its last valid frame at that frame's velocity and
+    heading; history frames, valid frames and agents never seen stay as they are."""
+    t = np.arange(8, dtype=np.float32)
+    xy = np.stack([np.stack([2.0 * t, 0.5 * t], -1), np.full((8, 2), np.nan)], 1)  # [T, A=2, 2]
+    heading = np.stack([np.full(8, 0.3), np.zeros(8)], 1).astype(np.float32)
+    valid = np.stack([t < 5, np.zeros(8, bool)], 1)
+    valid[1, 0] = False  # a history gap: the velocity comes from the last two valid frames (3, 4)
+    xy[5:, 0] = np.nan
+    heading[5:, 0] = np.nan
+    out_xy, out_h = (np.asarray(x) for x in R.continue_missing(jnp.asarray(xy), jnp.asarray(heading),
+                                                               jnp.asarray(valid), num_history=3))
+    np.testing.assert_allclose(out_xy[:, 0], np.stack([2.0 * t, 0.5 * t], -1), rtol=1e-6)
+    np.testing.assert_allclose(out_h[:, 0], 0.3)
+    assert np.isnan(out_xy[:, 1]).all()  # never valid: nothing to continue from
+    gap = R.continue_missing(jnp.asarray(np.where(valid[..., None], xy, 9.0)), jnp.asarray(heading),
+                             jnp.asarray(valid), num_history=3)[0]
+    assert np.asarray(gap)[1, 0, 0] == 9.0  # a history frame is left as it is
+
+
 # ------------------------------------------------------------------------------------------ features
 def test_box_distance_equals_an_independent_minkowski_and_polygon_computation():
     rng = np.random.default_rng(1)

@@ -93,10 +93,11 @@ metrics.json (written by rollout.py; NaN written as null)::
                                  "traffic_simulation_over_constant_velocity_lanes": {...}}},
      "by_layout": {layout: {"scenarios": n, "tasks": ..., "baselines": ..., "ratios": ...,
                             "motion_split": ...}},  # 2+ layouts only
-     "realism": {"config", "samples", "weights", "left_out", "evaluated", "frame_rate",     # only with samples=K
+     "realism": {"config", "rules", "samples", "weights", "left_out", "evaluated", "frame_rate",  # samples=K
                  "tasks": {task: {"metametric", "kinematic", "interactive", "map_based", "<feature>_likelihood",
                                   "min_ade", "ade", "collision_rate", "offroad_rate", "scenarios", ...}},
                  "baselines": {"constant_velocity" | "constant_velocity_lanes" | "log": {...}}},
+     "realism_official": {...},      # the same under the official code's counting rules ("rules": "official")
      "timing_s": {...}, "render": {...}}                           # render: only with --render
 
 **Motion split** ("motion_split"): ego and agent ADE / FDE of every task and baseline again, separately for slots

@@ -60,6 +60,10 @@ def parser(prog: str = PROG) -> Parser:
                         "challenge (a realism table and 'realism' in metrics.json; docs/evaluation.md)")
     p.add_argument("--realism-config", default="2025", choices=("2024", "2025"),
                    help="the challenge configuration of --samples (weights)")
+    p.add_argument("--export-official", default=None, metavar="DIR",
+                   help="with --samples: write every task's and baseline's rollouts as the official mode scores "
+                        "them (DIR/<group>.npz) for the official code, tests/conformance/run_official.py "
+                        "(docs/evaluation.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     distributed.add_arguments(p)  # the scenes sharded over processes / hosts; process 0 writes the outputs
     return p
@@ -249,7 +253,8 @@ def run(args: argparse.Namespace) -> int:
                                         num_scenarios=args.scenarios, batch_size=args.batch, seed=args.seed,
                                         variant=args.variant, horizons_s=args.horizons, render_count=args.render,
                                         options=args.options, progress=not args.no_progress, scene_sums=True,
-                                        samples=args.samples, realism_config=args.realism_config)
+                                        samples=args.samples, realism_config=args.realism_config,
+                                        export_official=args.export_official)
     except EvalError as e:
         raise UsageError(str(e)) from None
     if results is None:  # another process than 0 of a multi-process run: process 0 writes the outputs

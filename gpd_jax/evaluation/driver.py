@@ -25,11 +25,12 @@ from gpd_jax.evaluation.keys import RATIO_TARGETS, SCORED_AGENTS
 from gpd_jax.evaluation.maps import gt_future_lanes, persistence_future_lanes
 from gpd_jax.options import RolloutOptions
 from gpd_jax.evaluation.preflight import preflight
-from gpd_jax.evaluation.realism import realism_batch, reduce_groups
+from gpd_jax.evaluation.realism import (OFFICIAL_FUTURE_FRAMES, RESULT_KEYS, group_names, official_rollouts,
+                                       realism_batch, reduce_groups, write_official_scenes)
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
 from gpd_jax.metrics.realism import CONFIGS as REALISM_CONFIGS
-from gpd_jax.metrics.realism import edge_segment_budget
+from gpd_jax.metrics.realism import OFFICIAL_HISTORY_FRAMES, edge_polylines, edge_segment_budget
 from gpd_jax.geometry import edge_source_names
 from gpd_jax.scene import Scene
 from gpd_jax.spec import HORIZONS_S, EvalError
@@ -51,8 +52,8 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                    seed: int = 0, variant: str = "paper", horizons_s: Sequence[float] = HORIZONS_S,
                    render_count: int = 0, options: RolloutOptions = RolloutOptions(), progress: bool = True,
                    log: Callable[[str], None] = print, layouts: Sequence[str] | None = None,
-                   scene_sums: bool = False, samples: int = 0,
-                   realism_config: str = "2025") -> tuple[dict[str, Any], list[RenderItem]]:
+                   scene_sums: bool = False, samples: int = 0, realism_config: str = "2025",
+                   export_official: str | None = None) -> tuple[dict[str, Any], list[RenderItem]]:
     """Rolls out every task on the first `num_scenarios` scenarios of a split (or of given scenes) and scores
     them.
 
@@ -79,6 +80,9 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
         generates agents or the ego, and of the baselines (`gpd_jax.evaluation.realism`; at temperature 0 the
         model is deterministic and its K rollouts are one rollout repeated). The main metrics are unchanged.
       realism_config: "2024" or "2025" (the challenge's weights).
+      export_official: with samples, a directory to write every group's rollouts to as the official mode scores
+        them (`<group>.npz`, `gpd_jax.evaluation.realism.write_official_scenes`), for the official code
+        (`tests/conformance/run_official.py`); `results["realism_official"]` is what it should reproduce.
 
     Returns:
       (results dict as written to metrics.json, render items). Raises EvalError on bad input. With several
@@ -100,6 +104,17 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     prep = preflight(config, data, split, task_names=task_names, num_scenarios=num_scenarios, variant=variant,
                      horizons_s=horizons_s, has_tokenizer=tokenizer is not None, tokenizer=tokenizer)
     spec, names, src, n = prep.spec, prep.task_names, prep.source, prep.num_scenarios
+    if export_official is not None:
+        if jax.process_count() > 1:
+            raise EvalError("export_official runs in one process; leave out --coordinator / --distributed")
+        if not samples:
+            raise EvalError("export_official: the official format holds the K rollouts of samples=K; ask for samples")
+        if (spec.stored_period_s != 0.1 or spec.full_history < OFFICIAL_HISTORY_FRAMES
+                or spec.stored_frames_needed - spec.full_history < OFFICIAL_FUTURE_FRAMES):
+            raise EvalError(f"export_official: the official format is {OFFICIAL_HISTORY_FRAMES} history and "
+                            f"{OFFICIAL_FUTURE_FRAMES} future frames at 10 Hz; this model has "
+                            f"{spec.full_history} and {spec.stored_frames_needed - spec.full_history} at "
+                            f"{1 / spec.stored_period_s:g} Hz")
     if prep.skipped_horizons:
         log(f"note: horizons {', '.join(f'{s:g} s' for s in prep.skipped_horizons)} exceed the model's future "
             f"({spec.num_future * spec.frame_period_s:g} s) and are skipped")
@@ -124,7 +139,9 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
     per_scene: list[dict[str, Any]] = []
 
     acc = None
-    realism_parts: list[dict[str, dict[str, np.ndarray]]] = []
+    realism_parts: list[dict[str, dict[str, dict[str, np.ndarray]]]] = []
+    export_parts: list[dict[str, Any]] = []
+    export_groups: list[str] = []
     has_road = has_signals = True
     edge_sources: list[str] = []
     render_items: list[RenderItem] = []
@@ -215,12 +232,16 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
             else:
                 rec["total"] = sums
             if samples:
-                part, road_ok = _realism(model, view, full, tasks, names, out, samples,
-                                         jax.random.fold_in(sample_key, b), options, realism_config)
+                part, road_ok, exported = _realism(model, view, full, tasks, names, out, samples,
+                                                   jax.random.fold_in(sample_key, b), options, realism_config,
+                                                   export_official is not None)
                 rec["realism"] = jax.tree.map(lambda x: x[:real], part)
                 rec["has_road"] = road_ok
                 rec["has_signals"] = full.signals is not None
                 rec["edge_sources"] = np.asarray(edge_source_names(full.road, full.xy.shape[:1])[:real], dtype=str)
+                if exported is not None:  # one process only (checked above): not part of the gathered record
+                    export_parts.append({k: v[:real] for k, v in exported.items()})
+                    export_groups = group_names(names, full.polylines is not None)  # the order of their G axis
             t_score += time.perf_counter() - tc
             rec["render"] = {str(j): _render_record(idx[j], prep.scenario_ids, out, scene, j)
                              for j in range(real) if idx[j] < render_count}
@@ -285,10 +306,16 @@ def run_evaluation(model: Model, data: str | Scene, split: str = "test", *,
                      "processes": jax.process_count()},
     }
     if samples:
-        by_group = {g: {m: np.concatenate([p[g][m] for p in realism_parts]) for m in realism_parts[0][g]}
-                    for g in realism_parts[0]}
-        results["realism"] = reduce_groups(by_group, names, samples, realism_config, has_road, has_signals,
-                                           edge_sources)
+        for rules, key in RESULT_KEYS.items():
+            first = realism_parts[0][rules]
+            by_group = {g: {m: np.concatenate([p[rules][g][m] for p in realism_parts]) for m in first[g]}
+                        for g in first}
+            results[key] = reduce_groups(by_group, names, samples, realism_config, has_road, has_signals,
+                                         edge_sources, rules)
+        if export_official is not None:
+            ids = [prep.scenario_ids[i] if i < len(prep.scenario_ids) else str(i) for i in range(n)]
+            paths = write_official_scenes(export_official, export_groups, ids, export_parts, spec.full_history)
+            results["realism_official"]["exported"] = paths
     if scene_sums:
         pad = lambda x: list(x[:n]) + [""] * max(0, n - len(x))  # noqa: E731
         results["scene_sums"] = scene_sums_from_batches(per_scene, pad(prep.scenario_ids), pad(prep.locations))
@@ -299,8 +326,10 @@ SAMPLED_ROLLOUTS_PER_CALL = 512  # rollouts (scenes x tasks x samples) in one ca
 
 
 def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutOutput, samples: int, key,
-             options: RolloutOptions, config: str) -> tuple[dict[str, dict[str, np.ndarray]], bool]:
-    """Each scenario's realism figures of one batch (`gpd_jax.evaluation.realism`) and whether the scenes had road
+             options: RolloutOptions, config: str, export: bool = False
+             ) -> tuple[dict[str, dict[str, dict[str, np.ndarray]]], bool, dict[str, Any] | None]:
+    """Each scenario's realism figures of one batch under each counting rule (`gpd_jax.evaluation.realism`:
+    `{rules: {group: {metric: f64[b]}}}`) and whether the scenes had road
     geometry. The first of the K samples is the main rollout `out`; the others are drawn only where the rollout
     samples (temperature > 0), through the rollout's sample axis (`RolloutOptions.samples`), in calls of equal size
     (one compile) of at most `SAMPLED_ROLLOUTS_PER_CALL` rollouts."""
@@ -317,9 +346,25 @@ def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutO
     xy, heading, valid = (jnp.swapaxes(jnp.repeat(a, reps, axis=2), 1, 2) for a in (xy, heading, valid))
     full = jax.tree.map(jnp.asarray, full.replace(map_tokens=full.map_tokens[..., :1], lanes=None, lanes_valid=None))
     budget = None if full.road is None else edge_segment_budget(full.road)
-    part = realism_batch(xy, heading, valid, full, model.spec, tuple(names), config, budget,
-                         full.polylines is not None)
-    return jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(part)), full.road is not None
+    with_lanes = full.polylines is not None
+    part = realism_batch(xy, heading, valid, full, model.spec, tuple(names), config, budget, with_lanes)
+    exported = None
+    if export:
+        if full.road is None:
+            raise EvalError("export_official: the official code needs road edges; these scenes have no road geometry")
+        sub_xy, sub_h, ev = jax.device_get(official_rollouts(xy, heading, valid, full, model.spec, tuple(names),
+                                                             with_lanes))
+        a, b = model.spec.num_agents, xy.shape[0]
+        road = jax.device_get(full.road)
+        exported = {"sub_xy": sub_xy, "sub_heading": sub_h, "evaluated": ev,
+                    **{k: np.asarray(getattr(full, f))[:, :, :a] for k, f in
+                       (("log_xy", "xy"), ("log_heading", "heading"), ("log_valid", "valid"))},
+                    "size": np.asarray(full.size)[:, :a], "agent_type": np.asarray(full.agent_type)[:, :a],
+                    "edges": np.empty(b, object)}
+        for i in range(b):  # the road edges as the metric orients them, one list of polylines per scene
+            exported["edges"][i] = edge_polylines(jax.tree.map(lambda x, i=i: x[i], road))
+    return (jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(part)), full.road is not None,
+            exported)
 
 
 def _agents_only(full: Scene) -> Scene:

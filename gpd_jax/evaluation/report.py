@@ -81,8 +81,9 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
             parts = [f"{lb} {_fmt(v)}" + (f" (target <= {RATIO_TARGETS.get(lb, float('nan')):g})" if targeted else "")
                      for lb, v in ratio.items()]
             out += [f"traffic simulation agent ADE / {what} agent ADE: " + ", ".join(parts)]
-    if results.get("realism"):
-        out += [""] + format_realism_table(results["realism"])
+    for key in ("realism", "realism_official"):
+        if results.get(key):
+            out += [""] + format_realism_table(results[key])
     if results.get(MOTION_SPLIT):
         out += [""] + format_motion_table(results, variant)
     if results.get("by_layout"):
@@ -91,8 +92,8 @@ def format_tables(results: dict[str, Any], variant: str = "paper") -> str:
 
 
 def format_realism_table(realism: dict[str, Any]) -> list[str]:
-    """The realism table (`results["realism"]`): meta-metric, its buckets and terms, minADE, per task and
-    baseline."""
+    """The realism table (`results["realism"]` or `["realism_official"]`): meta-metric, its buckets and terms,
+    minADE, per task and baseline, and the counting rules it was computed under."""
     cols = [("meta", "metametric"), ("kinem", "kinematic"), ("inter", "interactive"), ("map", "map_based"),
             ("speed", "linear_speed_likelihood"), ("accel", "linear_acceleration_likelihood"),
             ("yawrate", "angular_speed_likelihood"), ("yawacc", "angular_acceleration_likelihood"),
@@ -105,7 +106,8 @@ def format_realism_table(realism: dict[str, Any]) -> list[str]:
     w0 = max([8] + [len(r) for r, _ in rows]) + 2
     head = "".join(f"{c:>9}" for c, _ in cols)
     left = "; ".join(f"{k} left out ({why})" for k, why in realism["left_out"].items())
-    lines = [f"Realism ({realism['samples']} rollouts per scenario, WOSAC {realism['config']} form, weights "
+    lines = [f"Realism, {realism.get('rules', 'corrected')} rules ({realism['samples']} rollouts per scenario, "
+             f"WOSAC {realism['config']} form, weights "
              f"renormalised{'; ' + left if left else ''}; minADE m; coll% / off% = share of rollouts x agents)",
              f"{'':<{w0}}{head}", "-" * (w0 + len(head))]
     for r, d in rows:

@@ -13,7 +13,7 @@ Features, per agent and future frame (`realism_features`; 10 Hz frames, `dt` = 0
   of the speed), angular speed (central difference of the heading, wrapped as the official code does: the
   two-step change is wrapped to [-pi, pi) before halving), angular acceleration. Computed over history and future
   together, so the first future frame has a difference; valid where both neighbours are valid (twice for
-  accelerations).
+  accelerations; the official rules judge validity on the future frames alone, below).
 * **distance to the nearest object**: signed distance between boxes with rounded corners (each box shrunk by
   `CORNER_ROUNDING_FACTOR` x half its smaller side, the distance between the shrunk "cores", minus both shrink
   radii; negative = overlap), against every other valid agent; **collision** where it is below 0.
@@ -46,10 +46,26 @@ Likelihoods (`realism_metrics`, one scenario; `vmap` for many):
   has), minimum over the K rollouts; ADE: the same averaged over rollouts. Also the simulated collision and
   offroad rates (share of (rollout, agent) pairs with at least one such frame).
 
-Differences from the official code, all where the official code assumes complete data: simulated values are
-counted in a histogram only where the rollout says the agent exists and the value is finite (the official code
-counts every simulated step, its padding NaNs included); a scenario with no evaluated agent gives NaN (left out by
-`reduce_realism`, which counts them).
+Counting rules (`rules=`, `RULES`), the same features and estimators under both:
+
+* **"official"** reproduces the official code (`waymo-open-dataset-tf-2-12-0==1.6.7`, checked scene by scene in
+  `tests/test_realism_conformance.py`): the simulated agents are those valid in the log at the current frame,
+  each present at every future frame of every rollout (the official format has no per-step validity; where a
+  rollout, a baseline or the log lacks one, `continue_missing` continues it at constant velocity from its last
+  state), with the log's history; every simulated value counts in the histograms, the NaN padding of the central
+  differences (the last future frame for speeds, the last two for accelerations) in the top bin, as
+  `tfp.stats.histogram` puts NaN; the log's kinematic validity is computed on the future frames alone, so the
+  first future frame is never scored for speeds nor the first two for accelerations; time to collision is
+  scored for vehicles only (`agent_type`); ADE averages each agent's error over the log's valid frames with the
+  history's (zero error) counted, the official format's 11 history frames (`OFFICIAL_HISTORY_FRAMES`; the
+  features reach back two frames only).
+* **"corrected"** (the metric as it was before the official mode) counts only what a rollout has: simulated
+  values where the rollout has the agent and the value is finite; kinematic validity over history and future
+  together (the first future frame has a speed); time to collision of every agent; ADE over the log's future
+  frames.
+
+Under both, a scenario with no evaluated agent gives NaN (left out by `reduce_realism`, which counts them).
+Values within float rounding of a histogram bin edge may fall on either side of it in either implementation.
 
 Model frame rates other than 10 Hz: the features are defined on 10 Hz trajectories. A model that predicts a frame
 every `stride` stored frames is brought to 10 Hz by `upsample_frames` (cubic Hermite interpolation of the
@@ -74,7 +90,7 @@ import numpy as np
 from gpd_jax.geometry import RoadGeometry, TrafficSignals, on_road
 from gpd_jax.metrics.agents import box_corners
 from gpd_jax.metrics.traffic_lights import SignalGeometry, red_light_violation, signal_geometry
-from gpd_jax.scene import wrap_angle
+from gpd_jax.scene import TYPE_ID, backward_difference, wrap_angle
 
 # ------------------------------------------------------------------------------------------------ constants
 CORNER_ROUNDING_FACTOR = 0.7  # 0: sharp rectangles, 1: capsules
@@ -117,6 +133,10 @@ FEATURES = {
 }
 MAP_FEATURES = ("distance_to_road_edge", "offroad_indication")
 SIGNAL_FEATURES = ("traffic_light_violation",)
+# The counting rules (`scenario_realism(..., rules=)`): "official" reproduces the official code's, "corrected" counts
+# only what a rollout has (module docstring). Reports name the rules they used.
+RULES = ("official", "corrected")
+OFFICIAL_HISTORY_FRAMES = 11  # the official format's history (current index 10): what its ADE counts
 
 _COMMON = {
     "linear_speed": _hist(0.0, 25.0, 10, 0.05),
@@ -411,6 +431,23 @@ def _compact(edges: OrientedEdges, max_segments: int) -> OrientedEdges:
                          dropped=jnp.sum(edges.ok, dtype=jnp.int32) - jnp.sum(edges.ok[order], dtype=jnp.int32))
 
 
+def edge_polylines(road: RoadGeometry) -> list[np.ndarray]:
+    """The unbatched `road`'s road edges as `orient_edges` keeps and orients them, as polylines `f64[n, 2]` (host
+    side): each run of consecutive kept segments of an edge row, the road on its left. What the official code is
+    handed (a `road_edge` map feature each) to score the same edges: it closes a polyline whose ends are within
+    1 m as `orient_edges` does, but does not continue one row into the next (`orient_edges` does where a row
+    starts where another ends), which can change a sign only at such a junction's vertex."""
+    e = jax.device_get(orient_edges(road))
+    rows, s = np.shape(road.edge_valid)[0], np.shape(road.edge_valid)[1] - 1
+    a, b, ok = (np.asarray(x).reshape((rows, s) + np.shape(x)[1:]) for x in (e.a, e.b, e.ok))
+    out = []
+    for r in range(rows):
+        k = np.flatnonzero(ok[r])
+        for run in np.split(k, np.flatnonzero(np.diff(k) > 1) + 1) if k.size else []:
+            out.append(np.concatenate([a[r, run[:1]], b[r, run]]).astype(np.float64))
+    return out
+
+
 def edge_segment_budget(edge_valid) -> int:
     """A static segment count for `orient_edges(..., max_segments=)` that keeps every road-edge segment of a batch
     of scenes (`edge_valid bool[..., E, P]`, on the host, or the batch's `RoadGeometry`: its map edges where it has
@@ -510,7 +547,7 @@ def road_edge_distance(edges: OrientedEdges, corners, valid, num_candidates: int
 
 def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: jax.Array, num_history: int,
                      dt: float = 0.1, edges: OrientedEdges | None = None,
-                     signals: SignalGeometry | None = None) -> RealismFeatures:
+                     signals: SignalGeometry | None = None, rules: str = "corrected") -> RealismFeatures:
     """The realism features of one trajectory set's future frames.
 
     Args:
@@ -522,10 +559,18 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
         for a scene without road geometry (then distance_to_road_edge is `FAR`, offroad False).
       signals: `signal_geometry` of the scene's signals (computed once per scene, states on these frames), or
         None (no traffic-light feature).
+      rules: "corrected": a speed (acceleration) is valid where its neighbours one (two) frames away are, history
+        included; "official": the same computed on the future frames alone (the first and last future frame
+        never valid for speeds, the first two and last two for accelerations).
     """
     speed, accel, w, dw, sv, av = kinematics(xy, heading, valid, dt)
     fut = slice(num_history, None)
     xy_f, h_f, v_f, speed_f = xy[fut], heading[fut], valid[fut], speed[fut]
+    if rules == "official":  # the validity of the differences from the future frames alone
+        sv = _central_and(v_f)
+        av = _central_and(sv)
+    else:
+        sv, av = sv[fut], av[fut]
     size_t = jnp.broadcast_to(size, xy_f.shape)
     dist = nearest_object_distance(xy_f, h_f, v_f, size_t)
     ttc = time_to_collision(xy_f, h_f, speed_f, v_f, size_t)  # NaN speed (last frame): no closing, MAX_TTC_S
@@ -535,7 +580,7 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
     else:
         edge, inexact = road_edge_distance(edges, box_corners(xy_f, h_f, size_t), v_f)
     return RealismFeatures(
-        valid=v_f, speed_valid=sv[fut], accel_valid=av[fut], linear_speed=speed_f, linear_acceleration=accel[fut],
+        valid=v_f, speed_valid=sv, accel_valid=av, linear_speed=speed_f, linear_acceleration=accel[fut],
         angular_speed=w[fut], angular_acceleration=dw[fut], distance_to_nearest_object=dist,
         collision=(dist < 0) & v_f, time_to_collision=ttc, distance_to_road_edge=edge,
         offroad=(edge > 0) & v_f & (edge < FAR / 2), edge_inexact=inexact,
@@ -545,13 +590,16 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
 
 
 # ------------------------------------------------------------------------------------------------ likelihoods
-def histogram_log_likelihood(log_values, sim_values, sim_valid, cfg: FeatureConfig):
+def histogram_log_likelihood(log_values, sim_values, sim_valid, cfg: FeatureConfig, count_nan: bool = False):
     """Log-probability of each logged value under the histogram of the simulated ones.
 
     Args:
       log_values: f32[N, L] (N independent populations); sim_values: f32[N, S]; sim_valid: bool[N, S] which
-        simulated values count (non-finite ones never do).
-      cfg: range, bins and pseudocount; values are clipped into [min_val, max_val].
+        simulated values count.
+      cfg: range, bins and pseudocount; values are clipped into [min_val, max_val] (infinities into the end bins).
+      count_nan: False: only finite simulated values count; True: every one where `sim_valid`, NaN in the top
+        bin (what the official code's `tfp.stats.histogram` does with it). A NaN logged value is scored as the
+        top bin either way.
 
     Returns f32[N, L]: log((count of the logged value's bin + pseudocount) / (counted + bins * pseudocount)).
     """
@@ -562,14 +610,15 @@ def histogram_log_likelihood(log_values, sim_values, sim_valid, cfg: FeatureConf
     edges = jnp.linspace(lo, hi, bins + 1, dtype=jnp.float32)
 
     def bin_of(v):
-        v = jnp.clip(v.astype(jnp.float32), lo, hi)
-        return jnp.clip(jnp.searchsorted(edges, v, side="right") - 1, 0, bins - 1)
+        v = v.astype(jnp.float32)
+        b = jnp.clip(jnp.searchsorted(edges, jnp.clip(v, lo, hi), side="right") - 1, 0, bins - 1)
+        return jnp.where(jnp.isnan(v), bins - 1, b)
 
-    ok = sim_valid & jnp.isfinite(sim_values)
-    counts = jnp.sum(jax.nn.one_hot(bin_of(jnp.where(ok, sim_values, lo)), bins) * ok[..., None], axis=-2)
+    ok = sim_valid if count_nan else sim_valid & jnp.isfinite(sim_values)
+    counts = jnp.sum(jax.nn.one_hot(bin_of(sim_values), bins) * ok[..., None], axis=-2)
     probs = (counts + cfg.pseudocount) / jnp.sum(counts + cfg.pseudocount, axis=-1, keepdims=True)
     log_p = jnp.log(probs)  # [N, bins]
-    return jnp.take_along_axis(log_p, bin_of(jnp.nan_to_num(log_values)), axis=-1)
+    return jnp.take_along_axis(log_p, bin_of(log_values), axis=-1)
 
 
 def _masked_mean(x, m):
@@ -578,7 +627,8 @@ def _masked_mean(x, m):
 
 
 def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, evaluated, config: str = "2025",
-                    has_road: bool = True) -> dict[str, jax.Array]:
+                    has_road: bool = True, rules: str = "corrected", is_vehicle=None,
+                    history_steps=None) -> dict[str, jax.Array]:
     """WOSAC likelihoods, meta-metric, minADE for one scenario from its features.
 
     Args:
@@ -587,37 +637,53 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
       evaluated: bool[A] the agents scored (their rollouts are the model's; others only interact).
       config: "2024" or "2025"; has_road: whether the scene has road geometry (else the map terms are left out).
         The traffic-light term is scored where the features carry it (`realism_features(..., signals=)`).
+      rules: "corrected": a simulated kinematic value counts where the rollout has both neighbours and it is
+        finite; "official": every simulated value counts, the NaN padding of the central differences in the top
+        bin (the features' validity says which frames the rollout has: all future frames under these rules).
+      is_vehicle: bool[A], the agents whose time to collision is scored (the official rule: vehicles only);
+        None: all.
+      history_steps: f32[A], the log's valid history frames: the official ADE divides each agent's summed
+        error by its valid frames history included (the history's error is zero); None: future frames only.
 
     Returns f32[] per key: "<feature>_likelihood" for each scored feature, "metametric", the bucket scores
     "kinematic", "interactive", "map_based", "min_ade", "ade", "collision_rate", "offroad_rate",
     "road_edge_inexact_share"; NaN where no evaluated agent has the feature.
     """
+    if rules not in RULES:
+        raise ValueError(f"realism rules {rules!r}: expected one of {RULES}")
+    official = rules == "official"
     cfg = realism_config(config)
     weights = realism_weights(config, has_road=has_road, has_signals=log.red_light is not None)
     k = sim.valid.shape[0]
     ev = evaluated[None, :]  # [1, A] against [F, A]
+    vehicle = jnp.ones_like(evaluated) if is_vehicle is None else is_vehicle
     out = {}
+    # feature -> (field, the log's mask, the rollouts' mask)
+    kin_sim = "valid" if official else None
     series = {
-        "linear_speed": ("linear_speed", "speed_valid"),
-        "linear_acceleration": ("linear_acceleration", "accel_valid"),
-        "angular_speed": ("angular_speed", "speed_valid"),
-        "angular_acceleration": ("angular_acceleration", "accel_valid"),
-        "distance_to_nearest_object": ("distance_to_nearest_object", "valid"),
-        "time_to_collision": ("time_to_collision", "valid"),
-        "distance_to_road_edge": ("distance_to_road_edge", "valid"),
+        "linear_speed": ("linear_speed", "speed_valid", kin_sim or "speed_valid"),
+        "linear_acceleration": ("linear_acceleration", "accel_valid", kin_sim or "accel_valid"),
+        "angular_speed": ("angular_speed", "speed_valid", kin_sim or "speed_valid"),
+        "angular_acceleration": ("angular_acceleration", "accel_valid", kin_sim or "accel_valid"),
+        "distance_to_nearest_object": ("distance_to_nearest_object", "valid", "valid"),
+        "time_to_collision": ("time_to_collision", "valid", "valid"),
+        "distance_to_road_edge": ("distance_to_road_edge", "valid", "valid"),
     }
-    for name, (field, mask) in series.items():
+    for name, (field, log_mask, sim_mask) in series.items():
         if name not in weights:
             continue
         c = cfg[name]
         sim_v = getattr(sim, field)  # [K, F, A]
-        sim_m = getattr(sim, mask)
+        sim_m = getattr(sim, sim_mask)
         f, a = sim_v.shape[1:]
         # populations = agents; simulated samples pooled over rollouts and frames (independent_timesteps)
         pooled = jnp.transpose(sim_v, (2, 0, 1)).reshape(a, k * f)
         pooled_m = jnp.transpose(sim_m, (2, 0, 1)).reshape(a, k * f)
-        ll = histogram_log_likelihood(getattr(log, field).T, pooled, pooled_m, c)  # [A, F]
-        out[f"{name}_likelihood"] = jnp.exp(_masked_mean(ll.T, getattr(log, mask) & ev))
+        ll = histogram_log_likelihood(getattr(log, field).T, pooled, pooled_m, c, count_nan=official)  # [A, F]
+        scored = getattr(log, log_mask) & ev
+        if name == "time_to_collision":
+            scored = scored & vehicle[None]
+        out[f"{name}_likelihood"] = jnp.exp(_masked_mean(ll.T, scored))
     for name, field in (("collision_indication", "collision"), ("offroad_indication", "offroad"),
                         ("traffic_light_violation", "red_light")):
         if name not in weights:
@@ -635,10 +701,12 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
             total = sum(weights[n] for n in names)
             out[bucket] = sum(weights[n] * out[f"{n}_likelihood"] for n in names) / total
     # displacement: per rollout, the mean over evaluated agents of each agent's mean error over the log's frames
+    # (the official rules: the history's frames counted too, at zero error)
     err = jnp.linalg.norm(sim_xy - log_xy[None], axis=-1)  # [K, F, A]
     m = log.valid[None] & ev[None]
-    per_agent = jnp.sum(jnp.where(m, err, 0.0), 1) / jnp.maximum(jnp.sum(m, 1), 1)  # [K, A]
-    has = jnp.any(log.valid, 0) & evaluated
+    frames = jnp.sum(m, 1) + (0.0 if history_steps is None else history_steps[None])
+    per_agent = jnp.sum(jnp.where(m, err, 0.0), 1) / jnp.maximum(frames, 1)  # [K, A]
+    has = jnp.any(frames > 0, 0) & evaluated
     per_rollout = jnp.sum(jnp.where(has[None], per_agent, 0.0), -1) / jnp.sum(has)
     out["min_ade"] = jnp.min(per_rollout)
     out["ade"] = jnp.mean(per_rollout)
@@ -647,10 +715,32 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
     return out
 
 
+def continue_missing(xy, heading, valid, num_history: int):
+    """Rollouts with every agent at every future frame: where an agent is missing at a future frame, it goes on
+    from its last valid frame at that frame's velocity (the backward difference to the valid frame before it,
+    `gpd_jax.scene.backward_difference`; zero without one) and heading. What the official mode scores where a
+    rollout, a baseline or the log has no state (the official format has none missing).
+
+    `xy f32[..., T, A, 2]`, `heading f32[..., T, A]`, `valid bool[..., T, A]` -> (xy, heading) with the future
+    frames (from `num_history`) filled; agents never valid up to a frame stay as they are there.
+    """
+    t = valid.shape[-2]
+    index = jnp.arange(t)[:, None]
+    last = jax.lax.cummax(jnp.where(valid, index, -1), axis=valid.ndim - 2)  # last valid frame <= t
+    step, frames, known = backward_difference(xy, valid)
+    vel = jnp.where(known[..., None], step / frames[..., None], 0.0)
+    at = lambda x: jnp.take_along_axis(x, jnp.maximum(last, 0)[..., None], axis=-3)  # noqa: E731
+    fill_xy = at(xy) + at(vel) * (index - last)[..., None]
+    fill_h = at(heading[..., None])[..., 0]
+    fill = ~valid & (last >= 0) & (index >= num_history)
+    return jnp.where(fill[..., None], fill_xy, xy), jnp.where(fill, fill_h, heading)
+
+
 def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_valid, size, num_history: int,
                      road: RoadGeometry | None = None, evaluated=None, dt: float = 0.1,
                      config: str = "2025", max_edge_segments: int | None = None,
-                     signals: TrafficSignals | None = None, lanes=None, lane_valid=None) -> dict[str, jax.Array]:
+                     signals: TrafficSignals | None = None, lanes=None, lane_valid=None, rules: str = "corrected",
+                     agent_type=None) -> dict[str, jax.Array]:
     """The realism metrics of K rollouts of one scenario (pure; `jax.vmap` over scenarios, `jit` it whole).
 
     Args:
@@ -667,16 +757,39 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
       signals: the scene's `TrafficSignals` (unbatched, states on these frames) and its lane centrelines `lanes`,
         `lane_valid` (`Scene.polylines`, `polyline_valid`): the 2025 traffic-light term is scored; None leaves it
         out.
+      rules: "corrected" or "official" (module docstring). Under "official" the simulated agents are those
+        valid in the log at the current frame (the others are in neither the rollouts nor the log), every one
+        of them present at every future frame of every rollout (`continue_missing` where a rollout lacks it),
+        the history the log's; evaluated agents are among them.
+      agent_type: i32[A] (`gpd_jax.scene.AGENT_TYPES`): under the official rules time to collision is scored for
+        vehicles only (all but "other"); None, or the corrected rules: for every agent.
     """
+    if rules not in RULES:
+        raise ValueError(f"realism rules {rules!r}: expected one of {RULES}")
     edges = None if road is None else orient_edges(road, max_edge_segments)
     if evaluated is None:
         evaluated = log_valid[num_history - 1]
+    history_steps = None
+    if rules == "official":
+        present = log_valid[num_history - 1]
+        evaluated = evaluated & present
+        hist = (jnp.arange(log_valid.shape[0]) < num_history)[:, None]
+        sim_xy = jnp.where(hist[..., None], log_xy, sim_xy)
+        sim_heading = jnp.where(hist, log_heading, sim_heading)
+        sim_valid = jnp.where(hist, log_valid, sim_valid)
+        sim_xy, sim_heading = continue_missing(sim_xy, sim_heading, sim_valid, num_history)
+        sim_valid = jnp.broadcast_to(jnp.where(hist, log_valid, present[None]), sim_valid.shape)
+        log_valid = log_valid & present[None]
+        first = max(0, num_history - OFFICIAL_HISTORY_FRAMES)
+        history_steps = jnp.sum(log_valid[first:num_history], axis=0).astype(jnp.float32)
+    is_vehicle = None if agent_type is None or rules != "official" else agent_type != TYPE_ID["other"]
     geo = None if signals is None else signal_geometry(signals, lanes, lane_valid)
-    feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, geo)
+    feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, geo, rules)  # noqa: E731
     log = feats(log_xy, log_heading, log_valid)
     sim = jax.vmap(feats)(sim_xy, sim_heading, sim_valid)
     return realism_metrics(sim, log, sim_xy[:, num_history:], log_xy[num_history:], evaluated, config,
-                           has_road=road is not None)
+                           has_road=road is not None, rules=rules, is_vehicle=is_vehicle,
+                           history_steps=history_steps)
 
 
 def rescore(per_scenario: Mapping[str, np.ndarray], config: str, has_road: bool,
@@ -698,10 +811,14 @@ def rescore(per_scenario: Mapping[str, np.ndarray], config: str, has_road: bool,
 
 
 def reduce_realism(per_scenario: Mapping[str, np.ndarray], config: str = "2025",
-                   has_road: bool = True, has_signals: bool = False, road_reason: str = "no road geometry") -> dict:
+                   has_road: bool = True, has_signals: bool = False, road_reason: str = "no road geometry",
+                   rules: str = "corrected") -> dict:
     """Dataset figures from per-scenario metrics (arrays with a leading scenario dim): the mean over scenarios
     with a finite value (the official aggregation), plus "scenarios", "scenarios_left_out" (no evaluated agent),
-    "config", "weights" (renormalised) and "left_out" (terms not scored and why)."""
+    "config", "rules" (the counting rules the figures were computed under), "weights" (renormalised) and
+    "left_out" (terms not scored and why)."""
+    if rules not in RULES:
+        raise ValueError(f"realism rules {rules!r}: expected one of {RULES}")
     out: dict = {}
     meta = np.asarray(per_scenario["metametric"], np.float64)
     keep = np.isfinite(meta)
@@ -712,6 +829,7 @@ def reduce_realism(per_scenario: Mapping[str, np.ndarray], config: str = "2025",
     out["scenarios"] = int(keep.sum())
     out["scenarios_left_out"] = int((~keep).sum())
     out["config"] = config
+    out["rules"] = rules
     out["weights"] = realism_weights(config, has_road=has_road, has_signals=has_signals)
     reasons = {"traffic_light_violation": "no traffic-signal states in the data",
                "distance_to_road_edge": road_reason, "offroad_indication": road_reason}
