@@ -34,6 +34,11 @@ A model that reads lanes (`agent_lane_residual`) reads the scenes' lane polyline
 included; `train.lane_context_drop` = f drops them from the future frames of the last round(f * B) scenes of each
 batch, as in the tasks that generate the map.
 
+`train.closed_loop_top_k` = K > 0 (closed-loop supervised fine-tuning, CAT-K: gpd_jax/training/closed_loop.py)
+takes the future frames' inputs from the model's own rollout, keeping at each frame the closest to the log of its
+sampling head's top-K cells; the targets stay the log's next frames, so the model learns to return to the log from
+the states it reaches.
+
 The step is a pure function of (params, opt_state, batch); NNX only defines the parameter tree.
 """
 
@@ -49,6 +54,7 @@ from flax import nnx
 
 from gpd_jax.model import GPD, MODE_HEAD, LaneContext, Prediction, forward, samples_agents
 from gpd_jax.scene import Scene, wrap_angle
+from gpd_jax.training.closed_loop import closed_loop_inputs
 from gpd_jax.training.common import compiled_once, step_key
 
 
@@ -157,16 +163,21 @@ def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> L
 
 def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0,
                feed_map=False, agent_norm: str = "smooth_l1", norm_delta: float = NORM_DELTA,
-               drop_lanes=False) -> dict[str, jax.Array]:
+               drop_lanes=False, closed_loop_k: int = 0) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide).
 
     `agent_norm` / `norm_delta`: the position and velocity loss (`vector_loss`).
     With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
     predictions (`free_running_inputs`; with `feed_map` the map tokens too) while the targets stay the log's:
     the model learns to recover from its own errors, as it must in a rollout. A model that reads lanes
-    reads the scene's lanes (`lane_context_of`; with `drop_lanes` in the history frames only)."""
+    reads the scene's lanes (`lane_context_of`; with `drop_lanes` in the history frames only).
+    With `closed_loop_k` = K > 0 instead, the inputs of the future frames are the states the model's own rollout
+    reaches keeping, at every frame, the closest to the log of its top-K cells (`closed_loop_inputs`, CAT-K)."""
     lanes = lane_context_of(model, scene, num_history, drop_lanes)
-    xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map, lanes)
+    if closed_loop_k > 0:
+        xy, heading, vel, maps = closed_loop_inputs(model, scene, num_history, closed_loop_k, lanes)
+    else:
+        xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map, lanes)
     pred = teacher_forced(model, xy, heading, scene.valid[:-1], maps, vel, lanes)
     tv = scene.valid[1:].astype(jnp.float32)
     pos = vector_loss(pred.xy - scene.xy[1:], agent_norm, norm_delta)
@@ -203,19 +214,21 @@ def agent_norm_of(loss_cfg) -> tuple[str, float]:
 
 
 def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout_passes: int = 0,
-               map_feedback: float = 0.0, lane_drop: float = 0.0) -> tuple[jax.Array, dict[str, jax.Array]]:
+               map_feedback: float = 0.0, lane_drop: float = 0.0,
+               closed_loop_k: int = 0) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Weighted total loss over a batch of scenes (leading dim B) and its parts (see `loss_terms`).
 
     With `rollout_passes` > 0 the first round(map_feedback * B) scenes of the batch (a random subset: batches
     are shuffled) also take their future map tokens from the model (`free_running_inputs`). For a model
-    that reads lanes the last round(lane_drop * B) scenes read no lanes in their future frames."""
+    that reads lanes the last round(lane_drop * B) scenes read no lanes in their future frames. `closed_loop_k`:
+    see `loss_terms`."""
     b = scenes.xy.shape[0]
     idx = jnp.arange(b)
     feed = idx < round(float(map_feedback) * b)
     drop = idx >= b - round(float(lane_drop) * b)
     norm, delta = agent_norm_of(weights)
-    terms = jax.vmap(lambda s, f, d: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, d))(
-        scenes, feed, drop)
+    terms = jax.vmap(lambda s, f, d: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, d,
+                                                closed_loop_k))(scenes, feed, drop)
     terms = jax.tree.map(jnp.sum, terms)
     n_agents = jnp.maximum(terms["agent_count"], 1.0)
     n_map = jnp.maximum(terms["map_count"], 1.0)
@@ -306,9 +319,10 @@ def _gpd_steps(graphdef, config, tx, donate: bool):
     weights = config.loss
     h, passes = int(config.model.num_history), int(config.train.rollout_passes)
     feed, drop = float(config.train.map_feedback), float(config.train.lane_context_drop)
+    top_k = int(config.train.closed_loop_top_k)
 
     def loss_of(p, rest, scenes):
-        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, h, passes, feed, drop)
+        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, h, passes, feed, drop, top_k)
 
     head_only = _learned(config)
 
@@ -344,6 +358,13 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
     if feed > 0 and passes <= 0:
         raise ValueError("train.map_feedback feeds back the map tokens of the rollout passes: set "
                          "train.rollout_passes > 0")
+    top_k = int(config.train.closed_loop_top_k)
+    if top_k < 0 or (top_k > 0 and passes > 0):
+        raise ValueError(f"train.closed_loop_top_k must be >= 0 and not combined with train.rollout_passes (both "
+                         f"choose the future frames' inputs), got {top_k} with rollout_passes {passes}")
+    if top_k > 0 and not samples_agents(config.model):
+        raise ValueError("train.closed_loop_top_k keeps the closest of the sampling head's top-K cells: set "
+                         "model.agent_bins > 0")
     tx = make_optimizer(config.train)
     if _learned(config):  # the rest neither moves nor decays, and holds no optimizer state
         def labels(p):
