@@ -121,3 +121,57 @@ def test_a_closed_loop_fine_tune_resumes_exactly(tmp_path_factory):
     assert train_and_evaluate(_closed_loop_config(store), part, quiet=True)["step"] == 6
     for x, y in zip(jax.tree.leaves(_params(full)), jax.tree.leaves(_params(part))):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def _pair(gap):
+    """Two 4 x 2 m cars side by side `gap` metres apart (centre to centre across), 3 frames, history 1."""
+    xy = np.zeros((3, 2, 2), np.float32)
+    xy[:, 1, 1] = gap
+    xy[:, :, 0] = np.arange(3)[:, None] * 2.0  # both drive 2 m a frame
+    return jnp.asarray(xy), jnp.zeros((3, 2)), jnp.ones((3, 2), bool), jnp.asarray([[4.0, 2.0], [4.0, 2.0]])
+
+
+def test_a_colliding_pair_is_rewarded_less_than_a_pair_apart():
+    from gpd_jax.geometry import empty_road
+    from gpd_jax.training.closed_loop import agent_rewards
+
+    apart, hit = _pair(3.0), _pair(1.0)
+    r_apart = agent_rewards(*apart, 1, apart[0], apart[2])
+    r_hit = agent_rewards(*hit, 1, hit[0], hit[2])
+    np.testing.assert_array_equal(r_hit.collided, [1.0, 1.0])
+    np.testing.assert_array_equal(r_apart.collided, [0.0, 0.0])
+    assert np.all(np.asarray(r_hit.total) < np.asarray(r_apart.total))
+    # progress: the logged path driven is worth 1, standing still 0; off the (empty) road costs
+    still = agent_rewards(jnp.broadcast_to(apart[0][:1], apart[0].shape), *apart[1:], 1, apart[0], apart[2])
+    np.testing.assert_allclose(r_apart.progress, [1.0, 1.0])
+    np.testing.assert_allclose(still.progress, [0.0, 0.0])
+    off = agent_rewards(*apart, 1, apart[0], apart[2], road=empty_road())
+    np.testing.assert_allclose(off.offroad, [1.0, 1.0])
+    assert np.all(np.asarray(off.total) < np.asarray(r_apart.total))
+
+
+def test_group_advantages_are_relative_within_each_agents_group():
+    from gpd_jax.training.closed_loop import group_advantages
+
+    r = jnp.asarray([[0.0, 5.0, 1.0], [1.0, 5.0, 1.0], [2.0, 5.0, 1.0]])
+    adv = np.asarray(group_advantages(r, jnp.asarray([True, True, False])))
+    assert adv[0, 0] < 0 < adv[2, 0] and abs(adv[1, 0]) < 1e-6
+    np.testing.assert_array_equal(adv[:, 1:], 0.0)  # no difference in the group / an agent left out
+
+
+def test_reward_fine_tune_step_compiles_once_and_resumes_exactly(tmp_path_factory):
+    from gpd_jax.training.loop import train_and_evaluate
+
+    def config(store):
+        c = _closed_loop_config(store)
+        c.train.closed_loop_top_k, c.train.reward_samples, c.train.steps = 0, 2, 4
+        return c
+
+    store = _store(str(tmp_path_factory.mktemp("rlstore")))
+    full, part = str(tmp_path_factory.mktemp("rl") / "full"), str(tmp_path_factory.mktemp("rl") / "part")
+    out = train_and_evaluate(config(store), full, quiet=True)
+    assert out["step"] == 4
+    assert train_and_evaluate(config(store), part, stop_after=2, quiet=True)["step"] == 2
+    assert train_and_evaluate(config(store), part, quiet=True)["step"] == 4
+    for x, y in zip(jax.tree.leaves(_params(full)), jax.tree.leaves(_params(part))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
