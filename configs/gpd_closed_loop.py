@@ -23,13 +23,26 @@ generated networks with legacy traffic, where built), `python -m gpd_jax.data ..
 
 Training (no validation during the run: choices are made on the development store afterwards, rollout.py):
 
-    python train.py --config configs/gpd_closed_loop.py --workdir runs/closed_loop
+    python train.py --config configs/gpd_closed_loop.py:catk --workdir runs/closed_loop
+
+Stage `reward` (issue 67 part 2): reward fine-tuning, 4 sampled rollouts of each scene at temperature 0.5, each agent
+rewarded -1 for a collision, -1 x its share of frames off the drivable area, +0.5 x its progress (path length over
+the log's, at most 1), group-relative advantages over the 4, the policy-gradient loss beside the supervised
+teacher-forced loss on the log (the anchor). Meant to start from the `catk` stage's export; this session's first
+measurement started it from gpd_sampling (`--config.train.init_from=...` picks the start):
+
+    python train.py --config configs/gpd_closed_loop.py:reward --workdir runs/closed_loop_reward
 """
 
 from gpd_jax.config import gpd_config
 
 
-def get_config():
+STAGES = ("catk", "reward")
+
+
+def get_config(stage: str = "catk"):
+    if stage not in STAGES:
+        raise ValueError(f"configs/gpd_closed_loop.py: stage {stage!r} is not one of {STAGES}")
     c = gpd_config()
     c.data.dir = ("data/i67_interaction_train:0.4,data/i67_interaction_train_sensor:0.3,"
                   "data/i67_sumo_legacy_small:0.3")
@@ -47,4 +60,10 @@ def get_config():
     t.batch_size, t.steps, t.learning_rate, t.warmup_steps, t.min_learning_rate = 8, 160, 1e-4, 10, 1e-5
     t.grad_clip, t.log_every, t.eval_every, t.eval_batches, t.checkpoint_every = 1.0, 10, 0, 0, 50
     t.eval_rollout_scenarios, t.loader_threads = 0, 2
+    if stage == "reward":  # reward fine-tuning: 4 sampled rollouts per scene, the teacher-forced loss on the log as anchor
+        c.data.dir = "data/i67_interaction_train:0.6,data/i67_interaction_train_sensor:0.4"  # stores with road geometry
+        t.closed_loop_top_k, t.reward_samples, t.reward_temperature = 0, 4, 0.5
+        t.reward_weights, t.reward_scale = (1.0, 1.0, 0.5), 1.0
+        t.batch_size, t.steps, t.learning_rate, t.warmup_steps = 4, 40, 5e-5, 5
+        t.log_every, t.checkpoint_every = 5, 10
     return c
