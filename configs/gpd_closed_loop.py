@@ -60,7 +60,7 @@ def get_config(stage: str = "catk"):
     t.batch_size, t.steps, t.learning_rate, t.warmup_steps, t.min_learning_rate = 8, 160, 1e-4, 10, 1e-5
     t.grad_clip, t.log_every, t.eval_every, t.eval_batches, t.checkpoint_every = 1.0, 10, 0, 0, 50
     t.eval_rollout_scenarios, t.loader_threads = 0, 2
-    if stage == "reward":  # reward fine-tuning: 4 sampled rollouts per scene, the teacher-forced loss on the log as anchor
+    if stage == "reward":  # 4 sampled rollouts per scene; the teacher-forced loss on the log is the anchor
         c.data.dir = "data/i67_interaction_train:0.6,data/i67_interaction_train_sensor:0.4"  # stores with road geometry
         t.closed_loop_top_k, t.reward_samples, t.reward_temperature = 0, 4, 0.5
         t.reward_weights, t.reward_scale = (1.0, 1.0, 0.5), 1.0

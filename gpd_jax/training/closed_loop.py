@@ -167,7 +167,9 @@ def sampled_rollouts(model: GPD, scene: Scene, num_history: int, key: jax.Array,
     sampling = Sampling(temperature=temperature)
 
     def one(k):
-        pick = lambda modes, log, t, own: sampled_frame(modes, log, t, own, jax.random.fold_in(k, t), sampling)  # noqa: E731
+        def pick(modes, log, t, own):
+            return sampled_frame(modes, log, t, own, jax.random.fold_in(k, t), sampling)
+
         return own_rollout(model, scene, num_history, pick, lanes)
 
     return jax.vmap(one)(jax.random.split(key, samples))
