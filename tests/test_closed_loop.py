@@ -111,18 +111,6 @@ def _closed_loop_config(store):
     return c
 
 
-def test_a_closed_loop_fine_tune_resumes_exactly(tmp_path_factory):
-    from gpd_jax.training.loop import train_and_evaluate
-
-    store = _store(str(tmp_path_factory.mktemp("clstore")))
-    full, part = str(tmp_path_factory.mktemp("cl") / "full"), str(tmp_path_factory.mktemp("cl") / "part")
-    assert train_and_evaluate(_closed_loop_config(store), full, quiet=True)["step"] == 6
-    assert train_and_evaluate(_closed_loop_config(store), part, stop_after=4, quiet=True)["step"] == 4
-    assert train_and_evaluate(_closed_loop_config(store), part, quiet=True)["step"] == 6
-    for x, y in zip(jax.tree.leaves(_params(full)), jax.tree.leaves(_params(part))):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-
-
 def _pair(gap):
     """Two 4 x 2 m cars side by side `gap` metres apart (centre to centre across), 3 frames, history 1."""
     xy = np.zeros((3, 2, 2), np.float32)
@@ -159,18 +147,19 @@ def test_group_advantages_are_relative_within_each_agents_group():
     np.testing.assert_array_equal(adv[:, 1:], 0.0)  # no difference in the group / an agent left out
 
 
-def test_reward_fine_tune_step_compiles_once_and_resumes_exactly(tmp_path_factory):
+def test_a_closed_loop_and_reward_fine_tune_resumes_exactly(tmp_path_factory):
+    """Both fine-tunes in one config (one compile): the closest-of-K inputs, the sampled rollouts' rewards (their
+    key folded with the step), stopped after 2 of 4 steps and resumed: the same parameters, bit for bit."""
     from gpd_jax.training.loop import train_and_evaluate
 
     def config(store):
         c = _closed_loop_config(store)
-        c.train.closed_loop_top_k, c.train.reward_samples, c.train.steps = 0, 2, 4
+        c.train.reward_samples, c.train.steps = 2, 4
         return c
 
-    store = _store(str(tmp_path_factory.mktemp("rlstore")))
-    full, part = str(tmp_path_factory.mktemp("rl") / "full"), str(tmp_path_factory.mktemp("rl") / "part")
-    out = train_and_evaluate(config(store), full, quiet=True)
-    assert out["step"] == 4
+    store = _store(str(tmp_path_factory.mktemp("clstore")))
+    full, part = str(tmp_path_factory.mktemp("cl") / "full"), str(tmp_path_factory.mktemp("cl") / "part")
+    assert train_and_evaluate(config(store), full, quiet=True)["step"] == 4
     assert train_and_evaluate(config(store), part, stop_after=2, quiet=True)["step"] == 2
     assert train_and_evaluate(config(store), part, quiet=True)["step"] == 4
     for x, y in zip(jax.tree.leaves(_params(full)), jax.tree.leaves(_params(part))):
