@@ -124,6 +124,12 @@ def gpd_config(plan_head: bool = False) -> ml_collections.ConfigDict:
         rollout_passes=0,          # > 0: future frames' agent inputs are the model's own predictions
         map_feedback=0.0,          # with rollout_passes: share of each batch whose future map tokens are its own too
         lane_context_drop=0.0,     # share of each batch's scenes whose future frames get no lanes (agent_lane_residual)
+        closed_loop_top_k=0,       # > 0: closed-loop fine-tuning (CAT-K): future inputs are the model's own rollout
+                                   # keeping the closest to the log of its top-K sampling cells (needs agent_bins)
+        reward_samples=0,          # >= 2: reward fine-tuning over this many sampled rollouts per scene (GRPO-style)
+        reward_temperature=0.5,    # the sampled rollouts' temperature
+        reward_weights=(1.0, 1.0, 0.5),  # collision, offroad, progress weights of each agent's reward
+        reward_scale=1.0,          # weight of the policy-gradient loss beside the supervised loss (the anchor)
         init_from="",              # an exported model or workdir whose parameters start this run (fine-tuning)
         trainable="all",           # "all", or "sampling_head": only the sampling head learns (the rest stays as
                                    # init_from left it, so temperature 0 rolls out exactly as that model)

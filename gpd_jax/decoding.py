@@ -190,7 +190,7 @@ def lane_context(model: GPD, scene: Scene, prompt: Prompt, num_history: int) -> 
     return LaneContext(polylines=polys, valid=valid, on=on)
 
 
-def _context_at(ctx: LaneContext | None, frames) -> LaneContext | None:
+def context_at(ctx: LaneContext | None, frames) -> LaneContext | None:
     """`ctx` for a block of frames (`frames`: an index array, or a traced scalar for one frame)."""
     if ctx is None:
         return None
@@ -359,7 +359,7 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
         anchor = carry.anchor
         if map_warp is not None:  # only a warp reads the anchor: no per-step selects otherwise
             anchor = jax.tree.map(lambda a, b: jnp.where(_map_given(given.task, t), a, b), f, anchor)
-        return RolloutCarry(decode=advance(model, carry.decode, f, t, _context_at(given.context, t)),
+        return RolloutCarry(decode=advance(model, carry.decode, f, t, context_at(given.context, t)),
                             anchor=anchor), f
 
     start = RolloutCarry(decode=prefill(model, log, h, t_total, given.context),
@@ -396,7 +396,7 @@ def prefill(model: GPD, log: Frame, num_history: int, num_frames: int,
         done, _ = jax.lax.scan(push, start, jnp.arange(h))
         cache, hidden = done.cache, done.hidden
     pred = model.predict(hidden[None], log.xy[h - 1:h], log.heading[h - 1:h], log.valid[h - 1:h],
-                         *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h], _context_at(lanes, h - 1))
+                         *_prev(log.xy, log.valid, h - 1), log.velocity[h - 1:h], context_at(lanes, h - 1))
     return DecodeState(cache=cache, pred=pred, last_xy=log.xy[h - 1], last_valid=log.valid[h - 1],
                        hidden=hidden)
 
@@ -468,7 +468,7 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
         prev = jnp.maximum(t - 1, 0)
         sl = lambda a: jax.lax.dynamic_slice_in_dim(a, prev, 1, axis=0)
         pred = model.predict(sl(hid), sl(buf.xy), sl(buf.heading), sl(buf.valid), *_prev(buf.xy, buf.valid, prev),
-                             sl(buf.velocity), _context_at(given.context, prev))
+                             sl(buf.velocity), context_at(given.context, prev))
         anchor = None
         if map_warp is not None:
             frames = jnp.arange(t_total)

@@ -58,7 +58,7 @@ from gpd_jax.parallel import data_mesh, replicate
 from gpd_jax.scene import Scene
 from gpd_jax.training.common import (MetricsLog, StopOnSigterm, checkpoint_manager, restore_state,
                                      save_state)
-from gpd_jax.training.step import TrainState, make_trainer, training_scene
+from gpd_jax.training.step import TrainState, make_trainer, training_scene, uses_road
 from gpd_jax.training.validation import Validators
 
 
@@ -309,7 +309,8 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
     lanes = reads_lanes(config.model)  # its agents read the lane polylines
     it = None if next_batch is not None else data_loader.make_loader(
         data_dir, config.data.train_split, bs // pcount, seed=int(config.seed), process_index=pindex,
-        process_count=pcount, start_step=start, num_threads=int(tc.loader_threads), with_polylines=lanes)
+        process_count=pcount, start_step=start, num_threads=int(tc.loader_threads),
+        with_polylines=lanes or uses_road(config))
     total = int(tc.steps)
     end = total if stop_after is None else min(total, start + int(stop_after))
     last_train: dict[str, float] = {}
@@ -339,7 +340,7 @@ def run_steps(config: ml_collections.ConfigDict, trainer, state: TrainState, *, 
                 if next_batch is not None:
                     view = next_batch(step, state.params)
                 else:
-                    view = spec.view(training_scene(next(it)))
+                    view = spec.view(training_scene(next(it), uses_road(config)))
                     if not np.all(view.map_valid):
                         raise DataError(os.path.join(data_dir, config.data.train_split), f"a batch of step "
                                         f"{step + 1} has model frames without map tokens; encode every shard: "

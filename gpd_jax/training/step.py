@@ -34,6 +34,16 @@ A model that reads lanes (`agent_lane_residual`) reads the scenes' lane polyline
 included; `train.lane_context_drop` = f drops them from the future frames of the last round(f * B) scenes of each
 batch, as in the tasks that generate the map.
 
+`train.reward_samples` = G > 0 (reward fine-tuning, gpd_jax/training/closed_loop.py) adds a policy-gradient loss
+over G sampled rollouts of each scene with group-relative advantages of collision, off-road and progress rewards
+(`reward_terms`), beside the supervised loss on the log that anchors the model to human driving; its rollouts' key is
+the run's seed folded with the step, so a resumed run is the same run.
+
+`train.closed_loop_top_k` = K > 0 (closed-loop supervised fine-tuning, CAT-K: gpd_jax/training/closed_loop.py)
+takes the future frames' inputs from the model's own rollout, keeping at each frame the closest to the log of its
+sampling head's top-K cells; the targets stay the log's next frames, so the model learns to return to the log from
+the states it reaches.
+
 The step is a pure function of (params, opt_state, batch); NNX only defines the parameter tree.
 """
 
@@ -49,6 +59,8 @@ from flax import nnx
 
 from gpd_jax.model import GPD, MODE_HEAD, LaneContext, Prediction, forward, samples_agents
 from gpd_jax.scene import Scene, wrap_angle
+from gpd_jax.training.closed_loop import (RewardOptions, agent_rewards, closed_loop_inputs, group_advantages,
+                                          rollout_inputs, sampled_rollouts)
 from gpd_jax.training.common import compiled_once, step_key
 
 
@@ -133,12 +145,18 @@ def free_running_inputs(model: GPD, scene: Scene, num_history: int, passes: int,
     return jax.lax.fori_loop(0, passes, one_pass, logged)
 
 
-def training_scene(batch) -> Scene:
+def training_scene(batch, keep_road: bool = False) -> Scene:
     """A loader batch as the Scene a train or eval step takes: with polylines (`with_polylines` gives `(scene,
-    polylines)`) the scene keeps them and drops the road geometry, which no loss reads."""
+    polylines)`) the scene keeps them and drops the road geometry, which only the reward fine-tuning reads
+    (`keep_road`: `uses_road(config)`)."""
     if isinstance(batch, tuple):
-        return batch[0].replace(road=None)
+        return batch[0] if keep_road else batch[0].replace(road=None)
     return batch
+
+
+def uses_road(config) -> bool:
+    """Whether a config's train step reads the scenes' road geometry (reward fine-tuning's off-road reward)."""
+    return int(config.train.reward_samples) > 0
 
 
 def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> LaneContext | None:
@@ -155,18 +173,56 @@ def lane_context_of(model: GPD, scene: Scene, num_history: int, drop=False) -> L
     return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=on)
 
 
+def reward_terms(model: GPD, scene: Scene, num_history: int, options: RewardOptions, key: jax.Array,
+                 lanes: LaneContext | None = None) -> dict[str, jax.Array]:
+    """Sums and counts of the reward fine-tuning loss over one unbatched scene (`RewardOptions`): `options.samples`
+    sampled rollouts (frozen parameters), each agent's reward (`agent_rewards`: the scene's road geometry where it
+    has one), group-relative advantages over the rollouts (`group_advantages`), and the policy-gradient loss
+    -sum(advantage * log-likelihood of the agent's sampled future states), the likelihoods from a teacher-forced
+    pass (with gradient) over each rollout's frames. The sampled states carry the rollout temperature's noise,
+    the likelihood is the model's own (temperature 1): a reward-weighted likelihood rather than an exact
+    on-policy gradient at temperatures below 1."""
+    h = num_history
+    frames = sampled_rollouts(model, scene, h, key, options.samples, options.temperature, lanes)
+    parts = jax.vmap(lambda f: agent_rewards(f.xy, f.heading, f.valid, scene.size, h, scene.xy, scene.valid,
+                                             scene.road, options))(frames)
+    ok = jnp.any(scene.valid[h:] & scene.valid[h - 1:-1], axis=0)
+    adv = jax.lax.stop_gradient(group_advantages(parts.total, ok))
+
+    def log_likelihood(f):
+        xy, heading, vel, maps = rollout_inputs(model, scene, f)
+        pred = teacher_forced(model, xy, heading, scene.valid[:-1], maps, vel, lanes)
+        both = f.valid[1:] & f.valid[:-1]
+        lp = pred.modes.log_prob(f.xy[1:], f.heading[1:], None if vel is None else f.velocity[1:], both)
+        future = (jnp.arange(lp.shape[0]) >= h - 1)[:, None]
+        return jnp.sum(jnp.where(future & both, lp, 0.0), axis=0)
+
+    okf = ok.astype(jnp.float32)
+    return {"reward_pg_sum": -jnp.sum(adv * jax.vmap(log_likelihood)(frames)),
+            "reward_count": options.samples * jnp.sum(okf), "reward_sum": jnp.sum(parts.total * okf),
+            "reward_collided_sum": jnp.sum(parts.collided * okf), "reward_offroad_sum": jnp.sum(parts.offroad * okf),
+            "reward_progress_sum": jnp.sum(parts.progress * okf)}
+
+
 def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: int = 0,
                feed_map=False, agent_norm: str = "smooth_l1", norm_delta: float = NORM_DELTA,
-               drop_lanes=False) -> dict[str, jax.Array]:
+               drop_lanes=False, closed_loop_k: int = 0, reward: RewardOptions | None = None,
+               key: jax.Array | None = None) -> dict[str, jax.Array]:
     """Sums and counts of each loss over one unbatched scene (aggregate over a batch, then divide).
 
     `agent_norm` / `norm_delta`: the position and velocity loss (`vector_loss`).
     With `rollout_passes` > 0 the agent inputs of the future frames (from `num_history` on) are the model's own
     predictions (`free_running_inputs`; with `feed_map` the map tokens too) while the targets stay the log's:
     the model learns to recover from its own errors, as it must in a rollout. A model that reads lanes
-    reads the scene's lanes (`lane_context_of`; with `drop_lanes` in the history frames only)."""
+    reads the scene's lanes (`lane_context_of`; with `drop_lanes` in the history frames only).
+    With `closed_loop_k` = K > 0 instead, the inputs of the future frames are the states the model's own rollout
+    reaches keeping, at every frame, the closest to the log of its top-K cells (`closed_loop_inputs`, CAT-K).
+    With `reward` (`RewardOptions.samples` > 0) and a `key`, the reward fine-tuning terms too (`reward_terms`)."""
     lanes = lane_context_of(model, scene, num_history, drop_lanes)
-    xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map, lanes)
+    if closed_loop_k > 0:
+        xy, heading, vel, maps = closed_loop_inputs(model, scene, num_history, closed_loop_k, lanes)
+    else:
+        xy, heading, vel, maps = free_running_inputs(model, scene, num_history, rollout_passes, feed_map, lanes)
     pred = teacher_forced(model, xy, heading, scene.valid[:-1], maps, vel, lanes)
     tv = scene.valid[1:].astype(jnp.float32)
     pos = vector_loss(pred.xy - scene.xy[1:], agent_norm, norm_delta)
@@ -183,6 +239,8 @@ def loss_terms(model: GPD, scene: Scene, num_history: int = 0, rollout_passes: i
         vel = None if pred.velocity is None else scene.velocity[1:]
         log_p = pred.modes.log_prob(scene.xy[1:], scene.heading[1:], vel, both > 0)
         terms["modes_sum"] = -jnp.sum(jnp.where(tv > 0, log_p, 0.0))
+    if reward is not None and reward.samples > 0:
+        terms |= reward_terms(model, scene, num_history, reward, key, lanes)
     return terms | {
         "position_sum": jnp.sum(pos * tv), "heading_sum": jnp.sum(head * tv), "agent_count": jnp.sum(tv),
         "valid_sum": jnp.sum(bce), "valid_count": jnp.asarray(bce.size, jnp.float32),
@@ -203,19 +261,24 @@ def agent_norm_of(loss_cfg) -> tuple[str, float]:
 
 
 def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout_passes: int = 0,
-               map_feedback: float = 0.0, lane_drop: float = 0.0) -> tuple[jax.Array, dict[str, jax.Array]]:
+               map_feedback: float = 0.0, lane_drop: float = 0.0,
+               closed_loop_k: int = 0, reward: RewardOptions | None = None,
+               key: jax.Array | None = None) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Weighted total loss over a batch of scenes (leading dim B) and its parts (see `loss_terms`).
 
     With `rollout_passes` > 0 the first round(map_feedback * B) scenes of the batch (a random subset: batches
     are shuffled) also take their future map tokens from the model (`free_running_inputs`). For a model
-    that reads lanes the last round(lane_drop * B) scenes read no lanes in their future frames."""
+    that reads lanes the last round(lane_drop * B) scenes read no lanes in their future frames. `closed_loop_k`:
+    see `loss_terms`; `reward` (with `key`, split over the scenes): the reward fine-tuning loss at `reward.scale`
+    (`reward_terms`), its mean reward and parts logged beside it."""
     b = scenes.xy.shape[0]
     idx = jnp.arange(b)
     feed = idx < round(float(map_feedback) * b)
     drop = idx >= b - round(float(lane_drop) * b)
     norm, delta = agent_norm_of(weights)
-    terms = jax.vmap(lambda s, f, d: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, d))(
-        scenes, feed, drop)
+    keys = jax.random.split(jax.random.key(0) if key is None else key, b)
+    terms = jax.vmap(lambda s, f, d, k: loss_terms(model, s, num_history, rollout_passes, f, norm, delta, d,
+                                                   closed_loop_k, reward, k))(scenes, feed, drop, keys)
     terms = jax.tree.map(jnp.sum, terms)
     n_agents = jnp.maximum(terms["agent_count"], 1.0)
     n_map = jnp.maximum(terms["map_count"], 1.0)
@@ -233,6 +296,11 @@ def batch_loss(model: GPD, scenes: Scene, weights, num_history: int = 0, rollout
     if "modes_sum" in terms:
         parts["modes"] = terms["modes_sum"] / n_agents
         total = total + weights.modes * parts["modes"]
+    if "reward_pg_sum" in terms:
+        n_reward = jnp.maximum(terms["reward_count"], 1.0)
+        for name in ("reward_pg", "reward", "reward_collided", "reward_offroad", "reward_progress"):
+            parts[name] = terms[name + "_sum"] / n_reward
+        total = total + reward.scale * parts["reward_pg"]
     parts["map_accuracy"] = terms["map_correct"] / n_map
     parts["loss"] = total
     return total, parts
@@ -306,20 +374,25 @@ def _gpd_steps(graphdef, config, tx, donate: bool):
     weights = config.loss
     h, passes = int(config.model.num_history), int(config.train.rollout_passes)
     feed, drop = float(config.train.map_feedback), float(config.train.lane_context_drop)
+    top_k, reward = int(config.train.closed_loop_top_k), RewardOptions.of(config.train)
+    seed = int(config.seed)
 
-    def loss_of(p, rest, scenes):
-        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, h, passes, feed, drop)
+    def loss_of(p, rest, scenes, step=0):
+        # the rollouts' key: the run's seed and the step, so a resumed run draws the same futures
+        key = jax.random.fold_in(jax.random.key(seed), step)
+        return batch_loss(nnx.merge(graphdef, p, rest), scenes, weights, h, passes, feed, drop, top_k,
+                          reward if reward.samples > 0 else None, key)
 
     head_only = _learned(config)
 
     def train_step(state: TrainState, scenes: Scene, rest):
         if head_only:  # the gradient of the sampling head alone: no backward pass through the transformer
             learn, keep = nnx.split_state(state.params, MODE_HEAD, ...)
-            loss = lambda p: loss_of(nnx.merge_state(p, keep), rest, scenes)  # noqa: E731
+            loss = lambda p: loss_of(nnx.merge_state(p, keep), rest, scenes, state.step)  # noqa: E731
             (_, parts), grads = jax.value_and_grad(loss, has_aux=True)(learn)
             grads = nnx.merge_state(grads, jax.tree.map(jnp.zeros_like, keep))
         else:
-            (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, rest, scenes)
+            (_, parts), grads = jax.value_and_grad(loss_of, has_aux=True)(state.params, rest, scenes, state.step)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         parts["grad_norm"] = optax.tree.norm(grads)
@@ -344,6 +417,15 @@ def make_trainer(model: GPD, config, donate: bool = True) -> tuple[Trainer, Trai
     if feed > 0 and passes <= 0:
         raise ValueError("train.map_feedback feeds back the map tokens of the rollout passes: set "
                          "train.rollout_passes > 0")
+    top_k = int(config.train.closed_loop_top_k)
+    if top_k < 0 or (top_k > 0 and passes > 0):
+        raise ValueError(f"train.closed_loop_top_k must be >= 0 and not combined with train.rollout_passes (both "
+                         f"choose the future frames' inputs), got {top_k} with rollout_passes {passes}")
+    if top_k > 0 and not samples_agents(config.model):
+        raise ValueError("train.closed_loop_top_k keeps the closest of the sampling head's top-K cells: set "
+                         "model.agent_bins > 0")
+    if RewardOptions.of(config.train).samples > 0 and not samples_agents(config.model):
+        raise ValueError("train.reward_samples samples the sampling head's cells: set model.agent_bins > 0")
     tx = make_optimizer(config.train)
     if _learned(config):  # the rest neither moves nor decays, and holds no optimizer state
         def labels(p):
