@@ -172,7 +172,8 @@ def _world_names():
 
 def _world_policies(name: str, heads) -> dict:
     """{row name: Policy} of a world planner (`gpd_jax.sim.world_planner`): one row, or one per --world-samples
-    value (NAME_kK) for the world model's scorer; `heads` holds the world model ("world") and its head ("world_head")."""
+    value (NAME_kK) for the world model's scorer; `heads` holds the world model ("world") and its head
+    ("world_head")."""
     from gpd_jax.sim import WorldPlannerOptions, make_world_policy
 
     args = heads["world_args"]

@@ -345,7 +345,7 @@ def candidate_scores(obs: Observation, spec: ModelSpec, options: WorldPlannerOpt
     size = obs.size
     ego = jnp.concatenate([jnp.broadcast_to(obs.ego_pose, (cands.poses.shape[0], 1, 3)), cands.poses[:, :n]], 1)
 
-    rqs = road_queries(local_road(obs.road, obs.ego_pose[:2]), ego[..., :2], ego[..., 2], size[0])                        # every candidate at once
+    rqs = road_queries(local_road(obs.road, obs.ego_pose[:2]), ego[..., :2], ego[..., 2], size[0])   # all at once
 
     def per_candidate(e, rq, fxy, fh, fv):
         return jax.vmap(lambda x, h, v: cls_scores(e[:, :2], e[:, 2], size[0], x[:, 1:], h[:, 1:], v[:, 1:], size[1:],
