@@ -119,7 +119,7 @@ def _user_policy(entry: str):
 def _parse_planners(text: str) -> list[tuple[str, object]]:
     """The --planners list -> [(row name, shipped planner name | (kind, object))]; user files are imported here,
     before any model loads, so a typo costs no wait."""
-    from gpd_jax.sim import PLANNERS
+    from gpd_jax.sim import PLANNERS, WORLD_PLANNERS
 
     entries = [n.strip() for n in text.split(",") if n.strip()]
     if not entries:
@@ -127,12 +127,13 @@ def _parse_planners(text: str) -> list[tuple[str, object]]:
                          f"MODULE:NAME)")
     out, seen = [], set()
     for e in entries:
-        if e in PLANNERS:
+        if e in PLANNERS or e in WORLD_PLANNERS:
             item = (e, e)
         elif ":" in e:
             item = (e.rpartition(":")[2], _user_policy(e))
         else:
-            raise UsageError(f"unknown planner {e!r}; known: {', '.join(PLANNERS)}, or your own policy as "
+            raise UsageError(f"unknown planner {e!r}; known: {', '.join(PLANNERS + tuple(WORLD_PLANNERS))}, or "
+                             f"your own policy as "
                              f"FILE.py:NAME or MODULE:NAME")
         if item[0] in seen:
             raise UsageError(f"--planners: planner name {item[0]!r} given twice")
@@ -147,6 +148,9 @@ def _policies(parsed, model, heads) -> dict:
 
     out = {}
     for name, spec in parsed:
+        if isinstance(spec, str) and spec in _world_names():
+            out.update(_world_policies(spec, heads))
+            continue
         if isinstance(spec, str):
             out[name] = make_policy(spec, heads.get(spec, model))
             continue
@@ -159,6 +163,38 @@ def _policies(parsed, model, heads) -> dict:
             out[name] = pol
         else:
             out[name] = as_policy(obj)
+    return out
+
+
+def _world_names():
+    from gpd_jax.sim import WORLD_PLANNERS
+    return WORLD_PLANNERS
+
+
+def _world_policies(name: str, heads) -> dict:
+    """{row name: Policy} of a world planner (`gpd_jax.sim.world_planner`): one row, or one per --world-samples
+    value (NAME_kK) for the world model's scorer; `heads` holds the world model ("world") and its head
+    ("world_head")."""
+    from gpd_jax.sim import WorldPlannerOptions, make_world_policy
+
+    args = heads["world_args"]
+    samples = args.world_samples if name == "gpd_world" else args.world_samples[:1]
+    out = {}
+    for k in samples:
+        opts = WorldPlannerOptions(samples=k, temperature=args.world_temperature, horizon=args.world_horizon,
+                                   reduce=args.world_reduce, use_head=heads["world_head"] is not None)
+        row = name if len(samples) == 1 else f"{name}_k{k}"
+        out[row] = make_world_policy(name, heads["world"], heads["world_head"], opts)
+    return out
+
+
+def _samples(text: str) -> list[int]:
+    try:
+        out = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        out = []
+    if not out or min(out) < 1:
+        raise UsageError(f"argument --world-samples: expected a comma list of integers >= 1, got {text!r}")
     return out
 
 
@@ -196,6 +232,11 @@ def _load(args, parsed):
             raise SimError(f"planner {spec}: {path} is not a usable planning-head model ({e}); pass {flag}") from None
         if "plan_head" not in heads[spec].config:
             raise SimError(f"planner {spec}: {path} has no plan_head section (not a planning-head model)")
+    if any(isinstance(spec, str) and spec in _world_names() for _, spec in parsed):
+        heads["world_args"] = args
+        heads["world"] = gpd_jax.load_model(args.world_model)
+        heads["world_head"] = None if args.world_no_head else heads.get("gpd_head") or gpd_jax.load_model(
+            args.head_model or _default_head())
     model = gpd_jax.load_model(args.checkpoint)
     from gpd_jax.data.loader import SplitSource
     n_all = len(SplitSource(args.data, args.split, with_polylines=True))
@@ -276,7 +317,8 @@ def cmd_bench(args) -> int:
     rows = []
     print(f"closed-loop throughput, batch {b}, {sim_s:g} s simulated per scenario, {os.cpu_count()} CPU cores "
           f"(nuPlan: ~{NUPLAN_S_PER_SCENARIO:g} s per {NUPLAN_SCENARIO_S:g} s scenario = {nuplan:.2f} simulated s/s)")
-    print(f"{'planner':<10}{'agents':<8}{'compile s':>10}{'run s':>9}{'scen/s':>9}{'sim s/s':>9}{'x nuPlan':>10}")
+    print(f"{'planner':<10}{'agents':<8}{'compile s':>10}{'run s':>9}{'scen/s':>9}{'sim s/s':>9}{'x nuPlan':>10}"
+          f"{'ms/replan':>11}")
     for p, pol in policies.items():
         for a in agents:
             t0 = time.perf_counter()
@@ -290,11 +332,12 @@ def cmd_bench(args) -> int:
                                           tracker=tracker).fine_xy)
                 best = min(best, time.perf_counter() - t0)
             sps = b / best
+            per_replan_ms = 1000.0 * best / (b * model.spec.num_future)  # one scenario's step, the sim's share included
             rows.append({"planner": p, "agents": a, "batch": b, "compile_s": compile_s, "run_s": best,
                          "scenarios_per_s": sps, "simulated_s_per_s": sps * sim_s,
-                         "speedup_vs_nuplan": sps * sim_s / nuplan})
+                         "speedup_vs_nuplan": sps * sim_s / nuplan, "ms_per_replan": per_replan_ms})
             print(f"{p:<10}{a:<8}{compile_s:>10.1f}{best:>9.2f}{sps:>9.2f}{sps * sim_s:>9.1f}"
-                  f"{sps * sim_s / nuplan:>10.0f}")
+                  f"{sps * sim_s / nuplan:>10.0f}{per_replan_ms:>11.1f}")
     if args.out:
         from gpd_jax.fsutil import atomic_write_json
         atomic_write_json(args.out, {"rows": rows, "cpu_count": os.cpu_count(), "simulated_s": sim_s,
@@ -306,7 +349,8 @@ def cmd_bench(args) -> int:
 def build_parser() -> Parser:
     p = Parser(prog=program(PROG), description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    planners_help = ("comma list of shipped planners (log, cv, idm, gpd, gpd_head, gpd_head_scratch) and your own "
+    planners_help = ("comma list of shipped planners (log, cv, idm, gpd, gpd_head, gpd_head_scratch; the world "
+                     "planner gpd_world and its ablations gpd_world_cv, gpd_world_log) and your own "
                      "policies as FILE.py:NAME or MODULE:NAME (a gpd_jax.sim.Policy, a callable (params, obs, state, "
                      "key) -> (ego, state), or a factory (model) -> Policy)")
     for name in ("evaluate", "bench"):
@@ -321,6 +365,16 @@ def build_parser() -> Parser:
         s.add_argument("--scratch-head-model", default=None,
                        help="the head trained without pre-training, for gpd_head_scratch "
                             f"(default {_default_head('gpd_head_scratch')})")
+        s.add_argument("--world-model", default="gpd_sampling",
+                       help="the model gpd_world imagines the agents' futures with (default gpd_sampling)")
+        s.add_argument("--world-samples", type=_samples, default=[4], metavar="K[,K...]",
+                       help="futures per candidate of gpd_world (a list: one row each, NAME_kK; default 4)")
+        s.add_argument("--world-temperature", type=float, default=0.5, help="gpd_world's sampling temperature")
+        s.add_argument("--world-horizon", type=count, default=4, metavar="F", help="model frames gpd_world imagines")
+        s.add_argument("--world-reduce", choices=("min", "mean"), default="min",
+                       help="gpd_world's score over the futures: worst case or mean")
+        s.add_argument("--world-no-head", action="store_true",
+                       help="no planning-head candidate in gpd_world (otherwise --head-model's plan is one)")
         s.add_argument("--seed", type=int, default=0)
         s.add_argument("--replan-every", type=count, default=1, metavar="N",
                        help="model frames between replans; the tracker follows each plan in between (default 1)")

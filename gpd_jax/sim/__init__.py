@@ -16,6 +16,9 @@ nuPlan's planning scores (OLS, CLS with its multipliers and weighted terms) at t
                                     agents=("log", "idm", "gpd"))
     print(sim.planning_table(results))
 
+`world_planner_policy` (``gpd_world``) plans with the world model: candidate plans scored with nuPlan's terms on the
+futures the model imagines for each (`gpd_jax.sim.world_planner`).
+
 A plain-Python planner on numpy observations runs through `run_host` (its SimResult scores with `score` alike).
 
 Every run follows the policy's output with a `Tracker` (pure pursuit and a speed law on the bicycle model, at the
@@ -32,11 +35,12 @@ from gpd_jax.sim.policies import (HEAD_PLANNERS, PLANNERS, constant_velocity_pol
                                   idm_policy, make_policy)
 from gpd_jax.sim.scoring import evaluate_planners, planning_table, score
 from gpd_jax.sim.tracker import Plan, Tracker
+from gpd_jax.sim.world_planner import WORLD_PLANNERS, WorldPlannerOptions, make_world_policy, world_planner_policy
 
 __all__ = [
     "AGENT_MODELS", "HEAD_PLANNERS", "PLANNERS", "BicycleLimits", "IDMParams", "IDMState", "Observation", "Paths", "Policy",
     "RunCarry", "SimError", "SimResult", "SimScene", "SimState", "as_policy", "bicycle_path",
     "constant_velocity_policy", "evaluate_planners", "expert_policy", "gpd_head_policy", "gpd_policy", "idm_policy",
     "make_policy", "make_sim_scenes", "observe", "planning_table", "reset", "run", "run_host", "score", "step",
-    "Plan", "Tracker",
+    "Plan", "Tracker", "WORLD_PLANNERS", "WorldPlannerOptions", "make_world_policy", "world_planner_policy",
 ]

@@ -39,12 +39,13 @@ import numpy as np
 from flax import nnx
 
 from gpd_jax.checkpoint import Model
-from gpd_jax.decoding import DecodeState, Frame, advance, prefill
+from gpd_jax.decoding import DecodeState, Frame, advance, prefill, sample_agents
 from gpd_jax.model import LaneContext
 from gpd_jax.scene import Scene
 from gpd_jax.sim.agents import IDMParams, IDMState, Paths, idm_poses, idm_substep, make_paths
 from gpd_jax.sim.dynamics import BicycleLimits, bicycle_path, hermite, lerp_heading, pose_path
 from gpd_jax.sim.tracker import Plan, Tracker, TrackState, extend, plan_path, track
+from gpd_jax.options import Sampling
 from gpd_jax.spec import EvalError, ModelSpec
 
 AGENT_MODELS = ("gpd", "log", "idm")
@@ -126,6 +127,10 @@ class Observation:
     pred_pose f32[3], pred_velocity f32[2]: the model's prediction of the ego's next frame (zeros without a model).
     hidden f32[N, d] or None: frame t's output tokens (what a head on the ego token reads).
     log_ego f32[Ts, 3], log_ego_valid bool[Ts]: the logged ego at the stored rate (for the expert policy only).
+    road: the `gpd_jax.geometry.RoadGeometry` the scores read (drivable area, directed lanes), or None (a planner
+    may score its candidates on it as the simulator scores the run).
+    log_xy f32[Ts, A, 2], log_heading f32[Ts, A], log_valid bool[Ts, A]: every slot's log at the stored rate
+    (the future included: for oracle baselines only, such as the world planner scored on the log's future).
     """
 
     t: jax.Array
@@ -152,6 +157,10 @@ class Observation:
     hidden: jax.Array | None
     log_ego: jax.Array
     log_ego_valid: jax.Array
+    road: Any = None
+    log_xy: jax.Array | None = None
+    log_heading: jax.Array | None = None
+    log_valid: jax.Array | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -250,12 +259,12 @@ def _log_frame(parts: _Parts, view: Scene) -> Frame:
                  valid_logit=jnp.zeros(view.valid.shape, jnp.float32), map_tokens=view.map_tokens, velocity=vel)
 
 
-def _lanes(parts: _Parts, scene: SimScene, frames: int) -> LaneContext | None:
+def _lanes(parts: _Parts, polylines: jax.Array, polyline_valid: jax.Array, frames: int) -> LaneContext | None:
     """What a model that reads lanes (`GPD.reads_lanes`) uses in `frames` frames: the log's lanes in every frame
     (the simulator's map is always the log's, encoded around the ego). None for other models."""
     if parts.module is None or not parts.module.reads_lanes:
         return None
-    return LaneContext(polylines=scene.polylines, valid=scene.polyline_valid, on=jnp.ones((frames,), bool))
+    return LaneContext(polylines=polylines, valid=polyline_valid, on=jnp.ones((frames,), bool))
 
 
 def _reset(parts: _Parts, scene: SimScene, agents: str) -> SimState:
@@ -267,7 +276,8 @@ def _reset(parts: _Parts, scene: SimScene, agents: str) -> SimState:
     view = scene.view
     hist = (jnp.arange(t_total) < h)
     fhist = (jnp.arange(scene.log_xy.shape[0]) <= c)
-    decode = (prefill(parts.module, _log_frame(parts, view), h, t_total, _lanes(parts, scene, h))
+    decode = (prefill(parts.module, _log_frame(parts, view), h, t_total,
+                      _lanes(parts, scene.polylines, scene.polyline_valid, h))
               if parts.with_model else None)
     speed = jnp.linalg.norm(scene.log_velocity[c:], axis=-1)
     paths = make_paths(scene.log_xy[c:], scene.log_heading[c:], scene.log_valid[c:], speed)
@@ -304,7 +314,8 @@ def _observe(parts: _Parts, state: SimState) -> Observation:
         cur_map_tokens=at(state.map_tokens),
         polylines=sc.polylines, polyline_valid=sc.polyline_valid, route_xy=state.paths.xy[0],
         route_heading=state.paths.heading[0], route_s=state.paths.s[0], pred_pose=pred_pose,
-        pred_velocity=pred_vel, hidden=hidden, log_ego=log_ego, log_ego_valid=sc.log_valid[:, 0])
+        pred_velocity=pred_vel, hidden=hidden, log_ego=log_ego, log_ego_valid=sc.log_valid[:, 0], road=sc.road,
+        log_xy=sc.log_xy, log_heading=sc.log_heading, log_valid=sc.log_valid)
 
 
 def _ego_array(ego, name: str) -> jax.Array:
@@ -421,6 +432,53 @@ def _move_ego(spec: ModelSpec, state: SimState, ego, follow: Follow, tracker: Tr
     return path, vel, control, follow
 
 
+def predicted_agents(pred, xy_t, h_t, v_t, vel_t, period: float, num_steps: int, key: jax.Array | None = None,
+                     sampling: Sampling | None = None) -> tuple[Frame, tuple[jax.Array, jax.Array, jax.Array]]:
+    """Every slot's next model frame from the model's prediction `pred` (a `Prediction` of one frame, leading dim 1),
+    and the `num_steps` stored frames up to it: cubic Hermite curves between the two frames' positions and
+    velocities, headings along the shorter arc; a slot is valid in between where it is valid at both ends.
+
+    xy_t f32[A, 2], h_t f32[A], v_t bool[A], vel_t f32[A, 2]: the slots now. With `key` and a random `sampling` (a
+    model with a sampling agent head) the next states are drawn (`gpd_jax.decoding.sample_agents`); otherwise
+    the regressed ones. Returns (the next frame as a `Frame` (map_tokens None, velocity the slots' own, not the
+    model's input form), (xy f32[S, A, 2], heading f32[S, A], valid bool[S, A]))."""
+    axy, ah, logit = pred.xy[0], pred.heading[0], pred.valid_logit[0]
+    avel = pred.velocity[0] if pred.velocity is not None else None
+    if key is not None and sampling is not None and sampling.random and pred.modes is not None:
+        axy, ah, avel = sample_agents(jax.tree.map(lambda a: a[0], pred.modes), key, sampling)
+    avel = (axy - xy_t) / period if avel is None else avel
+    av = logit > 0
+    fxy = hermite(xy_t, vel_t, axy, avel, period, num_steps)                               # [S, A, 2]
+    fh = lerp_heading(h_t, ah, num_steps)
+    last = (jnp.arange(num_steps) == num_steps - 1)[:, None]
+    fv = av[None] & (v_t[None] | last)
+    return Frame(xy=axy, heading=ah, valid=av, valid_logit=logit, map_tokens=None, velocity=avel), (fxy, fh, fv)
+
+
+def append_frame(parts: _Parts, decode: DecodeState | None, frame: Frame, ego_pose: jax.Array, ego_vel: jax.Array,
+                 t, polylines: jax.Array, polyline_valid: jax.Array, tokens: jax.Array | None = None
+                 ) -> tuple[Frame, DecodeState | None]:
+    """Frame t with the ego placed at `ego_pose` f32[3] (velocity `ego_vel` f32[2]) in slot 0 and the map the lanes
+    `polylines` encoded around it (zeros without an encoder; `frame.map_tokens` gives their shape and dtype),
+    appended to the model's KV cache `decode` when the model runs. Returns (the frame, velocities the slots' own,
+    the decode state after it). `tokens` i32[M]: those map tokens when already encoded (the same pose)."""
+    f = frame
+    f = f.replace(xy=f.xy.at[0].set(ego_pose[:2]), heading=f.heading.at[0].set(ego_pose[2]),
+                  valid=f.valid.at[0].set(True), velocity=f.velocity.at[0].set(ego_vel),
+                  valid_logit=f.valid_logit.at[0].set(0.0))
+    like = f.map_tokens
+    if tokens is None:
+        tokens = (parts.encoder(polylines, polyline_valid, ego_pose) if parts.encoder is not None
+                  else jnp.zeros_like(like))
+    f = f.replace(map_tokens=tokens.astype(like.dtype))
+    if parts.with_model:
+        in_vel = parts.module.input_velocity(f.velocity)
+        in_vel = jnp.zeros_like(f.xy) if in_vel is None else in_vel
+        decode = advance(parts.module, decode, f.replace(velocity=in_vel), t,
+                         _lanes(parts, polylines, polyline_valid, 1))
+    return f, decode
+
+
 def _step(parts: _Parts, state: SimState, epath: jax.Array, evel: jax.Array, control: TrackState,
           idm_params: IDMParams = IDMParams()) -> SimState:
     """Appends the next model frame: the ego on `epath` f32[S, 3] (its velocity `evel` f32[2] at the end), the other
@@ -439,14 +497,8 @@ def _step(parts: _Parts, state: SimState, epath: jax.Array, evel: jax.Array, con
     logit = jnp.zeros((a_n,), jnp.float32)
     idm = state.idm
     if state.agents == "gpd":
-        pred = state.decode.pred
-        axy, ah, logit = pred.xy[0], pred.heading[0], pred.valid_logit[0]
-        av = logit > 0
-        avel = pred.velocity[0] if pred.velocity is not None else (axy - xy_t) / period
-        fxy = hermite(xy_t, vel_t, axy, avel, period, s_n)                                   # [S, A, 2]
-        fh = lerp_heading(h_t, ah, s_n)
-        last = (jnp.arange(s_n) == s_n - 1)[:, None]
-        fv = av[None] & (v_t[None] | last)
+        nxt, (fxy, fh, fv) = predicted_agents(state.decode.pred, xy_t, h_t, v_t, vel_t, period, s_n)
+        axy, ah, av, avel, logit = nxt.xy, nxt.heading, nxt.valid, nxt.velocity, nxt.valid_logit
     elif state.agents == "log":
         axy, ah, av, avel = at(sc.view.xy, t1), at(sc.view.heading, t1), at(sc.view.valid, t1), at(sc.view.velocity, t1)
         fxy, fh, fv = fine_slice(sc.log_xy), fine_slice(sc.log_heading), fine_slice(sc.log_valid)
@@ -469,19 +521,11 @@ def _step(parts: _Parts, state: SimState, epath: jax.Array, evel: jax.Array, con
         (idm, _, _, _), (fxy, fh, fv, fvel) = jax.lax.scan(sub, init, jnp.arange(s_n))
         axy, ah, av, avel = fxy[-1], fh[-1], fv[-1], fvel[-1]
     # the ego
-    axy, ah, av, avel = axy.at[0].set(epath[-1, :2]), ah.at[0].set(epath[-1, 2]), av.at[0].set(True), avel.at[0].set(evel)
     fxy, fh, fv = fxy.at[:, 0].set(epath[:, :2]), fh.at[:, 0].set(epath[:, 2]), fv.at[:, 0].set(True)
-    logit = logit.at[0].set(0.0)
-    decode = state.decode
-    if parts.encoder is not None:
-        tokens = parts.encoder(sc.polylines, sc.polyline_valid, epath[-1]).astype(state.map_tokens.dtype)
-    else:
-        tokens = jnp.zeros_like(state.map_tokens[0])
-    if parts.with_model:
-        in_vel = parts.module.input_velocity(avel)
-        in_vel = jnp.zeros_like(axy) if in_vel is None else in_vel
-        frame = Frame(xy=axy, heading=ah, valid=av, valid_logit=logit, map_tokens=tokens, velocity=in_vel)
-        decode = advance(parts.module, decode, frame, t1, _lanes(parts, sc, 1))
+    frame, decode = append_frame(parts, state.decode, Frame(xy=axy, heading=ah, valid=av, valid_logit=logit,
+                                                             map_tokens=state.map_tokens[0], velocity=avel),
+                                 epath[-1], evel, t1, sc.polylines, sc.polyline_valid)
+    axy, ah, av, avel, tokens = frame.xy, frame.heading, frame.valid, frame.velocity, frame.map_tokens
     put = lambda arr, val, i: jax.lax.dynamic_update_index_in_dim(arr, val.astype(arr.dtype), i, 0)
     putf = lambda arr, val: jax.lax.dynamic_update_slice_in_dim(arr, val.astype(arr.dtype), g0 + 1, 0)
     return state.replace(t=t1, xy=put(state.xy, axy, t1), heading=put(state.heading, ah, t1),

@@ -100,6 +100,15 @@ def gpd_policy(spec: ModelSpec) -> Policy:
     return Policy(name="gpd", select=select, needs_model=True)
 
 
+def observed_frames(module, obs: Observation) -> Frame:
+    """The simulated frames so far of an observation as a model's inputs (`Frame` [T, ...]; the velocities in the
+    form the model reads), for a policy that runs a model of its own over them."""
+    vel = module.input_velocity(obs.velocity)
+    vel = jnp.zeros_like(obs.xy) if vel is None else vel
+    return Frame(xy=obs.xy, heading=obs.heading, valid=obs.valid,
+                 valid_logit=jnp.zeros(obs.valid.shape, jnp.float32), map_tokens=obs.map_tokens, velocity=vel)
+
+
 def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
     """The fine-tuned planning head of `head_model` (a GPD whose config has a `plan_head` section) as a policy
     that carries its own backbone's KV cache in its policy state: each frame it appends what the simulator
@@ -113,11 +122,7 @@ def gpd_head_policy(head_model: Model, name: str = "gpd_head") -> Policy:
     graphdef, rest, spec = head_model.graphdef, head_model.rest, head_model.spec
     h, t_total = spec.num_history, spec.num_frames
 
-    def frames(module, obs):
-        vel = module.input_velocity(obs.velocity)
-        vel = jnp.zeros_like(obs.xy) if vel is None else vel
-        return Frame(xy=obs.xy, heading=obs.heading, valid=obs.valid,
-                     valid_logit=jnp.zeros(obs.valid.shape, jnp.float32), map_tokens=obs.map_tokens, velocity=vel)
+    frames = observed_frames
 
     def route(module, obs):
         head = module.plan_head

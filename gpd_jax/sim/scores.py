@@ -129,12 +129,9 @@ def _relative_angle(origin, heading, points):
 
 
 def _overlap_one(xy0, h0, size0, xy, h, size, valid):
-    """Box 0 against boxes f32[A, ...] -> bool[A]."""
-    allxy = jnp.concatenate([xy0[None], xy], 0)
-    allh = jnp.concatenate([h0[None], h], 0)
-    alls = jnp.concatenate([size0[None], size], 0)
-    allv = jnp.concatenate([jnp.ones(1, bool), valid], 0)
-    return box_overlap_pairwise(allxy, allh, alls, allv)[0, 1:]
+    """Box 0 against boxes f32[A, ...] -> bool[A] (pair by pair: A tests, not the (A + 1)^2 of all pairs)."""
+    pair = lambda x, hh, sz: box_overlap_pairwise(jnp.stack([xy0, x]), jnp.stack([h0, hh]), jnp.stack([size0, sz]))
+    return jax.vmap(pair)(xy, h, size)[:, 0, 1] & valid
 
 
 @flax.struct.dataclass
