@@ -1,9 +1,10 @@
 """A tiny GPD that trains on a CPU in minutes: the shipped models' view (every 10th stored frame: 3 history + 8
 future frames at 1 Hz, ego + 16 agents, the 64 tokens of the shipped map tokenizer) at d 32, 2 layers.
 
-The tiny training run (10 to 15 minutes on 2 CPU cores; README "Train your own"): 100 SUMO scenes on 20 generated
-networks, split by network into train (70), val and test (15 each); the shipped map tokenizer's tokens at every
-10th frame; 300 steps of 8 scenes; the test split scored against the baselines.
+The tiny training run (30 minutes on a busy 2-core machine, the store build 17 of them; README "Train your
+own"): 100 SUMO scenes on 20 generated networks, split by network into train (70), val and test (15 each); the
+shipped map tokenizer's tokens at every 10th frame; 300 steps of 8 scenes; the test split scored against the
+baselines.
 
     gpd-jax data build --source sumo --out data/tiny --scenarios 100 --per-job 5 --seed 3
     gpd-jax tokenizer encode --checkpoint map_tokenizer --data data/tiny --frame-stride 10

@@ -200,7 +200,7 @@ def _shape_mismatch(cfg):
     ("unknown task", ["--tasks", "traffic_simulation,flying"], "unknown task 'flying'"),
     ("too many scenarios", ["--scenarios", "5"], "5 scenarios asked for, but"),
     ("shape mismatch", ["--checkpoint", "{bad}"], "model and data do not match"),
-    ("bad temperature", ["--temperature", "-1"], "--temperature: RolloutOptions.temperature must be"),
+    ("bad temperature", ["--temperature", "-1"], "argument --temperature: must be >= 0"),
     ("unknown flag", ["--config.model.d_model=8"], "unrecognized arguments: --config.model.d_model=8"),
     ("bad variant", ["--variant", "best"], "invalid choice"),
     ("log map without tokenizer", ["--checkpoint", "{notok}", "--log-map", "lanes"], "has none"),
