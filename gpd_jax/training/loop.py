@@ -10,8 +10,9 @@
   `train.init_from` (an exported model or a workdir) starts a new run from its parameters (fine-tuning).
 * Parallelism: the batch is split over every device of every process (a 1-D `data` mesh, `jax.sharding`);
   parameters and optimizer state are replicated; XLA's partitioner inserts the gradient all-reduce. Several
-  hosts: `train.py --distributed` calls `jax.distributed.initialize()` first; each process then loads its own
-  disjoint share of every global batch (`process_index::process_count`). On one CPU,
+  processes or hosts (`train.py --coordinator HOST:PORT --num-processes N --process-id I`, or `--distributed`;
+  `gpd_jax.distributed`): each process loads only its block of every global batch (`loader.process_blocks`), so N
+  processes train on the batches of one process, and a run resumes on any process count. On one CPU,
   `XLA_FLAGS=--xla_force_host_platform_device_count=N` exposes N devices.
 * Checkpoints: orbax, every `train.checkpoint_every` steps, at the end, and when the run is stopped (Ctrl-C or
   SIGTERM). A restarted run restores the latest step and asks the loader for batches from that step on, so a
