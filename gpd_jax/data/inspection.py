@@ -363,7 +363,8 @@ def format_summary(s: dict) -> str:
     if s.get("near_duplicates") is not None:
         lines.append(f"  near-duplicate networks  {len(s['near_duplicates'])}")
     for split, r in (s.get("road_edges") or {}).items():
-        lines.append(f"  road edges [{split}]      {r['edge_sources']}, scenes with signals {r.get('scenes_with_signals')}"
+        lines.append(f"  road edges [{split}]      {r['edge_sources']}, "
+                     f"scenes with signals {r.get('scenes_with_signals')}"
                      + (f"; log offroad rate {r['log_offroad_rate']:.4f} (format-1 area boundary "
                         f"{r['log_offroad_rate_area_boundary']:.4f}) over {r['agents']} agents"
                         if "log_offroad_rate" in r else ""))

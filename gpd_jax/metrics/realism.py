@@ -22,7 +22,8 @@ Features, per agent and future frame (`realism_features`; 10 Hz frames, `dt` = 0
   is under 0.5 m), at constant speeds, capped at 5 s.
 * **distance to the road edge**: the most off-road of the box's four corners, signed like WOSAC (negative on the
   road, positive off it), from the scene's road-edge polylines (`Scene.road`). The official rule needs edges
-  oriented with the road on their left; the stores' edges carry no orientation, so each polyline is oriented
+  oriented with the road on their left; stores of format 2 carry the map's edges so (`RoadGeometry.map_edges`,
+  read as they are); older stores' edges carry no orientation, so each polyline is oriented
   here by which side of it is drivable (`gpd_jax.geometry.on_road` probes beside every segment, majority vote);
   segments drivable on both sides (interior lines of real-road tiles) and slivers under 1 m are not edges.
   The sign of a point whose nearest edge point is a polyline vertex follows the official convexity rule.
@@ -40,8 +41,8 @@ Likelihoods (`realism_metrics`, one scenario; `vmap` for many):
 * meta-metric: the weighted sum over the features present. The 2025 configuration's traffic-light violation
   term (`gpd_jax.metrics.traffic_lights`, a Bernoulli of "any red light run" like collision) is scored where the
   store has traffic-signal states (`Scene.signals`, store format 2) and left out elsewhere; scenes without road
-  geometry leave out the two map-based terms. The weights of what is left are renormalised to sum to 1 and `realism_weights` says which
-  terms were used (what `reduce_realism` reports as `left_out`).
+  geometry leave out the two map-based terms. The weights of what is left are renormalised to sum to 1 and
+  `realism_weights` says which terms were used (what `reduce_realism` reports as `left_out`).
 * minADE: the mean over evaluated agents of each rollout's average displacement error (over the frames the log
   has), minimum over the K rollouts; ADE: the same averaged over rollouts. Also the simulated collision and
   offroad rates (share of (rollout, agent) pairs with at least one such frame).
