@@ -17,6 +17,7 @@ first time it runs (the run leaves FOLDER/failed_<INDEX>); any executor honours 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import dataclasses
 import os
 from typing import Any, Callable, Iterable, Iterator, Sequence
@@ -140,11 +141,19 @@ def make_executor(name: str = "local", workers: int = 1, address: str | None = N
     raise DataError(None, f"--executor {name!r}: expected one of {', '.join(EXECUTORS)}")
 
 
+def results(executor, fn: Callable[[Any], Any], items: Sequence[Any]):
+    """`with results(executor, fn, items) as it: for item, result in it: ...`: `executor.map(fn, items)`, closed
+    as soon as the body stops (an error, Ctrl-C), so that the executor's workers are stopped then, not when the
+    abandoned generator is collected."""
+    return contextlib.closing(executor.map(fn, items))
+
+
 def run_all(executor, fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
     """Every `fn(item)` in the order of `items` (the executor may finish them in any order)."""
     items = list(items)
     out: dict[int, Any] = {}
     pos = {id(x): i for i, x in enumerate(items)}
-    for item, result in executor.map(fn, items):
-        out[pos[id(item)]] = result
+    with results(executor, fn, items) as it:
+        for item, result in it:
+            out[pos[id(item)]] = result
     return [out[i] for i in range(len(items))]

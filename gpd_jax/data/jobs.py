@@ -25,7 +25,8 @@ import numpy as np
 
 from gpd_jax.data import preprocess, store
 from gpd_jax.data.errors import DataError
-from gpd_jax.data.executors import LocalExecutor, worker_init  # noqa: F401 - worker_init: the sources' pools
+from gpd_jax.data import executors
+from gpd_jax.data.executors import worker_init  # noqa: F401 - worker_init: the sources' pools
 
 log = logging.getLogger(__name__)
 
@@ -95,9 +96,10 @@ def run_jobs(jobs, fn, out_dir: str, workers: int, desc: str, executor=None) -> 
     if done:
         log.info("resuming: %d of %d jobs already done", len(done), len(jobs))
     results = list(done)
-    for _, r in (executor or LocalExecutor(workers)).map(fn, todo):
-        results.append(r)
-        bar.update(r["requested"])
+    with executors.results(executor or executors.LocalExecutor(workers), fn, todo) as it:
+        for _, r in it:
+            results.append(r)
+            bar.update(r["requested"])
     bar.close()
     return sorted(results, key=lambda r: r["index"])
 

@@ -68,7 +68,8 @@ def main(argv: list[str], prog: str = PROG) -> int:
 
 def check_train_numbers(config, path: str, overrides: list[str]) -> None:
     """UsageError naming the first `train` field (and its override, if one set it) whose value cannot train:
-    sizes, step counts and intervals (`batch_size`, `steps`, `num_steps`, `*_every`, `*_size`) must be >= 1,
+    sizes, step counts and intervals (`batch_size`, `steps`, `num_steps`, `*_every`, `*_size`) must be >= 1
+    (`eval_every` >= 0 outside the map tokenizer's stage: 0 turns validation off),
     other counts (`*_batches`, `*_threads`, `*_steps`) >= 0, every number finite and rates >= 0."""
     train = config.get("train", {})
     for key in sorted(train.keys()):
@@ -76,7 +77,9 @@ def check_train_numbers(config, path: str, overrides: list[str]) -> None:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             continue
         low = None
-        if isinstance(v, int) and (key in ("batch_size", "steps", "num_steps") or key.endswith(("_every", "_size"))):
+        if isinstance(v, int) and key == "eval_every" and config.get("stage") != "map_tokenizer":
+            low = 0  # 0: no validation (a GPD or planning-head run); the tokenizer's trainer always validates
+        elif isinstance(v, int) and (key in ("batch_size", "steps", "num_steps") or key.endswith(("_every", "_size"))):
             low = 1
         elif isinstance(v, int) and key.endswith(("_batches", "_threads", "_steps")):
             low = 0
