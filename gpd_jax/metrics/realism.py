@@ -349,7 +349,7 @@ def _cross(u, v):
 
 
 def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: float = 0.05,
-                 min_length_m: float = 1.0) -> OrientedEdges:
+                 min_length_m: float = 1.0, official: bool = False) -> OrientedEdges:
     """The unbatched `road`'s edge polylines as segments with the drivable area on their left.
 
     Each polyline is reversed where most of its segments have the drivable area (`on_road`) on their right
@@ -362,6 +362,8 @@ def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: f
     proportion to it.
     A road with map edges (`RoadGeometry.map_edges`, stores of format 2) gives them as they are: oriented by the
     store, drivable side on their left (`gpd_jax.data.roadgeom`); nothing is probed or left out.
+    `official`: the neighbours at the ends of the polylines as the official code has them (`_official_neighbours`:
+    what it makes of `edge_polylines`), which decide the sign of a point nearest to such an end.
     """
     oriented = road.map_edges is not None
     pts = (road.map_edges if oriented else road.edges).astype(jnp.float32)
@@ -412,11 +414,37 @@ def orient_edges(road: RoadGeometry, max_segments: int | None = None, probe_m: f
     prior_start = jnp.where(jnp.isfinite(jnp.min(d2, 0)), last_g[pred], first_g)  # before the first
     prior = jnp.where(idx[None] > first[:, None], gid - 1, prior_start[:, None]).reshape(-1)
     nxt = jnp.where(idx[None] < last[:, None], gid + 1, next_end[:, None]).reshape(-1)
+    if official:
+        prior, nxt = _official_neighbours(a, b, ok)
     t = (b - a).reshape(-1, 2)
     edges = OrientedEdges(a=a.reshape(-1, 2), b=b.reshape(-1, 2), ok=ok.reshape(-1), prior=prior, next=nxt,
                           convex_before=_cross(t[prior], t) > 0, convex_after=_cross(t, t[nxt]) > 0,
                           dropped=jnp.int32(0))
     return edges if max_segments is None else _compact(edges, max_segments)
+
+
+def _official_neighbours(a, b, ok):
+    """Segment neighbours `(prior i32[E * S], next i32[E * S])` as the official code sees the oriented edges it is
+    handed (`edge_polylines`: each run of consecutive kept segments of a row a polyline of its own): a run's ends
+    are open (the segment is its own neighbour), except a closed run (ends within 1 m) that has as many points
+    as the longest run of the scene: the official code pads its polylines to the longest one and wraps a closed
+    polyline to its last slot, which is a real segment for the longest ones only. No run continues another."""
+    e, s = ok.shape
+    idx = jnp.arange(s)[None]
+    pad = jnp.pad(ok, ((0, 0), (1, 1)))
+    prev_ok, next_ok = pad[:, :-2], pad[:, 2:]
+    run_first = jax.lax.cummax(jnp.where(ok & ~prev_ok, idx, -1), axis=1)
+    run_last = jax.lax.cummin(jnp.where(ok & ~next_ok, idx, s), axis=1, reverse=True)
+    rf, rl = jnp.clip(run_first, 0, s - 1), jnp.clip(run_last, 0, s - 1)
+    points = jnp.where(ok, rl - rf + 2, 0)
+    start = jnp.take_along_axis(a, rf[..., None], 1)
+    end = jnp.take_along_axis(b, rl[..., None], 1)
+    wrap = ok & (jnp.sum((start - end) ** 2, -1) < 1.0) & (points == jnp.max(points))
+    row = jnp.arange(e)[:, None] * s
+    gid = row + idx
+    prior = jnp.where(prev_ok, gid - 1, jnp.where(wrap & (idx == rf), row + rl, gid))
+    nxt = jnp.where(next_ok, gid + 1, jnp.where(wrap & (idx == rl), row + rf, gid))
+    return prior.reshape(-1), nxt.reshape(-1)
 
 
 def _compact(edges: OrientedEdges, max_segments: int) -> OrientedEdges:
@@ -767,7 +795,7 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
     """
     if rules not in RULES:
         raise ValueError(f"realism rules {rules!r}: expected one of {RULES}")
-    edges = None if road is None else orient_edges(road, max_edge_segments)
+    edges = None if road is None else orient_edges(road, max_edge_segments, official=rules == "official")
     if evaluated is None:
         evaluated = log_valid[num_history - 1]
     history_steps = None
