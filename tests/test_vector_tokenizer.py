@@ -160,3 +160,20 @@ def test_tiny_vector_tokenizer_redraws_a_handful_of_frames():
     assert after["f1_cutfree@0.5m"] <= after["f1_cutfree@1m"] <= after["f1_cutfree@1.5m"]
     assert before["f1_cutfree"] < 0.3, before["f1_cutfree"]
     assert after["f1_cutfree"] > 0.7, after["f1_cutfree"]
+
+
+def test_config_variants_pick_the_encoder():
+    """The raster encoder stays the paper's and the tiny one; the vector variants change the encoder only."""
+    get = lambda v: load_config(os.path.join(ROOT, f"configs/map_tokenizer.py:{v}"))  # noqa: E731
+    paper, tiny, vt, vec = get("paper"), get("tiny"), get("vector_tiny"), get("vector")
+    assert paper.model.encoder.kind == tiny.model.encoder.kind == "raster"
+    assert vt.model.encoder.kind == vec.model.encoder.kind == vector_config().model.encoder.kind == "vector"
+    assert vt.model.decoder.to_dict() == tiny.model.decoder.to_dict()
+    assert vec.model.decoder.to_dict() == paper.model.decoder.to_dict()
+    assert vt.model.num_codes == 128 and vt.model.grid == 8  # the GPD's interface: 64 tokens of 128 codes
+    from gpd_jax.map_tokenizer.model import MapVQVAE
+    from flax import nnx
+    bad = vector_config()
+    bad.model.encoder.kind = "pointcloud"
+    with pytest.raises(ValueError, match="model.encoder.kind"):
+        MapVQVAE(bad.model, nnx.Rngs(0))
