@@ -76,7 +76,8 @@ def encode_speed(tokenizers, names, batch: int = 64, reps: int = 5) -> dict:
     drawing the raster) on the same synthetic frames (`raster_inputs`), jitted, in one run; `ratio_to_first` is
     each speed over the first tokenizer's."""
     pts, valid, pose = raster_inputs(batch)
-    out = {"device": str(jax.devices()[0]), "batch": batch, "frames": f"{pts.shape[1]} polylines x {pts.shape[2]} points"}
+    out = {"device": str(jax.devices()[0]), "batch": batch,
+           "frames": f"{pts.shape[1]} polylines x {pts.shape[2]} points"}
     speeds = []
     for tok, name in zip(tokenizers, names):
         f = jax.jit(lambda p, a, b, c, tok=tok: tok.encode_lanes(p, a, b, c))
