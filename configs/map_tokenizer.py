@@ -13,7 +13,10 @@ Variants (`configs/map_tokenizer.py:VARIANT`); the shipped ones were trained on 
   4,000 steps of 64): map_tokenizer_refit (retired; the stepping stone of map_tokenizer_directional).
 * `directional`: `refit` again from its result with SLEDGE's line channels (occupancy, cos and sin of the lane
   heading: `raster.direction`), 6,000 CPU steps of 32: the shipped map_tokenizer_directional.
-* `test`: the size the test suite trains on synthetic lanes.
+* `vector_tiny`: the vector encoder (`model.encoder.kind` "vector": lane segments -> one token per 8 m cell,
+  `gpd_jax.map_tokenizer.vector`) with the tiny decoder, from scratch on real and generated maps, dev on SR
+  (docs/tokenizer.md, "The vector encoder"); `vector`: its accelerator size (the paper's decoder).
+* `test` / `vector_test`: the sizes the test suite trains on synthetic lanes.
 
     python train.py --config configs/map_tokenizer.py:tiny --workdir runs/tok_tiny
     python -m gpd_jax.map_tokenizer export --workdir runs/tok_tiny --out runs/tok_tiny/export
@@ -62,12 +65,29 @@ STAGES = {
     "directional": ("refit", {
         "raster.direction": True, "data.processes": 1, "train.init_from": "runs/tok_refit/export",
         "train.batch_size": 32, "train.num_steps": 6_000, "train.eval_every": 6_000, "train.checkpoint_every": 500}),
+    "vector_tiny": ("tiny", {
+        "model.encoder.kind": "vector", "model.vector.d_model": 128, "model.vector.num_heads": 4,
+        "model.vector.num_layers": 2, "model.vector.ffn_dim": 256,
+        "data.dir": ("data/i70_interaction_train_small:0.4,data/i70_netframes_interaction_train:0.2,"
+                     "data/i70_netframes_gen:0.4"),
+        "data.eval_dir": "data/interaction_dev", "data.eval_split": "val", "data.gt_recut": "join_ends",
+        "train.num_steps": 3_000, "train.kmeans_at_step": 300, "train.eval_every": 1_000}),
+    "vector": ("vector_tiny", {
+        "model.vector.d_model": 256, "model.vector.num_heads": 8, "model.vector.num_layers": 4,
+        "model.vector.ffn_dim": 1024, "model.decoder.d_model": 512, "model.decoder.num_heads": 8,
+        "model.decoder.num_layers": 6, "model.decoder.ffn_dim": 2048, "train.batch_size": 64,
+        "train.num_steps": 40_000, "train.warmup_steps": 1_000, "train.lr": 3e-4, "train.codebook_lr": 3e-4,
+        "train.kmeans_at_step": 1_000, "train.eval_every": 5_000, "train.checkpoint_every": 1_000,
+        "data.processes": 4}),
     "test": ("tiny", {
         "data.dir": "synthetic", "model.encoder.width": 8, "model.encoder.head_channels": 32,
         "model.encoder.code_dim": 16, "model.num_codes": 16, "model.decoder.d_model": 32,
         "model.decoder.num_layers": 1, "model.decoder.ffn_dim": 64, "model.decoder.num_heads": 2,
         "train.batch_size": 4, "train.kmeans_rasters": 4, "train.kmeans_at_step": 0, "train.warmup_steps": 1,
         "train.log_every": 1, "train.eval_batches": 1, "train.lr": 3e-3}),
+    "vector_test": ("test", {
+        "model.encoder.kind": "vector", "model.vector.d_model": 32, "model.vector.num_heads": 2,
+        "model.vector.num_layers": 1, "model.vector.ffn_dim": 64, "model.vector.max_segments": 256}),
 }
 
 

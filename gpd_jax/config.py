@@ -190,6 +190,8 @@ def map_tokenizer_config() -> ml_collections.ConfigDict:
         num_codes=128,
         commitment=0.25,
         encoder=_section(
+            kind="raster",         # "raster": the ResNet below over a lane raster (the paper's); "vector": the lane
+                                   # polylines' segments read by model.vector (gpd_jax.map_tokenizer.vector)
             block="bottleneck",    # "basic" or "bottleneck" residual blocks
             stage_sizes=(3, 4, 6, 3),
             stage_strides=(1, 2, 2, 2),
@@ -201,6 +203,16 @@ def map_tokenizer_config() -> ml_collections.ConfigDict:
             norm_groups=32,
             head_channels=256,
             code_dim=128,
+        ),
+        vector=_section(           # the vector encoder (model.encoder.kind "vector"); unused by the raster one
+            point_stride=2,        # points per segment (the stores keep a point every ~1 m)
+            max_segments=512,      # segments kept per frame, nearest the ego first
+            cell_margin=2.0,       # metres: a cell sees the segments whose midpoints lie this far outside it
+            fourier=4,             # Fourier frequencies of a segment's midpoint
+            d_model=128,
+            num_heads=4,
+            num_layers=2,
+            ffn_dim=256,
         ),
         decoder=_section(
             d_model=512,

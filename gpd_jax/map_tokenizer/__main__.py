@@ -4,7 +4,7 @@
   python -m gpd_jax.map_tokenizer diagnose --data DIR [--split test] [--json PATH]
   python -m gpd_jax.map_tokenizer encode [--checkpoint NAME_OR_DIR] --data DIR [--splits train val test] [--force]
   python -m gpd_jax.map_tokenizer export --workdir WORKDIR --out DIR
-  python -m gpd_jax.map_tokenizer bench [--batch 64]
+  python -m gpd_jax.map_tokenizer bench [--batch 64] [--encoders NAME_OR_DIR ...]
   python -m gpd_jax.map_tokenizer netframes --out DIR [--generated N] [--seed S] [--real NET ...] [--real-lefthand]
   python -m gpd_jax.map_tokenizer pack-netframes DIR [DIR ...] --out OUTDIR [--networks N]
 
@@ -16,8 +16,10 @@ the cut into lines; *_cutfree_directed: only where the other set runs the same w
 reconstruction raster_iou and raster_precision/recall/f1 (decoded lines drawn with the tokenizer's rasterizer
 against its input raster, 1.5 m tolerance), plus codebook_usage (fraction of codes used by the evaluated tokens)
 and perplexity, and the paper's recall by GT line length and by how many of a line's ends lie inside the window
-rather than on its border (recall_by_gt_ends). Frames 0, s, 2s, ... (`--frame-stride s`) of every
-sample are evaluated. `diagnose` (no tokenizer) describes the GT cut of the same frames: lines per frame before and after the 50-line cap,
+rather than on its border (recall_by_gt_ends); the reconstruction figures: f1@T and f1_cutfree@T at T = 0.5 / 1 /
+1.5 m and connectivity (the share of GT successor pairs whose matched predictions still join; successor_pairs
+counts them). Frames 0, s, 2s, ... (`--frame-stride s`) of every sample are evaluated, or with `--draw-seed`
+one seeded random frame per sample (training validation's draw). `diagnose` (no tokenizer) describes the GT cut of the same frames: lines per frame before and after the 50-line cap,
 line lengths, what 20 points per line lose, and the learnability probe: the paper's F1 of the GT re-cut
 (`recut_polylines`: lines split at their middle, or joined where one-to-one) against the GT, beside the cut-invariant
 F1. `encode` writes every frame's 64 tokens next to the samples (`save_map_tokens`) and
@@ -68,13 +70,18 @@ def cmd_evaluate(args) -> dict:
     from gpd_jax.map_tokenizer.evaluation import make_eval_step, tokenizer_metrics
 
     tok = _tokenizer(args.checkpoint)
-    batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
-                            frame_stride=args.frame_stride, max_batches=args.max_batches, gt_recut=args.gt_recut)
+    if args.draw_seed is None:
+        batches = frame_batches(args.data, args.split, args.batch_size, seed=0, shuffle=False, repeat=False,
+                                frame_stride=args.frame_stride, max_batches=args.max_batches, gt_recut=args.gt_recut)
+    else:  # training validation's draw: one seeded random frame per sample, samples shuffled
+        batches = frame_batches(args.data, args.split, args.batch_size, seed=args.draw_seed, shuffle=True,
+                                repeat=False, max_batches=args.max_batches, gt_recut=args.gt_recut)
     t0 = time.perf_counter()
     m = tokenizer_metrics(tok.graphdef, tok.params, tok.config, batches,
                           jax.jit(make_eval_step(tok.graphdef, tok.config)))
     m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=args.checkpoint,
-             frame_stride=args.frame_stride, f1_threshold_m=1.5, gt_recut=args.gt_recut,
+             frame_stride=None if args.draw_seed is not None else args.frame_stride, draw_seed=args.draw_seed,
+             f1_threshold_m=1.5, gt_recut=args.gt_recut,
              wall_s=round(time.perf_counter() - t0, 1))
     print(json.dumps(m, indent=2))
     if args.json:
@@ -151,8 +158,12 @@ def cmd_export(args) -> None:
 
 
 def cmd_bench(args) -> None:
-    from gpd_jax.map_tokenizer.bench import run
-    print(json.dumps(run(batch=args.batch), indent=2))
+    from gpd_jax.map_tokenizer.bench import encode_speed, run
+    if args.encoders:
+        print(json.dumps(encode_speed([_tokenizer(r) for r in args.encoders], args.encoders, batch=args.batch),
+                         indent=2))
+    else:
+        print(json.dumps(run(batch=args.batch), indent=2))
 
 
 def cmd_netframes(args) -> None:
@@ -199,6 +210,10 @@ def main(argv=None) -> int:
                    help="score against the GT of the polylines re-cut this way (the raster stays as stored): a "
                         "probe of how much the GT's cut costs, or the figure of a tokenizer trained on that cut "
                         "(config data.gt_recut); beside the stored cut's, never instead of it")
+    e.add_argument("--draw-seed", type=int, default=None,
+                   help="instead of frames 0, S, 2S, ...: one random frame per sample, samples shuffled, drawn with "
+                        "this seed as training's validation draws them (--draw-seed 12345 --max-batches 8: the 256 "
+                        "dev frames of docs/results.md's tokenizer probes)")
     split_args(sub.add_parser("diagnose", help="how the GT vector lanes cut the road; the paper F1 of the GT re-cut"))
     c = sub.add_parser("encode", help="write map tokens of every frame next to the samples")
     c.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT)
@@ -213,8 +228,11 @@ def main(argv=None) -> int:
     x = sub.add_parser("export", help="write a training workdir's latest params as a compact checkpoint")
     x.add_argument("--workdir", required=True)
     x.add_argument("--out", type=output_dir, required=True, help="the export's folder")
-    b = sub.add_parser("bench", help="rasterizer and matching throughput")
+    b = sub.add_parser("bench", help="rasterizer and matching throughput, or the tokenizers' encoding speed")
     b.add_argument("--batch", type=count, default=64)
+    b.add_argument("--encoders", nargs="*", default=None, metavar="NAME_OR_DIR",
+                   help="instead: frames encoded per second by each of these tokenizers (raster or vector) on the "
+                        "same synthetic frames, in one run, with the ratio to the first")
     n = sub.add_parser("netframes", help="map-only training frames: many networks, poses on their lanes")
     n.add_argument("--out", type=output_dir, required=True)
     n.add_argument("--generated", type=count0, default=0, help="generated networks (sumo_networks.random_net_spec)")

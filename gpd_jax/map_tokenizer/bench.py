@@ -1,4 +1,5 @@
-"""Throughput of the rasterizer and of the two assignment solvers (`python -m gpd_jax.map_tokenizer bench`).
+"""Throughput of the rasterizer and of the two assignment solvers (`python -m gpd_jax.map_tokenizer bench`), and
+the encoding speed of tokenizers side by side (`bench --encoders A B`).
 
 Inputs are synthetic but sized like the data store (96 polylines x 128 points at 1 m) and like training
 (50 x 50 matching costs of a half-trained decoder: GT lines plus noise, permuted, random logits).
@@ -67,4 +68,20 @@ def run(batch: int = 64) -> dict:
                               # padded GT slots are interchangeable (equal costs): compare the real lines only
                               "identical_on_valid_gt": float(np.mean(np.all((np.asarray(m_h) == np.asarray(m_a))
                                                                             | ~gt_valid, -1)))}
+    return out
+
+
+def encode_speed(tokenizers, names, batch: int = 64, reps: int = 5) -> dict:
+    """Frames per second of each tokenizer's `encode_lanes` (lanes -> tokens: the raster encoder's time includes
+    drawing the raster) on the same synthetic frames (`raster_inputs`), jitted, in one run; `ratio_to_first` is
+    each speed over the first tokenizer's."""
+    pts, valid, pose = raster_inputs(batch)
+    out = {"device": str(jax.devices()[0]), "batch": batch,
+           "frames": f"{pts.shape[1]} polylines x {pts.shape[2]} points"}
+    speeds = []
+    for tok, name in zip(tokenizers, names):
+        f = jax.jit(lambda p, a, b, c, tok=tok: tok.encode_lanes(p, a, b, c))
+        speeds.append(batch / _time(f, tok.params, pts, valid, pose, reps=reps))
+        out[name] = {"encoder": tok.config.model.encoder.kind, "frames_per_s": speeds[-1],
+                     "ratio_to_first": speeds[-1] / speeds[0]}
     return out

@@ -1,7 +1,8 @@
-"""Scoring a map tokenizer: raster -> tokens -> lanes against the frames' SLEDGE vector lanes.
+"""Scoring a map tokenizer: lanes -> (raster ->) tokens -> lanes against the frames' SLEDGE vector lanes.
 
 `evaluate` reports the map metrics of `gpd_jax.metrics.map` (paper-faithful F1 at 1.5 m, precision, recall,
-lateral distance, Chamfer; the corrected set-based Chamfer; the cut-invariant `*_cutfree` score beside them) plus
+lateral distance, Chamfer; the corrected set-based Chamfer; the cut-invariant `*_cutfree` score beside them; the
+reconstruction figures: both F1s at 0.5 / 1.0 / 1.5 m and the share of GT successor pairs kept) plus
 the codebook usage and perplexity of the tokens, and the raster-level reconstruction (`raster_sums`: the decoded
 lines drawn with the tokenizer's own rasterizer against its input raster); `python -m gpd_jax.map_tokenizer
 evaluate` and stage-1 training's validation both use it.
@@ -20,8 +21,8 @@ from gpd_jax.data.lanes import HALF, RECUT_MODES, recut_polylines  # noqa: F401 
 from gpd_jax.map_tokenizer import core
 from gpd_jax.map_tokenizer.raster import raster_channels, rasterize
 from gpd_jax.metrics.matching import match_lines
-from gpd_jax.metrics.map import (END_LABELS, LENGTH_EDGES_M, cutfree_frame_sums, length_labels, map_metric_sums,
-                                 reduce_map_metrics)
+from gpd_jax.metrics.map import (END_LABELS, LENGTH_EDGES_M, RECONSTRUCTION_THRESHOLDS_M, cutfree_frame_sums,
+                                 length_labels, map_metric_sums, reduce_map_metrics, threshold_key)
 
 
 def rasterize_batch(config, batch):
@@ -31,6 +32,22 @@ def rasterize_batch(config, batch):
     return rasterize(batch["polylines"], batch["polyline_valid"], batch["pose"], size=r.size,
                      pixel_size=r.pixel_size, max_segment_length=r.max_segment_length,
                      direction=raster_channels(r) > 1)
+
+
+FRAME_KEYS = ("polylines", "polyline_valid", "pose", "lanes", "lanes_valid")  # what a compiled step reads of a batch
+
+
+def frame_arrays(batch: dict) -> dict:
+    """The arrays of a batch dict the compiled train and eval steps read (`FRAME_KEYS`)."""
+    return {k: batch[k] for k in FRAME_KEYS}
+
+
+def encoder_input(config, batch):
+    """What the tokenizer's encoder reads of a batch dict (polylines, polyline_valid, pose): the raster
+    (`rasterize_batch`) for `model.encoder.kind` "raster", the tuple (polylines, polyline_valid, pose) for "vector"."""
+    if config.model.encoder.kind == "vector":
+        return batch["polylines"], batch["polyline_valid"], batch["pose"]
+    return rasterize_batch(config, batch)
 
 
 RASTER_TOLERANCE_PX = 6  # 1.5 m at 0.25 m per pixel: the raster F1's tolerance, the map F1's threshold
@@ -112,16 +129,20 @@ def reduce_pairs(t: dict) -> dict[str, float]:
             "pairs_pred_shorter_1.5x_share": f("pair_shorter")}
 
 
-def make_eval_step(graphdef, config=None):
-    """eval_step(params, raster, lanes, lanes_valid) -> (map metric sums, token indices); with `config` (the
-    tokenizer's), the sums also hold the raster-level reconstruction (`raster_sums` of the decoded lines drawn
-    with `config.raster` against the input raster) and the matched-pair diagnostics (`pair_sums`)."""
+def make_eval_step(graphdef, config, diagnostics: bool = True):
+    """eval_step(params, frames) -> (map metric sums, token indices) of `frames` (`frame_arrays` of a batch),
+    with the paper's and the cut-invariant F1 at every `RECONSTRUCTION_THRESHOLDS_M` and the successor pairs kept
+    (`map_metric_sums`'s `connectivity`); with `diagnostics`, also the raster-level reconstruction (`raster_sums`:
+    the decoded lines drawn with `config.raster` against the frames' raster) and the matched-pair diagnostics
+    (`pair_sums`)."""
 
-    def eval_step(params, raster, lanes, lanes_valid):
-        out = core.forward(graphdef, params, raster)
+    def eval_step(params, frames):
+        out = core.forward(graphdef, params, encoder_input(config, frames))
+        lanes, lanes_valid = frames["lanes"], frames["lanes_valid"]
         sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M,
-                               window_half=HALF)
-        if config is not None:
+                               window_half=HALF, extra_thresholds=RECONSTRUCTION_THRESHOLDS_M, connectivity=True)
+        if diagnostics:
+            raster = rasterize_batch(config, frames)
             occupancy = raster[..., 0] if raster.ndim == 4 else raster
             sums.update(raster_sums(decoded_raster(config, out["points"], out["logits"]), occupancy))
             sums.update(pair_sums(out["points"], out["logits"], lanes, lanes_valid))
@@ -135,12 +156,11 @@ def tokenizer_metrics(graphdef, params, config, batches, eval_step=None) -> dict
     codebook usage and perplexity of the tokens, over an iterable of batch dicts; plus the raster-level
     reconstruction (raster_iou, raster_f1 at 1.5 m, ...) when `eval_step` makes it (the default one does)."""
     eval_step = eval_step or jax.jit(make_eval_step(graphdef, config))
-    raster_fn = jax.jit(lambda b: rasterize_batch(config, b))
     total = None
     counts = np.zeros((config.model.num_codes,), np.float64)
     frames = 0
     for batch in batches:
-        sums, idx = eval_step(params, raster_fn(batch), batch["lanes"], batch["lanes_valid"])
+        sums, idx = eval_step(params, frame_arrays(batch))
         sums = jax.device_get(sums)
         total = sums if total is None else {k: total[k] + sums[k] for k in total}
         counts += np.bincount(np.asarray(idx).reshape(-1), minlength=counts.size)
@@ -159,6 +179,10 @@ def tokenizer_metrics(graphdef, params, config, batches, eval_step=None) -> dict
         "f1_cutfree": m["map_f1_cutfree"], "precision_cutfree": m["map_precision_cutfree"],
         "recall_cutfree": m["map_recall_cutfree"], "chamfer_cutfree": m["map_chamfer_cutfree"],
         "chamfer_within_cutfree": m["map_chamfer_within_cutfree"],
+        **{f"f1@{threshold_key(t)}m": m["map_f1@" + threshold_key(t)] for t in RECONSTRUCTION_THRESHOLDS_M},
+        **{f"f1_cutfree@{threshold_key(t)}m": m["map_f1_cutfree@" + threshold_key(t)]
+           for t in RECONSTRUCTION_THRESHOLDS_M},
+        "connectivity": m["map_connectivity"], "successor_pairs": int(m["map_successor_pairs"]),
         "f1_cutfree_directed": m["map_f1_cutfree_directed"],
         "precision_cutfree_directed": m["map_precision_cutfree_directed"],
         "recall_cutfree_directed": m["map_recall_cutfree_directed"],

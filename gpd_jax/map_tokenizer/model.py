@@ -19,6 +19,9 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
+from gpd_jax.map_tokenizer.raster import raster_channels, sine_position_2d
+from gpd_jax.map_tokenizer.vector import VectorEncoder
+
 
 def _groups(channels: int, max_groups: int) -> int:
     return math.gcd(channels, max_groups)
@@ -158,23 +161,6 @@ def quantize(codebook: jax.Array, z: jax.Array, commitment: float = 0.25):
     return z_q, idx, loss
 
 
-def sine_position_2d(h: int, w: int, dim: int, temperature: float = 10000.0) -> jax.Array:
-    """DETR's 2-D sine position code f32[h*w, dim] (half the channels for rows, half for columns), row-major."""
-    if dim % 4:
-        raise ValueError(f"dim {dim} must be a multiple of 4")
-    n = dim // 4
-    freq = 1.0 / temperature ** (jnp.arange(n, dtype=jnp.float32) / n)
-    ys = (jnp.arange(h, dtype=jnp.float32) + 0.5) / h * 2 * jnp.pi
-    xs = (jnp.arange(w, dtype=jnp.float32) + 0.5) / w * 2 * jnp.pi
-    py = ys[:, None] * freq  # [h, n]
-    px = xs[:, None] * freq  # [w, n]
-    py = jnp.concatenate([jnp.sin(py), jnp.cos(py)], -1)  # [h, 2n]
-    px = jnp.concatenate([jnp.sin(px), jnp.cos(px)], -1)  # [w, 2n]
-    grid = jnp.concatenate([jnp.broadcast_to(py[:, None], (h, w, 2 * n)),
-                            jnp.broadcast_to(px[None, :], (h, w, 2 * n))], -1)
-    return grid.reshape(h * w, dim)
-
-
 class DecoderLayer(nnx.Module):
     """Pre-norm DETR decoder layer: self-attention over queries, cross-attention to the latent grid, FFN."""
 
@@ -233,34 +219,55 @@ class VectorDecoder(nnx.Module):
         return self._heads(x)
 
 
+ENCODER_KINDS = ("raster", "vector")
+
+
 class MapVQVAE(nnx.Module):
     """Encoder + codebook + vector decoder. `cfg` is the `model` section of a map-tokenizer config;
-    `in_channels` the raster's (`gpd_jax.map_tokenizer.raster.raster_channels` of the config's `raster`)."""
+    `in_channels` the raster's (`gpd_jax.map_tokenizer.raster.raster_channels` of the config's `raster`), `half`
+    half the window's side in metres (the vector encoder's window; the raster's is its size).
 
-    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs, in_channels: int = 1):
+    `cfg.encoder.kind` picks the encoder: "raster" (the paper's ResNet over a lane raster: the encoder input is
+    f32[B, 256, 256(, C)]) or "vector" (`gpd_jax.map_tokenizer.vector.VectorEncoder` over the lane polylines: the
+    encoder input is the tuple (polylines f32[B, L, P, 2] scene frame, valid bool[B, L, P], pose f32[B, 3]))."""
+
+    def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs, in_channels: int = 1, half: float = 32.0):
         self.grid = int(cfg.grid)
         self.commitment = float(cfg.commitment)
-        self.encoder = Encoder(cfg.encoder, rngs, in_channels)
+        kind = str(cfg.encoder.kind)
+        if kind not in ENCODER_KINDS:
+            raise ValueError(f"model.encoder.kind is {kind!r}; expected one of {ENCODER_KINDS}")
+        self.encoder = (Encoder(cfg.encoder, rngs, in_channels) if kind == "raster" else
+                        VectorEncoder(cfg.vector, self.grid, half, cfg.encoder.code_dim, rngs))
         self.codebook = Codebook(cfg.num_codes, cfg.encoder.code_dim, rngs)
         self.decoder = VectorDecoder(cfg.decoder, cfg.encoder.code_dim, self.grid, rngs)
 
-    def encode_latents(self, raster: jax.Array) -> jax.Array:
-        """raster f32[B, 256, 256] (or [B, 256, 256, C]) -> continuous latents f32[B, grid*grid, D] (row-major
-        cells)."""
-        z = self.encoder(raster)
+    def encode_latents(self, inputs) -> jax.Array:
+        """Encoder input (a raster f32[B, 256, 256] or [B, 256, 256, C], or the vector encoder's lane tuple; see
+        the class docstring) -> continuous latents f32[B, grid*grid, D] (row-major cells)."""
+        z = self.encoder(inputs)
+        if isinstance(self.encoder, VectorEncoder):
+            return z
         if z.shape[1:3] != (self.grid, self.grid):
             raise ValueError(f"encoder produced a {z.shape[1:3]} grid, config says {self.grid}x{self.grid}; "
                              "fix the strides")
         return z.reshape(z.shape[0], -1, z.shape[-1])
 
-    def __call__(self, raster: jax.Array, quantized: bool | jax.Array = True):
-        """Full pass. Returns dict(points, logits, idx i32[B, M], vq_loss, z f32[B, M, D]). `quantized` (a Python or
+    def __call__(self, inputs, quantized: bool | jax.Array = True):
+        """Full pass of an encoder input (see `encode_latents`). Returns dict(points, logits, idx i32[B, M], vq_loss,
+        z f32[B, M, D]). `quantized` (a Python or
         traced bool) False feeds the continuous latents to the decoder and zeroes the VQ loss (training's
         continuous warm-up); `idx` are still the nearest codes."""
-        z = self.encode_latents(raster)
+        z = self.encode_latents(inputs)
         z_q, idx, vq_loss = quantize(self.codebook.embedding[...], z, self.commitment)
         if quantized is not True:  # False, or a traced flag
             z_q = jnp.where(quantized, z_q, z)
             vq_loss = jnp.where(quantized, vq_loss, 0.0)
         points, logits = self.decoder(z_q)
         return dict(points=points, logits=logits, idx=idx, vq_loss=vq_loss, z=z)
+
+
+def build_vqvae(config: ml_collections.ConfigDict, rngs: nnx.Rngs) -> MapVQVAE:
+    """The `MapVQVAE` of a whole map-tokenizer config (its model, raster channels and window)."""
+    r = config.raster
+    return MapVQVAE(config.model, rngs, raster_channels(r), half=float(r.size) * float(r.pixel_size) / 2.0)

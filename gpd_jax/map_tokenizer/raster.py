@@ -65,6 +65,31 @@ def from_ego_frame(points: jax.Array, pose: jax.Array) -> jax.Array:
     return jnp.stack([x, y], axis=-1) + pose[..., None, :2]
 
 
+def sine_position_2d(h: int, w: int, dim: int, temperature: float = 10000.0) -> jax.Array:
+    """DETR's 2-D sine position code f32[h*w, dim] (half the channels for rows, half for columns), row-major."""
+    if dim % 4:
+        raise ValueError(f"dim {dim} must be a multiple of 4")
+    n = dim // 4
+    freq = 1.0 / temperature ** (jnp.arange(n, dtype=jnp.float32) / n)
+    ys = (jnp.arange(h, dtype=jnp.float32) + 0.5) / h * 2 * jnp.pi
+    xs = (jnp.arange(w, dtype=jnp.float32) + 0.5) / w * 2 * jnp.pi
+    py = ys[:, None] * freq  # [h, n]
+    px = xs[:, None] * freq  # [w, n]
+    py = jnp.concatenate([jnp.sin(py), jnp.cos(py)], -1)  # [h, 2n]
+    px = jnp.concatenate([jnp.sin(px), jnp.cos(px)], -1)  # [w, 2n]
+    grid = jnp.concatenate([jnp.broadcast_to(py[:, None], (h, w, 2 * n)),
+                            jnp.broadcast_to(px[None, :], (h, w, 2 * n))], -1)
+    return grid.reshape(h * w, dim)
+
+
+def cell_centres(grid: int, half: float) -> jax.Array:
+    """f32[grid * grid, 2] ego-frame centres of the token cells over the window of half side `half`, row-major:
+    row 0 in front (largest x), column 0 on the left (largest y), as the raster's pixels."""
+    cell = 2.0 * half / grid
+    c = half - cell * (jnp.arange(grid, dtype=jnp.float32) + 0.5)  # x of rows, y of columns
+    return jnp.stack(jnp.broadcast_arrays(c[:, None], c[None, :]), -1).reshape(-1, 2)
+
+
 def raster_channels(raster_config) -> int:
     """Channels of a tokenizer's rasters: 3 with `raster.direction` (occupancy, cos, sin), else 1."""
     return 3 if bool(raster_config.direction) else 1

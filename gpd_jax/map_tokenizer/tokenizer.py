@@ -28,8 +28,8 @@ from gpd_jax import zoo
 from gpd_jax.config import config_from_json
 from gpd_jax.fsutil import atomic_directory, flatten_params, load_params_npz, restore_params
 from gpd_jax.map_tokenizer import core
-from gpd_jax.map_tokenizer.model import MapVQVAE, nearest_code
-from gpd_jax.map_tokenizer.raster import from_ego_frame, raster_channels, rasterize, to_ego_frame
+from gpd_jax.map_tokenizer.model import MapVQVAE, build_vqvae, nearest_code
+from gpd_jax.map_tokenizer.raster import cell_centres, from_ego_frame, raster_channels, rasterize, to_ego_frame
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -67,9 +67,18 @@ class MapTokenizer:
                 h.update(a.tobytes())
         return h.hexdigest()[:16]
 
+    @property
+    def reads_vectors(self) -> bool:
+        """True for a vector tokenizer (`model.encoder.kind` "vector": it reads the lane polylines, no raster)."""
+        return self.config.model.encoder.kind == "vector"
+
     def encode(self, params, rasters: jax.Array) -> jax.Array:
         """Map tokens i32[..., 64] (row-major over the 8x8 grid, row 0 = front) of rasters f32[..., 256, 256]
-        (f32[..., 256, 256, 3] for a tokenizer with `raster.direction`)."""
+        (f32[..., 256, 256, 3] for a tokenizer with `raster.direction`). A raster tokenizer's only; every
+        tokenizer encodes lanes (`encode_lanes`)."""
+        if self.reads_vectors:
+            raise ValueError("a vector map tokenizer (model.encoder.kind 'vector') reads lane polylines, not "
+                             "rasters: use encode_lanes / encode_frames")
         k = 3 if raster_channels(self.config.raster) > 1 else 2
         lead = rasters.shape[:-k]
         r = rasters.reshape((-1,) + rasters.shape[rasters.ndim - k:]).astype(jnp.float32)
@@ -80,7 +89,15 @@ class MapTokenizer:
     def encode_lanes(self, params, polylines: jax.Array, valid: jax.Array, pose: jax.Array) -> jax.Array:
         """Map tokens i32[..., 64] of lane polylines f32[..., L, P, 2] (bool[..., L, P] valid) seen from ego
         poses f32[..., 3] in the polylines' frame: rasterize (with this tokenizer's raster settings) + `encode`,
-        exactly what `python -m gpd_jax.map_tokenizer encode` stores for a logged frame."""
+        exactly what `python -m gpd_jax.map_tokenizer encode` stores for a logged frame. A vector tokenizer reads
+        the polylines themselves."""
+        if self.reads_vectors:
+            lead = pose.shape[:-1]
+            flat = lambda x, k: jnp.broadcast_to(x, lead + x.shape[x.ndim - k:]).reshape((-1,) + x.shape[x.ndim - k:])
+            z = core.encode_latents(self.graphdef, params, (flat(polylines, 3).astype(jnp.float32), flat(valid, 2),
+                                                            flat(pose, 1).astype(jnp.float32)))
+            idx = nearest_code(core.codebook_of(params), z)
+            return idx.reshape(lead + (idx.shape[-1],))
         r = self.config.raster
         raster = rasterize(polylines, valid, pose, size=r.size, pixel_size=r.pixel_size,
                            max_segment_length=r.max_segment_length, direction=raster_channels(r) > 1)
@@ -104,8 +121,7 @@ class MapTokenizer:
         r, grid = self.config.raster, int(self.config.model.grid)
         half = r.size * r.pixel_size / 2.0
         cell = 2.0 * half / grid
-        centre = half - cell * (jnp.arange(grid, dtype=jnp.float32) + 0.5)  # x of rows, y of columns
-        cells = jnp.stack(jnp.broadcast_arrays(centre[:, None], centre[None, :]), -1).reshape(-1, 2)  # [64, 2]
+        cells = cell_centres(grid, half)  # [64, 2]
 
         def warp(tokens, from_pose, pose):
             pts, logits = self.decode(params, tokens)
@@ -195,11 +211,11 @@ def load_tokenizer(name_or_path: str) -> MapTokenizer:
     npz = os.path.join(checkpoint_dir, "params.npz")
     if os.path.isfile(npz):
         # Only shapes are needed to read an export: skip the (slow) random initialisation.
-        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0), raster_channels(config.raster)))
+        model = nnx.eval_shape(lambda: build_vqvae(config, nnx.Rngs(0)))
         graphdef, state = nnx.split(model, nnx.Param)
         params = load_params_npz(npz, nnx.to_pure_dict(state))  # ValueError naming npz when it is damaged
     else:
-        model = nnx.eval_shape(lambda: MapVQVAE(config.model, nnx.Rngs(0), raster_channels(config.raster)))
+        model = nnx.eval_shape(lambda: build_vqvae(config, nnx.Rngs(0)))
         graphdef, state = nnx.split(model, nnx.Param)
         try:
             params = restore_params(checkpoint_dir, nnx.to_pure_dict(state))

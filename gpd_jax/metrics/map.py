@@ -136,6 +136,15 @@ def _chamfer_of_nearest(a2b, a_valid, b2a, b_valid):
 
 
 # ------------------------------------------------------------------------------------------ cut-invariant score
+RECONSTRUCTION_THRESHOLDS_M = (0.5, 1.0, 1.5)  # the tolerances of the tokenizer's reconstruction figures
+CONNECT_TOLERANCE_M = 0.5  # a GT line whose first point lies this close to another's last point is its successor
+
+
+def threshold_key(t: float) -> str:
+    """The suffix naming a threshold in sums and metrics: 0.5 -> "0.5", 1.0 -> "1"."""
+    return f"{float(t):g}"
+
+
 CUTFREE_SAMPLES = 2  # samples per polyline segment of the cut-invariant score (at (k + 0.5) / S of its length)
 _CUTFREE_KEYS = ("cf_pred_len", "cf_pred_hit_len", "cf_gt_len", "cf_gt_hit_len", "cf_pred_dist_sum",
                  "cf_pred_dist_len", "cf_gt_dist_sum", "cf_gt_dist_len", "cf_pred_hit_dist_sum",
@@ -272,7 +281,8 @@ def _segment_samples(lines: jax.Array, line_valid: jax.Array, samples: int):
 
 
 def cutfree_frame_sums(pred: jax.Array, pred_exists: jax.Array, gt: jax.Array, gt_valid: jax.Array, *,
-                       threshold: float = 1.5, samples: int = CUTFREE_SAMPLES) -> dict[str, jax.Array]:
+                       threshold: float = 1.5, samples: int = CUTFREE_SAMPLES,
+                       extra_thresholds: tuple[float, ...] = ()) -> dict[str, jax.Array]:
     """Sums of the cut-invariant map score of one frame (no matching, no point order).
 
     Both line sets are taken as the union of their segments. Every segment is sampled at `samples` evenly spaced
@@ -284,6 +294,8 @@ def cutfree_frame_sums(pred: jax.Array, pred_exists: jax.Array, gt: jax.Array, g
       gt: f32[L, P, 2] GT lines; gt_valid: bool[L].
       threshold: metres; a sample counts as a hit when its distance to the other set's segments is <= threshold
         (a point exactly on the other set is a hit, unlike the paper's F1).
+      extra_thresholds: more thresholds (metres) whose hit lengths are added as "cf_pred_hit_len@T" and
+        "cf_gt_hit_len@T" (T formatted with `threshold_key`): the same distances, other tolerances.
 
     Returns:
       {key: f32[]} for `_CUTFREE_KEYS`: predicted / GT length, the length within the threshold of the other set
@@ -304,7 +316,11 @@ def cutfree_frame_sums(pred: jax.Array, pred_exists: jax.Array, gt: jax.Array, g
     hit_p, hit_g = d_pred <= threshold, d_gt <= threshold
     fin_p = jnp.where(both, d_pred, 0.0)
     fin_g = jnp.where(both, d_gt, 0.0)
-    return {
+    extra = {}
+    for t in extra_thresholds:
+        extra["cf_pred_hit_len@" + threshold_key(t)] = jnp.sum(jnp.where(d_pred <= t, pw, 0.0))
+        extra["cf_gt_hit_len@" + threshold_key(t)] = jnp.sum(jnp.where(d_gt <= t, gw, 0.0))
+    return extra | {
         "cf_pred_len": jnp.sum(pw), "cf_pred_hit_len": jnp.sum(jnp.where(hit_p, pw, 0.0)),
         "cf_gt_len": jnp.sum(gw), "cf_gt_hit_len": jnp.sum(jnp.where(hit_g, gw, 0.0)),
         "cf_pred_dist_sum": jnp.sum(pw * fin_p), "cf_pred_dist_len": jnp.where(both, jnp.sum(pw), 0.0),
@@ -353,6 +369,11 @@ def reduce_cutfree(s: dict[str, np.ndarray]) -> dict[str, float]:
 
     out = {"map_f1_cutfree": mean(f1_of(prec, rec)), "map_precision_cutfree": mean(prec),
            "map_recall_cutfree": mean(rec), "map_chamfer_cutfree": mean(cham), "map_chamfer_within_cutfree": mean(within)}
+    for k in s:
+        if k.startswith("cf_pred_hit_len@"):
+            t = k.split("@", 1)[1]
+            out["map_f1_cutfree@" + t] = mean(f1_of(ratio(s[k], s["cf_pred_len"]),
+                                                    ratio(s["cf_gt_hit_len@" + t], s["cf_gt_len"])))
     if "cf_pred_hit_len_directed" in s:  # sums made before the directed hits existed lack them
         dprec = ratio(s["cf_pred_hit_len_directed"], s["cf_pred_len"])
         drec = ratio(s["cf_gt_hit_len_directed"], s["cf_gt_len"])
@@ -365,7 +386,8 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
                     threshold: float = 1.5, step_axis: int | None = None,
                     count_exact_hits: bool | jax.Array = False,
                     length_edges: tuple[float, ...] | None = None, window_half: float | None = None,
-                    cutfree: bool = True, cutfree_samples: int = CUTFREE_SAMPLES) -> dict[str, jax.Array]:
+                    cutfree: bool = True, cutfree_samples: int = CUTFREE_SAMPLES,
+                    extra_thresholds: tuple[float, ...] = (), connectivity: bool = False) -> dict[str, jax.Array]:
     """Sums and counts of the map metrics for a batch of decoded frames.
 
     Args:
@@ -387,6 +409,12 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         `BORDER_TOLERANCE_M` inside the window).
       cutfree: also the sums of the cut-invariant score (`cutfree_frame_sums` at the same threshold, keys "cf_*"),
         reported beside the paper's F1 as map_f1_cutfree etc.; cutfree_samples: its samples per segment.
+      extra_thresholds: more thresholds (metres) of the paper's F1 ("tp@T") and of the cut-invariant one
+        (`cutfree_frame_sums`'s "cf_*_hit_len@T"): map_f1@T and map_f1_cutfree@T.
+      connectivity: adds "conn_pairs" (GT successor pairs: two valid GT lines, the first point of one within
+        `CONNECT_TOLERANCE_M` of the last point of the other) and "conn_kept" (those whose Hungarian-matched
+        predictions both exist and still join: last point to first point within `threshold`): map_connectivity,
+        the share of successor pairs the reconstruction keeps.
 
     Returns:
       {key: f32[S]} with S the step-axis length (1 if None); feed to `reduce_map_metrics`.
@@ -430,6 +458,11 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         "chamfer_corrected_sum": cc, "chamfer_corrected_count": ok.astype(jnp.float32),
         "chamfer_corrected_skipped": (~ok).astype(jnp.float32),
     }
+    for t in extra_thresholds:
+        per_frame["tp@" + threshold_key(t)] = jnp.sum(both & lower & (d <= t), (-2, -1)).astype(jnp.float32)
+    if connectivity:
+        per_frame["conn_pairs"], per_frame["conn_kept"] = _successor_pairs(matched, matched_exists, gt_points, gv,
+                                                                           threshold)
     lead = tp.ndim
 
     def reduce(x, groups: int = 0):  # sum over the leading dims but the step axis; keep `groups` trailing dims
@@ -441,7 +474,8 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         return jnp.sum(x.reshape((x.shape[0], -1) + tail), 1)
 
     if cutfree:
-        cf = jax.lax.map(lambda a: cutfree_frame_sums(*a, threshold=threshold, samples=cutfree_samples),
+        cf = jax.lax.map(lambda a: cutfree_frame_sums(*a, threshold=threshold, samples=cutfree_samples,
+                                                      extra_thresholds=extra_thresholds),
                          (frames(pred_points, 3), frames(pred_exists, 1), frames(gt_points, 3), frames(gv, 1)),
                          batch_size=min(n, 4))
         per_frame.update({k: v.reshape(lead_shape) for k, v in cf.items()})
@@ -460,6 +494,17 @@ def map_metric_sums(pred_points: jax.Array, pred_logits: jax.Array, gt_points: j
         inside = jnp.max(jnp.abs(gt_points[..., (0, -1), :]), -1) < window_half - BORDER_TOLERANCE_M  # [..., L, 2]
         recall_groups("ends", jnp.sum(inside, -1), len(END_LABELS))
     return out
+
+
+def _successor_pairs(matched, matched_exists, gt, gt_valid, threshold: float):
+    """(GT successor pairs f32[...], those kept f32[...]) per frame; see `map_metric_sums`'s `connectivity`.
+    matched f32[..., L, P, 2] the predictions matched to the GT slots, matched_exists bool[..., L]."""
+    gap = lambda x: jnp.linalg.norm(x[..., :, None, -1, :] - x[..., None, :, 0, :], axis=-1)  # [..., L, L] i -> j
+    n = gt.shape[-3]
+    pair = (gt_valid[..., :, None] & gt_valid[..., None, :] & ~jnp.eye(n, dtype=bool)
+            & (gap(gt) <= CONNECT_TOLERANCE_M))
+    kept = pair & matched_exists[..., :, None] & matched_exists[..., None, :] & (gap(matched) <= threshold)
+    return jnp.sum(pair, (-2, -1)).astype(jnp.float32), jnp.sum(kept, (-2, -1)).astype(jnp.float32)
 
 
 def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
@@ -501,13 +546,18 @@ def reduce_map_metrics(sums: dict[str, jax.Array]) -> dict[str, float]:
         "map_chamfer_corrected": mean(ratio(s["chamfer_corrected_sum"], s["chamfer_corrected_count"])),
         "map_chamfer_corrected_skipped": float(s["chamfer_corrected_skipped"].sum()),
         **{k: v for name in ("length", "ends") if name + "_tp" in s for k, v in groups(name).items()},
-        **(reduce_cutfree({k: s[k] for k in _CUTFREE_KEYS if k in s}) if "cf_pred_len" in s else {}),
+        **(reduce_cutfree({k: s[k] for k in s if k.startswith("cf_")}) if "cf_pred_len" in s else {}),
+        **{"map_f1@" + k[3:]: mean(ratio(2 * s[k], s["tp"] + s["fp"] + s["tp"] + s["fn"]))
+           for k in s if k.startswith("tp@")},  # TP + FP and TP + FN do not depend on the threshold
+        **({"map_connectivity": mean(ratio(s["conn_kept"], s["conn_pairs"])),
+            "map_successor_pairs": float(s["conn_pairs"].sum())} if "conn_pairs" in s else {}),
     }
 
 
 _map_metric_sums_jit = jax.jit(map_metric_sums, static_argnames=("threshold", "step_axis", "count_exact_hits",
                                                                  "length_edges", "window_half", "cutfree",
-                                                                 "cutfree_samples"))
+                                                                 "cutfree_samples", "extra_thresholds",
+                                                                 "connectivity"))
 
 
 def map_metrics(*args, **kwargs) -> dict[str, float]:

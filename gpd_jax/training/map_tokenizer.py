@@ -34,8 +34,8 @@ from gpd_jax.data.loader import parse_mixture
 from gpd_jax.fsutil import atomic_write_text
 from gpd_jax.map_tokenizer import core, load_tokenizer
 from gpd_jax.map_tokenizer.data import frame_batches
-from gpd_jax.map_tokenizer.evaluation import make_eval_step, rasterize_batch, tokenizer_metrics
-from gpd_jax.map_tokenizer.model import MapVQVAE
+from gpd_jax.map_tokenizer.evaluation import encoder_input, frame_arrays, make_eval_step, tokenizer_metrics
+from gpd_jax.map_tokenizer.model import build_vqvae
 from gpd_jax.map_tokenizer.raster import raster_channels
 from gpd_jax.training.common import (MetricsLog, checkpoint_manager, compiled_once, restore_state, save_state,
                                      step_key)
@@ -51,7 +51,7 @@ class TrainState(NamedTuple):
 
 def build_model(config: ml_collections.ConfigDict, seed: int | None = None):
     """(graphdef, params) of a freshly initialised `MapVQVAE`; params is a pure dict of arrays."""
-    model = MapVQVAE(config.model, nnx.Rngs(config.seed if seed is None else seed), raster_channels(config.raster))
+    model = build_vqvae(config, nnx.Rngs(config.seed if seed is None else seed))
     graphdef, state = nnx.split(model, nnx.Param)
     return graphdef, nnx.to_pure_dict(state)
 
@@ -82,10 +82,10 @@ def make_optimizer(train_cfg: ml_collections.ConfigDict, params) -> optax.Gradie
 
 def loss_fn(graphdef, config, params, batch, quantized: bool | jax.Array = True):
     """(total loss, aux dict) for one batch; see the module docstring. `quantized` False: continuous latents."""
-    raster = rasterize_batch(config, batch)
+    inputs = encoder_input(config, batch)
     if config.train.decoder_only:  # no gradient work for the frozen encoder and codebook
         params = {k: jax.lax.stop_gradient(v) if k in FROZEN_WHEN_DECODER_ONLY else v for k, v in params.items()}
-    out = core.forward(graphdef, params, raster, quantized)
+    out = core.forward(graphdef, params, inputs, quantized)
     lines, aux = core.line_loss(out["points"], out["logits"], batch["lanes"], batch["lanes_valid"], config.loss.w_l1,
                                 config.loss.w_bce)
     total = lines + config.loss.vq_weight * out["vq_loss"]
@@ -117,19 +117,20 @@ def make_train_step(graphdef, config, tx):
 
 def compiled_steps(graphdef, config, tx):
     """(train step, eval step), jitted once per model structure and step-relevant config (`compiled_once`; the
-    eval step depends on the structure alone)."""
+    eval step depends on the structure and the raster settings alone)."""
     train = compiled_once(("map_tokenizer", graphdef, step_key(config)),
                           lambda: jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,)))
-    return train, compiled_once(("map_tokenizer_eval", graphdef), lambda: jax.jit(make_eval_step(graphdef)))
+    return train, compiled_once(("map_tokenizer_eval", graphdef, config.raster.to_json()),
+                                lambda: jax.jit(make_eval_step(graphdef, config, diagnostics=False)))
 
 
 def kmeans_init(graphdef, params, config, key, batches: Iterator[dict]):
     """Params with the codebook replaced by k-means centres of encoder outputs of `kmeans_rasters` rasters."""
-    enc = jax.jit(lambda p, b: core.encode_latents(graphdef, p, rasterize_batch(config, b)))
+    enc = jax.jit(lambda p, b: core.encode_latents(graphdef, p, encoder_input(config, b)))
     zs, n = [], 0
     while n < config.train.kmeans_rasters:
         b = next(batches)
-        z = enc(params, b)
+        z = enc(params, frame_arrays(b))
         zs.append(z.reshape(-1, z.shape[-1]))
         n += z.shape[0]
     z = jnp.concatenate(zs)
@@ -270,7 +271,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
                                    usage=jnp.full_like(state.usage, 1.0 / config.model.num_codes))
             log.record(dict(step=step, event="kmeans_init"))
         batch = next(train_iter)
-        state, metrics, z = train_step(state, batch)
+        state, metrics, z = train_step(state, frame_arrays(batch))
         window_n += tcfg.batch_size
         s1 = step + 1
         if (tcfg.restart_every and not decoder_only and s1 % tcfg.restart_every == 0 and bool(state.kmeans_done)
