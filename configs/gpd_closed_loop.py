@@ -1,4 +1,4 @@
-"""Closed-loop supervised fine-tuning (CAT-K, issue 67 part 1) of gpd_sampling: every parameter trains at the states
+"""Closed-loop supervised fine-tuning (CAT-K) of gpd_sampling: every parameter trains at the states
 the model's own rollouts reach (`train.closed_loop_top_k`; docs/training.md, "Closed-loop fine-tuning").
 
 Each train step rolls the model out from each scene's logged history (traffic simulation: map from the log, ego and
@@ -25,7 +25,7 @@ Training (no validation during the run: choices are made on the development stor
 
     python train.py --config configs/gpd_closed_loop.py:catk --workdir runs/closed_loop
 
-Stage `reward` (issue 67 part 2): reward fine-tuning, 4 sampled rollouts of each scene at temperature 0.5, each agent
+Stage `reward`: reward fine-tuning, 4 sampled rollouts of each scene at temperature 0.5, each agent
 rewarded -1 for a collision, -1 x its share of frames off the drivable area, +0.5 x its progress (path length over
 the log's, at most 1), group-relative advantages over the 4, the policy-gradient loss beside the supervised
 teacher-forced loss on the log (the anchor). Meant to start from the `catk` stage's export; this session's first

@@ -3,7 +3,7 @@
 
 Only the standard library's sqlite3 and numpy are needed (pyproj is used for map projection when installed;
 otherwise a built-in exact transverse Mercator covers WGS84 lon/lat and UTM, which is what nuPlan uses).
-Schemas: `shared/reference/sledge_nuplan.md` §3-4.
+Schemas: nuPlan's SQLite log tables and map layers (docs/data.md).
 
 What is read, and the conventions:
 
