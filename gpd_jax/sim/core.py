@@ -742,7 +742,8 @@ def run_host(model: Model, scenes: SimScene, planner: Callable[[Observation], An
     size f32[B, A, 2], map_tokens i32[B, T, M], cur_map_tokens i32[B, M], polylines f32[B, L, P, 2],
     polyline_valid bool[B, L, P], route_xy f32[B, R, 2], route_heading f32[B, R], route_s f32[B, R], pred_pose
     f32[B, 3], pred_velocity f32[B, 2], hidden f32[B, N, d] or None, log_ego f32[B, Ts, 3], log_ego_valid
-    bool[B, Ts]. It returns the B egos as one float array, one of (S = `model.spec.frame_stride`):
+    bool[B, Ts], road (RoadGeometry [B, ...] or None), log_xy f32[B, Ts, A, 2], log_heading f32[B, Ts, A],
+    log_valid bool[B, Ts, A] (the log, for oracles only). It returns the B egos as one float array, one of (S = `model.spec.frame_stride`):
 
     * f32[B, 3]: each scenario's next model-frame pose (x, y, heading; scene frame);
     * f32[B, 5]: pose and velocity (vx, vy) there;
