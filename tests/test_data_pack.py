@@ -12,7 +12,7 @@ from gpd_jax.data import __main__ as data_cli
 from gpd_jax.data.errors import DataError
 from gpd_jax.data.loader import SplitSource
 from gpd_jax.data.pack import check_packed, kept_frames, pack_store, packed_record
-from gpd_jax.data.roadgeom import ROAD_KEYS
+from gpd_jax.data.roadgeom import MAP_EDGE_KEYS, ROAD_KEYS
 from gpd_jax.data.store import read_manifest
 from gpd_jax.spec import ModelSpec
 
@@ -68,10 +68,10 @@ def test_the_pack_records_what_it_dropped_and_is_smaller(stores):
     src, packed, archive = stores
     rec = packed_record(packed)
     assert rec["frame_stride"] == 10 and rec["num_agents"] == 17 and rec["splits"] == ["train"]
-    assert rec["dropped_keys"] == sorted(ROAD_KEYS) and rec["source"] == os.path.abspath(src)
+    assert rec["dropped_keys"] == sorted(ROAD_KEYS + MAP_EDGE_KEYS) and rec["source"] == os.path.abspath(src)
     man = read_manifest(packed)
     assert set(man["splits"]) == {"train"} and man["num_samples"] == 6
-    assert not set(ROAD_KEYS) & set(man["keys"])
+    assert not set(ROAD_KEYS + MAP_EDGE_KEYS) & set(man["keys"])
     assert not os.path.exists(os.path.join(packed, "val"))
     raw = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(os.path.join(src, "train")) for f in fs)
     assert os.path.getsize(archive) < 0.5 * raw
