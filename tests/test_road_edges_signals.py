@@ -5,8 +5,6 @@ curbstones, a SUMO network's outline) and oriented with the drivable side on the
 flagged and a green one not; stores of format 1 (no map edges, no signals) still load and score as before.
 """
 
-import dataclasses
-import json
 import os
 import re
 from collections import Counter

@@ -19,7 +19,7 @@ import gpd_jax
 from gpd_jax import sim
 from gpd_jax.sim import world_planner as W
 
-from test_sim import _lanes, _road, straight_scenes
+from test_sim import _lanes, straight_scenes
 
 PARKED_X = 35.0
 SMALL = W.WorldPlannerOptions(samples=2, horizon=4, speeds=(4.0, 10.0), side_speeds=(), nudges_m=(),

@@ -37,7 +37,7 @@ import logging
 import sys
 
 from gpd_jax import interrupt
-from gpd_jax.cliargs import (ArgumentParser, UsageError, count, count0, nonnegative, output_dir, output_file, positive,
+from gpd_jax.cliargs import (ArgumentParser, UsageError, count, nonnegative, output_dir, output_file, positive,
                              program, run_command, share)
 from gpd_jax.data.executors import EXECUTORS, make_executor
 

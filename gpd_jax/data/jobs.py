@@ -26,7 +26,6 @@ import numpy as np
 from gpd_jax.data import preprocess, store
 from gpd_jax.data.errors import DataError
 from gpd_jax.data import executors
-from gpd_jax.data.executors import worker_init  # noqa: F401 - worker_init: the sources' pools
 
 log = logging.getLogger(__name__)
 

@@ -98,7 +98,7 @@ def check_flags(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Na
         flag = next((f for f in ("top-k", "top-p") if f.replace("-", "_") in str(e)), "temperature")
         raise UsageError(f"--{flag}: {e}") from None
     try:
-        ckpt = args.checkpoint = zoo.resolve(args.checkpoint)
+        args.checkpoint = zoo.resolve(args.checkpoint)
     except FileNotFoundError as e:
         raise UsageError(f"--checkpoint: {e}") from None
     args.data = os.path.abspath(args.data)

@@ -44,13 +44,12 @@ import jax
 import jax.numpy as jnp
 
 from gpd_jax.checkpoint import Model
-from gpd_jax.decoding import DecodeState, Frame, advance, prefill
+from gpd_jax.decoding import DecodeState, advance, prefill
 from gpd_jax.geometry import RoadGeometry, lane_direction, pose_on_path, project_on_path
 from gpd_jax.options import Sampling
 from gpd_jax.scene import wrap_angle
 from gpd_jax.sim.agents import idm_along_route
 from gpd_jax.sim.core import Observation, Policy, SimError, _lanes, _parts, append_frame, predicted_agents
-from gpd_jax.sim.dynamics import hermite
 from gpd_jax.sim.policies import gpd_head_policy, observed_frames
 from gpd_jax.sim.scores import CLS_WEIGHTS, cls_scores, road_queries
 from gpd_jax.sim.tracker import plan_path

@@ -14,13 +14,16 @@ import signal
 import time
 import traceback
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import ml_collections
 import numpy as np
 
 from gpd_jax.config import load_config
 from gpd_jax.fsutil import orbax_manager
+
+if TYPE_CHECKING:  # annotations only: orbax is imported where it is used
+    import orbax.checkpoint as ocp
 
 
 def graft_params(template, source, fresh) -> tuple[Any, list[str]]:
