@@ -84,3 +84,20 @@ def test_counts_must_be_positive_in_the_library(tmp_path, kw):
     assert not os.path.exists(tmp_path / "o")
     with pytest.raises(DataError, match="max_per_log"):
         nuplan.build_nuplan(str(tmp_path / "n"), str(tmp_path), str(tmp_path), max_per_log=0)
+
+
+def test_a_data_error_crosses_a_process_boundary_whole():
+    """A worker process sends its DataError back pickled: the file and the reason arrive, not a broken pool."""
+    import pickle
+
+    from gpd_jax.data.executors import LocalExecutor, run_all
+
+    e = pickle.loads(pickle.dumps(DataError("a/b.csv", "row 3: no x")))
+    assert (e.path, e.reason, str(e)) == ("a/b.csv", "row 3: no x", "a/b.csv: row 3: no x")
+    with pytest.raises(DataError, match="broken") as raised:
+        run_all(LocalExecutor(2), _raise_data_error, ["bad.csv", "other.csv"])
+    assert raised.value.path in ("bad.csv", "other.csv")
+
+
+def _raise_data_error(path):
+    raise DataError(path, "broken")

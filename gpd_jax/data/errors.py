@@ -12,3 +12,8 @@ class DataError(ValueError):
         self.path = None if path is None else os.fspath(path)
         self.reason = reason
         super().__init__(f"{self.path}: {reason}" if self.path else reason)
+
+    def __reduce__(self):
+        # as its arguments, not its message: a build's worker process sends the error back to the command, which
+        # names the file (the default reduction calls DataError(message) and the pool breaks instead)
+        return type(self), (self.path, self.reason)
