@@ -13,7 +13,7 @@ checkpoint built by it ships yet.
 Data (INTERACTION training sites, 2 windows per recording; the same scenes as an on-board tracker sees them; SUMO
 generated networks with legacy traffic, where built), `python -m gpd_jax.data ...`:
 
-    gpd-jax data build --source interaction --db /work/interaction --split train --max-per-log 2 \
+    gpd-jax data build --source interaction --db ../interaction --split train --max-per-log 2 \
         --out data/i67_interaction_train
     gpd-jax tokenizer encode --checkpoint map_tokenizer --data data/i67_interaction_train --frame-stride 10
     gpd-jax data sensor data/i67_interaction_train --out data/i67_interaction_train_sensor

@@ -2,7 +2,7 @@
 
 Runs in the official package's own environment (TensorFlow; `setup_official_env.sh` builds it):
 
-    /work/venvs/waymo/bin/python tests/conformance/run_official.py \\
+    VENV/bin/python tests/conformance/run_official.py \\
         [--scenes tests/conformance/scenes.npz] [--out tests/conformance/official.json]
 
 For each scene of the `.npz` (format: `make_scenes.py`) it writes a `Scenario` (91 states per agent, invalid states

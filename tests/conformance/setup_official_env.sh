@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Builds the official WOSAC package's own environment (TensorFlow; never the project's) and reruns the conformance
-# record. Usage: bash tests/conformance/setup_official_env.sh [VENV]   (default /work/venvs/waymo)
+# record. Usage: bash tests/conformance/setup_official_env.sh [VENV]   (default .venv-waymo)
 # The package is pinned as the issue measured it; on Python 3.11 pip resolves tensorflow 2.13.0,
 # tensorflow-probability 0.21.0, numpy 1.23.5 (about 2 GB, a few minutes).
 set -euo pipefail
-VENV=${1:-/work/venvs/waymo}
+VENV=${1:-.venv-waymo}
 PY=${PYTHON:-python3.11}
 HERE=$(cd "$(dirname "$0")" && pwd)
 if [ ! -x "$VENV/bin/python" ]; then
