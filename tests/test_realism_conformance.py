@@ -11,8 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpd_jax.geometry import RoadGeometry
+from gpd_jax.geometry import RoadGeometry, TrafficSignals
 from gpd_jax.metrics import realism as R
+from gpd_jax.scene import TYPE_ID
 
 HERE = pathlib.Path(__file__).parent / "conformance"
 H = 11
@@ -28,8 +29,9 @@ def scenes():
     return d, json.loads((HERE / "official.json").read_text())
 
 
-def score(d, config, rules, fields=None):
-    """Our per-scene metrics of every conformance scene (one compiled call, vmapped over scenes)."""
+def score(d, config, rules, signals=False, agent_type=None):
+    """Our per-scene metrics of every conformance scene (one compiled call, vmapped over scenes); with `signals`
+    the traffic-light term is scored from the scenes' signals and lanes (meaningful for those with signals)."""
     s = d["sim_xy"].shape[1]
     rep = lambda x: np.repeat(x[:, None, :H], s, 1)  # noqa: E731  the log's history
     sim_xy = np.concatenate([rep(d["log_xy"]), d["sim_xy"]], 2)
@@ -41,12 +43,15 @@ def score(d, config, rules, fields=None):
                         edge_valid=d["edge_valid"], lanes=np.zeros((n, 1, 2, 2), np.float32),
                         lane_valid=np.zeros((n, 1, 2), bool))
 
-    def one(sx, sh, sv, lx, lh, lv, size, rd, ev, at):
+    sig = TrafficSignals(state=d["signal_state"], stop=d["signal_stop"], lane=d["signal_lane"],
+                         lane_valid=d["signal_lane_valid"]) if signals else None
+
+    def one(sx, sh, sv, lx, lh, lv, size, rd, ev, at, sg, ln, lnv):
         return R.scenario_realism(sx, sh, sv, lx, lh, lv, size, H, rd, ev, config=config, rules=rules,
-                                  agent_type=at)
+                                  agent_type=at, signals=sg, lanes=ln, lane_valid=lnv)
 
     args = (sim_xy, sim_h, sim_v, d["log_xy"], d["log_heading"], d["log_valid"], d["size"], road, d["evaluated"],
-            d["agent_type"])
+            d["agent_type"] if agent_type is None else agent_type, sig, d["lanes"], d["lane_valid"])
     out = jax.jit(jax.vmap(one))(*jax.tree.map(jnp.asarray, args))
     return {k: np.asarray(v, np.float64) for k, v in out.items()}
 
@@ -62,6 +67,8 @@ def test_official_mode_reproduces_the_official_code(scenes, config):
     d, rec = scenes
     ours = score(d, config, "official")
     for i, scene in enumerate(rec["scenes"]):
+        if d["signal_present"][i].any():
+            continue  # scored with its signals below
         off = scene[config]
         for key in LIKELIHOODS:
             assert abs(ours[key][i] - off[key]) <= 1e-4, (scene["name"], key, ours[key][i], off[key])
@@ -72,16 +79,57 @@ def test_official_mode_reproduces_the_official_code(scenes, config):
         np.testing.assert_allclose(ours["metametric"], [s["2024"]["metametric"] for s in rec["scenes"]], atol=1e-4)
 
 
+def with_signals(d):
+    return [i for i in range(len(d["names"])) if d["signal_present"][i].any()]
+
+
+@pytest.mark.parametrize("config", ["2025", "2024"])
+def test_official_mode_reproduces_the_traffic_light_term(scenes, config):
+    """On the scene with traffic signals (red runs, a crossing on green, a stop at red, caution, arrow, flashing
+    and unknown states, a signal no agent uses, an agent leaving the log, a pedestrian on red), the official
+    mode with the signals reproduces every likelihood, the traffic-light term among them, and the official
+    meta-metric itself (2025: the traffic-light term weighed in)."""
+    d, rec = scenes
+    idx = with_signals(d)
+    assert idx
+    ours = score(d, config, "official", signals=True)
+    for i in idx:
+        off = rec["scenes"][i][config]
+        for key in LIKELIHOODS + ["traffic_light_violation_likelihood", "metametric"]:
+            if key == "traffic_light_violation_likelihood" and config == "2024":
+                continue  # not a 2024 term
+            assert abs(ours[key][i] - off[key]) <= 1e-4, (rec["scenes"][i]["name"], key, ours[key][i], off[key])
+        for key, name in {**OTHER, "red_light_rate": "simulated_traffic_light_violation_rate"}.items():
+            if key in ours:
+                assert abs(ours[key][i] - off[name]) <= 1e-4 * max(1.0, abs(off[name])), (key, ours[key][i])
+    assert 0.0 < min(rec["scenes"][i]["2025"]["simulated_traffic_light_violation_rate"] for i in idx)
+
+
+def test_the_traffic_light_rule_set_back_fails(scenes, monkeypatch):
+    """The scene tells the official rule from the corrected one: the corrected lane test (true distance, a
+    crossing within 5 m of the stop point, the signal's own piece among the lanes), and every agent scored
+    rather than vehicles alone, each move the traffic-light likelihood off the official record."""
+    d, rec = scenes
+    idx = with_signals(d)
+    off = np.array([rec["scenes"][i]["2025"]["traffic_light_violation_likelihood"] for i in idx])
+    everyone = np.where(d["agent_type"] == TYPE_ID["other"], TYPE_ID["car"], d["agent_type"])
+    assert np.abs(score(d, "2025", "official", True, everyone)["traffic_light_violation_likelihood"][idx]
+                  - off).max() > 1e-3
+    monkeypatch.setattr(R, "official_signal_geometry", R.signal_geometry)  # the corrected violation test
+    assert np.abs(score(d, "2025", "official", True)["traffic_light_violation_likelihood"][idx] - off).max() > 1e-3
+
+
 def test_corrected_rules_differ_from_the_official_ones_where_they_should(scenes):
     """The corrected rules are not the official ones on these scenes: the kinematic terms move (the padding NaNs
-    and the first future frames), the others agree wherever every agent stays in the log."""
+    and the first future frames), the others agree wherever every agent stays in the log (the traffic-light scene
+    has one that leaves)."""
     d, rec = scenes
     corrected = score(d, "2025", "corrected")
     official = [s["2025"] for s in rec["scenes"]]
     kin = np.array([[abs(corrected[f"{k}_likelihood"][i] - o[f"{k}_likelihood"]) for i, o in enumerate(official)]
                     for k in ("linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration")])
     assert kin.max() > 1e-3
-    stay = [i for i, n in enumerate(d["names"]) if n != "agents_leave"]
+    stay = [i for i, n in enumerate(d["names"]) if n not in ("agents_leave", "traffic_lights")]
     for key in ("distance_to_nearest_object_likelihood", "collision_indication_likelihood",
                 "distance_to_road_edge_likelihood", "offroad_indication_likelihood"):
         np.testing.assert_allclose(corrected[key][stay], [official[i][key] for i in stay], atol=1e-4)

@@ -25,7 +25,8 @@ from gpd_jax.data.sources import interaction, nuplan, scenarionet, sumo_networks
 from gpd_jax.geometry import (EDGE_SOURCE_ID, SIGNAL_STATE_ID, TrafficSignals, edge_source_names, on_road,
                               road_from_arrays)
 from gpd_jax.metrics import realism
-from gpd_jax.metrics.traffic_lights import red_light_violation, signal_geometry
+from gpd_jax.metrics.traffic_lights import (official_lanes, official_red_light_violation, official_segment_distance,
+                                            official_signal_geometry, red_light_violation, signal_geometry)
 
 CFG = preprocess.SampleConfig()
 
@@ -297,6 +298,36 @@ def test_red_light_run_flagged_green_not():
     # a crossing where the agent is invalid on either side does not count
     xy, valid, sig, lanes, lv = _signal_scene("stop")
     assert not np.asarray(fn(xy, valid.at[5, 0].set(False), sig, lanes, lv)[0]).any()
+
+
+def test_official_red_light_run_flagged_green_not():
+    """The official rules on the same scene (the signal's piece lies on the first centreline: that centreline is
+    the signal's lane, `official_lanes`): the run on red flagged at its crossing frame, the same run on green,
+    caution, flashing or unknown not, nor the agent on the next lane or the one that stops."""
+    fn = jax.jit(chex.assert_max_traces(lambda xy, v, sig, lanes, lv: official_red_light_violation(
+        xy, v, official_signal_geometry(sig, lanes, lv)), n=1))
+    xy, valid, sig, lanes, lv = _signal_scene("stop")
+    _, _, row, present = official_lanes(sig, lanes, lv)
+    assert int(row[0]) == 0 and bool(present[0]) and not np.asarray(present[1:]).any()
+    red, inexact = fn(xy, valid, sig, lanes, lv)
+    red = np.asarray(red)
+    assert red[:, 0].tolist() == [False] * 6 + [True] + [False] * 5
+    assert not red[:, 1:].any() and int(inexact) == 0
+    for name in ("go", "caution", "flashing_stop", "unknown"):
+        assert not np.asarray(fn(*_signal_scene(name))[0]).any(), name
+    assert np.asarray(fn(*_signal_scene("arrow_stop"))[0])[:, 0].any()
+    # the official rule asks validity at the crossing frame only
+    assert np.asarray(fn(xy, valid.at[5, 0].set(False), sig, lanes, lv)[0])[6, 0]
+    assert not np.asarray(fn(xy, valid.at[6, 0].set(False), sig, lanes, lv)[0]).any()
+
+
+def test_official_lane_test_is_the_official_codes_nearest_segment():
+    """The official nearest-segment distance adds the projection where the true one subtracts it: a point 0.05 m
+    off a lane, 0.9 of the way along a 1 m segment, is 1.8 m from that segment and 0.1 m from the next one."""
+    p = jnp.array([0.9, 0.05])
+    a, b = jnp.array([[0.0, 0.0], [1.0, 0.0]]), jnp.array([[1.0, 0.0], [2.0, 0.0]])
+    d = official_segment_distance(p, a, b, jnp.ones(2, bool))
+    np.testing.assert_allclose(np.asarray(d), [np.hypot(1.8, 0.05), np.hypot(0.1, 0.05)], rtol=1e-6)
 
 
 def test_red_light_budget_counts_the_rest_as_violations():

@@ -128,8 +128,7 @@ def realism_batch(pred_xy, pred_heading, pred_valid, full: Scene, spec: ModelSpe
     # traffic lights (stores of format 2 with signals): states on the stored frames scored, with the lanes
     ts = spec.stored_frames_needed
     signals = None if full.signals is None else full.signals.replace(state=full.signals.state[:, :ts])
-    lanes = None if signals is None else (full.polylines, full.polyline_valid) if full.polylines is not None \
-        else (signals.lane, signals.lane_valid)
+    lanes = None if signals is None or full.polylines is None else (full.polylines, full.polyline_valid)
     out = {}
     for rules in RULES:
         fn = lambda sx, sh, sv, ev, lx, lh, lv, sz, rd, at, sg, ln, r=rules: scenario_realism(  # noqa: E731

@@ -90,7 +90,9 @@ import numpy as np
 
 from gpd_jax.geometry import RoadGeometry, TrafficSignals, on_road
 from gpd_jax.metrics.agents import box_corners
-from gpd_jax.metrics.traffic_lights import SignalGeometry, red_light_violation, signal_geometry
+from gpd_jax.metrics.traffic_lights import (OfficialSignalGeometry, SignalGeometry, official_lanes,
+                                            official_red_light_violation, official_signal_geometry,
+                                            red_light_violation, signal_geometry)
 from gpd_jax.scene import TYPE_ID, backward_difference, wrap_angle
 
 # ------------------------------------------------------------------------------------------------ constants
@@ -576,7 +578,8 @@ def road_edge_distance(edges: OrientedEdges, corners, valid, num_candidates: int
 
 def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: jax.Array, num_history: int,
                      dt: float = 0.1, edges: OrientedEdges | None = None,
-                     signals: SignalGeometry | None = None, rules: str = "corrected") -> RealismFeatures:
+                     signals: SignalGeometry | OfficialSignalGeometry | None = None,
+                     rules: str = "corrected") -> RealismFeatures:
     """The realism features of one trajectory set's future frames.
 
     Args:
@@ -586,8 +589,8 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
       dt: seconds between frames.
       edges: `orient_edges(scene.road)` (computed once per scene, shared by the log and every rollout), or None
         for a scene without road geometry (then distance_to_road_edge is `FAR`, offroad False).
-      signals: `signal_geometry` of the scene's signals (computed once per scene, states on these frames), or
-        None (no traffic-light feature).
+      signals: `signal_geometry` of the scene's signals (computed once per scene, states on these frames;
+        `official_signal_geometry` under the official rules), or None (no traffic-light feature).
       rules: "corrected": a speed (acceleration) is valid where its neighbours one (two) frames away are, history
         included; "official": the same computed on the future frames alone (the first and last future frame
         never valid for speeds, the first two and last two for accelerations).
@@ -613,7 +616,8 @@ def realism_features(xy: jax.Array, heading: jax.Array, valid: jax.Array, size: 
         angular_speed=w[fut], angular_acceleration=dw[fut], distance_to_nearest_object=dist,
         collision=(dist < 0) & v_f, time_to_collision=ttc, distance_to_road_edge=edge,
         offroad=(edge > 0) & v_f & (edge < FAR / 2), edge_inexact=inexact,
-        red_light=None if signals is None else red_light_violation(  # from the current frame: crossings into H..
+        red_light=None if signals is None else (  # from the current frame: crossings into H..
+            official_red_light_violation if isinstance(signals, OfficialSignalGeometry) else red_light_violation)(
             xy[num_history - 1:], valid[num_history - 1:],
             signals.replace(state=signals.state[num_history - 1:]))[0][1:])
 
@@ -669,8 +673,8 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
       rules: "corrected": a simulated kinematic value counts where the rollout has both neighbours and it is
         finite; "official": every simulated value counts, the NaN padding of the central differences in the top
         bin (the features' validity says which frames the rollout has: all future frames under these rules).
-      is_vehicle: bool[A], the agents whose time to collision is scored (the official rule: vehicles only);
-        None: all.
+      is_vehicle: bool[A], the agents whose time to collision and traffic-light violation are scored (the
+        official rule: vehicles only); None: all.
       history_steps: f32[A], the log's valid history frames: the official ADE divides each agent's summed
         error by its valid frames history included (the history's error is zero); None: future frames only.
 
@@ -717,12 +721,14 @@ def realism_metrics(sim: RealismFeatures, log: RealismFeatures, sim_xy, log_xy, 
                         ("traffic_light_violation", "red_light")):
         if name not in weights:
             continue
-        sim_any = jnp.any(getattr(sim, field) & log.valid[None], axis=1)  # [K, A]
-        log_any = jnp.any(getattr(log, field) & log.valid, axis=0)  # [A]
+        mask = log.valid & vehicle[None] if name == "traffic_light_violation" else log.valid  # official: vehicles
+        sim_any = jnp.any(getattr(sim, field) & mask[None], axis=1)  # [K, A]
+        log_any = jnp.any(getattr(log, field) & mask, axis=0)  # [A]
         ll = histogram_log_likelihood(log_any[:, None].astype(jnp.float32), sim_any.T.astype(jnp.float32),
                                       jnp.ones((sim_any.shape[1], k), bool), cfg[name])[:, 0]
         out[f"{name}_likelihood"] = jnp.exp(_masked_mean(ll, evaluated))
-        out[f"{field}_rate"] = _masked_mean(sim_any.astype(jnp.float32), jnp.broadcast_to(evaluated, sim_any.shape))
+        any_agent = jnp.any(getattr(sim, field) & log.valid[None], axis=1)  # the rate: every evaluated agent
+        out[f"{field}_rate"] = _masked_mean(any_agent.astype(jnp.float32), jnp.broadcast_to(evaluated, sim_any.shape))
     out["metametric"] = sum(w * out[f"{n}_likelihood"] for n, w in weights.items())
     for bucket in ("kinematic", "interactive", "map_based"):
         names = [n for n in weights if FEATURES[n] == bucket]
@@ -765,6 +771,18 @@ def continue_missing(xy, heading, valid, num_history: int):
     return jnp.where(fill[..., None], fill_xy, xy), jnp.where(fill, fill_h, heading)
 
 
+def official_signal_arrays(signals: TrafficSignals, lanes, lane_valid) -> dict[str, np.ndarray]:
+    """What the official code is handed of a batch of scenes' traffic signals and lanes (host arrays, leading
+    dim B; `gpd_jax.metrics.traffic_lights.official_lanes`): "official_lanes" f32[B, R, W, 2],
+    "official_lane_valid" bool[B, R, W] (rows of fewer than 2 points are not handed over), "signal_row" i32[B, S]
+    (each signal's lane row), "signal_present" bool[B, S]; with the store's "signal_state" and "signal_stop"
+    (`tests/conformance/run_official.py` reads them)."""
+    pts, valid, row, present = jax.vmap(official_lanes)(jax.tree.map(jnp.asarray, signals), jnp.asarray(lanes),
+                                                        jnp.asarray(lane_valid))
+    return {"official_lanes": np.asarray(pts), "official_lane_valid": np.asarray(valid),
+            "signal_row": np.asarray(row), "signal_present": np.asarray(present)}
+
+
 def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_valid, size, num_history: int,
                      road: RoadGeometry | None = None, evaluated=None, dt: float = 0.1,
                      config: str = "2025", max_edge_segments: int | None = None,
@@ -790,8 +808,9 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
         valid in the log at the current frame (the others are in neither the rollouts nor the log), every one
         of them present at every future frame of every rollout (`continue_missing` where a rollout lacks it),
         the history the log's; evaluated agents are among them.
-      agent_type: i32[A] (`gpd_jax.scene.AGENT_TYPES`): under the official rules time to collision is scored for
-        vehicles only (all but "other"); None, or the corrected rules: for every agent.
+      agent_type: i32[A] (`gpd_jax.scene.AGENT_TYPES`): under the official rules time to collision and the
+        traffic-light violation are scored for vehicles only (all but "other"); None, or the corrected rules: for
+        every agent.
     """
     if rules not in RULES:
         raise ValueError(f"realism rules {rules!r}: expected one of {RULES}")
@@ -812,7 +831,8 @@ def scenario_realism(sim_xy, sim_heading, sim_valid, log_xy, log_heading, log_va
         first = max(0, num_history - OFFICIAL_HISTORY_FRAMES)
         history_steps = jnp.sum(log_valid[first:num_history], axis=0).astype(jnp.float32)
     is_vehicle = None if agent_type is None or rules != "official" else agent_type != TYPE_ID["other"]
-    geo = None if signals is None else signal_geometry(signals, lanes, lane_valid)
+    geo = None if signals is None else (official_signal_geometry if rules == "official" else signal_geometry)(
+        signals, lanes, lane_valid)
     feats = lambda x, h, v: realism_features(x, h, v, size, num_history, dt, edges, geo, rules)  # noqa: E731
     log = feats(log_xy, log_heading, log_valid)
     sim = jax.vmap(feats)(sim_xy, sim_heading, sim_valid)

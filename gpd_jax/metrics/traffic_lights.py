@@ -91,10 +91,23 @@ def _distance(p, a, b, ok):
     return jnp.where(ok, d, jnp.inf)
 
 
+def _first_events(event, max_events: int):
+    """The first `max_events` True positions of `event bool[...]` in its flat (frame-major) order: (flat index
+    i32[E], used bool[E] (fewer events than E), rank i32[N] (events up to and including each flat position),
+    count i32[])."""
+    rank = jnp.cumsum(event.reshape(-1), dtype=jnp.int32)
+    count = rank[-1]
+    idx = jnp.searchsorted(rank, jnp.arange(1, max_events + 1, dtype=jnp.int32))  # the e-th event's position
+    return jnp.minimum(idx, rank.shape[0] - 1), jnp.arange(max_events) < count, rank, count
+
+
 def signal_geometry(signals: TrafficSignals, lanes, lane_valid,
                     num_candidates: int = NUM_CANDIDATES) -> SignalGeometry:
     """`SignalGeometry` of one scene: `signals` (unbatched, states on the scored frames) and the scene's lane
-    centrelines `lanes f32[L, P, 2]`, `lane_valid bool[L, P]` (`Scene.polylines`, `polyline_valid`)."""
+    centrelines `lanes f32[L, P, 2]`, `lane_valid bool[L, P]` (`Scene.polylines`, `polyline_valid`; None: the
+    signals' own lanes only)."""
+    if lanes is None:
+        lanes, lane_valid = signals.lane, signals.lane_valid
     lane = signals.lane.astype(jnp.float32)
     oa, ob, ook = _segments(lane, signals.lane_valid)  # [S, Q-1]
     stop = signals.stop.astype(jnp.float32)
@@ -149,11 +162,7 @@ def red_light_violation(xy, valid, geo: SignalGeometry, max_events: int = MAX_EV
     crossed = (along[:-1] < stop_along) & (along[1:] > stop_along) & near[1:] & (valid[:-1] & valid[1:])[..., None]
     red = jnp.isin(geo.state[1:][:, slot], jnp.asarray(STOP_STATES))  # [T-1, A, k]
     event = crossed & red & present[None]  # [T-1, A, k]
-    rank = jnp.cumsum(event.reshape(-1), dtype=jnp.int32)  # events up to and including each position
-    count = rank[-1]
-    idx = jnp.searchsorted(rank, jnp.arange(1, max_events + 1, dtype=jnp.int32))  # the e-th event's position
-    idx = jnp.minimum(idx, rank.shape[0] - 1)
-    used = jnp.arange(max_events) < count
+    idx, used, rank, count = _first_events(event, max_events)
     t_i = idx // (a_n * k) + 1
     a_i = (idx // k) % a_n
     s_i = slot[a_i, idx % k]
@@ -167,3 +176,181 @@ def red_light_violation(xy, valid, geo: SignalGeometry, max_events: int = MAX_EV
     beyond_mask = event & (rank.reshape(event.shape) > max_events)
     out = out.at[1:].max(jnp.any(beyond_mask, -1))
     return out, (jnp.maximum(count - max_events, 0) + jnp.sum(crowded)).astype(jnp.int32)
+
+
+# ------------------------------------------------------------------------------------------------ official rules
+OFFICIAL_FAR = 1e10  # the official code's distance to a segment that is not one
+OFFICIAL_RADIUS_M = 24.0  # segments within this of a signal's lane piece take part in its official lane test
+OFFICIAL_CANDIDATES = 512  # at most this many of them per signal (nearest bounding boxes first)
+OFFICIAL_MAX_EVENTS = 64  # candidate crossings per trajectory whose official lane test runs
+MATCH_M = 0.5  # a signal's lane is the scene's centreline passing this near its stop point (`official_lanes`)
+
+
+@flax.struct.dataclass(frozen=True)
+class OfficialSignalGeometry:
+    """What the official rules' violation test needs of one scene's signals (`official_signal_geometry`).
+
+    The lanes are those the official code is handed (`official_lanes`; `tests/conformance/run_official.py`,
+    `rollout.py --export-official`); the official code pads them with zeros to the longest and takes a segment
+    wherever its first point is valid (the last point of a shorter lane joined to the origin), as here.
+
+    Attributes:
+      state: i32[T, S] the states; present: bool[S] signals handed over (a piece of at least 2 points).
+      stop: f32[S, 2]; fence_a, fence_d: f32[S, 2] the start and (end - start) of the signal lane's segment
+        nearest the stop point under the official nearest-segment rule (`official_segment_distance`); stop_t:
+        f32[S] the stop point's coordinate along it (units of the segment).
+      box_lo, box_hi: f32[S, 2] the bounding box of each signal's piece (its lane around the stop point).
+      cand_a, cand_b: f32[S, C, 2], cand_ok: bool[S, C], cand_own: bool[S, C] (a segment of the signal's lane):
+        the C segments whose bounding boxes come nearest each piece's box, in the official order of all segments
+        (lanes, then points); radius: f32[S] every segment within this of the piece's box is among them
+        (`OFFICIAL_RADIUS_M`, less where more than C are nearer).
+    """
+
+    state: jax.Array
+    present: jax.Array
+    stop: jax.Array
+    fence_a: jax.Array
+    fence_d: jax.Array
+    stop_t: jax.Array
+    box_lo: jax.Array
+    box_hi: jax.Array
+    cand_a: jax.Array
+    cand_b: jax.Array
+    cand_ok: jax.Array
+    cand_own: jax.Array
+    radius: jax.Array
+
+
+def official_segment_distance(p, a, b, ok):
+    """f32[..., N]: the official code's distance of points p f32[..., 2] to segments (a, b f32[..., N, 2]) when it
+    seeks the lane an agent is on: |p - a + t (b - a)|, t the projection clipped to [0, 1] (0 on a segment of no
+    length). The official code adds the projection where the true distance subtracts it: its value is the
+    distance to the projection mirrored through the segment's start (the true one where t = 0, more elsewhere).
+    `OFFICIAL_FAR` where not `ok`."""
+    d = b - a
+    ap = p[..., None, :] - a
+    den = jnp.sum(d * d, -1)
+    t = jnp.clip(jnp.where(den > 0, jnp.sum(ap * d, -1) / jnp.where(den > 0, den, 1.0), 0.0), 0.0, 1.0)
+    return jnp.where(ok, jnp.linalg.norm(ap + d * t[..., None], axis=-1), OFFICIAL_FAR)
+
+
+def _box_gap(lo1, hi1, lo2, hi2):
+    """Distance between axis-aligned boxes (0 where they overlap)."""
+    gap = jnp.maximum(0.0, jnp.maximum(lo1 - hi2, lo2 - hi1))
+    return jnp.linalg.norm(gap, axis=-1)
+
+
+def official_lanes(signals: TrafficSignals, lanes=None, lane_valid=None):
+    """The lanes and signal lanes the official code is handed for one scene (the export and the official rules
+    read the same): the scene's lane centrelines, then each signal slot's lane piece; a signal's lane is the
+    centreline that passes within `MATCH_M` of its stop point (the nearest; the first slot to claim a
+    centreline keeps it), else its own piece. Rows with fewer than 2 points are not handed over (the official
+    code skips them), nor the pieces of signals on a centreline.
+
+    Args: `signals` (unbatched), `lanes f32[L, P, 2]`, `lane_valid bool[L, P]` (valid points a prefix; None:
+    no centrelines). Returns (points f32[L + S, W, 2] (zero where not valid), valid bool[L + S, W] (the rows
+    handed over; W = max(P, Q)), signal_row i32[S] (each signal's lane row), present bool[S] (signals handed
+    over: a piece of at least 2 points)).
+    """
+    pieces, piece_valid = signals.lane.astype(jnp.float32), signals.lane_valid
+    s_n = pieces.shape[0]
+    if lanes is None:
+        lanes, lane_valid = jnp.zeros((0, 2, 2), jnp.float32), jnp.zeros((0, 2), bool)
+    l_n = lanes.shape[0]
+    w = max(pieces.shape[1], lanes.shape[1])
+    pad = lambda x: jnp.pad(x, ((0, 0), (0, w - x.shape[1])) + ((0, 0),) * (x.ndim - 2))  # noqa: E731
+    present = jnp.sum(piece_valid, -1) >= 2
+    stop = signals.stop.astype(jnp.float32)
+    la, lb, lok = _segments(lanes.astype(jnp.float32), lane_valid)
+    near = jnp.min(_distance(stop[:, None, :], la[None], lb[None], lok[None]), -1) if l_n else \
+        jnp.full((s_n, 1), jnp.inf)  # [S, L]
+    row = jnp.argmin(near, -1).astype(jnp.int32)
+    claim = present & (jnp.min(near, -1) <= MATCH_M)
+    earlier = (row[:, None] == row[None, :]) & claim[None, :] & (jnp.arange(s_n)[None, :] < jnp.arange(s_n)[:, None])
+    on_lane = claim & ~jnp.any(earlier, -1)
+    pts = jnp.concatenate([pad(lanes.astype(jnp.float32)), pad(pieces)])
+    valid = jnp.concatenate([pad(lane_valid), pad(piece_valid & (present & ~on_lane)[:, None])])
+    valid = valid & (jnp.sum(valid, -1) >= 2)[:, None]
+    return (jnp.where(valid[..., None], pts, 0.0), valid,
+            jnp.where(on_lane, row, l_n + jnp.arange(s_n, dtype=jnp.int32)), present)
+
+
+def official_signal_geometry(signals: TrafficSignals, lanes=None, lane_valid=None,
+                             num_candidates: int = OFFICIAL_CANDIDATES) -> OfficialSignalGeometry:
+    """`OfficialSignalGeometry` of one scene: `signals` (unbatched, states on the scored frames) and the scene's
+    lane centrelines `lanes f32[L, P, 2]`, `lane_valid bool[L, P]` (`official_lanes`)."""
+    pts, valid, sig_row, present = official_lanes(signals, lanes, lane_valid)
+    w = pts.shape[1]
+    longest = jnp.max(jnp.sum(valid, -1))
+    a, b = pts[:, :-1], pts[:, 1:]  # [R, W - 1]: padding joins a shorter lane's last point to the origin
+    ok = valid[:, :-1] & (jnp.arange(1, w) < longest)[None]
+    # each signal lane's segment nearest its stop point (the official "fence"), and the stop point along it
+    stop = signals.stop.astype(jnp.float32)
+    sa, sb, sok = a[sig_row], b[sig_row], ok[sig_row]
+    k = jnp.argmin(official_segment_distance(stop, sa, sb, sok), -1)
+    fence_a = jnp.take_along_axis(sa, k[:, None, None], 1)[:, 0]
+    fence_d = jnp.take_along_axis(sb, k[:, None, None], 1)[:, 0] - fence_a
+    den = jnp.sum(fence_d * fence_d, -1)
+    stop_t = jnp.where(den > 0, jnp.sum((stop - fence_a) * fence_d, -1) / jnp.where(den > 0, den, 1.0), 0.0)
+    # the segments around each signal's piece (its lane around the stop point), in the official order
+    big = jnp.float32(OFFICIAL_FAR)
+    pv = signals.lane_valid[..., None]
+    box_lo = jnp.min(jnp.where(pv, signals.lane, big), 1)
+    box_hi = jnp.max(jnp.where(pv, signals.lane, -big), 1)
+    fa, fb, fok = a.reshape(-1, 2), b.reshape(-1, 2), ok.reshape(-1)
+    gap = _box_gap(box_lo[:, None], box_hi[:, None], jnp.minimum(fa, fb)[None], jnp.maximum(fa, fb)[None])
+    gap = jnp.where(fok[None], gap, jnp.inf)  # [S, N]
+    n = fok.shape[0]
+    c = min(num_candidates, n)
+    neg, idx = jax.lax.top_k(-gap, min(c + 1, n))
+    next_gap = -neg[:, c] if c < n else jnp.full((stop.shape[0],), jnp.inf)
+    idx = jnp.sort(idx[:, :c], -1)  # the official order: its argmin keeps the first of equal distances
+    lane_of = jnp.repeat(jnp.arange(pts.shape[0], dtype=jnp.int32), w - 1)
+    return OfficialSignalGeometry(
+        state=signals.state, present=present, stop=stop, fence_a=fence_a, fence_d=fence_d, stop_t=stop_t,
+        box_lo=box_lo, box_hi=box_hi, cand_a=fa[idx], cand_b=fb[idx], cand_ok=fok[idx],
+        cand_own=lane_of[idx] == sig_row[:, None], radius=jnp.minimum(OFFICIAL_RADIUS_M, next_gap))
+
+
+def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_events: int = OFFICIAL_MAX_EVENTS):
+    """Where each agent runs a red light under the official rules, for one trajectory set of one scene.
+
+    The official definition (`waymo_open_dataset.wdl_limited.sim_agents_metrics.traffic_light_features`, 1.6.7):
+    at frame t the agent is valid, the lane nearest to it (`official_segment_distance`, the first of equal ones)
+    is a signal's lane, that signal's state is a stop state, and between t - 1 and t (whatever its validity at
+    t - 1) its coordinate along the signal's fence segment went from below the stop point's to above it.
+
+    Exact where the lane test is decided: for the first `max_events` candidate crossings (valid, crossing, stop
+    state) of the trajectory in frame-major order whose agent is within half of `geo.radius` of the signal
+    piece's bounding box; each is decided exactly when the agent's official distance to the piece is under that
+    half radius (no segment left out can then be nearer), and counted in `inexact` (not a violation) otherwise.
+    Crossings beyond the budget are counted as violations and in `inexact`. A crossing whose agent is farther
+    from the piece's box than half the radius (12 m) is not a violation: the official code would call it one
+    only if no lane within that of the piece came nearer to the agent than the piece.
+
+    Args: xy f32[T, A, 2], valid bool[T, A] (the frames of `geo.state`). Returns (violation bool[T, A] (False at
+    frame 0), inexact i32[]).
+    """
+    t_n, a_n = valid.shape
+    s_n = geo.stop.shape[0]
+    den = jnp.sum(geo.fence_d * geo.fence_d, -1)
+    along = jnp.sum((xy[:, :, None, :] - geo.fence_a) * geo.fence_d, -1)  # [T, A, S]
+    along = jnp.where(den > 0, along / jnp.where(den > 0, den, 1.0), 0.0)
+    crossed = (along[:-1] < geo.stop_t) & (along[1:] > geo.stop_t)
+    red = jnp.isin(geo.state[1:], jnp.asarray(STOP_STATES))  # [T-1, S]
+    near = _box_gap(xy[1:, :, None, :], xy[1:, :, None, :], geo.box_lo, geo.box_hi) < geo.radius / 2
+    event = crossed & red[:, None] & (geo.present & (geo.radius > 0))[None, None] & valid[1:, :, None] & near
+    idx, used, rank, count = _first_events(event, max_events)
+    t_i = idx // (a_n * s_n) + 1
+    a_i = (idx // s_n) % a_n
+    s_i = idx % s_n
+    d = official_segment_distance(xy[t_i, a_i], geo.cand_a[s_i], geo.cand_b[s_i], geo.cand_ok[s_i])  # [E, C]
+    own = geo.cand_own[s_i]
+    d_own = jnp.min(jnp.where(own, d, OFFICIAL_FAR), -1)
+    on_lane = jnp.take_along_axis(own, jnp.argmin(d, -1)[:, None], 1)[:, 0]
+    certain = d_own < geo.radius[s_i] / 2
+    out = jnp.zeros((t_n, a_n), bool).at[t_i, a_i].max(used & on_lane & certain)
+    beyond = event & (rank.reshape(event.shape) > max_events)
+    out = out.at[1:].max(jnp.any(beyond, -1))
+    inexact = jnp.maximum(count - max_events, 0) + jnp.sum(used & ~certain)
+    return out, inexact.astype(jnp.int32)

@@ -4,11 +4,14 @@ compared (`tests/test_realism_conformance.py`).
 
     python tests/conformance/make_scenes.py     # in the project's environment; deterministic (seeded)
 
-Six scenes, 91 frames at 10 Hz (11 history frames, the official current index 10), 6 agents, 4 rollouts each:
+Seven scenes, 91 frames at 10 Hz (11 history frames, the official current index 10), 6 agents, 4 rollouts each:
 a straight two-lane road (rollouts that drift off it and collide), agents that leave the log, appear in it late,
 have a gap in their history or their future, and rollouts that lose agents (NaN where they do); open curved road
 edges with headings across +-pi; a roundabout whose edges are closed rings (its island a hole with corners);
-pedestrians among vehicles (time to collision scores vehicles only); parked cars overlapping in the log.
+pedestrians among vehicles (time to collision scores vehicles only); parked cars overlapping in the log; traffic
+lights at a junction (red runs in the log and in rollouts, a crossing on green, a stop at red, caution, arrow,
+flashing and unknown states, a signal on a lane no agent uses, an agent that leaves the log, a pedestrian on red,
+an agent 6 m beside its lane crossing the stop line on red).
 
 Arrays (S scenes, K rollouts, T = 91 frames, F = 80 future frames, A agents, E edges of P points):
   log_xy f32[S, T, A, 2], log_heading f32[S, T, A], log_valid bool[S, T, A] (invalid states hold zeros, as
@@ -20,7 +23,12 @@ Arrays (S scenes, K rollouts, T = 91 frames, F = 80 future frames, A agents, E e
   frame (`gpd_jax.metrics.realism.continue_missing`): what the official code is given;
   polygons f32[S, G, V, 2], polygon_valid bool[S, G, V]: the drivable area (even-odd rings);
   edges f32[S, E, P, 2], edge_valid bool[S, E, P]: road edges with the road on their left (closed ones repeat
-  their first point); names: the scenes' names.
+  their first point); names: the scenes' names;
+  lanes f32[S, L, P, 2], lane_valid bool[S, L, P], signal_state i32[S, T, N], signal_stop f32[S, N, 2],
+  signal_lane f32[S, N, Q, 2], signal_lane_valid bool[S, N, Q]: lane centrelines and traffic signals as a store
+  holds them (`Scene.polylines`, `Scene.signals`; none in a scene without signals), and what the official code
+  is handed of them (`gpd_jax.metrics.realism.official_signal_arrays`): official_lanes f32[S, R, W, 2],
+  official_lane_valid bool[S, R, W], signal_row i32[S, N], signal_present bool[S, N].
 """
 
 from __future__ import annotations
@@ -30,8 +38,9 @@ import pathlib
 import jax.numpy as jnp
 import numpy as np
 
-from gpd_jax.geometry import RoadGeometry
-from gpd_jax.metrics.realism import continue_missing, orient_edges
+from gpd_jax.data.signals import LANE_POINTS, lane_piece
+from gpd_jax.geometry import SIGNAL_STATE_ID, RoadGeometry, TrafficSignals
+from gpd_jax.metrics.realism import continue_missing, official_signal_arrays, orient_edges
 from gpd_jax.scene import TYPE_ID
 
 T, H, A, K = 91, 11, 6, 4
@@ -77,6 +86,7 @@ class Scene:
         self.type[0] = TYPE_ID["ego"]
         self.evaluated = np.zeros(A, bool)
         self.polygons, self.edges = [], []
+        self.lanes, self.signals = [], []  # lane centrelines; (stop point, controlled lane, states i32[T])
 
     def agent(self, i, xy, h, frames=slice(None)):
         self.xy[frames, i], self.h[frames, i], self.valid[frames, i] = xy[frames], h[frames], True
@@ -210,7 +220,54 @@ def scene_parked(rng):
     return s, xy, h, v
 
 
-SCENES = (scene_straight, scene_leaving, scene_curved, scene_roundabout, scene_pedestrians, scene_parked)
+def scene_traffic_lights(rng):
+    s = Scene("traffic_lights")
+    s.polygons.append(rect(-120, -60, 120, 60))
+    ring = rect(-120, -60, 120, 60)
+    s.edges.append(np.concatenate([ring, ring[:1]]))
+
+    def line(p0, p1, step):  # a lane centreline, points `step` apart with the last one at p1
+        n = int(np.ceil(np.linalg.norm(np.subtract(p1, p0)) / step))
+        return np.linspace(p0, p1, n + 1)
+
+    east0, east1 = line((-110, -1.75), (110.3, -1.75), 2.7), line((-109, 1.75), (111, 1.75), 2.3)
+    north, west = line((8.0, -58), (8.0, 59), 3.1), line((110, 5.25), (-110, 5.25), 2.9)
+    s.lanes += [east0, east1, north, west]
+    state = lambda *runs: np.concatenate([np.full(n, SIGNAL_STATE_ID[k]) for k, n in runs])  # noqa: E731
+    s.signals += [((0.0, -1.75), east0, state(("unknown", 5), ("go", 25), ("caution", 10), ("stop", 51))),
+                  ((0.0, 1.75), east1, state(("go", 91))),
+                  ((8.0, -12.0), north, state(("arrow_go", 30), ("arrow_caution", 8), ("arrow_stop", 32),
+                                              ("flashing_stop", 10), ("stop", 11))),
+                  ((12.0, 5.25), west, state(("stop", 91)))]  # no agent uses this lane
+    lane_of = {0: east0, 1: east1, 2: east0, 3: north, 4: east0, 5: east0}
+    start = {0: (-42.0, 8.0, 0.0), 1: (-40.0, 10.0, 0.0), 3: (-50.0, 9.0, 0.1), 4: (-22.0, 7.0, 0.0),
+             5: (-10.0, 1.4, 0.0)}  # x (y for agent 3) at frame 0, speed, acceleration
+    for i, (s0, v0, acc) in start.items():
+        off = 110.0 if lane_of[i] is not north else 58.0  # the lanes start at x = -110, y = -58
+        xy, h = drive(lane_of[i], s0 + off, v0, acc)
+        s.agent(i, xy, h)
+    # agent 2 behind agent 0 stops at the red light, 3 m short of the stop point
+    v = np.concatenate([np.full(40, 8.0), np.maximum(8.0 - 0.16 * np.arange(1, 52), 0.0)])
+    x = np.minimum(-60.0 + np.concatenate([[0.0], np.cumsum(v[:-1]) * DT]), -3.0)
+    s.agent(2, np.stack([x, np.full(T, -1.75)], -1), np.zeros(T))
+    s.xy[:, 5, 1] = -3.2  # a pedestrian beside the lane (nearest to it): crosses on red, not scored
+    s.type[5], s.size[5] = TYPE_ID["other"], (0.6, 0.6)
+    s.valid[H + 50:, 4] = False  # crossed on yellow, then leaves the log
+    s.xy[~s.valid], s.h[~s.valid] = 0.0, 0.0
+    s.evaluated[:] = True
+    xy, h, v = rollouts(s, rng, noise=0.03, turn=0.002)
+    xy[0, :, 0, 0] = np.minimum(xy[0, :, 0, 0], -2.0)  # agent 0 stops before the line
+    xy[:2, :, 5, 0] = np.minimum(xy[:2, :, 5, 0], -1.0)  # so does the pedestrian, in two rollouts
+    xy[0, :, 3, 0] -= np.linspace(0, 16.0, F)  # agent 3 drifts off its lane: 6 m from the stop point, on red
+    xy[1, 45:, 2, 0] = xy[1, 44, 2, 0] + 0.8 * np.arange(1, F - 44)  # agent 2 goes over it on red
+    xy[2, :, 3, 1] += np.linspace(0, 30.0, F)  # agent 3 goes early, on the caution arrow
+    xy[3, :, 1, 1] -= np.linspace(0, 4.0, F)  # agent 1 drifts to the line between the lanes while it crosses
+    xy[3, :, 0, 1] += np.linspace(0, 3.4, F)  # agent 0 too, from the other side, on red
+    return s, xy, h, v
+
+
+SCENES = (scene_straight, scene_leaving, scene_curved, scene_roundabout, scene_pedestrians, scene_parked,
+          scene_traffic_lights)
 
 
 def road_of(scene: Scene) -> RoadGeometry:
@@ -269,6 +326,23 @@ def main():
         present = s.valid[H - 1]
         assert np.isfinite(np.asarray(sx)[:, :, present]).all() and np.isfinite(np.asarray(sh)[:, :, present]).all()
     f32 = np.float32
+    # lanes and traffic signals (scenes without any hold none; the official code is then handed none)
+    ln = max(1, max(len(sc.lanes) for sc, *_ in built))
+    lp = max([2] + [len(q) for sc, *_ in built for q in sc.lanes])
+    ns = max(1, max(len(sc.signals) for sc, *_ in built))
+    lanes, lane_valid = np.zeros((len(built), ln, lp, 2), f32), np.zeros((len(built), ln, lp), bool)
+    sig_state = np.zeros((len(built), T, ns), np.int32)
+    sig_stop = np.zeros((len(built), ns, 2), f32)
+    sig_lane, sig_lane_valid = np.zeros((len(built), ns, LANE_POINTS, 2), f32), np.zeros((len(built), ns, LANE_POINTS), bool)
+    for i, (sc, *_) in enumerate(built):
+        for j, q in enumerate(sc.lanes):
+            lanes[i, j, :len(q)], lane_valid[i, j, :len(q)] = q, True
+        for j, (stop, lane, states) in enumerate(sc.signals):
+            piece = lane_piece(lane, np.asarray(stop, float))  # what a store holds (`gpd_jax.data.signals`)
+            sig_state[i, :, j], sig_stop[i, j] = states, stop
+            sig_lane[i, j, :len(piece)], sig_lane_valid[i, j, :len(piece)] = piece, True
+    signals = TrafficSignals(state=sig_state, stop=sig_stop, lane=sig_lane, lane_valid=sig_lane_valid)
+    handed = official_signal_arrays(signals, lanes, lane_valid)  # what the official code is given
     np.savez_compressed(
         OUT, names=np.array([s.name for s, *_ in built]),
         log_xy=np.stack([s.xy for s, *_ in built]).astype(f32),
@@ -283,7 +357,9 @@ def main():
         sub_xy=np.stack([np.asarray(x) for x, _ in sub]).astype(f32),
         sub_heading=np.stack([np.asarray(x) for _, x in sub]).astype(f32),
         polygons=stack_road("polygons", (g, v, 2), f32), polygon_valid=stack_road("polygon_valid", (g, v), bool),
-        edges=stack_road("edges", (e, p, 2), f32), edge_valid=stack_road("edge_valid", (e, p), bool))
+        edges=stack_road("edges", (e, p, 2), f32), edge_valid=stack_road("edge_valid", (e, p), bool),
+        lanes=lanes, lane_valid=lane_valid, signal_state=sig_state, signal_stop=sig_stop, signal_lane=sig_lane,
+        signal_lane_valid=sig_lane_valid, **handed)
     print(f"wrote {OUT} ({OUT.stat().st_size / 1e3:.0f} kB, {len(built)} scenes)")
 
 

@@ -10,7 +10,8 @@ as the arrays hold them, the current index 10; the first evaluated agent is the 
 `tracks_to_predict`; the road edges as `road_edge` map features, z = 0 everywhere) and a `ScenarioRollouts` of the
 submission arrays (`sub_xy`, `sub_heading`: every agent valid at the current frame, every future frame), and runs
 `waymo_open_dataset.wdl_limited.sim_agents_metrics.metrics.compute_scenario_metrics_for_bundle` under the 2025
-sim-agents configuration and the 2024 one. It records every likelihood, the meta-metric, ADE, minADE and the
+sim-agents configuration and the 2024 one. Where the `.npz` has traffic signals (`signal_*`, `official_lanes`), the
+`Scenario` gets them as lanes and dynamic map states (`add_signals`) and the traffic-light term is computed. It records every likelihood, the meta-metric, ADE, minADE and the
 simulated collision and offroad rates per scene and configuration, the seconds each scene took, and their means
 over the scenes ("means", with "metametric_without_traffic_light": the meta-metric renormalised without the
 traffic-light term, what the project reports where the data has no signal states). Scenes with no evaluated
@@ -47,7 +48,7 @@ FIELDS = ("metametric", "average_displacement_error", "min_average_displacement_
           "angular_acceleration_likelihood", "distance_to_nearest_object_likelihood",
           "collision_indication_likelihood", "time_to_collision_likelihood", "distance_to_road_edge_likelihood",
           "offroad_indication_likelihood", "traffic_light_violation_likelihood", "simulated_collision_rate",
-          "simulated_offroad_rate")
+          "simulated_offroad_rate", "simulated_traffic_light_violation_rate")
 
 
 def load_config(name: str):
@@ -78,7 +79,31 @@ def scenario_of(d, i: int) -> scenario_pb2.Scenario:
             feature = sc.map_features.add(id=100 + e)
             feature.road_edge.CopyFrom(map_pb2.RoadEdge(
                 polyline=[map_pb2.MapPoint(x=float(x), y=float(y), z=0.0) for x, y in pts]))
+    if "signal_state" in d:
+        add_signals(sc, d, i)
     return sc
+
+
+def add_signals(sc, d, i: int):
+    """The scene's traffic signals and lanes as the project hands them over (`official_lanes`,
+    `signal_row`, `signal_present`: `gpd_jax.metrics.realism.official_signal_arrays`): each handed-over row a
+    surface-street lane (id 1000 + row), a dynamic map state per frame holding every signal handed over (its
+    state, 0 unknown, its lane and its stop point). Nothing for a scene without a signal."""
+    present = np.flatnonzero(d["signal_present"][i])
+    if not len(present):
+        return
+    street = map_pb2.LaneCenter.LaneType.TYPE_SURFACE_STREET
+    for r, (q, v) in enumerate(zip(d["official_lanes"][i], d["official_lane_valid"][i])):
+        if v.sum() >= 2:
+            feature = sc.map_features.add(id=1000 + r)
+            feature.lane.CopyFrom(map_pb2.LaneCenter(
+                type=street, polyline=[map_pb2.MapPoint(x=float(x), y=float(y), z=0.0) for x, y in q[v]]))
+    for t in range(d["signal_state"].shape[1]):
+        states = sc.dynamic_map_states.add()
+        for j in present:
+            x, y = (float(c) for c in d["signal_stop"][i, j])
+            states.lane_states.add(lane=1000 + int(d["signal_row"][i, j]), state=int(d["signal_state"][i, t, j]),
+                                   stop_point=map_pb2.MapPoint(x=x, y=y, z=0.0))
 
 
 def rollouts_of(d, i: int, scenario) -> sim_agents_submission_pb2.ScenarioRollouts:
