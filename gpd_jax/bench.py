@@ -2,6 +2,7 @@
 
     python -m gpd_jax.bench realism [--data DIR --split test] [--rollouts 32] [--agents 32] [--scenarios 8]
         [--realism-config 2025] [--rules official corrected] [--repeats 3] [--json PATH] [--export-official NPZ]
+        [--skip N] [--no-signals]
 
     seconds per scenario of the WOSAC-form realism metric (`gpd_jax.metrics.realism.scenario_realism`, compiled
     once, `vmap`ped over a batch of scenarios): K rollouts x 8 s at 10 Hz (11 history frames) x A agents. Scenes
@@ -401,7 +402,8 @@ def bench_realism(args) -> dict:
     if args.data:
         from gpd_jax.data.loader import load_split
 
-        scenes = load_split(args.data, args.split, indices=range(args.scenarios), with_polylines=True)
+        scenes = load_split(args.data, args.split, indices=range(args.skip, args.skip + args.scenarios),
+                            with_polylines=True)
         scenes = scenes[0] if isinstance(scenes, tuple) else scenes
         if scenes.road is None:
             raise ValueError(f"{args.data}: the store has no road geometry (rebuild it to get it)")
@@ -410,7 +412,7 @@ def bench_realism(args) -> dict:
                              f"needs {a} x {21 + f}")
         scenes = scenes.subsample(1, h + f, a, start=21 - h)
         road = scenes.road
-        source = f"{args.data}:{args.split}"
+        source = f"{args.data}:{args.split}" + (f" from scene {args.skip}" if args.skip else "")
     else:
         scenes = synthetic_scenes(0, args.scenarios, h + f, h, a, 64, 512)
         road = jax.tree.map(lambda x: np.broadcast_to(x, (args.scenarios,) + x.shape), _grid_road())
@@ -422,14 +424,20 @@ def bench_realism(args) -> dict:
         steps = jax.random.normal(key, (k,) + xy.shape) * 0.05
         return xy[None] + jnp.cumsum(steps.at[:, :h].set(0.0), axis=1)
 
-    def one(xy, heading, valid, size, road, key, agent_type, rules):
+    # traffic lights where the store has signal states (format 2) and the 2025 configuration scores them
+    signals = None if args.no_signals or args.realism_config != "2025" else getattr(scenes, "signals", None)
+    lanes = None if signals is None or scenes.polylines is None else (scenes.polylines, scenes.polyline_valid)
+
+    def one(xy, heading, valid, size, road, key, agent_type, sig, ln, rules):
         rep = lambda x: jnp.broadcast_to(x, (k,) + x.shape)  # noqa: E731
         return realism.scenario_realism(rollouts(xy, key), rep(heading), rep(valid), xy, heading, valid, size, h,
                                         road, config=args.realism_config, max_edge_segments=budget, rules=rules,
-                                        agent_type=agent_type)
+                                        agent_type=agent_type, signals=sig, lanes=None if ln is None else ln[0],
+                                        lane_valid=None if ln is None else ln[1])
 
     inputs = (jnp.asarray(scenes.xy), jnp.asarray(scenes.heading), jnp.asarray(scenes.valid),
-              jnp.asarray(scenes.size), jax.tree.map(jnp.asarray, road), keys, jnp.asarray(scenes.agent_type))
+              jnp.asarray(scenes.size), jax.tree.map(jnp.asarray, road), keys, jnp.asarray(scenes.agent_type),
+              jax.tree.map(jnp.asarray, signals), jax.tree.map(jnp.asarray, lanes))
     runs = {}
     for rules in args.rules:
         fn = jax.jit(jax.vmap(lambda *x, r=rules: one(*x, r)))
@@ -446,16 +454,19 @@ def bench_realism(args) -> dict:
             rollouts(xy, key), jnp.broadcast_to(hd, (k,) + hd.shape), jnp.broadcast_to(v, (k,) + v.shape), h))(
             inputs[0], inputs[1], inputs[2], keys)
         _export_official(args.export_official, scenes, sim_xy[:, :, h:], sim_h[:, :, h:], realism.edge_polylines,
-                         road, h)
+                         road, h, None if signals is None else realism.official_signal_arrays(
+                             signals, *(lanes or (None, None))))
     return {"machine": native.machine_info(), "source": source, "rollouts": k, "agents": a, "future_frames": f,
             "history_frames": h, "scenarios": args.scenarios, "edge_segment_slots": budget,
+            "traffic_lights": signals is not None,
             "config": args.realism_config, "rules": runs}
 
 
-def _export_official(path, scenes, sim_xy, sim_heading, edge_polylines, road, h):
+def _export_official(path, scenes, sim_xy, sim_heading, edge_polylines, road, h, signals=None):
     """The benchmark's scenes and rollouts (future frames, every agent present) in the format
     `tests/conformance/run_official.py` reads (every agent valid at the current frame evaluated; the road edges
-    as the metric orients them, `edge_polylines`)."""
+    as the metric orients them, `edge_polylines`; `signals`: `official_signal_arrays`, with the states and stop
+    points added here)."""
     n = scenes.xy.shape[0]
     lines = [edge_polylines(jax.tree.map(lambda x, i=i: np.asarray(x[i]), road)) for i in range(n)]
     m, p = max(len(x) for x in lines), max(len(q) for x in lines for q in x)
@@ -468,7 +479,9 @@ def _export_official(path, scenes, sim_xy, sim_heading, edge_polylines, road, h)
                         log_heading=np.asarray(scenes.heading), log_valid=valid, size=np.asarray(scenes.size),
                         is_vehicle=np.asarray(scenes.agent_type) != TYPE_ID["other"], evaluated=valid[:, h - 1],
                         sub_xy=np.asarray(sim_xy), sub_heading=np.asarray(sim_heading),
-                        edges=edges, edge_valid=edge_valid)
+                        edges=edges, edge_valid=edge_valid,
+                        **({} if signals is None else {**signals, "signal_state": np.asarray(scenes.signals.state),
+                                                       "signal_stop": np.asarray(scenes.signals.stop)}))
     print(f"wrote {path}: {n} scenes for tests/conformance/run_official.py")
 
 
@@ -647,6 +660,9 @@ def main(argv=None) -> int:
     q.add_argument("--agents", type=count, default=32)
     q.add_argument("--scenarios", type=count, default=8, help="scenarios per compiled batch")
     q.add_argument("--realism-config", choices=("2024", "2025"), default="2025")
+    q.add_argument("--skip", type=int, default=0, help="scenes of the split to skip before the --scenarios timed")
+    q.add_argument("--no-signals", action="store_true",
+                   help="leave the traffic-light term out where the store has signal states (2025 scores it)")
     q.add_argument("--rules", nargs="+", choices=("official", "corrected"), default=["official", "corrected"],
                    help="the counting rules to time, each compiled on its own (default: both)")
     q.add_argument("--export-official", default=None, type=output_file, metavar="NPZ",
@@ -710,7 +726,8 @@ def main(argv=None) -> int:
                 print(f"realism ({out['config']}, {rules} rules): {out['rollouts']} rollouts x "
                       f"{out['future_frames']} frames x {out['agents']} agents, {out['scenarios']} scenarios per "
                       f"call: {r['s_per_scenario']:.3f} s per scenario (compile {r['compile_s']:.1f} s); "
-                      f"road-edge answers not proven exact: {r['road_edge_inexact_share']:.2%}")
+                      f"road-edge answers not proven exact: {r['road_edge_inexact_share']:.2%}; traffic lights "
+                      + ("scored" if out["traffic_lights"] else "not scored"))
         else:
             cluster = distributed.from_args(args)
             parallel.use_host_cores()

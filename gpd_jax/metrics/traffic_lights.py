@@ -181,8 +181,9 @@ def red_light_violation(xy, valid, geo: SignalGeometry, max_events: int = MAX_EV
 # ------------------------------------------------------------------------------------------------ official rules
 OFFICIAL_FAR = 1e10  # the official code's distance to a segment that is not one
 OFFICIAL_RADIUS_M = 24.0  # segments within this of a signal's lane piece take part in its official lane test
-OFFICIAL_CANDIDATES = 512  # at most this many of them per signal (nearest bounding boxes first)
-OFFICIAL_MAX_EVENTS = 64  # candidate crossings per trajectory whose official lane test runs
+OFFICIAL_CANDIDATES = 512  # at most this many of them per signal
+OFFICIAL_MAX_EVENTS = 32  # candidate crossings per trajectory whose official lane test runs
+RADIUS_HALVINGS = 4  # the candidate radius tried: OFFICIAL_RADIUS_M, its half, ... (the largest that fits in C)
 MATCH_M = 0.5  # a signal's lane is the scene's centreline passing this near its stop point (`official_lanes`)
 
 
@@ -203,7 +204,7 @@ class OfficialSignalGeometry:
       cand_a, cand_b: f32[S, C, 2], cand_ok: bool[S, C], cand_own: bool[S, C] (a segment of the signal's lane):
         the C segments whose bounding boxes come nearest each piece's box, in the official order of all segments
         (lanes, then points); radius: f32[S] every segment within this of the piece's box is among them
-        (`OFFICIAL_RADIUS_M`, less where more than C are nearer).
+        (`OFFICIAL_RADIUS_M`, halved until they fit in C; 0 where they never do).
     """
 
     state: jax.Array
@@ -302,14 +303,18 @@ def official_signal_geometry(signals: TrafficSignals, lanes=None, lane_valid=Non
     gap = jnp.where(fok[None], gap, jnp.inf)  # [S, N]
     n = fok.shape[0]
     c = min(num_candidates, n)
-    neg, idx = jax.lax.top_k(-gap, min(c + 1, n))
-    next_gap = -neg[:, c] if c < n else jnp.full((stop.shape[0],), jnp.inf)
-    idx = jnp.sort(idx[:, :c], -1)  # the official order: its argmin keeps the first of equal distances
+    # the largest of the radii whose segments fit in C slots; they are kept in the official order (its argmin
+    # keeps the first of equal distances)
+    radii = OFFICIAL_RADIUS_M / 2.0 ** jnp.arange(RADIUS_HALVINGS, dtype=jnp.float32)  # [R]
+    fits = jnp.sum(gap[:, None, :] <= radii[None, :, None], -1) <= c  # [S, R]
+    radius = jnp.max(jnp.where(fits, radii, 0.0), -1)
+    idx = jax.vmap(lambda m: jnp.nonzero(m, size=c, fill_value=n - 1)[0])(gap <= radius[:, None])  # [S, C]
+    inside = jnp.take_along_axis(gap, idx, 1) <= radius[:, None]
     lane_of = jnp.repeat(jnp.arange(pts.shape[0], dtype=jnp.int32), w - 1)
     return OfficialSignalGeometry(
         state=signals.state, present=present, stop=stop, fence_a=fence_a, fence_d=fence_d, stop_t=stop_t,
-        box_lo=box_lo, box_hi=box_hi, cand_a=fa[idx], cand_b=fb[idx], cand_ok=fok[idx],
-        cand_own=lane_of[idx] == sig_row[:, None], radius=jnp.minimum(OFFICIAL_RADIUS_M, next_gap))
+        box_lo=box_lo, box_hi=box_hi, cand_a=fa[idx], cand_b=fb[idx], cand_ok=fok[idx] & inside,
+        cand_own=lane_of[idx] == sig_row[:, None], radius=radius)
 
 
 def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_events: int = OFFICIAL_MAX_EVENTS):
@@ -345,10 +350,13 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     a_i = (idx // s_n) % a_n
     s_i = idx % s_n
     d = official_segment_distance(xy[t_i, a_i], geo.cand_a[s_i], geo.cand_b[s_i], geo.cand_ok[s_i])  # [E, C]
-    own = geo.cand_own[s_i]
-    d_own = jnp.min(jnp.where(own, d, OFFICIAL_FAR), -1)
-    on_lane = jnp.take_along_axis(own, jnp.argmin(d, -1)[:, None], 1)[:, 0]
-    certain = d_own < geo.radius[s_i] / 2
+    nearest = jnp.argmin(d, -1)
+    on_lane = jnp.take_along_axis(geo.cand_own[s_i], nearest[:, None], 1)[:, 0]
+    # a segment left out is farther than the radius from the piece's box, so at least (radius - the agent's gap
+    # to that box) from the agent (the official distance is never below the true one): the nearest candidate is
+    # the nearest segment of all where it is nearer than that
+    gap = _box_gap(xy[t_i, a_i], xy[t_i, a_i], geo.box_lo[s_i], geo.box_hi[s_i])
+    certain = jnp.take_along_axis(d, nearest[:, None], 1)[:, 0] + gap < geo.radius[s_i]
     out = jnp.zeros((t_n, a_n), bool).at[t_i, a_i].max(used & on_lane & certain)
     beyond = event & (rank.reshape(event.shape) > max_events)
     out = out.at[1:].max(jnp.any(beyond, -1))
