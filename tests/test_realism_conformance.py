@@ -154,8 +154,8 @@ def test_the_submission_the_official_code_scored_is_the_official_modes_continuat
 
 def test_the_evaluations_export_writes_what_the_official_script_reads(scenes, tmp_path):
     """`write_official_scenes` (what `rollout.py --export-official` writes) holds every field `run_official.py`
-    reads, in its shapes: the conformance scenes written through it come back as they went in (the log cut to
-    the official 11 + 80 frames from a longer history)."""
+    reads, in its shapes: the conformance scenes written through it come back as they went in (the log and the
+    signal states cut to the official 11 + 80 frames from a longer history; the signals as handed over)."""
     from gpd_jax.evaluation.realism import write_official_scenes
     from gpd_jax.metrics.realism import edge_polylines
 
@@ -171,13 +171,18 @@ def test_the_evaluations_export_writes_what_the_official_script_reads(scenes, tm
                             edge_valid=d["edge_valid"][i], lanes=np.zeros((1, 2, 2), np.float32),
                             lane_valid=np.zeros((1, 2), bool))
         lines[i] = edge_polylines(road)
+    signals = {k: d[k] for k in ("official_lanes", "official_lane_valid", "signal_row", "signal_present",
+                                 "signal_stop")}
+    signals["signal_state"] = np.concatenate([np.repeat(d["signal_state"][:, :1], pad, 1), d["signal_state"]], 1)
     part = {**log, "size": d["size"], "agent_type": d["agent_type"], "edges": lines,
             "sub_xy": d["sub_xy"][:, None], "sub_heading": d["sub_heading"][:, None],
-            "evaluated": d["evaluated"][:, None]}
+            "evaluated": d["evaluated"][:, None], **signals}
     halves = [{k: v[:3] for k, v in part.items()}, {k: v[3:] for k, v in part.items()}]  # two batches
     (path,) = write_official_scenes(str(tmp_path), ["traffic_simulation"], list(d["names"]), halves, H + pad)
     got = dict(np.load(path))
-    for key in ("log_xy", "log_heading", "log_valid", "size", "is_vehicle", "evaluated", "sub_xy", "sub_heading"):
+    for key in ("log_xy", "log_heading", "log_valid", "size", "is_vehicle", "evaluated", "sub_xy", "sub_heading",
+                "official_lanes", "official_lane_valid", "signal_row", "signal_present", "signal_stop",
+                "signal_state"):
         np.testing.assert_array_equal(got[key], d[key], err_msg=key)
     # the edges as polylines, each the same line as written (the conformance edges are kept whole)
     for i in range(n):

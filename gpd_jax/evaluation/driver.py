@@ -30,7 +30,8 @@ from gpd_jax.evaluation.realism import (OFFICIAL_FUTURE_FRAMES, RESULT_KEYS, gro
 from gpd_jax.evaluation.reduce import other_variant, reduce_results
 from gpd_jax.evaluation.scoring import add_sums, score_batch
 from gpd_jax.metrics.realism import CONFIGS as REALISM_CONFIGS
-from gpd_jax.metrics.realism import OFFICIAL_HISTORY_FRAMES, edge_polylines, edge_segment_budget
+from gpd_jax.metrics.realism import (OFFICIAL_HISTORY_FRAMES, edge_polylines, edge_segment_budget,
+                                     official_signal_arrays)
 from gpd_jax.geometry import edge_source_names
 from gpd_jax.scene import Scene
 from gpd_jax.spec import HORIZONS_S, EvalError
@@ -363,6 +364,9 @@ def _realism(model: Model, view: Scene, full: Scene, tasks, names, out: RolloutO
                     "edges": np.empty(b, object)}
         for i in range(b):  # the road edges as the metric orients them, one list of polylines per scene
             exported["edges"][i] = edge_polylines(jax.tree.map(lambda x, i=i: x[i], road))
+        if full.signals is not None:  # the signals and lanes as the official mode hands them over
+            exported.update(official_signal_arrays(full.signals, full.polylines, full.polyline_valid),
+                            signal_state=np.asarray(full.signals.state), signal_stop=np.asarray(full.signals.stop))
     return (jax.tree.map(lambda x: np.asarray(x, np.float64), jax.device_get(part)), full.road is not None,
             exported)
 

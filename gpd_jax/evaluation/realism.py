@@ -158,13 +158,17 @@ def official_rollouts(pred_xy, pred_heading, pred_valid, full: Scene, spec: Mode
     return xy[:, :, :, fut], heading[:, :, :, fut], evaluated
 
 
+SIGNAL_EXPORT_KEYS = ("official_lanes", "official_lane_valid", "signal_row", "signal_present", "signal_stop")
+
+
 def write_official_scenes(directory: str, groups: Sequence[str], names: Sequence[str], parts: Sequence[dict],
                           history: int) -> list[str]:
     """One `.npz` per group in `directory` (`<group>.npz`), in the format `tests/conformance/run_official.py`
     reads, from the batches' `parts` (host arrays: "sub_xy" [B, G, K, 80, A, 2], "sub_heading", "evaluated"
     [B, G, A] from `official_rollouts`; "log_xy" [B, ts, A, 2], "log_heading", "log_valid", "size" [B, A, 2],
-    "agent_type" [B, A]; "edges": per scene the `edge_polylines`), the log cut to the official format's 11
-    history and 80 future frames. Returns the paths written."""
+    "agent_type" [B, A]; "edges": per scene the `edge_polylines`; where the store has traffic signals,
+    `official_signal_arrays` with "signal_state" [B, ts, S] and "signal_stop"), the log and the signal states cut
+    to the official format's 11 history and 80 future frames. Returns the paths written."""
     cat = lambda key: np.concatenate([p[key] for p in parts])  # noqa: E731
     frames = slice(history - OFFICIAL_HISTORY_FRAMES, history + OFFICIAL_FUTURE_FRAMES)
     lines = [q for p in parts for q in p["edges"]]
@@ -173,6 +177,10 @@ def write_official_scenes(directory: str, groups: Sequence[str], names: Sequence
     for i, x in enumerate(lines):
         for j, q in enumerate(x):
             edges[i, j, :len(q)], edge_valid[i, j, :len(q)] = q, True
+    signals = {}  # traffic signals as the official mode hands them over (`official_signal_arrays`), where present
+    if all("signal_row" in p for p in parts):
+        signals = {k: cat(k) for k in SIGNAL_EXPORT_KEYS}
+        signals["signal_state"] = cat("signal_state")[:, frames]
     os.makedirs(directory, exist_ok=True)
     paths = []
     for g, group in enumerate(groups):
@@ -182,7 +190,7 @@ def write_official_scenes(directory: str, groups: Sequence[str], names: Sequence
             log_heading=cat("log_heading")[:, frames], log_valid=cat("log_valid")[:, frames], size=cat("size"),
             is_vehicle=cat("agent_type") != TYPE_ID["other"],
             evaluated=cat("evaluated")[:, g], sub_xy=cat("sub_xy")[:, g], sub_heading=cat("sub_heading")[:, g],
-            edges=edges, edge_valid=edge_valid)
+            edges=edges, edge_valid=edge_valid, **signals)
         paths.append(path)
     return paths
 

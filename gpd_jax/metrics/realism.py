@@ -771,14 +771,15 @@ def continue_missing(xy, heading, valid, num_history: int):
     return jnp.where(fill[..., None], fill_xy, xy), jnp.where(fill, fill_h, heading)
 
 
-def official_signal_arrays(signals: TrafficSignals, lanes, lane_valid) -> dict[str, np.ndarray]:
+def official_signal_arrays(signals: TrafficSignals, lanes=None, lane_valid=None) -> dict[str, np.ndarray]:
     """What the official code is handed of a batch of scenes' traffic signals and lanes (host arrays, leading
     dim B; `gpd_jax.metrics.traffic_lights.official_lanes`): "official_lanes" f32[B, R, W, 2],
     "official_lane_valid" bool[B, R, W] (rows of fewer than 2 points are not handed over), "signal_row" i32[B, S]
     (each signal's lane row), "signal_present" bool[B, S]; with the store's "signal_state" and "signal_stop"
     (`tests/conformance/run_official.py` reads them)."""
-    pts, valid, row, present = jax.vmap(official_lanes)(jax.tree.map(jnp.asarray, signals), jnp.asarray(lanes),
-                                                        jnp.asarray(lane_valid))
+    signals = jax.tree.map(jnp.asarray, signals)
+    pts, valid, row, present = jax.vmap(official_lanes)(signals) if lanes is None else \
+        jax.vmap(official_lanes)(signals, jnp.asarray(lanes), jnp.asarray(lane_valid))
     return {"official_lanes": np.asarray(pts), "official_lane_valid": np.asarray(valid),
             "signal_row": np.asarray(row), "signal_present": np.asarray(present)}
 

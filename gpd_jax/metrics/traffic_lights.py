@@ -1,7 +1,21 @@
 """The traffic-light violation feature of the 2025 WOSAC configuration (pure JAX, `jit` and `vmap` over rollouts).
 
-Definition (the official sim-agents metric's, facts in `reference/wosac.md`): an agent violates a red light at
-frame t when all of these hold:
+Two rules, as the realism metric's (`gpd_jax.metrics.realism`): `rules="official"` reproduces the official code
+(`official_lanes`, `official_signal_geometry`, `official_red_light_violation`; checked against it by
+`tests/test_realism_conformance.py`), `rules="corrected"` (`signal_geometry`, `red_light_violation`) is the
+definition below with its corrections. The official code (`waymo-open-dataset-tf-2-12-0==1.6.7`,
+`traffic_light_features.py`) differs from it in: the lane an agent is on is the one with the nearest segment
+by a distance that adds the projection where the true distance subtracts it (`official_segment_distance`;
+a point near a segment's end can be "nearer" to the next lane's segment starting beside it), over lanes padded
+with zeros whose last point joins the origin; a crossing needs validity at t only and may be anywhere along the
+stop line's extension; only vehicles are scored. Its lanes are ids: the store holds each signal's lane as a
+piece around the stop point beside the map's centrelines, so the official mode hands over the centreline
+through the stop point as the signal's lane (`official_lanes`), the piece only where none passes within
+`MATCH_M`; handed both, the official lane test would pick one of two copies of the same lane by where their
+points fall.
+
+Definition under the corrected rules (the official sim-agents metric's, facts in `reference/wosac.md`): an agent
+violates a red light at frame t when all of these hold:
 
 * the lane it is on at t has a traffic signal: its position is nearest to that signal's lane among all lanes
   of the map (here: the scene's lane centrelines `Scene.polylines` and the signals' own lane pieces; the signal's
@@ -15,7 +29,8 @@ frame t when all of these hold:
 
 The metric's term is a Bernoulli of "any violation over the rollout" per agent, like collision.
 
-Where this differs from the official code (which has neither missing steps nor a budget):
+Where this differs from the official code (which has neither missing steps nor a budget), besides the lane
+distance and the vehicles above:
 * a crossing needs the agent valid at t - 1 and t (the official code asks validity at t only), and within
   `NEAR_STOP_M` of the stop point at t (a vehicle crossing its lane's stop line is; the official code also takes
   crossings of the stop line's extension far to the side, which its lane test then rejects);
@@ -182,7 +197,7 @@ def red_light_violation(xy, valid, geo: SignalGeometry, max_events: int = MAX_EV
 OFFICIAL_FAR = 1e10  # the official code's distance to a segment that is not one
 OFFICIAL_RADIUS_M = 24.0  # segments within this of a signal's lane piece take part in its official lane test
 OFFICIAL_CANDIDATES = 512  # at most this many of them per signal
-OFFICIAL_MAX_EVENTS = 32  # candidate crossings per trajectory whose official lane test runs
+OFFICIAL_MAX_EVENTS = 16  # candidate crossings per trajectory whose official lane test runs
 RADIUS_HALVINGS = 4  # the candidate radius tried: OFFICIAL_RADIUS_M, its half, ... (the largest that fits in C)
 MATCH_M = 0.5  # a signal's lane is the scene's centreline passing this near its stop point (`official_lanes`)
 
@@ -325,13 +340,14 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     is a signal's lane, that signal's state is a stop state, and between t - 1 and t (whatever its validity at
     t - 1) its coordinate along the signal's fence segment went from below the stop point's to above it.
 
-    Exact where the lane test is decided: for the first `max_events` candidate crossings (valid, crossing, stop
-    state) of the trajectory in frame-major order whose agent is within half of `geo.radius` of the signal
-    piece's bounding box; each is decided exactly when the agent's official distance to the piece is under that
-    half radius (no segment left out can then be nearer), and counted in `inexact` (not a violation) otherwise.
-    Crossings beyond the budget are counted as violations and in `inexact`. A crossing whose agent is farther
-    from the piece's box than half the radius (12 m) is not a violation: the official code would call it one
-    only if no lane within that of the piece came nearer to the agent than the piece.
+    The lane test runs for the first `max_events` candidate crossings (valid, crossing, stop state) of the
+    trajectory in frame-major order whose agent is within half of `geo.radius` (12 m, 6 m where the map is too
+    dense for 24 m) of the box of the signal's piece, against the segments within that radius of the box: exact
+    where the nearest of them is nearer than (radius - the agent's gap to the box), which no segment left out
+    can be (the official distance is never below the true one); counted in `inexact` (not a violation)
+    otherwise. Crossings beyond the budget are counted as violations and in `inexact`. The one approximation:
+    a crossing whose agent is farther from the box than half the radius is not a violation (the official code
+    calls it one only where the agent's nearest lane is still the signal's: off every lane by that much).
 
     Args: xy f32[T, A, 2], valid bool[T, A] (the frames of `geo.state`). Returns (violation bool[T, A] (False at
     frame 0), inexact i32[]).
@@ -343,8 +359,8 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     along = jnp.where(den > 0, along / jnp.where(den > 0, den, 1.0), 0.0)
     crossed = (along[:-1] < geo.stop_t) & (along[1:] > geo.stop_t)
     red = jnp.isin(geo.state[1:], jnp.asarray(STOP_STATES))  # [T-1, S]
-    near = _box_gap(xy[1:, :, None, :], xy[1:, :, None, :], geo.box_lo, geo.box_hi) < geo.radius / 2
-    event = crossed & red[:, None] & (geo.present & (geo.radius > 0))[None, None] & valid[1:, :, None] & near
+    gap = _box_gap(xy[1:, :, None, :], xy[1:, :, None, :], geo.box_lo, geo.box_hi)  # [T-1, A, S]
+    event = crossed & red[:, None] & geo.present[None, None] & valid[1:, :, None] & (gap < geo.radius / 2)
     idx, used, rank, count = _first_events(event, max_events)
     t_i = idx // (a_n * s_n) + 1
     a_i = (idx // s_n) % a_n
@@ -355,8 +371,7 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     # a segment left out is farther than the radius from the piece's box, so at least (radius - the agent's gap
     # to that box) from the agent (the official distance is never below the true one): the nearest candidate is
     # the nearest segment of all where it is nearer than that
-    gap = _box_gap(xy[t_i, a_i], xy[t_i, a_i], geo.box_lo[s_i], geo.box_hi[s_i])
-    certain = jnp.take_along_axis(d, nearest[:, None], 1)[:, 0] + gap < geo.radius[s_i]
+    certain = jnp.take_along_axis(d, nearest[:, None], 1)[:, 0] + gap[t_i - 1, a_i, s_i] < geo.radius[s_i]
     out = jnp.zeros((t_n, a_n), bool).at[t_i, a_i].max(used & on_lane & certain)
     beyond = event & (rank.reshape(event.shape) > max_events)
     out = out.at[1:].max(jnp.any(beyond, -1))
