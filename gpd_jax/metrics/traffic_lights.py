@@ -358,9 +358,12 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     along = jnp.sum((xy[:, :, None, :] - geo.fence_a) * geo.fence_d, -1)  # [T, A, S]
     along = jnp.where(den > 0, along / jnp.where(den > 0, den, 1.0), 0.0)
     crossed = (along[:-1] < geo.stop_t) & (along[1:] > geo.stop_t)
-    red = jnp.isin(geo.state[1:], jnp.asarray(STOP_STATES))  # [T-1, S]
-    gap = _box_gap(xy[1:, :, None, :], xy[1:, :, None, :], geo.box_lo, geo.box_hi)  # [T-1, A, S]
-    event = crossed & red[:, None] & geo.present[None, None] & valid[1:, :, None] & (gap < geo.radius / 2)
+    red = jnp.isin(geo.state[1:], jnp.asarray(STOP_STATES)) & geo.present  # [T-1, S]
+    # within half the radius of the piece's box (squared, per axis: the box gap without its square root)
+    lo, hi, p = geo.box_lo, geo.box_hi, xy[1:, :, None, :]
+    g = jnp.maximum(0.0, jnp.maximum(lo - p, p - hi))
+    near = jnp.sum(g * g, -1) < (geo.radius / 2) ** 2
+    event = crossed & red[:, None] & valid[1:, :, None] & near
     idx, used, rank, count = _first_events(event, max_events)
     t_i = idx // (a_n * s_n) + 1
     a_i = (idx // s_n) % a_n
@@ -371,7 +374,8 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     # a segment left out is farther than the radius from the piece's box, so at least (radius - the agent's gap
     # to that box) from the agent (the official distance is never below the true one): the nearest candidate is
     # the nearest segment of all where it is nearer than that
-    certain = jnp.take_along_axis(d, nearest[:, None], 1)[:, 0] + gap[t_i - 1, a_i, s_i] < geo.radius[s_i]
+    gap = _box_gap(xy[t_i, a_i], xy[t_i, a_i], geo.box_lo[s_i], geo.box_hi[s_i])
+    certain = jnp.take_along_axis(d, nearest[:, None], 1)[:, 0] + gap < geo.radius[s_i]
     out = jnp.zeros((t_n, a_n), bool).at[t_i, a_i].max(used & on_lane & certain)
     beyond = event & (rank.reshape(event.shape) > max_events)
     out = out.at[1:].max(jnp.any(beyond, -1))
