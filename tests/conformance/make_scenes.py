@@ -333,7 +333,8 @@ def main():
     lanes, lane_valid = np.zeros((len(built), ln, lp, 2), f32), np.zeros((len(built), ln, lp), bool)
     sig_state = np.zeros((len(built), T, ns), np.int32)
     sig_stop = np.zeros((len(built), ns, 2), f32)
-    sig_lane, sig_lane_valid = np.zeros((len(built), ns, LANE_POINTS, 2), f32), np.zeros((len(built), ns, LANE_POINTS), bool)
+    sig_lane = np.zeros((len(built), ns, LANE_POINTS, 2), f32)
+    sig_lane_valid = np.zeros((len(built), ns, LANE_POINTS), bool)
     for i, (sc, *_) in enumerate(built):
         for j, q in enumerate(sc.lanes):
             lanes[i, j, :len(q)], lane_valid[i, j, :len(q)] = q, True

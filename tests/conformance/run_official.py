@@ -10,9 +10,10 @@ as the arrays hold them, the current index 10; the first evaluated agent is the 
 `tracks_to_predict`; the road edges as `road_edge` map features, z = 0 everywhere) and a `ScenarioRollouts` of the
 submission arrays (`sub_xy`, `sub_heading`: every agent valid at the current frame, every future frame), and runs
 `waymo_open_dataset.wdl_limited.sim_agents_metrics.metrics.compute_scenario_metrics_for_bundle` under the 2025
-sim-agents configuration and the 2024 one. Where the `.npz` has traffic signals (`signal_*`, `official_lanes`), the
-`Scenario` gets them as lanes and dynamic map states (`add_signals`) and the traffic-light term is computed. It records every likelihood, the meta-metric, ADE, minADE and the
-simulated collision and offroad rates per scene and configuration, the seconds each scene took, and their means
+sim-agents configuration and the 2024 one. Where the `.npz` has traffic signals (`signal_*`, `official_lanes`),
+the `Scenario` gets them as lanes and dynamic map states (`add_signals`) and the traffic-light term is computed.
+It records every likelihood, the meta-metric, ADE, minADE and the simulated collision, offroad and traffic-light
+violation rates per scene and configuration, the seconds each scene took, and their means
 over the scenes ("means", with "metametric_without_traffic_light": the meta-metric renormalised without the
 traffic-light term, what the project reports where the data has no signal states). Scenes with no evaluated
 agent or no road edge are skipped (the official code refuses them).
