@@ -198,6 +198,7 @@ OFFICIAL_FAR = 1e10  # the official code's distance to a segment that is not one
 OFFICIAL_RADIUS_M = 24.0  # segments within this of a signal's lane piece take part in its official lane test
 OFFICIAL_CANDIDATES = 512  # at most this many of them per signal
 OFFICIAL_MAX_EVENTS = 16  # candidate crossings per trajectory whose official lane test runs
+OFFICIAL_SLOTS_PER_AGENT = 12  # signals looked at per agent: those whose piece its trajectory comes nearest
 RADIUS_HALVINGS = 4  # the candidate radius tried: OFFICIAL_RADIUS_M, its half, ... (the largest that fits in C)
 MATCH_M = 0.5  # a signal's lane is the scene's centreline passing this near its stop point (`official_lanes`)
 
@@ -332,7 +333,8 @@ def official_signal_geometry(signals: TrafficSignals, lanes=None, lane_valid=Non
         cand_own=lane_of[idx] == sig_row[:, None], radius=radius)
 
 
-def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_events: int = OFFICIAL_MAX_EVENTS):
+def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_events: int = OFFICIAL_MAX_EVENTS,
+                                 slots_per_agent: int = OFFICIAL_SLOTS_PER_AGENT):
     """Where each agent runs a red light under the official rules, for one trajectory set of one scene.
 
     The official definition (`waymo_open_dataset.wdl_limited.sim_agents_metrics.traffic_light_features`, 1.6.7):
@@ -345,7 +347,9 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     dense for 24 m) of the box of the signal's piece, against the segments within that radius of the box: exact
     where the nearest of them is nearer than (radius - the agent's gap to the box), which no segment left out
     can be (the official distance is never below the true one); counted in `inexact` (not a violation)
-    otherwise. Crossings beyond the budget are counted as violations and in `inexact`. The one approximation:
+    otherwise. Crossings beyond the budget are counted as violations and in `inexact`. Per agent only the
+    `slots_per_agent` signals whose piece its trajectory's bounding box comes nearest (within half the radius)
+    are looked at; an agent near more of them counts in `inexact`. The one approximation:
     a crossing whose agent is farther from the box than half the radius is not a violation (the official code
     calls it one only where the agent's nearest lane is still the signal's: off every lane by that much).
 
@@ -353,21 +357,33 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     frame 0), inexact i32[]).
     """
     t_n, a_n = valid.shape
-    s_n = geo.stop.shape[0]
-    den = jnp.sum(geo.fence_d * geo.fence_d, -1)
-    along = jnp.sum((xy[:, :, None, :] - geo.fence_a) * geo.fence_d, -1)  # [T, A, S]
+    k = min(slots_per_agent, geo.stop.shape[0])
+    # per agent, the signals whose piece's box its trajectory's box (valid frames) comes within half the radius
+    # of, nearest first: the crossing test runs on [T, A, k] instead of [T, A, S]
+    pv, vv = xy[1:], valid[1:]
+    t_lo = jnp.min(jnp.where(vv[..., None], pv, OFFICIAL_FAR), 0)  # [A, 2]
+    t_hi = jnp.max(jnp.where(vv[..., None], pv, -OFFICIAL_FAR), 0)
+    g = jnp.maximum(0.0, jnp.maximum(geo.box_lo[None] - t_hi[:, None], t_lo[:, None] - geo.box_hi[None]))
+    d2 = jnp.sum(g * g, -1)  # [A, S]
+    ever_red = jnp.any(jnp.isin(geo.state[1:], jnp.asarray(STOP_STATES)), 0) & geo.present
+    near_any = ever_red[None] & (d2 < (geo.radius / 2) ** 2)
+    neg, slot = jax.lax.top_k(-jnp.where(near_any, d2, jnp.inf), k)  # [A, k]
+    crowded = jnp.sum(near_any, -1) > k
+    fa, fd, stop_t = geo.fence_a[slot], geo.fence_d[slot], geo.stop_t[slot]  # [A, k, ...]
+    den = jnp.sum(fd * fd, -1)
+    along = jnp.sum((xy[:, :, None, :] - fa) * fd, -1)  # [T, A, k]
     along = jnp.where(den > 0, along / jnp.where(den > 0, den, 1.0), 0.0)
-    crossed = (along[:-1] < geo.stop_t) & (along[1:] > geo.stop_t)
-    red = jnp.isin(geo.state[1:], jnp.asarray(STOP_STATES)) & geo.present  # [T-1, S]
+    crossed = (along[:-1] < stop_t) & (along[1:] > stop_t)
+    red = jnp.isin(geo.state[1:][:, slot], jnp.asarray(STOP_STATES)) & jnp.isfinite(neg)  # [T-1, A, k]
     # within half the radius of the piece's box (squared, per axis: the box gap without its square root)
-    lo, hi, p = geo.box_lo, geo.box_hi, xy[1:, :, None, :]
+    lo, hi, p = geo.box_lo[slot], geo.box_hi[slot], xy[1:, :, None, :]
     g = jnp.maximum(0.0, jnp.maximum(lo - p, p - hi))
-    near = jnp.sum(g * g, -1) < (geo.radius / 2) ** 2
-    event = crossed & red[:, None] & valid[1:, :, None] & near
+    near = jnp.sum(g * g, -1) < (geo.radius[slot] / 2) ** 2
+    event = crossed & red & valid[1:, :, None] & near
     idx, used, rank, count = _first_events(event, max_events)
-    t_i = idx // (a_n * s_n) + 1
-    a_i = (idx // s_n) % a_n
-    s_i = idx % s_n
+    t_i = idx // (a_n * k) + 1
+    a_i = (idx // k) % a_n
+    s_i = slot[a_i, idx % k]
     d = official_segment_distance(xy[t_i, a_i], geo.cand_a[s_i], geo.cand_b[s_i], geo.cand_ok[s_i])  # [E, C]
     nearest = jnp.argmin(d, -1)
     on_lane = jnp.take_along_axis(geo.cand_own[s_i], nearest[:, None], 1)[:, 0]
@@ -379,5 +395,5 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     out = jnp.zeros((t_n, a_n), bool).at[t_i, a_i].max(used & on_lane & certain)
     beyond = event & (rank.reshape(event.shape) > max_events)
     out = out.at[1:].max(jnp.any(beyond, -1))
-    inexact = jnp.maximum(count - max_events, 0) + jnp.sum(used & ~certain)
+    inexact = jnp.maximum(count - max_events, 0) + jnp.sum(used & ~certain) + jnp.sum(crowded)
     return out, inexact.astype(jnp.int32)
