@@ -10,8 +10,10 @@ following that candidate, K sampled futures, and each future is scored with the 
    constant velocity) at the target speeds `speeds`; IDM along the route shifted sideways by +-`nudges_m` and, where
    the map has a lane there in the same direction, by +-`lane_width_m` (the neighbouring lanes), each at
    `side_speeds`; a shifted route blends from the ego's own offset to the target offset over max(`shift_min_m`,
-   `shift_time_s` x speed) metres (smoothstep). With a planning-head model, the head's own plan is one more
-   candidate (`gpd_head_policy`, its own backbone and KV cache).
+   `shift_time_s` x speed) metres (smoothstep). The IDM candidates start at the ego's acceleration and change it
+   by at most `max_jerk` a second, braking at most `max_decel`; one more candidate brakes as IDM does (the
+   emergency stop). With a planning-head model, the head's own plan is one more candidate (`gpd_head_policy`, its
+   own backbone and KV cache); with `hold`, so is the plan chosen at the previous replan, moved on one model frame.
 2. **Futures** of the other agents over `horizon` model frames, by the scorer:
    * ``gpd``: the world model (its own KV cache of the simulated frames, in the policy state) appends, for every
      candidate and each of K = `samples` keys, the frames with the ego on the candidate, the lanes encoded around
@@ -25,7 +27,8 @@ following that candidate, K sampled futures, and each future is scored with the 
    (`cls_scores`): multipliers at-fault collisions x drivable area x driving direction, times the weighted mean of
    progress (5; along the route, relative to the best candidate that passes the multipliers, PDM's way; 1 when no
    candidate makes `min_progress_m`), time to collision (5) and comfort (2). Reduced over the K futures by `reduce`
-   (``min``: the worst case; ``mean``). The previous replan's candidate gains `hysteresis` (fewer switches).
+   (``min``: the worst case; ``mean``). The previous replan's plan gains `hysteresis` (fewer switches: the ego's
+   executed path stays one plan's unless another is better by more, or the held one becomes unsafe).
 4. **The plan** is the best candidate's stored-rate poses (the tracker follows them; its open-loop plan is the same
    candidate at the model's frames from the current frame).
 
