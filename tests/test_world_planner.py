@@ -146,10 +146,8 @@ def test_the_held_plan_is_the_last_one_moved_on_a_model_frame(world):
     np.testing.assert_allclose(np.diff(held[:, 0]), 0.8, rtol=1e-4)         # continued at its last velocity
 
 
-@pytest.mark.parametrize("opts", [SMALL, dataclasses.replace(SMALL, max_jerk=0.0, max_decel=0.0, hold=False)],
-                         ids=["defaults", "unsmoothed"])
-def test_the_policy_is_one_compiled_step_and_stops_for_the_parked_car(world, sims, opts):
-    pol = W.world_planner_policy(world, None, opts)
+def test_the_policy_is_one_compiled_step_and_stops_for_the_parked_car(world, sims):
+    pol = W.world_planner_policy(world, None, SMALL)        # the shipped smoothing: jerk limit, held plan, stop
     traced = dataclasses.replace(pol, select=chex.assert_max_traces(pol.select, n=1))
     chex.clear_trace_counter()
     out = sim.run(world, sims, traced, jax.random.key(0), agents="log")
