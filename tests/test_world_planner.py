@@ -100,7 +100,7 @@ def test_futures_differ_between_candidates_where_the_agents_react(world, obs):
 
 def test_neighbouring_lanes_are_candidates_only_where_the_map_has_them(world, obs):
     o, _ = obs
-    opts = W.WorldPlannerOptions(speeds=(5.0,), side_speeds=(5.0,), nudges_m=(1.0,), lane_width_m=3.2)
+    opts = W.WorldPlannerOptions(speeds=(5.0,), side_speeds=(5.0,), nudges_m=(1.0,), lane_width_m=3.2, max_decel=0.0)
     # the two-way road: left of the ego runs the oncoming lane, right of it is the kerb: no lane change
     c = W.candidate_plans(o, world.spec, opts)
     assert c.poses.shape == (5, world.spec.num_future * world.spec.frame_stride, 3)
@@ -116,8 +116,38 @@ def test_neighbouring_lanes_are_candidates_only_where_the_map_has_them(world, ob
     assert np.all(np.diff(left[:, 1]) >= -1e-4)                                 # a smooth move to the left
 
 
+def test_jerk_limited_candidates_start_at_the_ego_acceleration(world, obs):
+    o, _ = obs
+    spec, dt = world.spec, world.spec.stored_period_s
+    opts = dataclasses.replace(SMALL, speeds=(1.0, 13.89), max_jerk=3.0, max_decel=0.0)
+    free = W.candidate_plans(o, spec, dataclasses.replace(opts, max_jerk=0.0)).poses
+    for a0 in (0.0, -2.0):
+        poses = np.asarray(W.candidate_plans(o, spec, opts, jnp.float32(a0)).poses)
+        xy = np.concatenate([np.broadcast_to(np.asarray(o.ego_pose[:2]), (2, 1, 2)), poses[:, :, :2]], 1)
+        v = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / dt                  # [C, N]
+        a = np.diff(np.concatenate([np.full((2, 1), 10.0), v], 1), axis=1) / dt
+        moving = v[:, 1:] > 0.05                                                # a stop ends the braking
+        assert np.all(np.abs(a[:, 0] - a0) <= 3.0 * dt + 0.05), a[:, :3]       # continuous with the ego's
+        jerk = np.abs(np.diff(a, axis=1))[moving] / dt
+        assert jerk.max() <= 3.0 + 0.5, jerk.max()
+        assert a[0].min() < a0 - 1.0                                            # it does brake, gradually
+    # without the limit the slow candidate brakes hard at once (IDM far above its target speed)
+    vf = np.linalg.norm(np.diff(np.asarray(free[0, :3, :2]), axis=0), axis=-1) / dt
+    assert vf[0] < 10.0 - 0.5
+
+
+def test_the_held_plan_is_the_last_one_moved_on_a_model_frame(world):
+    spec = world.spec
+    n, s = spec.num_future * spec.frame_stride, spec.frame_stride
+    plan = jnp.asarray(_straight(8.0, 0.0, n))
+    held = np.asarray(W.held_plan(plan, spec))
+    assert held.shape == (n, 3)
+    np.testing.assert_allclose(held[: n - s], np.asarray(plan[s:]), atol=1e-5)
+    np.testing.assert_allclose(np.diff(held[:, 0]), 0.8, rtol=1e-4)         # continued at its last velocity
+
+
 def test_the_policy_is_one_compiled_step_and_stops_for_the_parked_car(world, sims):
-    pol = W.world_planner_policy(world, None, SMALL)
+    pol = W.world_planner_policy(world, None, SMALL)        # the shipped smoothing: jerk limit, held plan, stop
     traced = dataclasses.replace(pol, select=chex.assert_max_traces(pol.select, n=1))
     chex.clear_trace_counter()
     out = sim.run(world, sims, traced, jax.random.key(0), agents="log")
@@ -146,3 +176,16 @@ def test_plan_command_rejects_bad_world_samples(capsys):
                  "--world-samples", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--world-samples" in err[0], err
+
+
+def test_braking_is_bounded_and_an_emergency_stop_is_a_candidate(world, obs):
+    o, _ = obs
+    spec, dt = world.spec, world.spec.stored_period_s
+    opts = dataclasses.replace(SMALL, speeds=(1.0,), max_jerk=0.0, max_decel=3.0)
+    c = W.candidate_plans(o, spec, opts)
+    assert c.poses.shape[0] == 2 and bool(jnp.all(c.valid))
+    xy = np.concatenate([np.broadcast_to(np.asarray(o.ego_pose[:2]), (2, 1, 2)), np.asarray(c.poses[:, :, :2])], 1)
+    v = np.linalg.norm(np.diff(xy, axis=1), axis=-1) / dt
+    a = np.diff(np.concatenate([np.full((2, 1), 10.0), v], 1), axis=1) / dt
+    assert a[0].min() >= -3.0 - 0.05                                            # bounded
+    assert a[1].min() < -5.0                                                    # IDM's own braking

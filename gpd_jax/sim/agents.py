@@ -159,10 +159,15 @@ def idm_poses(paths: Paths, st: IDMState):
 
 def idm_along_route(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.Array, ego_pose: jax.Array,
                     cur_xy: jax.Array, cur_velocity: jax.Array, cur_valid: jax.Array, size: jax.Array,
-                    num_steps: int, dt: float, target_speed=ROUTE_SPEED, p: IDMParams = IDMParams()) -> jax.Array:
+                    num_steps: int, dt: float, target_speed=ROUTE_SPEED, p: IDMParams = IDMParams(),
+                    accel0=0.0, max_jerk: float | None = None, max_decel: float | None = None) -> jax.Array:
     """The ego driven by IDM along a route for `num_steps` steps of `dt` seconds: f32[num_steps, 3] poses (scene
     frame). It starts at the ego's projection on the route at its current speed; its leaders are the other slots
     of the current frame whose box overlaps the route ahead, moved at constant velocity through the steps.
+    With `max_jerk` (m/s^3) the acceleration starts at `accel0` f32[] (m/s^2, the ego's now) and moves towards
+    IDM's by at most `max_jerk` x dt a step (a jerk-limited profile, continuous with the ego's motion); without,
+    each step takes IDM's acceleration as it is. `max_decel` (m/s^2, > 0) bounds its braking (IDM's own bound is
+    `p.decel_max`).
 
     route_xy f32[R, 2], route_heading f32[R], route_s f32[R]: the route (a path, `Paths`' slot 0); ego_pose f32[3];
     cur_xy f32[A, 2], cur_velocity f32[A, 2], cur_valid bool[A], size f32[A, 2]: the frame's slots, the ego at 0
@@ -175,7 +180,7 @@ def idm_along_route(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.
     pose_at = jax.vmap(pose_on_path, in_axes=(None, None, None, 0))
 
     def sub(carry, k):
-        s, v = carry                                                                    # [C]
+        s, v, a_prev = carry                                                            # [C]
         q = cur_xy + cur_velocity * (k * dt)
         arc, lat, tan = project_on_path(route_xy, route_s, q)                           # [A]
         cand = (others & (lat < 0.5 * (width + size[:, 1])))[None] & (arc[None] > s[:, None])     # [C, A]
@@ -183,12 +188,18 @@ def idm_along_route(route_xy: jax.Array, route_heading: jax.Array, route_s: jax.
         j = jnp.argmin(gap, axis=1)
         lead_v = jnp.sum(cur_velocity[j] * tan[j], -1)
         a = idm_accel(v, speeds, jnp.take_along_axis(gap, j[:, None], 1)[:, 0], v - lead_v, p)
+        if max_decel is not None:
+            a = jnp.maximum(a, -max_decel)
+        if max_jerk is not None:
+            a = a_prev + jnp.clip(a - a_prev, -max_jerk * dt, max_jerk * dt)
         v = jnp.maximum(v + a * dt, 0.0)
+        a = jnp.where(v > 0.0, a, 0.0)                                                  # stopped: no acceleration
         s = s + v * dt
         xy, h = pose_at(route_xy, route_heading, route_s, s)
-        return (s, v), jnp.concatenate([xy, h[:, None]], -1)                            # [C, 3]
+        return (s, v, a), jnp.concatenate([xy, h[:, None]], -1)                         # [C, 3]
 
-    start = (jnp.full_like(speeds, s0[0]), jnp.full_like(speeds, jnp.linalg.norm(cur_velocity[0])))
+    start = (jnp.full_like(speeds, s0[0]), jnp.full_like(speeds, jnp.linalg.norm(cur_velocity[0])),
+             jnp.full_like(speeds, accel0))
     _, poses = jax.lax.scan(sub, start, jnp.arange(num_steps, dtype=jnp.float32))
     poses = jnp.moveaxis(poses, 0, 1)                                                   # [C, num_steps, 3]
     return poses if jnp.ndim(target_speed) else poses[0]

@@ -10,8 +10,10 @@ following that candidate, K sampled futures, and each future is scored with the 
    constant velocity) at the target speeds `speeds`; IDM along the route shifted sideways by +-`nudges_m` and, where
    the map has a lane there in the same direction, by +-`lane_width_m` (the neighbouring lanes), each at
    `side_speeds`; a shifted route blends from the ego's own offset to the target offset over max(`shift_min_m`,
-   `shift_time_s` x speed) metres (smoothstep). With a planning-head model, the head's own plan is one more
-   candidate (`gpd_head_policy`, its own backbone and KV cache).
+   `shift_time_s` x speed) metres (smoothstep). The IDM candidates start at the ego's acceleration and change it
+   by at most `max_jerk` a second, braking at most `max_decel`; one more candidate brakes as IDM does (the
+   emergency stop). With a planning-head model, the head's own plan is one more candidate (`gpd_head_policy`, its
+   own backbone and KV cache); with `hold`, so is the plan chosen at the previous replan, moved on one model frame.
 2. **Futures** of the other agents over `horizon` model frames, by the scorer:
    * ``gpd``: the world model (its own KV cache of the simulated frames, in the policy state) appends, for every
      candidate and each of K = `samples` keys, the frames with the ego on the candidate, the lanes encoded around
@@ -25,7 +27,8 @@ following that candidate, K sampled futures, and each future is scored with the 
    (`cls_scores`): multipliers at-fault collisions x drivable area x driving direction, times the weighted mean of
    progress (5; along the route, relative to the best candidate that passes the multipliers, PDM's way; 1 when no
    candidate makes `min_progress_m`), time to collision (5) and comfort (2). Reduced over the K futures by `reduce`
-   (``min``: the worst case; ``mean``). The previous replan's candidate gains `hysteresis` (fewer switches).
+   (``min``: the worst case; ``mean``). The previous replan's plan gains `hysteresis` (fewer switches: the ego's
+   executed path stays one plan's unless another is better by more, or the held one becomes unsafe).
 4. **The plan** is the best candidate's stored-rate poses (the tracker follows them; its open-loop plan is the same
    candidate at the model's frames from the current frame).
 
@@ -52,7 +55,7 @@ from gpd_jax.sim.agents import idm_along_route
 from gpd_jax.sim.core import Observation, Policy, SimError, _lanes, _parts, append_frame, predicted_agents
 from gpd_jax.sim.policies import gpd_head_policy, observed_frames
 from gpd_jax.sim.scores import CLS_WEIGHTS, cls_scores, road_queries
-from gpd_jax.sim.tracker import plan_path
+from gpd_jax.sim.tracker import extend, plan_path
 from gpd_jax.spec import ModelSpec
 
 SCORERS = ("gpd", "cv", "log")   # the agents' futures: the world model's samples, constant velocity, the log (oracle)
@@ -69,7 +72,13 @@ class WorldPlannerOptions:
     same for the shifted routes; nudges_m: sideways shifts within the lane (each + and -); lane_width_m: the
     neighbouring lanes' offset (0: none); shift_time_s, shift_min_m: how long a shift takes; min_progress_m: below
     this best progress every candidate's progress scores 1; hysteresis: the previous choice's bonus; use_head: the
-    head's plan as a candidate (when a head model is given).
+    head's plan as a candidate (when a head model is given); max_jerk: m/s^3, the IDM candidates' acceleration
+    starts at the ego's and changes by at most this per second (0: IDM's acceleration as it is); max_decel: m/s^2,
+    the IDM candidates brake at most this hard, and one more candidate brakes as IDM does (its lowest speed,
+    unbounded, no jerk limit: the emergency stop; 0: no bound, no such candidate); hold: the previous
+    replan's chosen plan, moved on one model frame, is one more candidate and the previous choice is that plan (the
+    hysteresis bonus goes to it; without, to the candidate of the same index); head_bonus: added to the head's
+    plan's score (the head preferred unless another candidate is better by more).
     """
 
     scorer: str = "gpd"
@@ -84,8 +93,12 @@ class WorldPlannerOptions:
     shift_time_s: float = 3.0
     shift_min_m: float = 15.0
     min_progress_m: float = 5.0
-    hysteresis: float = 0.02
+    hysteresis: float = 0.05
     use_head: bool = True
+    max_jerk: float = 2.0
+    max_decel: float = 3.0
+    hold: bool = True
+    head_bonus: float = 0.0
 
     def __post_init__(self):
         if self.scorer not in SCORERS:
@@ -98,7 +111,8 @@ class WorldPlannerOptions:
                 raise SimError(f"world planner: {name} must be an integer >= 1, got {v!r}")
         if not self.speeds:
             raise SimError("world planner: speeds: at least one IDM target speed")
-        for name in ("temperature", "lane_width_m", "shift_time_s", "shift_min_m", "min_progress_m", "hysteresis"):
+        for name in ("temperature", "lane_width_m", "shift_time_s", "shift_min_m", "min_progress_m", "hysteresis",
+                     "max_jerk", "max_decel", "head_bonus"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise SimError(f"world planner: {name} must be a number >= 0, got {v!r}")
@@ -120,7 +134,8 @@ class WorldPlannerOptions:
         return tuple(out)
 
     def num_candidates(self, with_head: bool) -> int:
-        return len(self.speeds) + len(self.offsets) * len(self.side_speeds) + int(with_head)
+        return (len(self.speeds) + len(self.offsets) * len(self.side_speeds) + int(self.max_decel > 0)
+                + int(with_head) + int(self.hold))
 
 
 @flax.struct.dataclass
@@ -146,11 +161,13 @@ class Futures:
 class WorldState:
     """The world planner's state between replans: decode, the world model's KV cache of the simulated frames (None
     for the cv and log scorers); head, the planning head's policy state (() without one); prev i32[], the candidate
-    chosen last (-1 before the first)."""
+    chosen last (-1 before the first); plan f32[N, 3], the plan chosen last (stored-rate poses from the stored frame
+    after that replan on; zeros before the first)."""
 
     decode: DecodeState | None
     head: object
     prev: jax.Array
+    plan: jax.Array
 
 
 # ------------------------------------------------------------------------------------------------ candidates
@@ -176,12 +193,18 @@ def _lane_there(road, xy, heading, s, s_from, s_last, tol_m: float = 1.0, max_an
     return jnp.all((dist < tol_m) & (jnp.abs(wrap_angle(lh - qh)) < max_angle))
 
 
-def candidate_plans(obs: Observation, spec: ModelSpec, options: WorldPlannerOptions) -> Candidates:
-    """The IDM candidates of one observation (module docstring), without the head's: Candidates [C', ...]."""
+def candidate_plans(obs: Observation, spec: ModelSpec, options: WorldPlannerOptions, accel0=0.0) -> Candidates:
+    """The IDM candidates of one observation (module docstring), without the head's and the held plan:
+    Candidates [C', ...]. accel0 f32[]: the ego's acceleration now (m/s^2; read with `options.max_jerk` > 0)."""
     n, dt = spec.num_future * spec.frame_stride, spec.stored_period_s
     rxy, rh, rs = obs.route_xy, obs.route_heading, obs.route_s
-    idm = lambda xy, h, s, speeds: idm_along_route(xy, h, s, obs.ego_pose, obs.cur_xy, obs.cur_velocity,
-                                                   obs.cur_valid, obs.size, n, dt, jnp.asarray(speeds, jnp.float32))
+    jerk = options.max_jerk if options.max_jerk > 0 else None
+    decel = options.max_decel if options.max_decel > 0 else None
+    idm = lambda xy, h, s, speeds, **kw: idm_along_route(xy, h, s, obs.ego_pose, obs.cur_xy, obs.cur_velocity,
+                                                         obs.cur_valid, obs.size, n, dt,
+                                                         jnp.asarray(speeds, jnp.float32),
+                                                         **({"accel0": accel0, "max_jerk": jerk, "max_decel": decel}
+                                                            | kw))
     arc, _, tangent = project_on_path(rxy, rs, obs.ego_pose[None, :2])
     foot, _ = pose_on_path(rxy, rh, rs, arc[0])
     d0 = tangent[0, 0] * (obs.ego_pose[1] - foot[1]) - tangent[0, 1] * (obs.ego_pose[0] - foot[0])
@@ -201,7 +224,31 @@ def candidate_plans(obs: Observation, spec: ModelSpec, options: WorldPlannerOpti
                 *(r[1 + nudges:] for r in routes))
             there = jnp.concatenate([there, lanes])
         valid.append(jnp.repeat(there, len(options.side_speeds)))
+    if decel is not None:                                 # the emergency stop: IDM's own braking
+        poses.append(idm(*(r[0] for r in routes), options.speeds[:1], max_jerk=None, max_decel=None))
+        valid.append(jnp.ones(1, bool))
     return Candidates(poses=jnp.concatenate(poses, 0), valid=jnp.concatenate(valid, 0))
+
+
+def held_plan(plan: jax.Array, spec: ModelSpec) -> jax.Array:
+    """The plan chosen at the previous replan (stored-rate poses f32[N, 3] from the stored frame after it) moved on
+    one model frame: its poses from the stored frame after now, continued at its last velocity to N poses."""
+    s = spec.frame_stride
+    return extend(plan[s:], plan[s - 1], plan.shape[0])
+
+
+def ego_accel(obs: Observation, spec: ModelSpec, prev_plan: jax.Array, has_plan: jax.Array) -> jax.Array:
+    """The ego's longitudinal acceleration now (m/s^2, f32[]): the previous plan's at this frame where there is one
+    (the tracker follows it, its acceleration fed forward), else the change of speed over the last model frame."""
+    s, dt = spec.frame_stride, spec.stored_period_s
+    prev_t = jnp.maximum(obs.t - 1, 0)
+    hist = (jnp.linalg.norm(obs.velocity[obs.t, 0]) - jnp.linalg.norm(obs.velocity[prev_t, 0])) / spec.frame_period_s
+    hist = jnp.where(obs.t > 0, hist, 0.0)
+    if s < 2:
+        return hist
+    pts = prev_plan[s - 2: s + 1, :2]                                # the stored frames before, at and after now
+    v = jnp.linalg.norm(pts[1:] - pts[:-1], axis=-1) / dt
+    return jnp.where(has_plan, (v[1] - v[0]) / dt, hist)
 
 
 # ------------------------------------------------------------------------------------------------ futures
@@ -397,13 +444,22 @@ def world_planner_policy(world: Model, head: Model | None = None,
         f = observed_frames(module, obs)
         return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, obs.t, 0, keepdims=False), f)
 
-    def choose(p, obs, decode, head_poses, prev, key):
-        cands = candidate_plans(obs, spec, options)
+    def choose(p, obs, decode, head_poses, prev, prev_plan, key):
+        has_plan = prev >= 0
+        cands = candidate_plans(obs, spec, options, ego_accel(obs, spec, prev_plan, has_plan))
+        extra, bonus = [], jnp.zeros(cands.valid.shape[0])
         if head_poses is not None:
-            ref = plan_path(obs.ego_pose, obs.ego_velocity, head_poses, period, s)[None]
-            cands = Candidates(poses=jnp.concatenate([cands.poses, ref], 0),
-                               valid=jnp.concatenate([cands.valid, jnp.ones(1, bool)]))
+            extra.append((plan_path(obs.ego_pose, obs.ego_velocity, head_poses, period, s), True,
+                          options.head_bonus))
+        if options.hold:
+            extra.append((held_plan(prev_plan, spec), has_plan, options.hysteresis))
+        for poses, ok, b in extra:
+            cands = Candidates(poses=jnp.concatenate([cands.poses, poses[None]], 0),
+                               valid=jnp.concatenate([cands.valid, jnp.asarray(ok, bool)[None]]))
+            bonus = jnp.concatenate([bonus, jnp.full(1, b)])
         c = cands.poses.shape[0]
+        if not options.hold:                             # the previous choice: the candidate of the same index
+            bonus = bonus + jnp.where(jnp.arange(c) == prev, options.hysteresis, 0.0)
         if options.scorer == "gpd":
             futures = gpd_futures(world_parts(p), decode, obs, spec, options, cands.poses, key)
         elif options.scorer == "cv":
@@ -411,8 +467,7 @@ def world_planner_policy(world: Model, head: Model | None = None,
         else:
             futures = log_futures(obs, spec, options, c)
         sc = candidate_scores(obs, spec, options, cands, futures)
-        score = sc["score"] + jnp.where(jnp.arange(c) == prev, options.hysteresis, 0.0)
-        pick = jnp.argmax(score)
+        pick = jnp.argmax(sc["score"] + bonus)
         return pick, cands.poses[pick]
 
     def init(p, obs):
@@ -422,7 +477,9 @@ def world_planner_policy(world: Model, head: Model | None = None,
             decode = prefill(parts.module, observed_frames(parts.module, obs), h - 1, t_total,
                              _lanes(parts, obs.polylines, obs.polyline_valid, h - 1))
         hstate = head_policy.init(p["head"], obs) if use_head else ()
-        return WorldState(decode=decode, head=hstate, prev=jnp.asarray(-1, jnp.int32))
+        n = spec.num_future * s
+        return WorldState(decode=decode, head=hstate, prev=jnp.asarray(-1, jnp.int32),
+                          plan=jnp.zeros((n, 3), jnp.float32))
 
     def select(p, obs, state: WorldState, key):
         k_head, k_world = jax.random.split(key)
@@ -435,8 +492,8 @@ def world_planner_policy(world: Model, head: Model | None = None,
         if use_head:
             plan, hstate = head_policy.select(p["head"], obs, state.head, k_head)
             head_poses = plan.poses
-        pick, poses = choose(p, obs, decode, head_poses, state.prev, k_world)
-        return poses, WorldState(decode=decode, head=hstate, prev=pick.astype(jnp.int32))
+        pick, poses = choose(p, obs, decode, head_poses, state.prev, state.plan, k_world)
+        return poses, WorldState(decode=decode, head=hstate, prev=pick.astype(jnp.int32), plan=poses)
 
     def plan(p, obs, key):
         k_head, k_world = jax.random.split(key)
@@ -446,7 +503,7 @@ def world_planner_policy(world: Model, head: Model | None = None,
             decode = prefill(parts.module, observed_frames(parts.module, obs), h, t_total,
                              _lanes(parts, obs.polylines, obs.polyline_valid, h))
         head_poses = head_policy.plan(p["head"], obs, k_head) if use_head else None
-        _, poses = choose(p, obs, decode, head_poses, jnp.asarray(-1), k_world)
+        _, poses = choose(p, obs, decode, head_poses, jnp.asarray(-1), jnp.zeros((spec.num_future * s, 3)), k_world)
         return poses[s - 1:: s][: spec.num_future]
 
     return Policy(name=name, select=select, init=init, plan=plan, needs_map=with_model or use_head, params=params)
