@@ -16,6 +16,8 @@ Variants (`configs/map_tokenizer.py:VARIANT`); the shipped ones were trained on 
 * `vector_tiny`: the vector encoder (`model.encoder.kind` "vector": lane segments -> one token per 8 m cell,
   `gpd_jax.map_tokenizer.vector`) with the tiny decoder, from scratch on real and generated maps, dev on SR
   (docs/tokenizer.md, "The vector encoder"); `vector`: its accelerator size (the paper's decoder).
+* `vector_tiny_continuous` / `vector_tiny_maps`: dev probes of the vector recipe (no codebook; more real training
+  maps), docs/results.md.
 * `test` / `vector_test`: the sizes the test suite trains on synthetic lanes.
 
     python train.py --config configs/map_tokenizer.py:tiny --workdir runs/tok_tiny
@@ -72,6 +74,14 @@ STAGES = {
                      "data/i70_netframes_gen:0.4"),
         "data.eval_dir": "data/interaction_dev", "data.eval_split": "val", "data.gt_recut": "join_ends",
         "train.num_steps": 3_000, "train.kmeans_at_step": 300, "train.eval_every": 1_000}),
+    # dev probes of the results log's 2026-11-29 "where the vector tokenizer loses F1" (1,000 steps, as run):
+    # the same recipe without the codebook (the decoder reads the continuous latents throughout; score it with
+    # `tokenizer evaluate --continuous`), and with the CommonRoad train towns and SinD's train cities added
+    "vector_tiny_continuous": ("vector_tiny", {"train.num_steps": 1_000, "train.kmeans_at_step": 1_000_000_000}),
+    "vector_tiny_maps": ("vector_tiny", {
+        "data.dir": ("data/i70_interaction_train_small:0.3,data/i70_netframes_interaction_train:0.15,"
+                     "data/b70_netframes_osm_train:0.2,data/b70_netframes_sind_train:0.05,data/i70_netframes_gen:0.3"),
+        "train.num_steps": 1_000}),
     "vector": ("vector_tiny", {
         "model.vector.d_model": 256, "model.vector.num_heads": 8, "model.vector.num_layers": 4,
         "model.vector.ffn_dim": 1024, "model.decoder.d_model": 512, "model.decoder.num_heads": 8,
