@@ -130,6 +130,25 @@ def test_tokenizer_api_compiles_once_and_decodes(tmp_path, model, frames):
     assert isinstance(tok, MapTokenizer)
 
 
+def test_evaluation_decodes_the_continuous_latents_when_asked(model):
+    """`make_eval_step(quantized=False)` (`tokenizer evaluate --continuous`, the quantiser's cost) scores the lines
+    decoded from the encoder's own latents, the default the lines of their nearest codes."""
+    from gpd_jax.map_tokenizer.evaluation import encoder_input, frame_arrays, make_eval_step
+    from gpd_jax.metrics.map import map_metric_sums
+    cfg, graphdef, params, _ = model
+    params = jax.tree.map(lambda x: x, params)  # a copy in which every decoded line exists (logit bias +5)
+    params["decoder"]["logit_head"]["bias"] = params["decoder"]["logit_head"]["bias"] + 5.0
+    batch = frame_arrays(synthetic_lanes(5, 2))
+    cont, idx = jax.jit(make_eval_step(graphdef, cfg, diagnostics=False, quantized=False))(params, batch)
+    codes, idx_codes = jax.jit(make_eval_step(graphdef, cfg, diagnostics=False))(params, batch)
+    np.testing.assert_array_equal(idx, idx_codes)  # the tokens are the nearest codes either way
+    out = core.forward(graphdef, params, encoder_input(cfg, batch), False)
+    direct = map_metric_sums(out["points"], out["logits"], batch["lanes"], batch["lanes_valid"])
+    for k in ("cf_pred_len", "cf_gt_len", "cf_pred_hit_len"):  # the decoded lines' length and their hits
+        np.testing.assert_allclose(cont[k], direct[k], rtol=1e-4, atol=1e-4 * float(np.max(np.abs(direct[k]))))
+    assert not np.allclose(cont["cf_pred_len"], codes["cf_pred_len"], rtol=1e-3)
+
+
 def test_tiny_vector_tokenizer_redraws_a_handful_of_frames():
     """A few hundred steps on four frames through the quantizer (the steps take well under a second here; the
     compiles are the cost): the cut-invariant F1 at 1.5 m rises from nothing to a fixed level (about 0.78 after

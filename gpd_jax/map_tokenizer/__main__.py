@@ -78,10 +78,10 @@ def cmd_evaluate(args) -> dict:
                                 repeat=False, max_batches=args.max_batches, gt_recut=args.gt_recut)
     t0 = time.perf_counter()
     m = tokenizer_metrics(tok.graphdef, tok.params, tok.config, batches,
-                          jax.jit(make_eval_step(tok.graphdef, tok.config)))
+                          jax.jit(make_eval_step(tok.graphdef, tok.config, quantized=not args.continuous)))
     m.update(split=args.split, data=os.path.abspath(args.data), checkpoint=args.checkpoint,
              frame_stride=None if args.draw_seed is not None else args.frame_stride, draw_seed=args.draw_seed,
-             f1_threshold_m=1.5, gt_recut=args.gt_recut,
+             f1_threshold_m=1.5, gt_recut=args.gt_recut, latents="continuous" if args.continuous else "codes",
              wall_s=round(time.perf_counter() - t0, 1))
     print(json.dumps(m, indent=2))
     if args.json:
@@ -210,6 +210,9 @@ def main(argv=None) -> int:
                    help="score against the GT of the polylines re-cut this way (the raster stays as stored): a "
                         "probe of how much the GT's cut costs, or the figure of a tokenizer trained on that cut "
                         "(config data.gt_recut); beside the stored cut's, never instead of it")
+    e.add_argument("--continuous", action="store_true",
+                   help="decode the encoder's continuous latents, not their codes: the figure of a tokenizer "
+                        "trained without its codebook (a probe of what the quantiser costs; no tokens to ship)")
     e.add_argument("--draw-seed", type=int, default=None,
                    help="instead of frames 0, S, 2S, ...: one random frame per sample, samples shuffled, drawn with "
                         "this seed as training's validation draws them (--draw-seed 12345 --max-batches 8: the 256 "

@@ -129,15 +129,17 @@ def reduce_pairs(t: dict) -> dict[str, float]:
             "pairs_pred_shorter_1.5x_share": f("pair_shorter")}
 
 
-def make_eval_step(graphdef, config, diagnostics: bool = True):
+def make_eval_step(graphdef, config, diagnostics: bool = True, quantized: bool = True):
     """eval_step(params, frames) -> (map metric sums, token indices) of `frames` (`frame_arrays` of a batch),
     with the paper's and the cut-invariant F1 at every `RECONSTRUCTION_THRESHOLDS_M` and the successor pairs kept
     (`map_metric_sums`'s `connectivity`); with `diagnostics`, also the raster-level reconstruction (`raster_sums`:
     the decoded lines drawn with `config.raster` against the frames' raster) and the matched-pair diagnostics
-    (`pair_sums`)."""
+    (`pair_sums`). `quantized` False decodes the encoder's continuous latents instead of their codes: the figure
+    of a model trained without the codebook (`train.kmeans_at_step` beyond its steps), i.e. what the quantiser
+    costs; the token indices are still the nearest codes."""
 
     def eval_step(params, frames):
-        out = core.forward(graphdef, params, encoder_input(config, frames))
+        out = core.forward(graphdef, params, encoder_input(config, frames), quantized)
         lanes, lanes_valid = frames["lanes"], frames["lanes_valid"]
         sums = map_metric_sums(out["points"], out["logits"], lanes, lanes_valid, length_edges=LENGTH_EDGES_M,
                                window_half=HALF, extra_thresholds=RECONSTRUCTION_THRESHOLDS_M, connectivity=True)
