@@ -20,6 +20,7 @@ from gpd_jax.synthetic import synthetic_scenes
 from gpd_jax.tasks import make_tasks
 
 SIZE = jnp.asarray([[4.0, 2.0]] * 3, jnp.float32)
+avoid_overlaps = jax.jit(avoid_overlaps, static_argnames=("sampling",))
 
 
 def _queue():
@@ -124,7 +125,7 @@ def setup():
     tasks = make_tasks(["traffic_simulation"], m.num_map_tokens, m.num_agents)
     model = GPD(m, nnx.Rngs(0))
     bias = model.valid_head.linears[-1].bias
-    bias.value = bias.value + 20.0
+    bias[...] = bias[...] + 20.0
     return cfg, model, jax.tree.map(jnp.asarray, scenes), jax.tree.map(jnp.asarray, tasks)
 
 
