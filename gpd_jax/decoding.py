@@ -61,8 +61,9 @@ from gpd_jax import parallel
 from gpd_jax.model import autotune
 from gpd_jax.model import GPD, KVCache, LaneContext, Modes, Prediction, forward, forward_cached, reads_lanes, \
     samples_agents
-from gpd_jax.geometry import RoadGeometry, on_road, rotate
-from gpd_jax.metrics.realism import box_signed_distance
+from gpd_jax.geometry import RoadGeometry, rotate
+from gpd_jax.metrics.agents import box_corners
+from gpd_jax.metrics.realism import box_signed_distance, orient_edges, road_edge_distance
 from gpd_jax.options import RolloutOptions, Sampling
 from gpd_jax.prompts import Prompt, as_prompt
 from gpd_jax.scene import Scene, wrap_angle
@@ -297,32 +298,45 @@ def top_cells(modes: Modes, k: int) -> Modes:
 
 def avoid_overlaps(xy, heading, vel, modes: Modes, prev_xy, prev_valid, valid, size, movable, key,
                    sampling: Sampling, road: RoadGeometry | None = None):
-    """Collision-aware decoding of one frame's agents (`Sampling.avoid_collisions`).
+    """Collision-aware decoding of one frame's agents (`Sampling.avoid_collisions`): other agents and the road edge.
 
     xy f32[A, 2], heading f32[A], vel f32[A, 2]: every slot's next state as chosen (regressed at temperature 0,
     drawn above it; the log's for given slots); `modes`: the sampling head's prediction of that frame (leading dims
     [A]); prev_xy f32[A, 2] / prev_valid bool[A]: the frame before; valid bool[A]: the slots present next; size
     f32[A, 2] (length, width); movable bool[A]: the generated slots that may be changed; key: for the draws above
-    temperature 0 (None at 0); road: the scene's drivable area, or None.
+    temperature 0 (None at 0); road: the scene's road geometry, or None.
 
     Agent i yields to agent j when j is present and its previous centre is not behind i's (along i's heading): then
     i's next box must not overlap j's next box, nor the box halfway between their previous and next centres (a car
-    that jumps through another between two frames). A movable agent whose state overlaps one it yields to takes
-    instead, of all the cells of its sampling head that overlap none (and, with `road`, whose centre is on the
-    drivable area if its own state's is), the most likely (temperature 0: the cell's centre) or a draw (above it: a
-    cell from their logits at the temperature, then its noise, or the most likely one's centre where the noise
-    makes it overlap); where no cell is free, its state stays. Front agents keep their states: a car behind a queue
-    brakes, the queue does not move back. `AVOID_PASSES` rounds, each against the others' states of the round
-    before. A model without velocity cells keeps `vel`. Returns (xy, heading, vel) as given."""
-    a = xy.shape[0]
+    that jumps through another between two frames). With `road`, an agent whose box was on the road at the frame
+    before (no corner beyond the road edges: the realism metric's `road_edge_distance` <= 0) must stay on it. A
+    movable agent whose state breaks either takes instead, of all the cells of its sampling head that keep both,
+    the most likely (temperature 0: the cell's centre and heading) or a draw (above it: a cell from their logits at
+    the temperature, then its noise, or the most likely one where the noise breaks them); where no cell keeps
+    both, its state stays. Agents ahead keep their states: a car behind a queue brakes, the queue does not move
+    back. `AVOID_PASSES` rounds, each against the others' states of the round before. A model without velocity
+    cells keeps `vel`. Returns (xy, heading, vel) as given."""
+    a, c = modes.logits.shape
     half = size / 2
-    allowed = jnp.ones(modes.logits.shape, bool)  # every cell: braking hard behind a queue takes an unlikely one
-    if road is not None:  # no swerve off the road to dodge a car
-        allowed = on_road(road, modes.xy) | ~on_road(road, xy)[:, None]
     start = jnp.where(prev_valid[:, None], prev_xy, xy)
     u = jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1)
     ahead = jnp.sum((start[None, :, :] - start[:, None, :]) * u[:, None, :], -1) >= 0  # [i, j]: j not behind i
     yields = ahead & valid[None, :] & ~jnp.eye(a, dtype=bool)
+    if road is None:
+        def on_the_road(cxy, ch):  # bool[A, C]
+            return jnp.ones(cxy.shape[:2], bool)
+    else:
+        edges = orient_edges(road)
+
+        def edge_distance(cxy, ch):  # f32[A, C]: the most off-road corner of candidate c of agent i (> 0: off)
+            corners = box_corners(jnp.swapaxes(cxy, 0, 1), jnp.swapaxes(ch, 0, 1),
+                                  jnp.broadcast_to(size, (cxy.shape[1],) + size.shape))  # [C, A, 4, 2]
+            return jnp.swapaxes(road_edge_distance(edges, corners, jnp.ones(corners.shape[:2], bool))[0], 0, 1)
+
+        was_on = edge_distance(start[:, None, :], heading[:, None])[:, 0] <= 0
+
+        def on_the_road(cxy, ch):
+            return (edge_distance(cxy, ch) <= 0) | ~was_on[:, None]
 
     def clear(cxy, ch, oxy, oh):  # bool[A, C]: candidate c of agent i (cxy [A, C, 2], ch [A, C]) overlaps no j
         def hits(p, q):
@@ -333,17 +347,21 @@ def avoid_overlaps(xy, heading, vel, modes: Modes, prev_xy, prev_valid, valid, s
         mid_c, mid_o = 0.5 * (cxy + start[:, None, :]), 0.5 * (oxy + start)
         return ~(hits(cxy, oxy) | hits(mid_c, mid_o))
 
+    cells_on_road = on_the_road(modes.xy, modes.heading)
+
     def one_pass(i, state):
         cur_xy, cur_h, cur_v = state
-        ok_now = clear(cur_xy[:, None, :], cur_h[:, None], cur_xy, cur_h)[:, 0]
-        ok_cells = clear(modes.xy, modes.heading, cur_xy, cur_h) & allowed
+        ok_now = (clear(cur_xy[:, None, :], cur_h[:, None], cur_xy, cur_h) & on_the_road(cur_xy[:, None, :],
+                                                                                        cur_h[:, None]))[:, 0]
+        ok_cells = clear(modes.xy, modes.heading, cur_xy, cur_h) & cells_on_road
         free = modes._replace(logits=jnp.where(ok_cells, modes.logits, -jnp.inf))
         best = top_cells(free, 1)
         new_xy, new_h = best.xy[:, 0], best.heading[:, 0]
         new_v = None if best.velocity is None else best.velocity[:, 0]
-        if sampling.random:  # a draw among the free cells; where its noise makes it overlap, the best cell's centre
+        if sampling.random:  # a draw among the free cells; where its noise breaks the rules, the best cell
             d_xy, d_h, d_v = sample_agents(free, jax.random.fold_in(key, i), sampling)
-            fine = clear(d_xy[:, None, :], d_h[:, None], cur_xy, cur_h)[:, 0]
+            fine = (clear(d_xy[:, None, :], d_h[:, None], cur_xy, cur_h) & on_the_road(d_xy[:, None, :],
+                                                                                      d_h[:, None]))[:, 0]
             new_xy, new_h = jnp.where(fine[:, None], d_xy, new_xy), jnp.where(fine, d_h, new_h)
             new_v = None if new_v is None else jnp.where(fine[:, None], d_v, new_v)
         swap = movable & ~ok_now & jnp.any(ok_cells, -1)

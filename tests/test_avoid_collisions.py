@@ -1,6 +1,6 @@
 """Collision-aware decoding (`RolloutOptions.avoid_collisions`, `gpd_jax.decoding.avoid_overlaps`): a car that would
-run into the one ahead takes the most likely free cell of its sampling head, the one ahead keeps its state, no swerve
-off the road; the option is off by default and needs a sampling head."""
+run into the one ahead takes the most likely free cell of its sampling head, the one ahead keeps its state, a box on
+the road stays on it; the option is off by default and needs a sampling head."""
 
 import chex
 import jax
@@ -71,7 +71,7 @@ def test_the_car_behind_brakes_to_the_most_likely_free_cell_and_the_car_ahead_ke
     np.testing.assert_array_equal(kept[0], blocked[0])
 
 
-def test_a_draw_above_temperature_zero_lands_on_a_free_cell_and_no_cell_leaves_the_road():
+def test_a_draw_above_temperature_zero_lands_on_a_free_cell_and_a_box_on_the_road_stays_on_it():
     xy, heading, modes, prev_xy = _queue()
     every = jnp.ones(3, bool)
     draws, turns, _ = jax.vmap(lambda k: avoid_overlaps(xy, heading, jnp.ones((3, 2)), modes, prev_xy, every, every,
@@ -80,25 +80,28 @@ def test_a_draw_above_temperature_zero_lands_on_a_free_cell_and_no_cell_leaves_t
     assert all(not _overlap(d[0], xy[1], h[0]) for d, h in zip(draws, turns))
     picked = np.round(np.asarray(draws[:, 0, 0]) / 3) * 3  # cell 6 or 3 (+ noise of scale 0.3 m)
     assert set(picked.tolist()) <= {3.0, 6.0} and (picked == 6.0).mean() > 0.5  # 6 is the likelier free cell
-    # a road x in [-10, 9.5]: the rear car's proposal (x = 9) is on it, so are its cells at y = 0 -> x = 6 as before
+    # a road x in [-10, x_end], y in [-5, 40] (its edge the ring itself): the rear car's box (x = 9 +- 2) is on it
     def road(x_end):
-        ring = jnp.asarray([[[-10.0, -5.0], [x_end, -5.0], [x_end, 40.0], [-10.0, 40.0]]])
-        return RoadGeometry(polygons=ring, polygon_valid=jnp.ones((1, 4), bool),
-                            polygon_kind=jnp.zeros(1, jnp.int32), edges=jnp.zeros((1, 2, 2)),
-                            edge_valid=jnp.zeros((1, 2), bool), lanes=jnp.zeros((1, 2, 2)),
+        ring = jnp.asarray([[-10.0, -5.0], [x_end, -5.0], [x_end, 40.0], [-10.0, 40.0]])
+        return RoadGeometry(polygons=ring[None], polygon_valid=jnp.ones((1, 4), bool),
+                            polygon_kind=jnp.zeros(1, jnp.int32), edges=jnp.concatenate([ring, ring[:1]])[None],
+                            edge_valid=jnp.ones((1, 5), bool), lanes=jnp.zeros((1, 2, 2)),
                             lane_valid=jnp.zeros((1, 2), bool))
 
-    def decode(m, r=None):
-        return avoid_overlaps(xy, heading, jnp.ones((3, 2)), m, prev_xy, every, every, SIZE, every, None,
+    def decode(m, r=None, at=xy):
+        return avoid_overlaps(at, heading, jnp.ones((3, 2)), m, prev_xy, every, every, SIZE, every, None,
                               Sampling(0.0), r)[0][0]
 
-    np.testing.assert_allclose(decode(modes, road(9.5)), [6.0, 0.0])
-    # its free cells moved sideways off the road (y = -8): on the road, it may not take them and stays
+    np.testing.assert_allclose(decode(modes, road(11.5)), [6.0, 0.0])
+    # its free cells moved sideways off the road (y = -8): on the road before, it may not take them and stays
     off = modes._replace(xy=modes.xy.at[0, 1:, 1].set(-8.0))
-    np.testing.assert_array_equal(decode(off, road(9.5)), xy[0])
+    np.testing.assert_array_equal(decode(off, road(11.5)), xy[0])
     np.testing.assert_allclose(decode(off), [6.0, -8.0])  # without a road it would
-    # a proposal already off the road (the road ends at x = 8.5) may take an off-road cell
-    np.testing.assert_allclose(decode(off, road(8.5)), [6.0, -8.0])
+    # alone on a road that ends at x = 10: its state (front corners at x = 11) leaves it, so it takes the most
+    # likely cell that keeps its box on the road (x = 6), though nothing is in its way
+    alone = xy.at[1].set([100.0, 100.0])
+    np.testing.assert_allclose(decode(modes, road(10.0), alone), [6.0, 0.0])
+    np.testing.assert_array_equal(decode(modes, None, alone), alone[0])
 
 
 def test_top_cells_are_the_most_likely_first():
