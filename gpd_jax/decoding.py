@@ -59,11 +59,15 @@ from flax import nnx
 
 from gpd_jax import parallel
 from gpd_jax.model import autotune
-from gpd_jax.model import GPD, KVCache, LaneContext, Modes, Prediction, forward, forward_cached, reads_lanes
-from gpd_jax.geometry import rotate
+from gpd_jax.model import GPD, KVCache, LaneContext, Modes, Prediction, forward, forward_cached, reads_lanes, \
+    samples_agents
+from gpd_jax.geometry import RoadGeometry, rotate
+from gpd_jax.metrics.agents import box_corners
+from gpd_jax.metrics.realism import box_signed_distance, orient_edges, road_edge_distance
 from gpd_jax.options import RolloutOptions, Sampling
 from gpd_jax.prompts import Prompt, as_prompt
 from gpd_jax.scene import Scene, wrap_angle
+from gpd_jax.spec import EvalError
 from gpd_jax.tasks import Task
 
 
@@ -125,12 +129,15 @@ class Given:
     hidden agents removed, velocities zero for a model without velocity inputs; a prompt's given agent states and
     map tokens in place), the prompt (`task`: a `Prompt`, a task converted by `as_prompt`), optionally the
     log's lanes to re-encode the map around a generated ego, and for a model that reads lanes the lanes its
-    agents read (`context`, with `on` bool[T]: `lane_context`)."""
+    agents read (`context`, with `on` bool[T]: `lane_context`), and the agents' boxes (`size` f32[A, 2], length and
+    width) and drivable area (`road`, or None): what collision-aware decoding tests."""
 
     log: Frame
     task: Prompt
     lanes: LogLanes | None = None
     context: LaneContext | None = None
+    size: jax.Array | None = None
+    road: RoadGeometry | None = None
 
 
 @flax.struct.dataclass
@@ -229,7 +236,8 @@ def given_inputs(model: GPD, scene: Scene, task: Task | Prompt, lanes: LogLanes 
         map_tokens = jnp.where(prompt.use_lanes, enc, map_tokens)
     log = Frame(xy=xy, heading=heading, valid=valid, valid_logit=jnp.zeros(valid.shape, jnp.float32),
                 map_tokens=map_tokens, velocity=vel)
-    return Given(log=log, task=prompt, lanes=lanes, context=lane_context(model, scene, prompt, num_history))
+    return Given(log=log, task=prompt, lanes=lanes, context=lane_context(model, scene, prompt, num_history),
+                 size=scene.size, road=scene.road)
 
 
 def as_sampling(sampling: Sampling | float) -> Sampling:
@@ -272,9 +280,103 @@ def sample_agents(modes: Modes, key: jax.Array, sampling: Sampling):
     return xy, heading, vel
 
 
+AVOID_PASSES = 2  # rounds of collision-aware decoding: the second sees the first's choices
+
+
+def top_cells(modes: Modes, k: int) -> Modes:
+    """The `k` most likely cells of a sampling head's prediction of one frame (leading dims [A]), most likely
+    first: `Modes` with C = k."""
+    _, idx = jax.lax.top_k(modes.logits, k)
+
+    def take(a):
+        return jnp.take_along_axis(a, idx.reshape(idx.shape + (1,) * (a.ndim - idx.ndim)), axis=idx.ndim - 1)
+
+    return Modes(logits=take(modes.logits), xy=take(modes.xy), heading=take(modes.heading),
+                 velocity=None if modes.velocity is None else take(modes.velocity), scale=take(modes.scale),
+                 axes=modes.axes)
+
+
+def avoid_overlaps(xy, heading, vel, modes: Modes, prev_xy, prev_valid, valid, size, movable, key,
+                   sampling: Sampling, road: RoadGeometry | None = None):
+    """Collision-aware decoding of one frame's agents (`Sampling.avoid_collisions`): other agents and the road edge.
+
+    xy f32[A, 2], heading f32[A], vel f32[A, 2]: every slot's next state as chosen (regressed at temperature 0,
+    drawn above it; the log's for given slots); `modes`: the sampling head's prediction of that frame (leading dims
+    [A]); prev_xy f32[A, 2] / prev_valid bool[A]: the frame before; valid bool[A]: the slots present next; size
+    f32[A, 2] (length, width); movable bool[A]: the generated slots that may be changed; key: for the draws above
+    temperature 0 (None at 0); road: the scene's road geometry, or None.
+
+    Agent i yields to agent j when j is present and its previous centre is not behind i's (along i's heading): then
+    i's next box must not overlap j's next box, nor the box halfway between their previous and next centres (a car
+    that jumps through another between two frames). With `road`, an agent whose box was on the road at the frame
+    before (no corner beyond the road edges: the realism metric's `road_edge_distance` <= 0) must stay on it. A
+    movable agent whose state breaks either takes instead, of all the cells of its sampling head that keep both,
+    the most likely (temperature 0: the cell's centre and heading) or a draw (above it: a cell from their logits at
+    the temperature, then its noise, or the most likely one where the noise breaks them); where no cell keeps
+    both, its state stays. Agents ahead keep their states: a car behind a queue brakes, the queue does not move
+    back. `AVOID_PASSES` rounds, each against the others' states of the round before. A model without velocity
+    cells keeps `vel`. Returns (xy, heading, vel) as given."""
+    a, c = modes.logits.shape
+    half = size / 2
+    start = jnp.where(prev_valid[:, None], prev_xy, xy)
+    u = jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1)
+    ahead = jnp.sum((start[None, :, :] - start[:, None, :]) * u[:, None, :], -1) >= 0  # [i, j]: j not behind i
+    yields = ahead & valid[None, :] & ~jnp.eye(a, dtype=bool)
+    if road is None:
+        def on_the_road(cxy, ch):  # bool[A, C]
+            return jnp.ones(cxy.shape[:2], bool)
+    else:
+        edges = orient_edges(road)
+
+        def edge_distance(cxy, ch):  # f32[A, C]: the most off-road corner of candidate c of agent i (> 0: off)
+            corners = box_corners(jnp.swapaxes(cxy, 0, 1), jnp.swapaxes(ch, 0, 1),
+                                  jnp.broadcast_to(size, (cxy.shape[1],) + size.shape))  # [C, A, 4, 2]
+            return jnp.swapaxes(road_edge_distance(edges, corners, jnp.ones(corners.shape[:2], bool))[0], 0, 1)
+
+        was_on = edge_distance(start[:, None, :], heading[:, None])[:, 0] <= 0
+
+        def on_the_road(cxy, ch):
+            return (edge_distance(cxy, ch) <= 0) | ~was_on[:, None]
+
+    def clear(cxy, ch, oxy, oh):  # bool[A, C]: candidate c of agent i (cxy [A, C, 2], ch [A, C]) overlaps no j
+        def hits(p, q):
+            d = box_signed_distance(p[:, :, None, :], ch[:, :, None], half[:, None, None, :],
+                                    q[None, None, :, :], oh[None, None, :], half[None, None, :, :])
+            return jnp.any((d < 0) & yields[:, None, :], -1)
+
+        mid_c, mid_o = 0.5 * (cxy + start[:, None, :]), 0.5 * (oxy + start)
+        return ~(hits(cxy, oxy) | hits(mid_c, mid_o))
+
+    cells_on_road = on_the_road(modes.xy, modes.heading)
+
+    def one_pass(i, state):
+        cur_xy, cur_h, cur_v = state
+        ok_now = (clear(cur_xy[:, None, :], cur_h[:, None], cur_xy, cur_h) & on_the_road(cur_xy[:, None, :],
+                                                                                        cur_h[:, None]))[:, 0]
+        ok_cells = clear(modes.xy, modes.heading, cur_xy, cur_h) & cells_on_road
+        free = modes._replace(logits=jnp.where(ok_cells, modes.logits, -jnp.inf))
+        best = top_cells(free, 1)
+        new_xy, new_h = best.xy[:, 0], best.heading[:, 0]
+        new_v = None if best.velocity is None else best.velocity[:, 0]
+        if sampling.random:  # a draw among the free cells; where its noise breaks the rules, the best cell
+            d_xy, d_h, d_v = sample_agents(free, jax.random.fold_in(key, i), sampling)
+            fine = (clear(d_xy[:, None, :], d_h[:, None], cur_xy, cur_h) & on_the_road(d_xy[:, None, :],
+                                                                                      d_h[:, None]))[:, 0]
+            new_xy, new_h = jnp.where(fine[:, None], d_xy, new_xy), jnp.where(fine, d_h, new_h)
+            new_v = None if new_v is None else jnp.where(fine[:, None], d_v, new_v)
+        swap = movable & ~ok_now & jnp.any(ok_cells, -1)
+        out_v = cur_v if new_v is None else jnp.where(swap[:, None], new_v, cur_v)
+        return jnp.where(swap[:, None], new_xy, cur_xy), jnp.where(swap, new_h, cur_h), out_v
+
+    state = (xy, heading, vel)
+    for i in range(AVOID_PASSES):  # a fixed, small number of rounds (not a loop over time)
+        state = one_pass(i, state)
+    return state
+
+
 def _choose_frame(pred: Prediction, given: Given, t, key, sampling: Sampling,
                   map_encoder: MapEncoder | None = None, map_warp: MapWarp | None = None,
-                  anchor: Frame | None = None) -> Frame:
+                  anchor: Frame | None = None, prev: tuple[jax.Array, jax.Array] | None = None) -> Frame:
     """Frame t's inputs: the given data where the prompt says so at frame t, the prediction elsewhere.
 
     `pred` holds the single-frame prediction made at frame t-1 (leading dim 1). With `given.lanes` and
@@ -282,7 +384,9 @@ def _choose_frame(pred: Prediction, given: Given, t, key, sampling: Sampling,
     encoded around the generated ego pose instead of the logged tokens. With a prompt's own lanes (and
     `map_encoder`), the map slots taken from the given data are those lanes encoded around frame t's ego. With
     `map_warp` and the `anchor` frame, generated map slots are the anchor's map moved to frame t's ego, except
-    in cells the anchor did not see (both egos valid; otherwise the model's tokens).
+    in cells the anchor did not see (both egos valid; otherwise the model's tokens). With
+    `sampling.avoid_collisions` (a sampling-head model), the generated agents are decoded collision-aware
+    (`avoid_overlaps`; `prev`: frame t-1's xy f32[A, 2] and valid bool[A]).
     """
     log, task = given.log, given.task
     num_map = log.map_tokens.shape[-1]
@@ -324,6 +428,16 @@ def _choose_frame(pred: Prediction, given: Given, t, key, sampling: Sampling,
         map_t = jnp.where(keep, warped.astype(map_t.dtype), map_t)
     pred_vel = jnp.zeros_like(log.velocity[t]) if agent_vel is None else agent_vel
     vel_t = jnp.where(fl_agent[:, None], log.velocity[t], pred_vel)
+    if sampling.avoid_collisions:
+        if pred.modes is None:
+            raise ValueError("avoid_collisions decodes among the sampling head's cells: a model with "
+                             "model.agent_bins > 0 (gpd_sampling) is needed")
+        modes = jax.tree.map(lambda a: a[0], pred.modes)
+        prev_xy, prev_valid = prev
+        movable = ~fl_agent & valid_t & prev_valid
+        draw_key = jax.random.fold_in(jax.random.fold_in(key, t), 2) if sampling.random else None
+        xy_t, heading_t, vel_t = avoid_overlaps(xy_t, heading_t, vel_t, modes, prev_xy, prev_valid, valid_t,
+                                                given.size, movable, draw_key, sampling, given.road)
     return Frame(xy=xy_t, heading=heading_t, valid=valid_t, valid_logit=logit_t, map_tokens=map_t, velocity=vel_t)
 
 
@@ -352,7 +466,8 @@ def rollout(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Array, num_h
     log = given.log
 
     def choose(carry: RolloutCarry, t) -> Frame:
-        return _choose_frame(carry.decode.pred, given, t, key, sampling, map_encoder, map_warp, carry.anchor)
+        return _choose_frame(carry.decode.pred, given, t, key, sampling, map_encoder, map_warp, carry.anchor,
+                             (carry.decode.last_xy, carry.decode.last_valid))
 
     def step(carry: RolloutCarry, t):
         f = choose(carry, t)
@@ -475,7 +590,8 @@ def rollout_recompute(model: GPD, scene: Scene, task: Task | Prompt, key: jax.Ar
             given_map = jax.vmap(lambda s: _map_given(given.task, s))(frames) | (frames < h)
             a = jnp.max(jnp.where(given_map & (frames < t), frames, 0))
             anchor = jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, a, 0, keepdims=False), buf)
-        frame = _choose_frame(pred, given, t, key, sampling, map_encoder, map_warp, anchor)
+        frame = _choose_frame(pred, given, t, key, sampling, map_encoder, map_warp, anchor,
+                              (buf.xy[prev], buf.valid[prev] & (t > 0)))
         buf = jax.tree.map(lambda b, f: jax.lax.dynamic_update_slice_in_dim(b, f[None].astype(b.dtype), t, axis=0),
                            buf, frame)
         return buf, None
@@ -611,13 +727,15 @@ def rollout_jit(graphdef, params, rest, scenes: Scene, tasks: Task | Prompt, key
 def rollout_model(model, scenes: Scene, tasks: Task | Prompt, key: jax.Array,
                   options: RolloutOptions = RolloutOptions(), params=None) -> RolloutOutput:
     """The one way a loaded model (`gpd_jax.checkpoint.Model`) rolls out prepared scenes [S, ...] (`model.prepare`)
-    under tasks or prompts [K, ...] ([S, K, ...]): lane polylines the rollout does not read are dropped (smaller jit
-    arguments), the tokenizer goes in only where the options or a prompt's own lanes need it, and `rollout_jit`
+    under tasks or prompts [K, ...] ([S, K, ...]): lane polylines and road geometry the rollout does not read are
+    dropped (smaller jit arguments), the tokenizer goes in only where the options or a prompt's own lanes need it, and `rollout_jit`
     runs. `params`: other parameters of the same structure (default: the model's). Outputs [S, K, ...] ([S, K, N,
     ...] with `options.samples` = N)."""
     own = check_options(model, options, tasks)
     if not (reads_lanes(model.config.model) or options.log_map == "lanes"):
         scenes = scenes.replace(polylines=None, polyline_valid=None)
+    if not options.avoid_collisions:  # only collision-aware decoding reads the drivable area
+        scenes = scenes.replace(road=None)
     scenes = jax.tree.map(jnp.asarray, scenes)
     use_tok = options.needs_tokenizer or own
     tok = model.tokenizer if use_tok else None
@@ -626,8 +744,12 @@ def rollout_model(model, scenes: Scene, tasks: Task | Prompt, key: jax.Array,
 
 
 def check_options(model, options: RolloutOptions, tasks=None) -> bool:
-    """Raises EvalError when `options` or the prompts `tasks` need what `model` lacks (its map tokenizer); returns
+    """Raises EvalError when `options` or the prompts `tasks` need what `model` lacks (its map tokenizer, a
+    sampling head for collision-aware decoding); returns
     whether `tasks` are prompts with their own lanes."""
     own = isinstance(tasks, Prompt) and tasks.lanes is not None
     model.require_tokenizer(options, prompt_lanes=own)
+    if options.avoid_collisions and not samples_agents(model.config.model):
+        raise EvalError("avoid_collisions decodes among the sampling head's cells, and this model has none "
+                        "(config.model.agent_bins is 0): use a sampling model such as gpd_sampling")
     return own

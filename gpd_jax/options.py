@@ -29,11 +29,17 @@ class Sampling:
       temperature (1: the model's own distribution).
     top_k: > 0 keeps only the k most likely map tokens / agent cells before sampling (0: all).
     top_p: < 1 keeps the smallest set of most likely ones whose probability reaches top_p (nucleus sampling).
+    avoid_collisions: collision-aware decoding of a sampling head's agents (`gpd_jax.decoding.avoid_overlaps`): a
+      generated agent whose next state (regressed at temperature 0, drawn above it) would overlap the box of an
+      agent ahead of it, or leave the road its box was on (where the scene has road geometry), takes instead the
+      most likely (temperature 0) or a drawn (above it) cell of its sampling head that does neither; off by
+      default (the model's own rollout).
     """
 
     temperature: float = 0.0
     top_k: int = 0
     top_p: float = 1.0
+    avoid_collisions: bool = False
 
     def __post_init__(self):
         t = self.temperature
@@ -46,6 +52,8 @@ class Sampling:
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 < p <= 1:
             raise ValueError(f"RolloutOptions.top_p must be a number in (0, 1], got {p!r}")
         object.__setattr__(self, "top_p", float(p))
+        if not isinstance(self.avoid_collisions, bool):
+            raise ValueError(f"RolloutOptions.avoid_collisions must be True or False, got {self.avoid_collisions!r}")
 
     @property
     def random(self) -> bool:
@@ -59,6 +67,7 @@ class RolloutOptions:
 
     temperature, top_k, top_p: how map tokens and (with a sampling agent head) agents are sampled (`Sampling`:
       temperature 0, the default, takes the most likely map token and the regressed agent state).
+    avoid_collisions: collision-aware decoding of the agents (`Sampling.avoid_collisions`; a sampling-head model).
     samples: None (one future per scene and task: outputs [S, K, ...]) or N >= 1: N futures of each, drawn with
       their own keys in the same compiled rollout (outputs [S, K, N, ...]; identical at temperature 0).
     log_map: where a task takes the map from the log but generates the ego (traffic simulation, motion planning):
@@ -78,9 +87,10 @@ class RolloutOptions:
     gen_map: str = "model"
     method: str = "cached"
     samples: int | None = None
+    avoid_collisions: bool = False
 
     def __post_init__(self):
-        sampling = Sampling(self.temperature, self.top_k, self.top_p)  # checks them
+        sampling = self.sampling  # checks them
         object.__setattr__(self, "temperature", sampling.temperature)
         object.__setattr__(self, "top_p", sampling.top_p)
         n = self.samples
@@ -92,8 +102,8 @@ class RolloutOptions:
 
     @property
     def sampling(self) -> Sampling:
-        """The temperature, top-k and top-p as a `Sampling`."""
-        return Sampling(self.temperature, self.top_k, self.top_p)
+        """The temperature, top-k, top-p and collision-aware decoding as a `Sampling`."""
+        return Sampling(self.temperature, self.top_k, self.top_p, self.avoid_collisions)
 
     @property
     def needs_tokenizer(self) -> bool:

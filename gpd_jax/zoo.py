@@ -57,7 +57,9 @@ MODELS: tuple[ModelCard, ...] = (
     ModelCard(
         name="gpd_sampling", kind="gpd",
         purpose="many futures: gpd_traffic plus a sampling agent head, a categorical over 0.5 m cells of each "
-                "agent's next position, that rollouts sample (temperature 0.5; at temperature 0 it is gpd_traffic)",
+                "agent's next position, that rollouts sample (temperature 0.5; at temperature 0 it is gpd_traffic); "
+                "RolloutOptions(avoid_collisions=True) decodes its agents among those cells clear of other agents "
+                "and of the road edge (a decoding rule, off by default; docs/evaluation.md)",
         tokenizer="map_tokenizer", data=_RECORDED_DATA,
         figures="WOSAC-form realism meta-metric, 32 rollouts, traffic simulation: held-out generated networks "
                 "(test) 0.542 against gpd_traffic 0.420, constant velocity 0.312, along the lanes 0.418; held-out "

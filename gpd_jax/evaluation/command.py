@@ -46,6 +46,10 @@ def parser(prog: str = PROG) -> Parser:
                                                         "cells only (0: all)")
     p.add_argument("--top-p", type=float, default=1.0, help="nucleus sampling: the smallest set of most likely "
                                                             "tokens / agent cells whose probability reaches p")
+    p.add_argument("--avoid-collisions", action="store_true",
+                   help="collision-aware decoding (a sampling-head model): a generated agent whose next state "
+                        "would overlap an agent ahead of it or leave the road takes its sampling head's most likely "
+                        "clear cell (drawn above temperature 0) instead (docs/evaluation.md)")
     p.add_argument("--log-map", default="tokens", choices=LOG_MAPS,
                    help="tasks that take the map from the log but generate the ego get the logged map tokens "
                         "(the paper's choice) or the log's lanes re-encoded around the generated ego every frame")
@@ -93,7 +97,8 @@ def check_flags(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Na
         raise UsageError(f"--tasks {args.tasks}: 'all' cannot be combined with other task names")
     try:
         args.options = RolloutOptions(temperature=args.temperature, top_k=args.top_k, top_p=args.top_p,
-                                      log_map=args.log_map, gen_map=args.gen_map)
+                                      log_map=args.log_map, gen_map=args.gen_map,
+                                      avoid_collisions=args.avoid_collisions)
     except ValueError as e:
         flag = next((f for f in ("top-k", "top-p") if f.replace("-", "_") in str(e)), "temperature")
         raise UsageError(f"--{flag}: {e}") from None

@@ -29,7 +29,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from gpd_jax.decoding import DecodeState, Frame, advance, context_at, given_inputs, prefill, sample_agents
+from gpd_jax.decoding import (DecodeState, Frame, advance, context_at, given_inputs, prefill, sample_agents,
+                              top_cells)
 from gpd_jax.geometry import RoadGeometry, on_road
 from gpd_jax.metrics.realism import nearest_object_distance
 from gpd_jax.model import GPD, LaneContext, Modes
@@ -45,12 +46,8 @@ def top_k_candidates(modes: Modes, k: int):
     """The `k` most likely cells of a sampling head's next-state distribution of one frame (leading dims [A]).
 
     Returns (xy f32[A, k, 2], heading f32[A, k], velocity f32[A, k, 2] or None): each cell's centre."""
-    _, idx = jax.lax.top_k(modes.logits, k)
-
-    def take(a):
-        return jnp.take_along_axis(a, idx.reshape(idx.shape + (1,) * (a.ndim - idx.ndim)), axis=idx.ndim - 1)
-
-    return take(modes.xy), take(modes.heading), None if modes.velocity is None else take(modes.velocity)
+    top = top_cells(modes, k)
+    return top.xy, top.heading, top.velocity
 
 
 def closest_of_k(candidates_xy: jax.Array, target_xy: jax.Array) -> jax.Array:
