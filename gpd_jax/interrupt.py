@@ -81,22 +81,47 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+_worker_ready = False
+
+
 def _leave_quietly(signum, frame):
+    if not _worker_ready:  # still in its initializer: no job to unwind, and an exception there is logged loudly
+        os._exit(EXIT_INTERRUPTED)
     raise SystemExit(EXIT_INTERRUPTED)
 
 
 def quiet_worker() -> None:
     """Initializer of worker processes: a SIGINT (Ctrl-C reaches the whole process group) ends the worker without
     a traceback. Inside a job the exception unwinds it (`subprocess.run` kills its child) and goes back to the
-    parent, which is stopping anyway; an idle worker exits."""
+    parent, which is stopping anyway; an idle worker exits. `worker_pool` starts its workers with SIGINT blocked
+    (a Ctrl-C while a worker's interpreter starts would print a traceback from its `site` import); it is
+    unblocked here, once the quiet handler is in place (a Ctrl-C that came meanwhile ends the worker now)."""
+    global _worker_ready
     signal.signal(signal.SIGINT, _leave_quietly)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    _worker_ready = True
+
+
+@contextlib.contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """SIGINT blocked in this thread for the body: processes started meanwhile inherit the mask (across exec);
+    this process's Ctrl-C stays pending and arrives when the body ends."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 @contextlib.contextmanager
 def worker_pool(workers: int, initializer: Callable[[], None] = quiet_worker):
     """A `concurrent.futures.ProcessPoolExecutor` of `workers` spawned processes started with `initializer` (which
-    should call `quiet_worker`); when the body raises (Ctrl-C), the workers are stopped at once instead of being
-    waited for."""
+    should call `quiet_worker`: the workers start with SIGINT blocked, and it unblocks it); when the body raises
+    (Ctrl-C), the workers are stopped at once instead of being waited for."""
     import concurrent.futures as cf
 
     # a pool stopped by Ctrl-C leaves its queues' semaphores to multiprocessing's resource tracker, which cleans
@@ -104,7 +129,12 @@ def worker_pool(workers: int, initializer: Callable[[], None] = quiet_worker):
     quiet = "ignore::UserWarning:multiprocessing.resource_tracker"
     if quiet not in os.environ.get("PYTHONWARNINGS", ""):
         os.environ["PYTHONWARNINGS"] = ",".join(w for w in (os.environ.get("PYTHONWARNINGS"), quiet) if w)
-    ex = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=initializer)
+    class Pool(cf.ProcessPoolExecutor):
+        def submit(self, *args, **kwargs):  # spawned workers start here (and `map` submits): SIGINT blocked
+            with _sigint_blocked():
+                return super().submit(*args, **kwargs)
+
+    ex = Pool(workers, mp_context=multiprocessing.get_context("spawn"), initializer=initializer)
     try:
         yield ex
     except BaseException:

@@ -108,3 +108,28 @@ def test_ray_build_equals_local_build_with_a_job_retried(local_build, tmp_path, 
     assert os.path.isfile(tmp_path / "fail" / "failed_1")  # it did fail once, and was run again
     assert man["num_samples"] == store.read_manifest(local_build)["num_samples"] > 0
     _assert_same_store(local_build, out)
+
+
+def _sigint_blocked_at_init():
+    import signal
+
+    from gpd_jax import interrupt
+    os.environ["GPD_JAX_TEST_BLOCKED_AT_INIT"] = str(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+    interrupt.quiet_worker()
+
+
+def _sigint_state():
+    import signal
+    return os.environ["GPD_JAX_TEST_BLOCKED_AT_INIT"], signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+def test_pool_workers_start_with_ctrl_c_blocked_until_their_quiet_handler_is_in_place():
+    """A Ctrl-C while a worker's interpreter starts (its `site` import, before any handler) would print a
+    traceback per worker: workers are spawned with SIGINT blocked and `quiet_worker` unblocks it."""
+    import signal
+
+    from gpd_jax import interrupt
+    with interrupt.worker_pool(1, initializer=_sigint_blocked_at_init) as ex:
+        at_init, in_job = ex.submit(_sigint_state).result()
+    assert (at_init, in_job) == ("True", False)
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])  # the parent's mask is restored
