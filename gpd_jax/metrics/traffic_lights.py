@@ -106,14 +106,25 @@ def _distance(p, a, b, ok):
     return jnp.where(ok, d, jnp.inf)
 
 
-def _first_events(event, max_events: int):
-    """The first `max_events` True positions of `event bool[...]` in its flat (frame-major) order: (flat index
-    i32[E], used bool[E] (fewer events than E), rank i32[N] (events up to and including each flat position),
-    count i32[])."""
-    rank = jnp.cumsum(event.reshape(-1), dtype=jnp.int32)
+def _first_crossings(event, slot, max_events: int):
+    """The first `max_events` candidate crossings of `event bool[T-1, A, k]` (frame t + 1, agent, the agent's k
+    signal slots `slot i32[A, k]`) in frame-major order: (frame i32[E] (1..T-1), agent i32[E], signal i32[E],
+    used bool[E] (fewer events than E), beyond bool[T-1, A] (an agent's crossings past the budget, counted as
+    violations), over i32[] (how many crossings are past it))."""
+    _, a_n, k = event.shape
+    rank = jnp.cumsum(event.reshape(-1), dtype=jnp.int32)  # events up to and including each flat position
     count = rank[-1]
     idx = jnp.searchsorted(rank, jnp.arange(1, max_events + 1, dtype=jnp.int32))  # the e-th event's position
-    return jnp.minimum(idx, rank.shape[0] - 1), jnp.arange(max_events) < count, rank, count
+    idx = jnp.minimum(idx, rank.shape[0] - 1)
+    a_i = (idx // k) % a_n
+    beyond = jnp.any(event & (rank.reshape(event.shape) > max_events), -1)
+    return (idx // (a_n * k) + 1, a_i, slot[a_i, idx % k], jnp.arange(max_events) < count, beyond,
+            jnp.maximum(count - max_events, 0))
+
+
+def _violations(shape, t_i, a_i, ok, beyond):
+    """bool[T, A]: the crossings (t_i, a_i) that are violations (`ok`), and every agent-frame `beyond` the budget."""
+    return jnp.zeros(shape, bool).at[t_i, a_i].max(ok).at[1:].max(beyond)
 
 
 def signal_geometry(signals: TrafficSignals, lanes, lane_valid,
@@ -158,7 +169,6 @@ def red_light_violation(xy, valid, geo: SignalGeometry, max_events: int = MAX_EV
     are counted as violations, plus agents that come within `NEAR_STOP_M` of more than `slots_per_agent` stop
     points, whose farther ones are not looked at).
     """
-    t_n, a_n = valid.shape
     # per agent, the `slots_per_agent` signals whose stop point it comes nearest (only those within NEAR_STOP_M
     # can count): the rest of the test runs on [T, A, k] instead of [T, A, S]
     d2 = jnp.sum((xy[:, :, None, :] - geo.stop[None, None]) ** 2, -1)  # [T, A, S]
@@ -177,20 +187,14 @@ def red_light_violation(xy, valid, geo: SignalGeometry, max_events: int = MAX_EV
     crossed = (along[:-1] < stop_along) & (along[1:] > stop_along) & near[1:] & (valid[:-1] & valid[1:])[..., None]
     red = jnp.isin(geo.state[1:][:, slot], jnp.asarray(STOP_STATES))  # [T-1, A, k]
     event = crossed & red & present[None]  # [T-1, A, k]
-    idx, used, rank, count = _first_events(event, max_events)
-    t_i = idx // (a_n * k) + 1
-    a_i = (idx // k) % a_n
-    s_i = slot[a_i, idx % k]
+    t_i, a_i, s_i, used, beyond, over = _first_crossings(event, slot, max_events)
     p = xy[t_i, a_i]  # [E, 2]
     # the lane the agent is on: the nearest of the lane segments around the stop point (its own lane among them)
     d_own = jnp.min(_distance(p, geo.own_a[s_i], geo.own_b[s_i], geo.own_ok[s_i]), -1)
     d_all = jnp.min(_distance(p, geo.cand_a[s_i], geo.cand_b[s_i], geo.cand_ok[s_i]), -1)
     on_lane = d_own <= jnp.minimum(d_all, d_own) + LANE_TIE_M
-    out = jnp.zeros((t_n, a_n), bool).at[t_i, a_i].max(used & on_lane)
-    # candidate crossings beyond the budget: counted as violations
-    beyond_mask = event & (rank.reshape(event.shape) > max_events)
-    out = out.at[1:].max(jnp.any(beyond_mask, -1))
-    return out, (jnp.maximum(count - max_events, 0) + jnp.sum(crowded)).astype(jnp.int32)
+    out = _violations(valid.shape, t_i, a_i, used & on_lane, beyond)  # crossings past the budget count
+    return out, (over + jnp.sum(crowded)).astype(jnp.int32)
 
 
 # ------------------------------------------------------------------------------------------------ official rules
@@ -356,7 +360,6 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     Args: xy f32[T, A, 2], valid bool[T, A] (the frames of `geo.state`). Returns (violation bool[T, A] (False at
     frame 0), inexact i32[]).
     """
-    t_n, a_n = valid.shape
     k = min(slots_per_agent, geo.stop.shape[0])
     # per agent, the signals whose piece's box its trajectory's box (valid frames) comes within half the radius
     # of, nearest first: the crossing test runs on [T, A, k] instead of [T, A, S]
@@ -380,10 +383,7 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     g = jnp.maximum(0.0, jnp.maximum(lo - p, p - hi))
     near = jnp.sum(g * g, -1) < (geo.radius[slot] / 2) ** 2
     event = crossed & red & valid[1:, :, None] & near
-    idx, used, rank, count = _first_events(event, max_events)
-    t_i = idx // (a_n * k) + 1
-    a_i = (idx // k) % a_n
-    s_i = slot[a_i, idx % k]
+    t_i, a_i, s_i, used, beyond, over = _first_crossings(event, slot, max_events)
     d = official_segment_distance(xy[t_i, a_i], geo.cand_a[s_i], geo.cand_b[s_i], geo.cand_ok[s_i])  # [E, C]
     nearest = jnp.argmin(d, -1)
     on_lane = jnp.take_along_axis(geo.cand_own[s_i], nearest[:, None], 1)[:, 0]
@@ -392,8 +392,5 @@ def official_red_light_violation(xy, valid, geo: OfficialSignalGeometry, max_eve
     # the nearest segment of all where it is nearer than that
     gap = _box_gap(xy[t_i, a_i], xy[t_i, a_i], geo.box_lo[s_i], geo.box_hi[s_i])
     certain = jnp.take_along_axis(d, nearest[:, None], 1)[:, 0] + gap < geo.radius[s_i]
-    out = jnp.zeros((t_n, a_n), bool).at[t_i, a_i].max(used & on_lane & certain)
-    beyond = event & (rank.reshape(event.shape) > max_events)
-    out = out.at[1:].max(jnp.any(beyond, -1))
-    inexact = jnp.maximum(count - max_events, 0) + jnp.sum(used & ~certain) + jnp.sum(crowded)
-    return out, inexact.astype(jnp.int32)
+    out = _violations(valid.shape, t_i, a_i, used & on_lane & certain, beyond)
+    return out, (over + jnp.sum(used & ~certain) + jnp.sum(crowded)).astype(jnp.int32)
