@@ -77,8 +77,7 @@ class WorldPlannerOptions:
     the IDM candidates brake at most this hard, and one more candidate brakes as IDM does (its lowest speed,
     unbounded, no jerk limit: the emergency stop; 0: no bound, no such candidate); hold: the previous
     replan's chosen plan, moved on one model frame, is one more candidate and the previous choice is that plan (the
-    hysteresis bonus goes to it; without, to the candidate of the same index); head_bonus: added to the head's
-    plan's score (the head preferred unless another candidate is better by more).
+    hysteresis bonus goes to it; without, to the candidate of the same index).
     """
 
     scorer: str = "gpd"
@@ -98,7 +97,6 @@ class WorldPlannerOptions:
     max_jerk: float = 2.0
     max_decel: float = 3.0
     hold: bool = True
-    head_bonus: float = 0.0
 
     def __post_init__(self):
         if self.scorer not in SCORERS:
@@ -112,7 +110,7 @@ class WorldPlannerOptions:
         if not self.speeds:
             raise SimError("world planner: speeds: at least one IDM target speed")
         for name in ("temperature", "lane_width_m", "shift_time_s", "shift_min_m", "min_progress_m", "hysteresis",
-                     "max_jerk", "max_decel", "head_bonus"):
+                     "max_jerk", "max_decel"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise SimError(f"world planner: {name} must be a number >= 0, got {v!r}")
@@ -449,8 +447,7 @@ def world_planner_policy(world: Model, head: Model | None = None,
         cands = candidate_plans(obs, spec, options, ego_accel(obs, spec, prev_plan, has_plan))
         extra, bonus = [], jnp.zeros(cands.valid.shape[0])
         if head_poses is not None:
-            extra.append((plan_path(obs.ego_pose, obs.ego_velocity, head_poses, period, s), True,
-                          options.head_bonus))
+            extra.append((plan_path(obs.ego_pose, obs.ego_velocity, head_poses, period, s), True, 0.0))
         if options.hold:
             extra.append((held_plan(prev_plan, spec), has_plan, options.hysteresis))
         for poses, ok, b in extra:
