@@ -306,22 +306,29 @@ def avoid_overlaps(xy, heading, vel, modes: Modes, prev_xy, prev_valid, valid, s
     f32[A, 2] (length, width); movable bool[A]: the generated slots that may be changed; key: for the draws above
     temperature 0 (None at 0); road: the scene's road geometry, or None.
 
-    Agent i yields to agent j when j is present and its previous centre is not behind i's (along i's heading): then
-    i's next box must not overlap j's next box, nor the box halfway between their previous and next centres (a car
-    that jumps through another between two frames). With `road`, an agent whose box was on the road at the frame
-    before (no corner beyond the road edges: the realism metric's `road_edge_distance` <= 0) must stay on it. A
-    movable agent whose state breaks either takes instead, of all the cells of its sampling head that keep both,
-    the most likely (temperature 0: the cell's centre and heading) or a draw (above it: a cell from their logits at
-    the temperature, then its noise, or the most likely one where the noise breaks them); where no cell keeps
-    both, its state stays. Agents ahead keep their states: a car behind a queue brakes, the queue does not move
-    back. `AVOID_PASSES` rounds, each against the others' states of the round before. A model without velocity
-    cells keeps `vel`. Returns (xy, heading, vel) as given."""
+    Agent i yields to agent j when j is present and its previous centre is not behind i's (along i's heading), unless
+    their boxes (at the previous centres, with the next headings) already overlapped at the frame before: then i's
+    next box must not overlap j's next box, nor the box halfway between their previous and next centres (a car that
+    jumps through another between two frames). With `road`, an agent whose box was on the road at the frame before
+    (no corner beyond the road edges: the realism metric's `road_edge_distance` <= 0) must stay on it. A movable
+    agent whose state breaks either takes instead, of all the cells of its sampling head that keep both, the one
+    whose centre is nearest its state (temperature 0: the cell's centre and heading; the least change to the
+    regressed state) or a draw (above it: a cell from their logits at the temperature, then its noise, or the most
+    likely one where the noise breaks them); where no cell keeps both, its state stays. Agents ahead keep their
+    states: a car behind a queue brakes, the queue does not move back. `AVOID_PASSES` rounds, each against the
+    others' states of the round before. A model without velocity cells keeps `vel`. Returns (xy, heading, vel) as
+    given."""
     a, c = modes.logits.shape
     half = size / 2
     start = jnp.where(prev_valid[:, None], prev_xy, xy)
     u = jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1)
     ahead = jnp.sum((start[None, :, :] - start[:, None, :]) * u[:, None, :], -1) >= 0  # [i, j]: j not behind i
     yields = ahead & valid[None, :] & ~jnp.eye(a, dtype=bool)
+    # a pair whose boxes already overlapped at the frame before (a tight queue, a log with overlapping boxes) is not
+    # tested: no cell undoes that overlap, and a free cell moved standing cars metres from their states
+    before = box_signed_distance(start[:, None, :], heading[:, None], half[:, None, :], start[None, :, :],
+                                 heading[None, :], half[None, :, :]) < 0
+    yields = yields & ~(before & prev_valid[:, None] & prev_valid[None, :])
     if road is None:
         def on_the_road(cxy, ch):  # bool[A, C]
             return jnp.ones(cxy.shape[:2], bool)
@@ -355,7 +362,11 @@ def avoid_overlaps(xy, heading, vel, modes: Modes, prev_xy, prev_valid, valid, s
                                                                                         cur_h[:, None]))[:, 0]
         ok_cells = clear(modes.xy, modes.heading, cur_xy, cur_h) & cells_on_road
         free = modes._replace(logits=jnp.where(ok_cells, modes.logits, -jnp.inf))
-        best = top_cells(free, 1)
+        if sampling.random:  # the most likely free cell: where a draw's noise breaks the rules
+            best = top_cells(free, 1)
+        else:  # the free cell nearest the regressed state: the least change to the model's own choice
+            near = -jnp.sum((modes.xy - cur_xy[:, None, :]) ** 2, -1)
+            best = top_cells(modes._replace(logits=jnp.where(ok_cells, near, -jnp.inf)), 1)
         new_xy, new_h = best.xy[:, 0], best.heading[:, 0]
         new_v = None if best.velocity is None else best.velocity[:, 0]
         if sampling.random:  # a draw among the free cells; where its noise breaks the rules, the best cell

@@ -1,6 +1,7 @@
 """Collision-aware decoding (`RolloutOptions.avoid_collisions`, `gpd_jax.decoding.avoid_overlaps`): a car that would
-run into the one ahead takes the most likely free cell of its sampling head, the one ahead keeps its state, a box on
-the road stays on it; the option is off by default and needs a sampling head."""
+run into the one ahead takes the free cell of its sampling head nearest its regressed state (a draw among the free
+cells above temperature 0), the one ahead keeps its state, a pair already overlapping stays as it is, a box on the
+road stays on it; the option is off by default and needs a sampling head."""
 
 import chex
 import jax
@@ -43,16 +44,21 @@ def _overlap(xy_a, xy_b, heading_a=0.0):
     return float(box_signed_distance(xy_a, jnp.asarray(heading_a), half, xy_b, jnp.zeros(()), half)) < 0
 
 
-def test_the_car_behind_brakes_to_the_most_likely_free_cell_and_the_car_ahead_keeps_its_state():
+def test_the_car_behind_brakes_to_the_free_cell_nearest_its_state_and_the_car_ahead_keeps_its_state():
     xy, heading, modes, prev_xy = _queue()
     vel = jnp.ones((3, 2))
     every = jnp.ones(3, bool)
     assert _overlap(xy[0], xy[1])  # what the decoding is for
     new_xy, new_h, new_v = avoid_overlaps(xy, heading, vel, modes, prev_xy, every, every, SIZE, every, None,
                                           Sampling(0.0))
-    # x = 9 overlaps the car at 10 (4 m boxes); x = 6 (front bumper at 8, the other's rear at 8) does not: the most
-    # likely free cell
+    # x = 9 overlaps the car at 10 (4 m boxes); x = 6 (front bumper at 8, the other's rear at 8) does not: the free
+    # cell nearest the regressed x = 9
     np.testing.assert_allclose(new_xy[0], [6.0, 0.0])
+    # the nearest free cell, not the most likely one: with x = 3 the likelier, x = 6 is still taken
+    likelier_far = modes._replace(logits=jnp.broadcast_to(jnp.asarray([2.0, 0.0, 1.0]), (3, 3)))
+    near_xy, _, _ = avoid_overlaps(xy, heading, vel, likelier_far, prev_xy, every, every, SIZE, every, None,
+                                   Sampling(0.0))
+    np.testing.assert_allclose(near_xy[0], [6.0, 0.0])
     np.testing.assert_allclose(new_v[0], [0.6, 0.6])
     assert not _overlap(new_xy[0], new_xy[1])
     # the car ahead (the rear car is behind it) and the car to the side keep their states
@@ -69,6 +75,24 @@ def test_the_car_behind_brakes_to_the_most_likely_free_cell_and_the_car_ahead_ke
     kept, _, _ = avoid_overlaps(blocked, heading, vel, modes, prev_blocked, every, every, SIZE, every, None,
                                 Sampling(0.0))
     np.testing.assert_array_equal(kept[0], blocked[0])
+
+
+def test_a_pair_whose_boxes_overlapped_at_the_frame_before_is_left_as_it_is():
+    """A tight standing queue (or a log with overlapping boxes): no cell undoes the overlap, and taking a free one
+    moved standing cars metres from their (right) regressed states."""
+    xy, heading, modes, prev_xy = _queue()
+    every = jnp.ones(3, bool)
+    # the rear car stands at x = 7, its box (5..9) already over the car ahead's (8..12), and its regressed state stays
+    stand_prev = prev_xy.at[0].set([7.0, 0.0])
+    stand = xy.at[0].set([7.0, 0.0])
+    assert _overlap(stand_prev[0], stand_prev[1]) and _overlap(stand[0], stand[1])
+    kept, _, _ = avoid_overlaps(stand, heading, jnp.ones((3, 2)), modes, stand_prev, every, every, SIZE, every,
+                                None, Sampling(0.0))
+    np.testing.assert_array_equal(kept, stand)
+    # the same state coming from behind (x = 0 at the frame before, clear of the car ahead) is still swapped
+    swapped, _, _ = avoid_overlaps(stand, heading, jnp.ones((3, 2)), modes, prev_xy, every, every, SIZE, every, None,
+                                   Sampling(0.0))
+    np.testing.assert_allclose(swapped[0], [6.0, 0.0])
 
 
 def test_a_draw_above_temperature_zero_lands_on_a_free_cell_and_a_box_on_the_road_stays_on_it():
@@ -97,8 +121,8 @@ def test_a_draw_above_temperature_zero_lands_on_a_free_cell_and_a_box_on_the_roa
     off = modes._replace(xy=modes.xy.at[0, 1:, 1].set(-8.0))
     np.testing.assert_array_equal(decode(off, road(11.5)), xy[0])
     np.testing.assert_allclose(decode(off), [6.0, -8.0])  # without a road it would
-    # alone on a road that ends at x = 10: its state (front corners at x = 11) leaves it, so it takes the most
-    # likely cell that keeps its box on the road (x = 6), though nothing is in its way
+    # alone on a road that ends at x = 10: its state (front corners at x = 11) leaves it, so it takes the cell
+    # nearest its state that keeps its box on the road (x = 6), though nothing is in its way
     alone = xy.at[1].set([100.0, 100.0])
     np.testing.assert_allclose(decode(modes, road(10.0), alone), [6.0, 0.0])
     np.testing.assert_array_equal(decode(modes, None, alone), alone[0])
@@ -122,9 +146,10 @@ def setup():
     m = cfg.model
     scenes = synthetic_scenes(0, 2, m.num_frames, m.num_history, m.num_agents, m.num_map_tokens, m.codebook_size)
     scenes = scenes.replace(velocity=np.zeros_like(scenes.xy))
-    # the agents crowded together, and every generated agent kept present (the validity head's bias raised), so the
+    # the agents crowded together (a pair overlaps at the current frame, the others do not: a pair that already
+    # overlaps is not tested), and every generated agent kept present (the validity head's bias raised), so the
     # decoding has something to do
-    scenes = scenes.replace(xy=scenes.xy * 0.05)
+    scenes = scenes.replace(xy=scenes.xy * 0.3)
     tasks = make_tasks(["traffic_simulation"], m.num_map_tokens, m.num_agents)
     model = GPD(m, nnx.Rngs(0))
     bias = model.valid_head.linears[-1].bias
