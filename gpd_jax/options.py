@@ -31,9 +31,9 @@ class Sampling:
     top_p: < 1 keeps the smallest set of most likely ones whose probability reaches top_p (nucleus sampling).
     avoid_collisions: collision-aware decoding of a sampling head's agents (`gpd_jax.decoding.avoid_overlaps`): a
       generated agent whose next state (regressed at temperature 0, drawn above it) would overlap the box of an
-      agent ahead of it, or leave the road its box was on (where the scene has road geometry), takes instead the
-      most likely (temperature 0) or a drawn (above it) cell of its sampling head that does neither; off by
-      default (the model's own rollout).
+      agent ahead of it (a pair already overlapping at the frame before is not tested), or leave the road its box
+      was on (where the scene has road geometry), takes instead the cell of its sampling head nearest its state
+      (temperature 0) or a drawn one (above it) that does neither; off by default (the model's own rollout).
     """
 
     temperature: float = 0.0

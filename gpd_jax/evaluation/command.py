@@ -48,8 +48,9 @@ def parser(prog: str = PROG) -> Parser:
                                                             "tokens / agent cells whose probability reaches p")
     p.add_argument("--avoid-collisions", action="store_true",
                    help="collision-aware decoding (a sampling-head model): a generated agent whose next state "
-                        "would overlap an agent ahead of it or leave the road takes its sampling head's most likely "
-                        "clear cell (drawn above temperature 0) instead (docs/evaluation.md)")
+                        "would overlap an agent ahead of it or leave the road takes instead its sampling head's clear "
+                        "cell nearest that state (a draw among the clear cells above temperature 0; "
+                        "docs/evaluation.md)")
     p.add_argument("--log-map", default="tokens", choices=LOG_MAPS,
                    help="tasks that take the map from the log but generate the ego get the logged map tokens "
                         "(the paper's choice) or the log's lanes re-encoded around the generated ego every frame")
