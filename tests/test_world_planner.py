@@ -189,26 +189,3 @@ def test_braking_is_bounded_and_an_emergency_stop_is_a_candidate(world, obs):
     a = np.diff(np.concatenate([np.full((2, 1), 10.0), v], 1), axis=1) / dt
     assert a[0].min() >= -3.0 - 0.05                                            # bounded
     assert a[1].min() < -5.0                                                    # IDM's own braking
-
-
-def test_stitched_candidates_start_from_the_previous_plan_near_the_ego(world, obs):
-    o, _ = obs
-    spec, dt, s = world.spec, world.spec.stored_period_s, world.spec.frame_stride
-    n = spec.num_future * s
-    ego = np.asarray(o.ego_pose)
-    for lag, near in ((0.6, True), (3.0, False)):                   # the previous plan 0.6 m / 3 m ahead, at 8 m/s
-        plan = _straight(8.0, 0.0, n)
-        plan[:, 0] += ego[0] + lag - plan[s - 1, 0]
-        st = W.stitched(o, spec, jnp.asarray(plan), jnp.asarray(True), 1.0)
-        if near:
-            np.testing.assert_allclose(np.asarray(st.ego_pose), plan[s - 1], atol=1e-5)
-            np.testing.assert_allclose(np.asarray(st.ego_velocity), [8.0, 0.0], rtol=1e-4, atol=1e-4)
-            np.testing.assert_allclose(np.asarray(st.cur_velocity[0]), [8.0, 0.0], rtol=1e-4, atol=1e-4)
-            cand = np.asarray(W.candidate_plans(st, spec, SMALL).poses)
-            step = np.linalg.norm(cand[:, 0, :2] - plan[s - 1, :2], axis=-1) / dt
-            assert np.all(np.abs(step - 8.0) < 1.0), step              # they go on from the plan's pose and speed
-        else:
-            np.testing.assert_allclose(np.asarray(st.ego_pose), ego, atol=1e-6)
-    unchanged = W.stitched(o, spec, jnp.asarray(plan), jnp.asarray(False), 1.0)   # no plan yet: the ego's own
-    np.testing.assert_allclose(np.asarray(unchanged.ego_pose), ego, atol=1e-6)
-    assert W.stitched(o, spec, jnp.asarray(plan), jnp.asarray(True), 0.0) is o    # off

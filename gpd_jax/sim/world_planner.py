@@ -77,10 +77,7 @@ class WorldPlannerOptions:
     the IDM candidates brake at most this hard, and one more candidate brakes as IDM does (its lowest speed,
     unbounded, no jerk limit: the emergency stop; 0: no bound, no such candidate); hold: the previous
     replan's chosen plan, moved on one model frame, is one more candidate and the previous choice is that plan (the
-    hysteresis bonus goes to it; without, to the candidate of the same index); stitch_m: where the ego is within
-    this many metres of the previous plan's pose now, every candidate starts from that plan's pose, velocity and
-    acceleration now instead of the ego's (trajectory stitching: the tracker's reference stays continuous when the
-    choice switches; 0: never).
+    hysteresis bonus goes to it; without, to the candidate of the same index).
     """
 
     scorer: str = "gpd"
@@ -100,7 +97,6 @@ class WorldPlannerOptions:
     max_jerk: float = 2.0
     max_decel: float = 3.0
     hold: bool = True
-    stitch_m: float = 0.0
 
     def __post_init__(self):
         if self.scorer not in SCORERS:
@@ -114,7 +110,7 @@ class WorldPlannerOptions:
         if not self.speeds:
             raise SimError("world planner: speeds: at least one IDM target speed")
         for name in ("temperature", "lane_width_m", "shift_time_s", "shift_min_m", "min_progress_m", "hysteresis",
-                     "max_jerk", "max_decel", "stitch_m"):
+                     "max_jerk", "max_decel"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise SimError(f"world planner: {name} must be a number >= 0, got {v!r}")
@@ -251,22 +247,6 @@ def ego_accel(obs: Observation, spec: ModelSpec, prev_plan: jax.Array, has_plan:
     pts = prev_plan[s - 2: s + 1, :2]                                # the stored frames before, at and after now
     v = jnp.linalg.norm(pts[1:] - pts[:-1], axis=-1) / dt
     return jnp.where(has_plan, (v[1] - v[0]) / dt, hist)
-
-
-def stitched(obs: Observation, spec: ModelSpec, prev_plan: jax.Array, has_plan: jax.Array, radius_m: float
-             ) -> Observation:
-    """The observation the candidates start from: where the ego is within `radius_m` of the previous plan's pose now
-    (prev_plan f32[N, 3], stored-rate poses from the stored frame after the previous replan), its ego pose and velocity
-    are that plan's now (the tracker's reference goes on without a jump whichever candidate is chosen); else `obs`."""
-    s, dt = spec.frame_stride, spec.stored_period_s
-    if radius_m <= 0 or s < 2:
-        return obs
-    pose = prev_plan[s - 1]
-    vel = (prev_plan[s - 1, :2] - prev_plan[s - 2, :2]) / dt
-    near = has_plan & (jnp.linalg.norm(pose[:2] - obs.ego_pose[:2]) < radius_m)
-    ego_pose = jnp.where(near, pose, obs.ego_pose)
-    ego_vel = jnp.where(near, vel, obs.ego_velocity)
-    return obs.replace(ego_pose=ego_pose, ego_velocity=ego_vel, cur_velocity=obs.cur_velocity.at[0].set(ego_vel))
 
 
 # ------------------------------------------------------------------------------------------------ futures
@@ -464,11 +444,10 @@ def world_planner_policy(world: Model, head: Model | None = None,
 
     def choose(p, obs, decode, head_poses, prev, prev_plan, key):
         has_plan = prev >= 0
-        start = stitched(obs, spec, prev_plan, has_plan, options.stitch_m)       # where the candidates start
-        cands = candidate_plans(start, spec, options, ego_accel(obs, spec, prev_plan, has_plan))
+        cands = candidate_plans(obs, spec, options, ego_accel(obs, spec, prev_plan, has_plan))
         extra, bonus = [], jnp.zeros(cands.valid.shape[0])
         if head_poses is not None:
-            extra.append((plan_path(start.ego_pose, start.ego_velocity, head_poses, period, s), True, 0.0))
+            extra.append((plan_path(obs.ego_pose, obs.ego_velocity, head_poses, period, s), True, 0.0))
         if options.hold:
             extra.append((held_plan(prev_plan, spec), has_plan, options.hysteresis))
         for poses, ok, b in extra:
@@ -484,7 +463,7 @@ def world_planner_policy(world: Model, head: Model | None = None,
             futures = cv_futures(obs, spec, options, c)
         else:
             futures = log_futures(obs, spec, options, c)
-        sc = candidate_scores(start, spec, options, cands, futures)
+        sc = candidate_scores(obs, spec, options, cands, futures)
         pick = jnp.argmax(sc["score"] + bonus)
         return pick, cands.poses[pick]
 
