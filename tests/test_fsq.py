@@ -16,7 +16,7 @@ from gpd_jax.map_tokenizer.model import fsq_index, fsq_round, fsq_values
 from gpd_jax.map_tokenizer.synthetic import synthetic_lanes
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-LEVELS = (8, 5, 3)  # even and odd level counts
+LEVELS = (8, 5, 3, 2)  # even and odd level counts, binary included
 
 
 def fsq_config(*extra):
@@ -25,11 +25,11 @@ def fsq_config(*extra):
 
 
 def test_ids_cover_the_vocabulary_and_round_trip_to_values():
-    digits = jnp.asarray(list(itertools.product(*[range(n) for n in LEVELS])), jnp.int32)  # [120, 3]
+    digits = jnp.asarray(list(itertools.product(*[range(n) for n in LEVELS])), jnp.int32)  # [240, 4]
     ids = np.asarray(fsq_index(digits, LEVELS))
     np.testing.assert_array_equal(np.sort(ids), np.arange(int(np.prod(LEVELS))))  # a bijection onto [0, K)
     # random latents, wide enough to reach every level: ids in range, values equal to those of their ids
-    h = 4.0 * jax.random.normal(jax.random.key(0), (4096, 3))
+    h = 4.0 * jax.random.normal(jax.random.key(0), (4096, 4))
     values, d = fsq_round(h, LEVELS)
     idx = fsq_index(d, LEVELS)
     assert int(idx.min()) >= 0 and int(idx.max()) < int(np.prod(LEVELS))
@@ -43,8 +43,8 @@ def test_ids_cover_the_vocabulary_and_round_trip_to_values():
 
 
 def test_straight_through_gradient():
-    h = jnp.linspace(-2.0, 2.0, 30).reshape(10, 3)
-    c = jnp.arange(30.0).reshape(10, 3) - 14.5
+    h = jnp.linspace(-2.0, 2.0, 40).reshape(10, 4)
+    c = jnp.arange(40.0).reshape(10, 4) - 19.5
     g = jax.grad(lambda h: jnp.sum(fsq_round(h, LEVELS)[0] * c))(h)
     assert bool(jnp.all(jnp.isfinite(g)))
     assert bool(jnp.all(jnp.sign(g) == jnp.sign(c)))  # the bound is monotone: the gradient keeps the sign
@@ -131,6 +131,6 @@ def test_a_trained_tokenizer_takes_fsq_keeping_encoder_and_decoder(tmp_path):
         chex.assert_trees_all_close(params[group], src[group])
     with pytest.raises(ValueError, match="decoder_only"):
         initial_params(fsq_config("--config.train.decoder_only=True"), str(tmp_path / "src"))
-    with pytest.raises(ValueError, match="only put FSQ"):  # a new VQ codebook would need its k-means
+    with pytest.raises(ValueError, match="quantiser only to FSQ"):  # a new VQ codebook would need its k-means
         initial_params(load_config(os.path.join(ROOT, "configs/map_tokenizer.py:vector_test"),
                                    ["--config.model.num_codes=32"]), str(tmp_path / "src"))

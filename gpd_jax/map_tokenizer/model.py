@@ -170,7 +170,9 @@ def fsq_round(h: jax.Array, levels: tuple[int, ...]) -> tuple[jax.Array, jax.Arr
     divided by L_i // 2, in [-1, 1], f32[..., d], with the gradient of the bounded `h`; the levels' digits
     q_i + L_i // 2, i32[..., d], each in [0, L_i))."""
     L = jnp.asarray(levels, jnp.float32)
-    half = (L - 1.0) * (1.0 - 1e-3) / 2.0  # a hair inside, so that rounding never reaches an (L_i + 1)-th level
+    # a hair wider than (L - 1) / 2, so that the shift below is finite for L = 2; the bound's overshoot (far below
+    # half a level) never rounds to an (L_i + 1)-th level
+    half = (L - 1.0) * (1.0 + 1e-3) / 2.0
     offset = jnp.where(jnp.asarray(levels) % 2 == 0, 0.5, 0.0)
     bounded = jnp.tanh(h + jnp.arctanh(offset / half)) * half - offset
     q = bounded + jax.lax.stop_gradient(jnp.round(bounded) - bounded)

@@ -228,8 +228,8 @@ def _quantiser_changes(config, src_config, path: str) -> bool:
     if not diff:
         return False
     if not config.model.fsq_levels or config.train.decoder_only:
-        raise ValueError(f"train.init_from {path}: its quantiser differs in {diff}; a fine-tune may only put FSQ "
-                         "(model.fsq_levels) on a tokenizer, and not with train.decoder_only")
+        raise ValueError(f"train.init_from {path}: its model config differs in {diff}; a fine-tune may change the "
+                         "quantiser only to FSQ (model.fsq_levels), and not with train.decoder_only")
     return True
 
 
