@@ -8,8 +8,9 @@ clipping. The codebook is initialised by k-means on encoder outputs
 (at `train.kmeans_at_step`), and codes whose running usage falls below `restart_threshold / K` are re-seeded
 from recent encoder outputs every `restart_every` steps. With `train.continuous_warmup` the decoder reads the
 unquantized encoder outputs until that k-means (no VQ loss), the codes after it. With FSQ (`model.fsq_levels`) there
-is no codebook: no k-means, no restarts, no VQ loss; with `train.continuous` no quantiser at all (the reference). `train.init_from` starts from a trained tokenizer (its
-codebook kept); with `train.decoder_only` the encoder and codebook stay fixed, so the tokens do not change and
+is no codebook: no k-means, no restarts, no VQ loss; with `train.continuous` no quantiser at all (the reference).
+`train.init_from` starts from a trained tokenizer (its codebook kept, or its encoder and decoder under a fresh FSQ);
+with `train.decoder_only` the encoder and codebook stay fixed, so the tokens do not change and
 models trained on them stay valid, while the decoder trains on.
 
 The workdir gets `config.json`, `metrics.jsonl` (one JSON object per log / evaluation) and orbax checkpoints in
