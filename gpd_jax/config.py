@@ -189,6 +189,8 @@ def map_tokenizer_config() -> ml_collections.ConfigDict:
         grid=8,
         num_codes=128,
         commitment=0.25,
+        fsq_levels=(),             # empty: a VQ codebook of num_codes learned codes; set (e.g. (8, 5, 5, 5)): finite
+                                   # scalar quantisation with these levels, num_codes their product
         encoder=_section(
             kind="raster",         # "raster": the ResNet below over a lane raster (the paper's); "vector": the lane
                                    # polylines' segments read by model.vector (gpd_jax.map_tokenizer.vector)
@@ -238,6 +240,8 @@ def map_tokenizer_config() -> ml_collections.ConfigDict:
         kmeans_iters=20,
         kmeans_at_step=2_000,      # k-means once the encoder has warmed up (0: at initialisation)
         continuous_warmup=True,    # the decoder reads the continuous latents until k-means
+        continuous=False,          # the decoder reads the continuous latents throughout (no quantiser, no k-means):
+                                   # the reference a quantiser's cost is measured against, not a tokenizer
         init_from="",              # start from this tokenizer (an export or a workdir), keeping its codebook
         decoder_only=False,        # with init_from: train only the decoder (the tokens stay init_from's)
         usage_decay=0.99,

@@ -425,3 +425,22 @@ def test_shipped_directional_tokenizer_sees_which_way_lanes_run():
     assert diff["map_tokenizer"] == 0 and diff["map_tokenizer_directional"] > 0
     directional = load_tokenizer(zoo.resolve("map_tokenizer_directional"))
     assert directional.config.raster.direction and directional.fingerprint() == "ab468f23bfb2789e"
+
+
+def test_continuous_training_reads_the_latents_not_the_codes():
+    """`train.continuous`: the train step's loss is that of the continuous latents (no quantiser), with a
+    codebook in place (k-means done) that would change it."""
+    from gpd_jax.map_tokenizer.evaluation import frame_arrays
+    from gpd_jax.training.map_tokenizer import TrainState, build_model, loss_fn, make_optimizer, make_train_step
+    cfg = small_config("--config.train.continuous=True")
+    graphdef, params = build_model(cfg)
+    batch = frame_arrays(synthetic_lanes(0, 2))
+    tx = make_optimizer(cfg.train, params)
+    k = cfg.model.num_codes
+    state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params), jnp.full((k,), 1 / k, jnp.float32),
+                       jnp.ones((), bool))
+    want = float(loss_fn(graphdef, cfg, params, batch, False)[0])
+    codes = float(loss_fn(graphdef, cfg, params, batch, True)[0])
+    _, metrics, _ = jax.jit(make_train_step(graphdef, cfg, tx))(state, batch)
+    assert float(metrics["loss"]) == pytest.approx(want, rel=1e-4)
+    assert abs(codes - want) > 1e-3 * abs(want)

@@ -116,8 +116,8 @@ def cmd_encode(args) -> None:
     tok = _tokenizer(args.checkpoint)
     fingerprint = tok.fingerprint()
     stride = int(args.frame_stride)
-    if int(tok.codebook.shape[0]) > MISSING_MAP_TOKEN:
-        raise UsageError(f"{args.checkpoint}: {tok.codebook.shape[0]} codes do not fit the store's uint8 map "
+    if int(tok.config.model.num_codes) > MISSING_MAP_TOKEN:
+        raise UsageError(f"{args.checkpoint}: {tok.config.model.num_codes} codes do not fit the store's uint8 map "
                          f"tokens (at most {MISSING_MAP_TOKEN})")
 
     from tqdm import tqdm

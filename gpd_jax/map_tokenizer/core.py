@@ -17,7 +17,7 @@ from gpd_jax.metrics.matching import match_lines
 
 
 def codebook_of(params) -> jax.Array:
-    """The codebook f32[K, D] inside a params pytree."""
+    """The learned codebook f32[K, D] inside a VQ tokenizer's params pytree (FSQ has none: `code_table`)."""
     return params["codebook"]["embedding"]
 
 
@@ -30,6 +30,18 @@ def forward(graphdef, params, raster: jax.Array, quantized: bool | jax.Array = T
     """`MapVQVAE.__call__` as a pure function: raster f32[B, 256, 256] -> dict (see the model)."""
     model: MapVQVAE = nnx.merge(graphdef, params)
     return model(raster, quantized)
+
+
+def code_table(graphdef, params) -> jax.Array:
+    """f32[K, D]: the decoder input of each token id (the VQ codebook, or FSQ's implied one)."""
+    model: MapVQVAE = nnx.merge(graphdef, params)
+    return model.code_table()
+
+
+def tokens_of(graphdef, params, z: jax.Array) -> jax.Array:
+    """Token ids i32[...] of continuous latents f32[..., D] (the nearest code, or FSQ's rounded levels)."""
+    model: MapVQVAE = nnx.merge(graphdef, params)
+    return model.tokens(z)
 
 
 def encode_latents(graphdef, params, raster: jax.Array) -> jax.Array:

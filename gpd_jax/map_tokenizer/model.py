@@ -17,6 +17,7 @@ import math
 import jax
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 from flax import nnx
 
 from gpd_jax.map_tokenizer.raster import raster_channels, sine_position_2d
@@ -161,6 +162,71 @@ def quantize(codebook: jax.Array, z: jax.Array, commitment: float = 0.25):
     return z_q, idx, loss
 
 
+def fsq_round(h: jax.Array, levels: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
+    """Finite scalar quantisation of `h: f32[..., d]` (d = len(levels)) with a straight-through gradient.
+
+    Each dim is bounded by a shifted tanh into an interval of `levels[i]` integers and rounded: the integer
+    q_i lies in [-(L_i // 2), (L_i - 1) // 2] (L_i levels, even L_i included). Returns (the rounded values
+    divided by L_i // 2, in [-1, 1], f32[..., d], with the gradient of the bounded `h`; the levels' digits
+    q_i + L_i // 2, i32[..., d], each in [0, L_i))."""
+    L = jnp.asarray(levels, jnp.float32)
+    # a hair wider than (L - 1) / 2, so that the shift below is finite for L = 2; the bound's overshoot (far below
+    # half a level) never rounds to an (L_i + 1)-th level
+    half = (L - 1.0) * (1.0 + 1e-3) / 2.0
+    offset = jnp.where(jnp.asarray(levels) % 2 == 0, 0.5, 0.0)
+    bounded = jnp.tanh(h + jnp.arctanh(offset / half)) * half - offset
+    q = bounded + jax.lax.stop_gradient(jnp.round(bounded) - bounded)
+    width = jnp.asarray([l // 2 for l in levels], jnp.float32)
+    return q / width, (jnp.round(bounded) + width).astype(jnp.int32)
+
+
+def fsq_index(digits: jax.Array, levels: tuple[int, ...]) -> jax.Array:
+    """The mixed-radix token id i32[...] of level digits i32[..., d] (digit i in [0, levels[i]); the first
+    dim is the most significant): a bijection onto [0, prod(levels))."""
+    radix = [int(np.prod(levels[i + 1:], dtype=np.int64)) for i in range(len(levels))]
+    return jnp.sum(digits * jnp.asarray(radix, jnp.int32), -1)
+
+
+def fsq_values(idx: jax.Array, levels: tuple[int, ...]) -> jax.Array:
+    """The normalised level values f32[..., d] (as `fsq_round` gives them) of token ids i32[...]."""
+    digits, rest = [], idx
+    for l in reversed(levels):
+        digits.append(rest % l)
+        rest = rest // l
+    digits = jnp.stack(digits[::-1], -1).astype(jnp.float32)
+    width = jnp.asarray([l // 2 for l in levels], jnp.float32)
+    return (digits - width) / width
+
+
+class FSQ(nnx.Module):
+    """Finite scalar quantisation (Mentzer et al. 2023): a latent f32[..., D] is projected to d = len(levels)
+    dims, each bounded and rounded to its levels (`fsq_round`), and projected back to D for the decoder. The
+    token is the mixed-radix number of the levels (`fsq_index`), so the vocabulary is prod(levels), every code is
+    reachable by construction and there is no codebook to learn, initialise or restart (no codebook loss, no
+    k-means, no dead codes). `table()` is the implied codebook f32[prod(levels), D] (what the GPD embeds)."""
+
+    def __init__(self, levels: tuple[int, ...], code_dim: int, rngs: nnx.Rngs):
+        if len(levels) == 0 or any(int(l) < 2 for l in levels):
+            raise ValueError(f"model.fsq_levels is {tuple(levels)}; expected a non-empty tuple of integers >= 2")
+        self.levels = tuple(int(l) for l in levels)
+        self.proj_in = nnx.Linear(code_dim, len(self.levels), rngs=rngs)
+        self.proj_out = nnx.Linear(len(self.levels), code_dim, rngs=rngs)
+
+    def __call__(self, z: jax.Array):
+        """z f32[..., D] -> (z_q f32[..., D], idx i32[...], loss 0.0): `quantize`'s contract."""
+        values, digits = fsq_round(self.proj_in(z), self.levels)
+        return self.proj_out(values), fsq_index(digits, self.levels), jnp.zeros((), jnp.float32)
+
+    def tokens(self, z: jax.Array) -> jax.Array:
+        """Token ids i32[...] of latents f32[..., D]."""
+        return fsq_index(fsq_round(self.proj_in(z), self.levels)[1], self.levels)
+
+    def table(self) -> jax.Array:
+        """f32[prod(levels), D]: the decoder input of every token id."""
+        n = int(np.prod(self.levels))
+        return self.proj_out(fsq_values(jnp.arange(n), self.levels))
+
+
 class DecoderLayer(nnx.Module):
     """Pre-norm DETR decoder layer: self-attention over queries, cross-attention to the latent grid, FFN."""
 
@@ -229,7 +295,9 @@ class MapVQVAE(nnx.Module):
 
     `cfg.encoder.kind` picks the encoder: "raster" (the paper's ResNet over a lane raster: the encoder input is
     f32[B, 256, 256(, C)]) or "vector" (`gpd_jax.map_tokenizer.vector.VectorEncoder` over the lane polylines: the
-    encoder input is the tuple (polylines f32[B, L, P, 2] scene frame, valid bool[B, L, P], pose f32[B, 3]))."""
+    encoder input is the tuple (polylines f32[B, L, P, 2] scene frame, valid bool[B, L, P], pose f32[B, 3])).
+    `cfg.fsq_levels` picks the quantiser: empty, the VQ codebook of `num_codes` learned codes (`Codebook`, the
+    paper's); set, finite scalar quantisation (`FSQ`) with `num_codes` = the product of its levels."""
 
     def __init__(self, cfg: ml_collections.ConfigDict, rngs: nnx.Rngs, in_channels: int = 1, half: float = 32.0):
         self.grid = int(cfg.grid)
@@ -239,8 +307,34 @@ class MapVQVAE(nnx.Module):
             raise ValueError(f"model.encoder.kind is {kind!r}; expected one of {ENCODER_KINDS}")
         self.encoder = (Encoder(cfg.encoder, rngs, in_channels) if kind == "raster" else
                         VectorEncoder(cfg.vector, self.grid, half, cfg.encoder.code_dim, rngs))
-        self.codebook = Codebook(cfg.num_codes, cfg.encoder.code_dim, rngs)
+        levels = tuple(cfg.get("fsq_levels", ()) or ())
+        if levels:
+            if int(np.prod(levels)) != int(cfg.num_codes):
+                raise ValueError(f"model.fsq_levels {tuple(levels)} give {int(np.prod(levels))} codes but "
+                                 f"model.num_codes is {cfg.num_codes}: set it to their product")
+            self.fsq = FSQ(levels, cfg.encoder.code_dim, rngs)
+        else:
+            self.codebook = Codebook(cfg.num_codes, cfg.encoder.code_dim, rngs)
         self.decoder = VectorDecoder(cfg.decoder, cfg.encoder.code_dim, self.grid, rngs)
+
+    @property
+    def uses_fsq(self) -> bool:
+        """True when the quantiser is `FSQ` (`model.fsq_levels` set), False for the VQ codebook."""
+        return hasattr(self, "fsq")
+
+    def quantize(self, z: jax.Array):
+        """(z_q f32[..., D] with a straight-through gradient, idx i32[...], quantiser loss) of latents z."""
+        if self.uses_fsq:
+            return self.fsq(z)
+        return quantize(self.codebook.embedding[...], z, self.commitment)
+
+    def tokens(self, z: jax.Array) -> jax.Array:
+        """Token ids i32[...] of latents f32[..., D]."""
+        return self.fsq.tokens(z) if self.uses_fsq else nearest_code(self.codebook.embedding[...], z)
+
+    def code_table(self) -> jax.Array:
+        """f32[K, D]: the decoder input of each of the K token ids (the codebook, or FSQ's implied one)."""
+        return self.fsq.table() if self.uses_fsq else self.codebook.embedding[...]
 
     def encode_latents(self, inputs) -> jax.Array:
         """Encoder input (a raster f32[B, 256, 256] or [B, 256, 256, C], or the vector encoder's lane tuple; see
@@ -257,9 +351,9 @@ class MapVQVAE(nnx.Module):
         """Full pass of an encoder input (see `encode_latents`). Returns dict(points, logits, idx i32[B, M], vq_loss,
         z f32[B, M, D]). `quantized` (a Python or
         traced bool) False feeds the continuous latents to the decoder and zeroes the VQ loss (training's
-        continuous warm-up); `idx` are still the nearest codes."""
+        continuous warm-up); `idx` are still the tokens of the latents."""
         z = self.encode_latents(inputs)
-        z_q, idx, vq_loss = quantize(self.codebook.embedding[...], z, self.commitment)
+        z_q, idx, vq_loss = self.quantize(z)
         if quantized is not True:  # False, or a traced flag
             z_q = jnp.where(quantized, z_q, z)
             vq_loss = jnp.where(quantized, vq_loss, 0.0)

@@ -28,8 +28,13 @@ from gpd_jax import zoo
 from gpd_jax.config import config_from_json
 from gpd_jax.fsutil import atomic_directory, flatten_params, load_params_npz, restore_params
 from gpd_jax.map_tokenizer import core
-from gpd_jax.map_tokenizer.model import MapVQVAE, build_vqvae, nearest_code
+from gpd_jax.map_tokenizer.model import MapVQVAE, build_vqvae
 from gpd_jax.map_tokenizer.raster import cell_centres, from_ego_frame, raster_channels, rasterize, to_ego_frame
+
+
+# The parameter groups that decide the tokens (the decoder does not): the encoder and the quantiser (a VQ codebook,
+# or FSQ's projections, whose output projection is also the implied codebook the GPD embeds).
+TOKEN_PARAMS = ("encoder/", "codebook/", "fsq/")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -42,8 +47,9 @@ class MapTokenizer:
 
     @property
     def codebook(self) -> jax.Array:
-        """f32[K, D] the codebook (what GPD embeds map tokens with)."""
-        return core.codebook_of(self.params)
+        """f32[K, D] the decoder input of each token id: the codebook, FSQ's implied one (what GPD embeds map
+        tokens with)."""
+        return core.code_table(self.graphdef, self.params)
 
     @property
     def num_tokens(self) -> int:
@@ -60,7 +66,7 @@ class MapTokenizer:
         h = hashlib.sha256(repr(sorted(raster.items())).encode())
         flat = flatten_params(jax.device_get(self.params))
         for k in sorted(flat):
-            if k.startswith(("encoder/", "codebook/")):
+            if k.startswith(TOKEN_PARAMS):
                 a = np.ascontiguousarray(np.asarray(flat[k], np.float32))
                 h.update(k.encode())
                 h.update(repr(a.shape).encode())
@@ -83,7 +89,7 @@ class MapTokenizer:
         lead = rasters.shape[:-k]
         r = rasters.reshape((-1,) + rasters.shape[rasters.ndim - k:]).astype(jnp.float32)
         z = core.encode_latents(self.graphdef, params, r)
-        idx = nearest_code(core.codebook_of(params), z)
+        idx = core.tokens_of(self.graphdef, params, z)
         return idx.reshape(lead + (idx.shape[-1],))
 
     def encode_lanes(self, params, polylines: jax.Array, valid: jax.Array, pose: jax.Array) -> jax.Array:
@@ -96,7 +102,7 @@ class MapTokenizer:
             flat = lambda x, k: jnp.broadcast_to(x, lead + x.shape[x.ndim - k:]).reshape((-1,) + x.shape[x.ndim - k:])
             z = core.encode_latents(self.graphdef, params, (flat(polylines, 3).astype(jnp.float32), flat(valid, 2),
                                                             flat(pose, 1).astype(jnp.float32)))
-            idx = nearest_code(core.codebook_of(params), z)
+            idx = core.tokens_of(self.graphdef, params, z)
             return idx.reshape(lead + (idx.shape[-1],))
         r = self.config.raster
         raster = rasterize(polylines, valid, pose, size=r.size, pixel_size=r.pixel_size,
@@ -139,7 +145,7 @@ class MapTokenizer:
         existence logits f32[..., 50]; a line exists where logit > 0)."""
         lead = tokens.shape[:-1]
         t = tokens.reshape((-1, tokens.shape[-1]))
-        z_q = jnp.take(core.codebook_of(params), t, axis=0)
+        z_q = jnp.take(core.code_table(self.graphdef, params), t, axis=0)
         model: MapVQVAE = nnx.merge(self.graphdef, params)
         pts, logits = model.decoder(z_q)
         return pts.reshape(lead + pts.shape[1:]), logits.reshape(lead + logits.shape[1:])
@@ -185,7 +191,7 @@ def _decode_tokens(tok: MapTokenizer, params, tokens):
 
 
 def export_tokenizer(params, config: ml_collections.ConfigDict, out_dir: str, dtype=np.float16,
-                     exact: tuple[str, ...] = ("encoder", "codebook")) -> None:
+                     exact: tuple[str, ...] = ("encoder", "codebook", "fsq")) -> None:
     """Writes `config.json` and `params.npz` to `out_dir` together (a temporary directory renamed into place;
     other files already in `out_dir`, such as a README or evaluation files, are kept).
 

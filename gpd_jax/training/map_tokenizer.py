@@ -7,8 +7,10 @@ frame, and trained with 2 L1 + 5 BCE + VQ loss. AdamW with the codebook at its o
 clipping. The codebook is initialised by k-means on encoder outputs
 (at `train.kmeans_at_step`), and codes whose running usage falls below `restart_threshold / K` are re-seeded
 from recent encoder outputs every `restart_every` steps. With `train.continuous_warmup` the decoder reads the
-unquantized encoder outputs until that k-means (no VQ loss), the codes after it. `train.init_from` starts from a trained tokenizer (its
-codebook kept); with `train.decoder_only` the encoder and codebook stay fixed, so the tokens do not change and
+unquantized encoder outputs until that k-means (no VQ loss), the codes after it. With FSQ (`model.fsq_levels`) there
+is no codebook: no k-means, no restarts, no VQ loss; with `train.continuous` no quantiser at all (the reference).
+`train.init_from` starts from a trained tokenizer (its codebook kept, or its encoder and decoder under a fresh FSQ);
+with `train.decoder_only` the encoder and codebook stay fixed, so the tokens do not change and
 models trained on them stay valid, while the decoder trains on.
 
 The workdir gets `config.json`, `metrics.jsonl` (one JSON object per log / evaluation) and orbax checkpoints in
@@ -57,7 +59,7 @@ def build_model(config: ml_collections.ConfigDict, seed: int | None = None):
 
 
 # What `train.decoder_only` keeps fixed: everything that decides the tokens.
-FROZEN_WHEN_DECODER_ONLY = ("encoder", "codebook")
+FROZEN_WHEN_DECODER_ONLY = ("encoder", "codebook", "fsq")
 
 
 def make_optimizer(train_cfg: ml_collections.ConfigDict, params) -> optax.GradientTransformation:
@@ -96,11 +98,13 @@ def make_train_step(graphdef, config, tx):
     num_codes = config.model.num_codes
     decay = config.train.usage_decay
 
-    # With continuous warm-up the decoder reads the encoder's continuous outputs until k-means has run.
+    # With continuous warm-up the decoder reads the encoder's continuous outputs until k-means has run; with
+    # train.continuous, always (no quantiser: the reference a quantiser's cost is measured against).
     warmup = bool(config.train.continuous_warmup)
+    continuous = bool(config.train.continuous)
 
     def train_step(state: TrainState, batch):
-        quantized = state.kmeans_done if warmup else True
+        quantized = False if continuous else state.kmeans_done if warmup else True
         grad_fn = jax.value_and_grad(lambda p: loss_fn(graphdef, config, p, batch, quantized), has_aux=True)
         (_, aux), grads = grad_fn(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -120,8 +124,9 @@ def compiled_steps(graphdef, config, tx):
     eval step depends on the structure and the raster settings alone)."""
     train = compiled_once(("map_tokenizer", graphdef, step_key(config)),
                           lambda: jax.jit(make_train_step(graphdef, config, tx), donate_argnums=(0,)))
-    return train, compiled_once(("map_tokenizer_eval", graphdef, config.raster.to_json()),
-                                lambda: jax.jit(make_eval_step(graphdef, config, diagnostics=False)))
+    return train, compiled_once(("map_tokenizer_eval", graphdef, config.raster.to_json(), config.train.continuous),
+                                lambda: jax.jit(make_eval_step(graphdef, config, diagnostics=False,
+                                                               quantized=not config.train.continuous)))
 
 
 def kmeans_init(graphdef, params, config, key, batches: Iterator[dict]):
@@ -180,10 +185,16 @@ def initial_params(config: ml_collections.ConfigDict, path: str, fresh=None):
     if mine > theirs:
         params = _with_direction_channels(params, mine)
     extra = _added_decoder_layers(config, src.config, path)
-    if not extra:
+    swap = _quantiser_changes(config, src.config, path)
+    if not (extra or swap):
         return params
     if fresh is None:
         _, fresh = build_model(config)
+    if swap:  # the source's encoder and decoder, a fresh quantiser of config's kind
+        params = {k: v for k, v in params.items() if k not in ("codebook", "fsq")}
+        params.update({k: fresh[k] for k in ("codebook", "fsq") if k in fresh})
+    if not extra:
+        return params
     layers = dict(params["decoder"]["layers"])
     n_src = len(layers)
     for i in range(n_src, n_src + extra):
@@ -206,11 +217,29 @@ def _with_direction_channels(params, channels: int):
     return {**params, "encoder": {**params["encoder"], "stem": stem}}
 
 
+# The model fields a fine-tune may change when it swaps the quantiser (`_quantiser_changes`).
+QUANTISER_FIELDS = ("fsq_levels", "num_codes")
+
+
+def _quantiser_changes(config, src_config, path: str) -> bool:
+    """True when `config` puts FSQ (`model.fsq_levels`) with other levels on the source tokenizer: the fine-tune
+    keeps the source's encoder and decoder and starts FSQ's projections fresh. Raises for another change of the
+    quantiser (a new VQ codebook would need its k-means; `train.decoder_only` keeps the source's tokens)."""
+    diff = config_differences(config.model, src_config.model,
+                              ignore=tuple(k for k in config.model.keys() if k not in QUANTISER_FIELDS))
+    if not diff:
+        return False
+    if not config.model.fsq_levels or config.train.decoder_only:
+        raise ValueError(f"train.init_from {path}: its model config differs in {diff}; a fine-tune may change the "
+                         "quantiser only to FSQ (model.fsq_levels), and not with train.decoder_only")
+    return True
+
+
 def _added_decoder_layers(config, src_config, path: str) -> int:
     """How many decoder layers `config` adds to the source tokenizer's (0, or more with `train.decoder_only`);
-    raises when the model configs differ in anything else."""
+    raises when the model configs differ in anything else (the quantiser aside: `_quantiser_changes`)."""
     mine, theirs = config.model, src_config.model
-    diff = config_differences(mine, theirs, ignore=("decoder",))
+    diff = config_differences(mine, theirs, ignore=("decoder",) + QUANTISER_FIELDS)
     dec_diff = config_differences(mine.decoder, theirs.decoder, ignore=("num_layers",))
     extra = int(mine.decoder.num_layers) - int(theirs.decoder.num_layers)
     if diff or dec_diff:
@@ -241,8 +270,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
         params = initial_params(config, init_from, fresh=params)
     tx = make_optimizer(tcfg, params)
     mgr = checkpoint_manager(workdir, tcfg.keep_checkpoints)
-    # A started tokenizer keeps its codebook: no k-means.
-    state, resumed = restore_or_init(config, workdir, graphdef, params, tx, mgr, kmeans_done=bool(init_from))
+    # A started tokenizer keeps its codebook: no k-means; FSQ has no codebook to initialise, nor does a
+    # continuous run use one.
+    fsq = bool(config.model.fsq_levels)
+    state, resumed = restore_or_init(config, workdir, graphdef, params, tx, mgr,
+                                     kmeans_done=bool(init_from) or fsq or bool(tcfg.continuous))
     start = int(state.step)
     if resumed:
         print(f"resumed from step {start}")
@@ -274,7 +306,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, stop_aft
         state, metrics, z = train_step(state, frame_arrays(batch))
         window_n += tcfg.batch_size
         s1 = step + 1
-        if (tcfg.restart_every and not decoder_only and s1 % tcfg.restart_every == 0 and bool(state.kmeans_done)
+        if (tcfg.restart_every and not decoder_only and not fsq and not tcfg.continuous
+                and s1 % tcfg.restart_every == 0 and bool(state.kmeans_done)
                 and s1 < tcfg.restart_until * tcfg.num_steps):
             cb, usage, n_dead = restart(jax.random.fold_in(key, 1000 + s1), core.codebook_of(state.params),
                                         state.usage, z, float(tcfg.restart_threshold))
