@@ -371,8 +371,8 @@ def build_parser() -> Parser:
                        help="futures per candidate of gpd_world (a list: one row each, NAME_kK; default 4)")
         s.add_argument("--world-temperature", type=float, default=0.5, help="gpd_world's sampling temperature")
         s.add_argument("--world-horizon", type=count, default=4, metavar="F", help="model frames gpd_world imagines")
-        s.add_argument("--world-reduce", choices=("min", "mean"), default="min",
-                       help="gpd_world's score over the futures: worst case or mean")
+        s.add_argument("--world-reduce", choices=("min", "mean"), default="mean",
+                       help="gpd_world's score over the futures: their mean or the worst case")
         s.add_argument("--world-no-head", action="store_true",
                        help="no planning-head candidate in gpd_world (otherwise --head-model's plan is one)")
         s.add_argument("--seed", type=int, default=0)

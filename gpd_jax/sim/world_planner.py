@@ -27,8 +27,9 @@ following that candidate, K sampled futures, and each future is scored with the 
    (`cls_scores`): multipliers at-fault collisions x drivable area x driving direction, times the weighted mean of
    progress (5; along the route, relative to the best candidate that passes the multipliers, PDM's way; 1 when no
    candidate makes `min_progress_m`), time to collision (5) and comfort (2). Reduced over the K futures by `reduce`
-   (``min``: the worst case; ``mean``). The previous replan's plan gains `hysteresis` (fewer switches: the ego's
-   executed path stays one plan's unless another is better by more, or the held one becomes unsafe).
+   (``mean``, the default, chosen on dev scenes where the worst case cost comfort and points; ``min``: the worst
+   case). The previous replan's plan gains `hysteresis` (fewer switches: the ego's executed path stays one plan's
+   unless another is better by more, or the held one becomes unsafe).
 4. **The plan** is the best candidate's stored-rate poses (the tracker follows them; its open-loop plan is the same
    candidate at the model's frames from the current frame).
 
@@ -84,7 +85,7 @@ class WorldPlannerOptions:
     samples: int = 4
     temperature: float = 0.5
     horizon: int = 4
-    reduce: str = "min"
+    reduce: str = "mean"
     speeds: tuple = (1.0, 3.0, 5.0, 7.0, 9.0, 11.0, 13.89)
     side_speeds: tuple = (3.0, 7.0, 11.0)
     nudges_m: tuple = (1.0,)
