@@ -145,9 +145,8 @@ class MapTokenizer:
         existence logits f32[..., 50]; a line exists where logit > 0)."""
         lead = tokens.shape[:-1]
         t = tokens.reshape((-1, tokens.shape[-1]))
-        z_q = jnp.take(core.code_table(self.graphdef, params), t, axis=0)
         model: MapVQVAE = nnx.merge(self.graphdef, params)
-        pts, logits = model.decoder(z_q)
+        pts, logits = model.decoder(jnp.take(model.code_table(), t, axis=0))
         return pts.reshape(lead + pts.shape[1:]), logits.reshape(lead + logits.shape[1:])
 
     def reconstruct(self, params, rasters: jax.Array) -> tuple[jax.Array, jax.Array]:
